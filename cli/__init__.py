@@ -1,0 +1,1 @@
+"""Click commands: each builds a config, calls one library function and reports."""

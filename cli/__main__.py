@@ -1,0 +1,3 @@
+from mapkit.cli.main import main
+
+main()

@@ -1,0 +1,1 @@
+"""`mapkit info` and `mapkit ingest` (placeholder)."""

@@ -1,0 +1,1 @@
+"""`mapkit simulate` (placeholder until the simulator lands)."""

@@ -1,0 +1,6 @@
+"""Exception base class. Each subpackage derives its own; the CLI turns any of them into a
+one-line message and exit code 1, so messages must name the bad value and the fix."""
+
+
+class MapkitError(Exception):
+    """A problem with the user's input or environment, explained in one line."""
