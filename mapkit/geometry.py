@@ -1,0 +1,107 @@
+"""Rigid-transform helpers shared by every stage (4x4 float64 ``T_a_b``, quaternions ``xyzw``)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "matrix_from_quat_xyzw",
+    "quat_xyzw_from_matrix",
+    "transform_from_pose",
+    "pose_from_transform",
+    "invert_transform",
+    "slerp_xyzw",
+    "interpolate_transform",
+    "rotation_angle",
+]
+
+
+def matrix_from_quat_xyzw(q_xyzw: ArrayLike) -> NDArray[np.float64]:
+    """3x3 rotation matrix of a unit quaternion (x, y, z, w); normalised first."""
+    x, y, z, w = np.asarray(q_xyzw, dtype=np.float64) / np.linalg.norm(q_xyzw)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quat_xyzw_from_matrix(R: ArrayLike) -> NDArray[np.float64]:
+    """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix (Shepperd's method)."""
+    R = np.asarray(R, dtype=np.float64)
+    trace = R[0, 0] + R[1, 1] + R[2, 2]
+    if trace > 0:
+        s = 2.0 * np.sqrt(trace + 1.0)
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def transform_from_pose(translation: ArrayLike, q_xyzw: ArrayLike) -> NDArray[np.float64]:
+    """4x4 transform from a translation and a quaternion (x, y, z, w)."""
+    T = np.eye(4)
+    T[:3, :3] = matrix_from_quat_xyzw(q_xyzw)
+    T[:3, 3] = translation
+    return T
+
+
+def pose_from_transform(T: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(translation, quaternion xyzw) of a 4x4 transform."""
+    T = np.asarray(T, dtype=np.float64)
+    return T[:3, 3].copy(), quat_xyzw_from_matrix(T[:3, :3])
+
+
+def invert_transform(T: ArrayLike) -> NDArray[np.float64]:
+    """Inverse of a rigid 4x4 transform (or a stack [..., 4, 4])."""
+    T = np.asarray(T, dtype=np.float64)
+    R_t = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros_like(T)
+    out[..., :3, :3] = R_t
+    out[..., :3, 3] = -(R_t @ T[..., :3, 3, None])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def slerp_xyzw(q0: NDArray[np.float64], q1: NDArray[np.float64], s: float) -> NDArray[np.float64]:
+    """Spherical linear interpolation between unit quaternions, s in [0, 1], shortest arc."""
+    dot = float(np.dot(q0, q1))
+    if dot < 0.0:
+        q1, dot = -q1, -dot
+    if dot > 0.9995:  # nearly parallel: normalised lerp is exact to float precision here
+        q = q0 + s * (q1 - q0)
+        return q / np.linalg.norm(q)
+    theta = np.arccos(dot)
+    sin_theta = np.sin(theta)
+    return (np.sin((1.0 - s) * theta) * q0 + np.sin(s * theta) * q1) / sin_theta
+
+
+def interpolate_transform(
+    t0: NDArray[np.float64],
+    q0: NDArray[np.float64],
+    t1: NDArray[np.float64],
+    q1: NDArray[np.float64],
+    s: float,
+) -> NDArray[np.float64]:
+    """Pose at fraction s between two poses: linear translation, slerp rotation."""
+    return transform_from_pose(t0 + s * (t1 - t0), slerp_xyzw(q0, q1, s))
+
+
+def rotation_angle(R: ArrayLike) -> float:
+    """Angle (radians) of a 3x3 rotation; robust near 0 and pi."""
+    R = np.asarray(R, dtype=np.float64)
+    sin_theta = np.linalg.norm(R - R.T) / (2 * np.sqrt(2))
+    cos_theta = (np.trace(R) - 1.0) / 2.0
+    return float(np.arctan2(sin_theta, cos_theta))

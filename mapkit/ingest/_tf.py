@@ -1,0 +1,172 @@
+"""A small offline tf buffer: static and time-varying edges, lookups through any chain of frames."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapkit.geometry import interpolate_transform, invert_transform, transform_from_pose
+from mapkit.ingest._errors import IngestError
+
+# Why a frame has no pose at a stamp (these names appear in summaries and frames.zarr attrs).
+NO_POSE = "outside_pose_coverage"
+POSE_GAP = "pose_gap"
+
+
+@dataclass
+class EdgeSeries:
+    """T_parent_child sampled over time; interpolated linearly (translation) and by slerp."""
+
+    parent: str
+    child: str
+    origin: str
+    stamps: list[int] = field(default_factory=list)
+    translations: list[NDArray[np.float64]] = field(default_factory=list)
+    quats: list[NDArray[np.float64]] = field(default_factory=list)
+
+    def add(self, stamp: int, translation: NDArray[np.float64], q_xyzw: NDArray[np.float64]) -> None:
+        norm = float(np.linalg.norm(q_xyzw))
+        if not np.isfinite(norm) or norm < 1e-6 or not np.all(np.isfinite(translation)):
+            raise IngestError(
+                f"{self.origin}: transform {self.parent} -> {self.child} at stamp {stamp} ns has "
+                f"translation {translation.tolist()} and quaternion {q_xyzw.tolist()}; not a valid pose"
+            )
+        self.stamps.append(stamp)
+        self.translations.append(translation)
+        self.quats.append(q_xyzw / norm)
+
+    def finalize(self) -> None:
+        """Sort by stamp (tf publishers interleave); a repeated stamp keeps the last sample."""
+        stamps = np.asarray(self.stamps, dtype=np.int64)
+        order = np.argsort(stamps, kind="stable")
+        stamps = stamps[order]
+        keep = np.ones(len(stamps), dtype=bool)
+        keep[:-1] = stamps[1:] != stamps[:-1]
+        self._t = stamps[keep]
+        self._trans = np.asarray(self.translations)[order][keep]
+        quats = np.asarray(self.quats)[order][keep]
+        # Keep consecutive quaternions in one hemisphere so slerp takes the short way.
+        for i in range(1, len(quats)):
+            if np.dot(quats[i - 1], quats[i]) < 0:
+                quats[i] = -quats[i]
+        self._quats = quats
+
+    @property
+    def span(self) -> tuple[int, int]:
+        return int(self._t[0]), int(self._t[-1])
+
+    def at(self, stamp: int, max_gap_ns: int) -> NDArray[np.float64] | str:
+        """T_parent_child at `stamp`, or the reason it has none (NO_POSE / POSE_GAP)."""
+        t = self._t
+        if stamp < t[0] or stamp > t[-1]:
+            return NO_POSE
+        i = int(np.searchsorted(t, stamp, side="right"))
+        if t[i - 1] == stamp:
+            return transform_from_pose(self._trans[i - 1], self._quats[i - 1])
+        gap = int(t[i] - t[i - 1])
+        if gap > max_gap_ns:
+            return POSE_GAP
+        s = (stamp - int(t[i - 1])) / gap
+        return interpolate_transform(self._trans[i - 1], self._quats[i - 1], self._trans[i], self._quats[i], s)
+
+
+class TfTree:
+    """Frames linked child -> parent; each edge static (one matrix) or an EdgeSeries."""
+
+    def __init__(self) -> None:
+        self.static: dict[str, tuple[str, NDArray[np.float64]]] = {}
+        self.dynamic: dict[str, EdgeSeries] = {}
+
+    def set_static(self, parent: str, child: str, T_parent_child: NDArray[np.float64]) -> None:
+        self.dynamic.pop(child, None)
+        self.static[child] = (parent, T_parent_child)
+
+    def add_dynamic(
+        self, parent: str, child: str, stamp: int, translation: NDArray[np.float64],
+        q_xyzw: NDArray[np.float64], origin: str,
+    ) -> None:
+        series = self.dynamic.get(child)
+        if series is None or series.parent != parent:
+            # A frame has one parent; the newest declaration of a different parent wins.
+            series = self.dynamic[child] = EdgeSeries(parent, child, origin)
+        series.add(stamp, translation, q_xyzw)
+
+    def replace_dynamic(self, series: EdgeSeries) -> None:
+        """Install an edge from a pose topic; it supersedes whatever tf said about that child."""
+        self.static.pop(series.child, None)
+        self.dynamic[series.child] = series
+
+    def finalize(self) -> None:
+        for series in self.dynamic.values():
+            series.finalize()
+
+    @property
+    def frames(self) -> set[str]:
+        names = set(self.static) | set(self.dynamic)
+        names |= {p for p, _ in self.static.values()} | {s.parent for s in self.dynamic.values()}
+        return names
+
+    def parent(self, frame: str) -> str | None:
+        if frame in self.static:
+            return self.static[frame][0]
+        if frame in self.dynamic:
+            return self.dynamic[frame].parent
+        return None
+
+    def ancestors(self, frame: str) -> list[str]:
+        """[frame, parent, grandparent, ..., root]."""
+        chain = [frame]
+        while (p := self.parent(chain[-1])) is not None:
+            if p in chain:
+                raise IngestError(f"tf frames form a loop: {' -> '.join(chain + [p])}")
+            chain.append(p)
+        return chain
+
+    def root(self, frame: str) -> str:
+        return self.ancestors(frame)[-1]
+
+    def connected(self, a: str, b: str) -> bool:
+        return self.root(a) == self.root(b)
+
+    def static_top(self, frame: str) -> str:
+        """Walk up from `frame` through static edges only; the frame where motion starts."""
+        while frame in self.static:
+            frame = self.static[frame][0]
+        return frame
+
+    def dynamic_edges(self, a: str, b: str) -> list[EdgeSeries]:
+        chain_a, chain_b = self.ancestors(a), self.ancestors(b)
+        common = set(chain_a) & set(chain_b)
+        edges = [f for f in chain_a + chain_b if f not in common]
+        return [self.dynamic[f] for f in edges if f in self.dynamic]
+
+    def _T_ancestor_frame(self, frame: str, ancestor: str, stamp: int, max_gap_ns: int) -> NDArray[np.float64] | str:
+        T = np.eye(4)
+        while frame != ancestor:
+            if frame in self.static:
+                parent, T_edge = self.static[frame]
+            else:
+                series = self.dynamic[frame]
+                parent, T_edge = series.parent, series.at(stamp, max_gap_ns)
+                if isinstance(T_edge, str):
+                    return T_edge
+            T = T_edge @ T
+            frame = parent
+        return T
+
+    def lookup(self, target: str, source: str, stamp: int, max_gap_ns: int) -> NDArray[np.float64] | str:
+        """T_target_source at `stamp`, or the reason there is none."""
+        chain_t = self.ancestors(target)
+        chain_s = self.ancestors(source)
+        common = next((f for f in chain_s if f in chain_t), None)
+        if common is None:
+            raise IngestError(f"frames {target!r} and {source!r} are not connected by any transform")
+        T_common_target = self._T_ancestor_frame(target, common, stamp, max_gap_ns)
+        if isinstance(T_common_target, str):
+            return T_common_target
+        T_common_source = self._T_ancestor_frame(source, common, stamp, max_gap_ns)
+        if isinstance(T_common_source, str):
+            return T_common_source
+        return invert_transform(T_common_target) @ T_common_source
