@@ -72,6 +72,7 @@ def write_recording(
     """Depth at 30 Hz; poses at 4x that rate (a sample at every depth stamp, exact truth)."""
     stamps = [T0 + int(round(i * 1e9 / FPS)) for i in range(n)]
     rec = Recording(Path(), stamps, [], [], [])
+    events: list[tuple[int, int, Any]] = []  # (stamp, order, write) so the file is in time order
     with BagRecorder(out, fmt) as bag:
         rec.path = bag.path
         if tf_static:
@@ -80,10 +81,7 @@ def write_recording(
                 [(T_BODY_LINK, "base_link", "camera_link"), (T_LINK_OPTICAL, "camera_link", "camera_depth_optical_frame")],
             )
         pose_stamps = [T0 + int(round(j * 1e9 / (4 * FPS))) for j in range(-4, 4 * n + 4)][::pose_stride]
-        for ps in pose_stamps:
-            t = (ps - T0) / 1e9 + pose_offset_s
-            T = body_pose((ps - T0) / 1e9)
-            ps_written = ps + int(round(pose_offset_s * 1e9))
+        def write_pose(ps_written: int, T: np.ndarray) -> None:
             if pose == "odometry":
                 bag.write_odometry("/odom", ps_written, T, frame_id="world", child_frame_id="base_link")
             elif pose == "pose_stamped":
@@ -91,11 +89,15 @@ def write_recording(
             elif pose == "pose_cov":
                 bag.write_pose_with_covariance("/pose", ps_written, T, frame_id="map")
             elif pose == "tf":
-                # world → odom static-ish offset in /tf (dynamic edge), odom → base_link dynamic.
+                # world → odom as a (constant) dynamic edge, odom → base_link moving.
                 T_world_odom = np.eye(4)
                 T_world_odom[:3, 3] = [1.0, -2.0, 0.0]
                 bag.write_tf(ps_written, [(T_world_odom, "world", "odom"), (invert_transform(T_world_odom) @ T, "odom", "base_link")])
-            del t
+
+        for ps in pose_stamps:
+            ps_written = ps + int(round(pose_offset_s * 1e9))
+            T = body_pose((ps - T0) / 1e9)
+            events.append((ps_written, 0, lambda s=ps_written, T=T: write_pose(s, T)))
         for i, s in enumerate(stamps):
             T_wb = body_pose((s - T0) / 1e9)
             rec.T_world_body.append(T_wb)
@@ -103,12 +105,15 @@ def write_recording(
             d = depth_fn(i)
             rec.depth.append(d)
             if camera_info:
-                bag.write_camera_info("/camera/depth/camera_info", s, K, W, H, frame_id="camera_depth_optical_frame")
+                events.append((s, 1, lambda s=s: bag.write_camera_info(
+                    "/camera/depth/camera_info", s, K, W, H, frame_id="camera_depth_optical_frame")))
             if compressed:
-                bag.write_compressed_depth(depth_topic, s, d, frame_id="camera_depth_optical_frame", encoding=encoding)
+                events.append((s, 2, lambda s=s, d=d: bag.write_compressed_depth(
+                    depth_topic, s, d, frame_id="camera_depth_optical_frame", encoding=encoding)))
             else:
-                bag.write_depth(
+                events.append((s, 2, lambda s=s, d=d: bag.write_depth(
                     depth_topic, s, d, frame_id="camera_depth_optical_frame", encoding=encoding,
-                    row_padding=row_padding, big_endian=big_endian,
-                )
+                    row_padding=row_padding, big_endian=big_endian)))
+        for _, _, write in sorted(events, key=lambda e: (e[0], e[1])):
+            write()
     return rec

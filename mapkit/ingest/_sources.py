@@ -239,10 +239,10 @@ class _McapStream:
         warnings = []
         if cut is not None:
             warnings.append(
-                f"{str(path)!r} is truncated at byte {cut.offset} of {path.stat().st_size} "
-                f"({cut.reason}); recovered {n} complete messages before the cut"
+                f"{str(path)!r} is truncated or damaged: the record at byte {cut.offset} of "
+                f"{path.stat().st_size} is incomplete ({cut.reason}); recovered {n} complete messages before it"
             )
-            log.warning(warnings[-1])
+            log.info(warnings[-1])
         if n == 0:
             raise IngestError(f"{str(path)!r} holds no readable messages (MCAP damaged or truncated before the first message)")
         self.summary = BagSummary(path, "mcap", int(start), int(end), topics, warnings)
@@ -251,17 +251,19 @@ class _McapStream:
         from mcap.stream_reader import StreamReader
 
         with open(self.path, "rb") as f:
-            reader = StreamReader(f, skip_magic=False, emit_chunks=False)
-            it = reader.records
+            it = StreamReader(f, skip_magic=False, emit_chunks=False).records
+            record_start = f.tell()
             while True:
                 try:
                     record = next(it)
                 except StopIteration:
                     return
                 except Exception as exc:  # EndOfFile, bad CRC, bad opcode: the damaged tail
-                    yield _cut_marker(f.tell(), f"{type(exc).__name__}: {exc}".rstrip(": "))
+                    yield from _partial_chunk_records(self.path, record_start)
+                    yield _cut_marker(record_start, f"{type(exc).__name__}: {exc}".rstrip(": "))
                     return
                 yield record
+                record_start = f.tell()
 
     def messages(self, wanted: set[str]) -> Iterator[RawMessage]:
         for record in self._records():
@@ -282,3 +284,49 @@ def _ros2_typename(name: str) -> str:
     """MCAP schema names are 'pkg/msg/Type' (ROS2) or sometimes 'pkg/Type'."""
     parts = name.split("/")
     return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else name
+
+
+def _partial_chunk_records(path: Path, offset: int) -> Iterator[Any]:
+    """Complete records inside a chunk that the file cut off (the writer died mid-chunk).
+
+    The mcap package only parses whole chunks, so the chunk header is read here (MCAP spec:
+    opcode 0x06; start/end time, uncompressed size, CRC, compression, records length) and the
+    available compressed bytes are decompressed as a stream.
+    """
+    import io
+    import struct
+
+    from mcap.stream_reader import StreamReader
+
+    with open(path, "rb") as f:
+        f.seek(offset)
+        data = f.read()
+    if len(data) < 9 + 32 or data[0] != 0x06:
+        return
+    pos = 9 + 8 + 8 + 8 + 4
+    (clen,) = struct.unpack_from("<I", data, pos)
+    compression = data[pos + 4 : pos + 4 + clen].decode(errors="replace")
+    pos += 4 + clen + 8
+    payload = data[pos:]
+    try:
+        if compression == "":
+            records = payload
+        elif compression == "zstd":
+            import zstandard
+
+            records = zstandard.ZstdDecompressor().decompressobj().decompress(payload)
+        elif compression == "lz4":
+            import lz4.frame
+
+            records = lz4.frame.LZ4FrameDecompressor().decompress(payload)
+        else:
+            return
+    except Exception:  # the cut fell inside the compressed frame's header: nothing to save
+        return
+    it = StreamReader(io.BytesIO(records), skip_magic=True).records
+    while True:
+        try:
+            record = next(it)
+        except Exception:  # StopIteration or the cut record
+            return
+        yield record
