@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Sequence
@@ -28,8 +28,8 @@ from mapkit.ingest._decode import (
     tf_samples,
 )
 from mapkit.ingest._errors import IngestError
-from mapkit.ingest._sources import BagSummary, Source, normalize_topic
-from mapkit.ingest._tf import EdgeSeries, TfTree
+from mapkit.ingest._sources import BagSummary, Source, normalize_topic, prefetch
+from mapkit.ingest._tf import NO_POSE, POSE_GAP, EdgeSeries, TfTree
 
 log = logging.getLogger(__name__)
 
@@ -121,7 +121,7 @@ class SourcePlan:
     world_frame: str = ""
     body_frame: str = ""
     camera_frame: str = ""
-    tree: TfTree | None = None
+    pose_parent: str = ""
 
 
 def _find(summary: BagSummary, name: str, option: str) -> str:
@@ -234,56 +234,91 @@ def choose_roles(source: Source, config: IngestConfig) -> SourcePlan:
     return SourcePlan(s, depth, depth_encoding, camera_info, pose, tf_topics)
 
 
-def _check_monotonic(stamps: list[int], what: str, allow_drop: bool) -> None:
-    for i in range(1, len(stamps)):
-        if stamps[i] < stamps[i - 1] and not allow_drop:
-            raise IngestError(
-                f"{what}: stamp goes backwards at message {i} ({stamps[i]} ns after {stamps[i - 1]} ns); "
-                "fix the recording's clock or pass --drop-nonmonotonic to drop such messages"
-            )
+class _PoseFeed:
+    """Turns pose, tf and tf_static messages into a TfTree as a recording streams by."""
+
+    def __init__(self, plan: SourcePlan, config: IngestConfig, *, body: str | None = None) -> None:
+        self.plan, self.config = plan, config
+        self.tree = TfTree()
+        self.pose_series: EdgeSeries | None = None
+        self._last_pose_stamp: int | None = None
+        self.dropped_poses = 0
+        if body is not None and plan.pose.topic:
+            # The pose topic defines world → body; tf's say about that edge is ignored.
+            self.pose_series = EdgeSeries(plan.pose_parent, body, f"pose topic {plan.pose.topic}")
+            self.tree.replace_dynamic(self.pose_series)
+            self.tree.pinned.add(body)
+        if body is not None and config.extrinsic is not None and body != plan.camera_frame:
+            self.tree.set_static(body, plan.camera_frame, np.asarray(config.extrinsic, dtype=np.float64))
+            self.tree.pinned.add(plan.camera_frame)
+
+    @property
+    def topics(self) -> list[str]:
+        return self.plan.tf_topics + ([self.plan.pose.topic] if self.plan.pose.topic else [])
+
+    def add(self, topic: str, msgtype: str, msg: Any) -> None:
+        if topic == self.plan.pose.topic:
+            stamp, parent, child, t, q = pose_sample(msg, msgtype)
+            last = self._last_pose_stamp
+            if last is not None and stamp < last:
+                if not self.config.drop_nonmonotonic:
+                    raise IngestError(
+                        f"pose topic {topic}: stamp goes backwards ({stamp} ns after {last} ns); fix the "
+                        "recording's clock or pass --drop-nonmonotonic to drop such messages"
+                    )
+                self.dropped_poses += 1
+                return
+            self._last_pose_stamp = stamp
+            if self.pose_series is None:  # planning: the body frame is not known yet
+                self.pose_series = EdgeSeries(parent, child or "", f"pose topic {topic}")
+            self.pose_series.add(stamp, t, q)
+            return
+        static = "static" in topic
+        for stamp, parent, child, t, q in tf_samples(msg):
+            if static:
+                self.tree.set_static(parent, child, transform_from_pose(t, q))
+            else:
+                self.tree.add_dynamic(parent, child, stamp, t, q, f"topic {topic}")
 
 
 def load_poses(source: Source, plan: SourcePlan, config: IngestConfig) -> None:
-    """Read camera info, pose and tf topics (small) into the plan; resolve the frames."""
-    s = plan.summary
-    tree = TfTree()
-    pose_series: EdgeSeries | None = None
-    pose_stamps: list[int] = []
-    wanted = list(plan.tf_topics)
-    if plan.camera_info.topic:
-        wanted.append(plan.camera_info.topic)
-    if plan.pose.topic:
-        wanted.append(plan.pose.topic)
+    """Resolve intrinsics and the world / body / camera frames from the first seconds of a recording."""
+    feed = _PoseFeed(plan, config)
     info_msg = None
-    last_pose_stamp: int | None = None
+    first = _first_message(source, plan.depth.topic)  # type: ignore[arg-type]
+    camera = frame_name(config.camera_frame or first.header.frame_id)
+    if not camera:
+        raise IngestError(f"depth topic {plan.depth.topic} has an empty header.frame_id; pass --camera-frame")
+    static_topics = [t for t in plan.tf_topics if "static" in t]
+    static_seen = False
+
+    def enough() -> bool:
+        """Planning needs intrinsics, one pose, tf_static if recorded, and the camera in the tree."""
+        if plan.camera_info.topic and info_msg is None:
+            return False
+        if plan.pose.topic and feed.pose_series is None:
+            return False
+        if not plan.pose.topic and not feed.tree.dynamic:
+            return False
+        if static_topics and not static_seen:
+            return False
+        if config.extrinsic is None and camera not in feed.tree.frames:
+            return feed.pose_series is not None and feed.pose_series.child == camera
+        return True
+
+    wanted = feed.topics + ([plan.camera_info.topic] if plan.camera_info.topic else [])
     for raw in source.messages(wanted):
         if raw.topic == plan.camera_info.topic:
-            if info_msg is None:
-                info_msg = source.deserialize(raw)
-            continue
-        msg = source.deserialize(raw)
-        if raw.topic == plan.pose.topic:
-            stamp, parent, child, t, q = pose_sample(msg, raw.msgtype)
-            if last_pose_stamp is not None and stamp < last_pose_stamp and config.drop_nonmonotonic:
-                continue
-            pose_stamps.append(stamp)
-            last_pose_stamp = stamp if last_pose_stamp is None else max(stamp, last_pose_stamp)
-            if pose_series is None:
-                pose_series = EdgeSeries(parent, child or "", f"topic {raw.topic}")
-            pose_series.add(stamp, t, q)
-            continue
-        static = "static" in raw.topic
-        for stamp, parent, child, t, q in tf_samples(msg):
-            if static:
-                tree.set_static(parent, child, transform_from_pose(t, q))
-            else:
-                tree.add_dynamic(parent, child, stamp, t, q, f"topic {raw.topic}")
-    if plan.pose.topic:
-        if pose_series is None:
-            raise IngestError(f"pose topic {plan.pose.topic} has no messages")
-        _check_monotonic(pose_stamps, f"pose topic {plan.pose.topic}", config.drop_nonmonotonic)
+            info_msg = info_msg or source.deserialize(raw)
+        else:
+            feed.add(raw.topic, raw.msgtype, source.deserialize(raw))
+            static_seen = static_seen or raw.topic in static_topics
+        if enough():
+            break
+    if plan.pose.topic and feed.pose_series is None:
+        raise IngestError(f"pose topic {plan.pose.topic} has no messages")
+    tree, pose_series = feed.tree, feed.pose_series
 
-    # Intrinsics.
     if config.intrinsics is not None:
         plan.K = np.asarray(config.intrinsics, dtype=np.float64)
     else:
@@ -293,11 +328,6 @@ def load_poses(source: Source, plan: SourcePlan, config: IngestConfig) -> None:
             )
         plan.K, plan.width, plan.height = camera_intrinsics(info_msg, topic=plan.camera_info.topic or "")
 
-    # Frames: camera from the depth header (or option), body and world from the pose source.
-    first = _first_message(source, plan.depth.topic)  # type: ignore[arg-type]
-    camera = frame_name(config.camera_frame or first.header.frame_id)
-    if not camera:
-        raise IngestError(f"depth topic {plan.depth.topic} has an empty header.frame_id; pass --camera-frame")
     if pose_series is not None:
         if pose_series.child:
             body = frame_name(config.body_frame or pose_series.child)
@@ -313,8 +343,8 @@ def load_poses(source: Source, plan: SourcePlan, config: IngestConfig) -> None:
                 f"locates and camera frame {camera!r} has no tf_static chain; pass --extrinsic "
                 "(T_body_camera as x,y,z,qx,qy,qz,qw, or 'identity' if the pose is the camera's)"
             )
+        plan.pose_parent = pose_series.parent
         pose_series.child = body
-        pose_series.origin = f"pose topic {plan.pose.topic}"
         tree.replace_dynamic(pose_series)
         world = frame_name(config.world_frame or pose_series.parent)
     else:
@@ -331,19 +361,23 @@ def load_poses(source: Source, plan: SourcePlan, config: IngestConfig) -> None:
                 raise IngestError(f"body frame and camera frame are both {camera!r}; --extrinsic must be 'identity'")
         else:
             tree.set_static(body, camera, np.asarray(config.extrinsic, dtype=np.float64))
-    tree.finalize()
     known = ", ".join(sorted(tree.frames)) or "none"
     for a, b, hint in ((world, body, "pass --world-frame"), (body, camera, "pass --extrinsic x,y,z,qx,qy,qz,qw (T_body_camera)")):
         if a != b and (a not in tree.frames or b not in tree.frames or not tree.connected(a, b)):
             raise IngestError(f"no transform from frame {a!r} to frame {b!r} (tf frames: {known}); {hint}")
-    plan.tree, plan.world_frame, plan.body_frame, plan.camera_frame = tree, world, body, camera
+    plan.world_frame, plan.body_frame, plan.camera_frame = world, body, camera
+
+
+_MAX_PENDING = 256  # depth frames held while waiting for later poses (the poses' lag behind depth)
 
 
 @dataclass
 class FrameStream:
     """Iterates frames of several recordings; after iteration, `dropped` and `used` say what happened.
 
-    Only the poses are held in memory; depth images are decoded one at a time.
+    Each recording is read once, in log-time order: poses and tf feed a growing tf tree, and each
+    depth image waits (serialised) until the poses around its stamp have arrived. Only poses and a
+    short queue of images are held in memory.
     """
 
     paths: list[Path]
@@ -353,6 +387,7 @@ class FrameStream:
     used: int = 0
     depth_messages: int = 0
     warnings: list[str] = field(default_factory=list)
+    _spans: dict[int, tuple[tuple[int, int], list[tuple[int, int]]]] = field(default_factory=dict)
 
     @property
     def K(self) -> NDArray[np.float64]:
@@ -364,22 +399,61 @@ class FrameStream:
         return min(n, self.config.max_frames) if self.config.max_frames else n
 
     def __iter__(self) -> Iterator[Frame]:
-        max_gap_ns = int(round(self.config.max_pose_gap * 1e9))
-        stamps_seen: dict[int, tuple[int, int]] = {}
         for index, (path, plan) in enumerate(zip(self.paths, self.plans)):
-            tree = plan.tree
-            assert tree is not None
-            first_stamp: int | None = None
-            last_stamp: int | None = None
-            with Source(path) as source:
-                n = -1
-                for raw in source.messages([plan.depth.topic]):  # type: ignore[list-item]
+            for frame in self._iter_source(index, path, plan):
+                if self.config.max_frames and self.used >= self.config.max_frames:
+                    return
+                self.used += 1
+                yield frame
+        if self.used == 0:
+            raise IngestError(self._why_no_frames())
+
+    def _iter_source(self, index: int, path: Path, plan: SourcePlan) -> Iterator[Frame]:
+        max_gap_ns = int(round(self.config.max_pose_gap * 1e9))
+        feed = _PoseFeed(plan, self.config, body=plan.body_frame)
+        tree = feed.tree
+        pending: deque[tuple[int, Any, str]] = deque()
+        first_stamp: int | None = None
+        last_stamp: int | None = None
+        n = -1
+
+        def resolve(stamp: int, msg: Any, msgtype: str) -> Frame | None:
+            depth = decode_depth(msg, msgtype, topic=plan.depth.topic or "")
+            if plan.width and (depth.shape[1], depth.shape[0]) != (plan.width, plan.height):
+                raise IngestError(
+                    f"depth topic {plan.depth.topic} has {depth.shape[1]}x{depth.shape[0]} images but its "
+                    f"camera info says {plan.width}x{plan.height}; pass --camera-info-topic or --intrinsics"
+                )
+            if not plan.width:
+                plan.height, plan.width = depth.shape
+            if not np.isfinite(depth).any():
+                self.dropped[NO_VALID_DEPTH] += 1
+                return None
+            T_world_body = tree.lookup(plan.world_frame, plan.body_frame, stamp, max_gap_ns)
+            if isinstance(T_world_body, str):
+                self.dropped[T_world_body] += 1
+                return None
+            T_body_camera = tree.lookup(plan.body_frame, plan.camera_frame, stamp, max_gap_ns)
+            if isinstance(T_body_camera, str):
+                self.dropped[T_body_camera] += 1
+                return None
+            return Frame(depth, stamp, T_world_body @ T_body_camera, T_world_body, plan.K, index)  # type: ignore[arg-type]
+
+        def ready(stamp: int) -> bool:
+            edges = tree.dynamic_edges(plan.world_frame, plan.camera_frame)
+            return all(e.last_stamp is not None and e.last_stamp >= stamp for e in edges)
+
+        with Source(path) as source:
+            messages = source.messages([plan.depth.topic] + feed.topics)  # type: ignore[list-item]
+            # MCAP sources decompress in their own thread; the others read ahead in one here.
+            for raw in messages if source.kind == "mcap" else prefetch(messages):
+                if raw.topic != plan.depth.topic:
+                    feed.add(raw.topic, raw.msgtype, source.deserialize(raw))
+                else:
                     n += 1
                     self.depth_messages += 1
                     if n % self.config.stride:
                         continue
-                    if self.config.max_frames and self.used >= self.config.max_frames:
-                        return
                     msg = source.deserialize(raw)
                     stamp = stamp_ns(msg.header)
                     first_stamp = stamp if first_stamp is None else first_stamp
@@ -393,46 +467,32 @@ class FrameStream:
                         self.dropped[NON_MONOTONIC] += 1
                         continue
                     last_stamp = stamp
-                    depth = decode_depth(msg, raw.msgtype, topic=plan.depth.topic or "")
-                    if plan.width and (depth.shape[1], depth.shape[0]) != (plan.width, plan.height):
-                        raise IngestError(
-                            f"depth topic {plan.depth.topic} has {depth.shape[1]}x{depth.shape[0]} images but its "
-                            f"camera info says {plan.width}x{plan.height}; pass --camera-info-topic or --intrinsics"
-                        )
-                    if not plan.width:
-                        plan.height, plan.width = depth.shape
-                    if not np.isfinite(depth).any():
-                        self.dropped[NO_VALID_DEPTH] += 1
-                        continue
-                    T_world_body = tree.lookup(plan.world_frame, plan.body_frame, stamp, max_gap_ns)
-                    if isinstance(T_world_body, str):
-                        self.dropped[T_world_body] += 1
-                        continue
-                    T_body_camera = tree.lookup(plan.body_frame, plan.camera_frame, stamp, max_gap_ns)
-                    if isinstance(T_body_camera, str):
-                        self.dropped[T_body_camera] += 1
-                        continue
-                    self.used += 1
-                    yield Frame(depth, stamp, T_world_body @ T_body_camera, T_world_body, plan.K, index)  # type: ignore[arg-type]
-            stamps_seen[index] = (first_stamp or 0, last_stamp or 0)
-        if self.used == 0:
-            raise IngestError(self._why_no_frames(stamps_seen))
+                    pending.append((stamp, msg, raw.msgtype))
+                while pending and (ready(pending[0][0]) or len(pending) > _MAX_PENDING):
+                    if (frame := resolve(*pending.popleft())) is not None:
+                        yield frame
+            while pending:
+                if (frame := resolve(*pending.popleft())) is not None:
+                    yield frame
+        self.dropped["pose_message_non_monotonic"] += feed.dropped_poses
+        if not self.dropped["pose_message_non_monotonic"]:
+            del self.dropped["pose_message_non_monotonic"]
+        edges = tree.dynamic_edges(plan.world_frame, plan.camera_frame)
+        self._spans[index] = ((first_stamp or 0, last_stamp or 0), [e.span for e in edges if len(e)])
 
-    def _why_no_frames(self, spans: dict[int, tuple[int, int]]) -> str:
+    def _why_no_frames(self) -> str:
         reasons = ", ".join(f"{k}: {v}" for k, v in sorted(self.dropped.items())) or "none"
         msg = f"no usable frames out of {self.depth_messages} depth messages (dropped: {reasons})"
-        if self.dropped.get("outside_pose_coverage"):
-            plan = self.plans[0]
-            spans_pose = [s.span for s in plan.tree.dynamic_edges(plan.world_frame, plan.camera_frame)]  # type: ignore[union-attr]
-            if spans_pose and 0 in spans:
-                d0, d1 = spans[0]
-                p0 = max(s[0] for s in spans_pose)
-                p1 = min(s[1] for s in spans_pose)
+        if self.dropped.get(NO_POSE) and 0 in self._spans:
+            (d0, d1), pose_spans = self._spans[0]
+            if pose_spans:
+                p0 = max(s[0] for s in pose_spans)
+                p1 = min(s[1] for s in pose_spans)
                 msg += (
                     f"; depth stamps span {d0 / 1e9:.3f}–{d1 / 1e9:.3f} s but poses span "
                     f"{p0 / 1e9:.3f}–{p1 / 1e9:.3f} s: no pose overlaps the depth stamps (different clocks?)"
                 )
-        elif self.dropped.get("pose_gap"):
+        elif self.dropped.get(POSE_GAP):
             msg += f"; raise --max-pose-gap (now {self.config.max_pose_gap} s)"
         return msg
 

@@ -117,11 +117,9 @@ class Source:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.kind = detect_kind(self.path)
-        self._reader: Any = None
-        self._stream: _McapStream | None = None
+        self._backend: Any = None
         self.summary: BagSummary
 
-    # -- lifecycle
     def __enter__(self) -> "Source":
         self.open()
         return self
@@ -130,64 +128,46 @@ class Source:
         self.close()
 
     def open(self) -> None:
-        from rosbags.highlevel import AnyReader
-
-        reader = AnyReader([self.path], default_typestore=_default_typestore(self.kind))
-        try:
-            reader.open()
-        except Exception as exc:  # rosbags raises several unrelated types for damaged files
-            if self.kind == "mcap":
-                log.debug("AnyReader refused %s (%s); reading it as a stream", self.path, exc)
-                self._stream = _McapStream(self.path)
-                self.summary = self._stream.summary
-                return
-            raise IngestError(f"cannot read {str(self.path)!r} as a {FORMAT_NAMES[self.kind]}: {exc}") from None
-        self._reader = reader
-        topics: dict[str, TopicSummary] = {}
-        for conn in reader.connections:
-            name = normalize_topic(conn.topic)
-            prev = topics.get(name)
-            count = conn.msgcount + (prev.count if prev else 0)
-            topics[name] = TopicSummary(name, conn.msgtype, count)
-        self.summary = BagSummary(
-            self.path, self.kind, int(reader.start_time), int(reader.end_time), topics
-        )
+        if self.kind == "mcap":
+            # The mcap package reads indexed MCAP faster than rosbags (zstandard, no CRC pass);
+            # a file without a usable summary (cut off while recording) is read as a stream.
+            try:
+                self._backend = _McapIndexed(self.path)
+            except _NoSummary as exc:
+                log.debug("%s has no usable summary (%s); reading it as a stream", self.path, exc)
+                self._backend = _McapStream(self.path)
+        else:
+            self._backend = _Rosbags(self.path, self.kind)
+        self.summary = self._backend.summary
 
     def close(self) -> None:
-        if self._reader is not None:
-            self._reader.close()
-            self._reader = None
+        if self._backend is not None:
+            self._backend.close()
+            self._backend = None
 
-    # -- reading
     def messages(self, topics: Iterable[str]) -> Iterator[RawMessage]:
         """Messages of the given topics in log-time order."""
         wanted = {normalize_topic(t) for t in topics}
-        if self._stream is not None:
-            yield from self._stream.messages(wanted)
-            return
-        conns = [c for c in self._reader.connections if normalize_topic(c.topic) in wanted]
-        if not conns:
-            return
         count = 0
-        it = self._reader.messages(connections=conns)
+        it = self._backend.messages(wanted)
         while True:
             try:
-                conn, stamp, data = next(it)
+                msg = next(it)
             except StopIteration:
                 return
+            except IngestError:
+                raise
             except Exception as exc:  # damaged chunk/record: name the file and where
                 raise IngestError(
                     f"{str(self.path)!r} is damaged after message {count} ({type(exc).__name__}: {exc}); "
                     "re-export the recording or repair it (for MCAP: `mcap recover`)"
                 ) from None
             count += 1
-            yield RawMessage(normalize_topic(conn.topic), conn.msgtype, int(stamp), data)
+            yield msg
 
     def deserialize(self, msg: RawMessage) -> Any:
         try:
-            if self._stream is not None:
-                return self._stream.typestore.deserialize_cdr(msg.data, msg.msgtype)
-            return self._reader.deserialize(msg.data, msg.msgtype)
+            return self._backend.deserialize(msg)
         except Exception as exc:
             raise IngestError(
                 f"{str(self.path)!r}: a {msg.msgtype} message on {msg.topic} at log time "
@@ -195,30 +175,133 @@ class Source:
             ) from None
 
 
+class _Rosbags:
+    """ROS1 bags, ROS2 bag directories and bare .db3 files through rosbags' AnyReader."""
+
+    def __init__(self, path: Path, kind: str) -> None:
+        from rosbags.highlevel import AnyReader
+
+        reader = AnyReader([path], default_typestore=_default_typestore(kind))
+        try:
+            reader.open()
+        except Exception as exc:  # rosbags raises several unrelated types for damaged files
+            raise IngestError(f"cannot read {str(path)!r} as a {FORMAT_NAMES[kind]}: {exc}") from None
+        self._reader = reader
+        topics: dict[str, TopicSummary] = {}
+        for conn in reader.connections:
+            name = normalize_topic(conn.topic)
+            prev = topics.get(name)
+            topics[name] = TopicSummary(name, conn.msgtype, conn.msgcount + (prev.count if prev else 0))
+        self.summary = BagSummary(path, kind, int(reader.start_time), int(reader.end_time), topics)
+
+    def close(self) -> None:
+        self._reader.close()
+
+    def messages(self, wanted: set[str]) -> Iterator[RawMessage]:
+        conns = [c for c in self._reader.connections if normalize_topic(c.topic) in wanted]
+        if conns:
+            for conn, stamp, data in self._reader.messages(connections=conns):
+                yield RawMessage(normalize_topic(conn.topic), conn.msgtype, int(stamp), data)
+
+    def deserialize(self, msg: RawMessage) -> Any:
+        return self._reader.deserialize(msg.data, msg.msgtype)
+
+
+class _NoSummary(Exception):
+    pass
+
+
+def _typestore_from_schemas(path: Path, schemas: Iterable[Any]) -> Any:
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    types: dict[str, Any] = {}
+    for schema in schemas:
+        if schema.encoding != "ros2msg":
+            raise IngestError(
+                f"{str(path)!r}: schema {schema.name!r} is encoded as {schema.encoding!r}; "
+                "mapkit reads ROS2 CDR MCAP files (ros2msg schemas)"
+            )
+        types.update(get_types_from_msg(schema.data.decode(), _ros2_typename(schema.name)))
+    store = get_typestore(Stores.EMPTY)
+    store.register(types)
+    return store
+
+
+class _McapIndexed:
+    """A complete MCAP file, read through its summary section and chunk indexes."""
+
+    def __init__(self, path: Path) -> None:
+        from mcap.reader import make_reader
+
+        self.path = path
+        self._file = open(path, "rb")
+        try:
+            self._reader = make_reader(self._file)
+            summary = self._reader.get_summary()
+        except Exception as exc:
+            self._file.close()
+            raise _NoSummary(str(exc)) from None
+        if summary is None or summary.statistics is None or not summary.chunk_indexes:
+            self._file.close()
+            raise _NoSummary("no summary section")
+        self._names = {sid: _ros2_typename(s.name) for sid, s in summary.schemas.items()}
+        self.typestore = _typestore_from_schemas(path, summary.schemas.values())
+        counts = summary.statistics.channel_message_counts
+        topics: dict[str, TopicSummary] = {}
+        for cid, ch in summary.channels.items():
+            name = normalize_topic(ch.topic)
+            prev = topics.get(name)
+            topics[name] = TopicSummary(name, self._names[ch.schema_id], counts.get(cid, 0) + (prev.count if prev else 0))
+        st = summary.statistics
+        self.summary = BagSummary(path, "mcap", int(st.message_start_time), int(st.message_end_time), topics)
+
+    def close(self) -> None:
+        self._file.close()
+
+    def messages(self, wanted: set[str]) -> Iterator[RawMessage]:
+        summary = self._reader.get_summary()
+        channels = {cid: ch for cid, ch in summary.channels.items() if normalize_topic(ch.topic) in wanted}
+        if not channels:
+            return
+        chunks = sorted(summary.chunk_indexes, key=lambda c: (c.message_start_time, c.chunk_start_offset))
+        overlapping = any(b.message_start_time < a.message_end_time for a, b in zip(chunks, chunks[1:]))
+        if overlapping or any(c.compression not in ("", "zstd", "lz4") for c in chunks):
+            # Interleaved chunks need the mcap package's merge by log time.
+            names = [ch.topic for ch in channels.values()]
+            for schema, channel, message in self._reader.iter_messages(topics=names, log_time_order=True):
+                yield RawMessage(normalize_topic(channel.topic), self._names[schema.id], int(message.log_time), message.data)
+            return
+        topics = {cid: (normalize_topic(ch.topic), self._names[ch.schema_id]) for cid, ch in channels.items()}
+        for records in prefetch(_decompressed_chunks(self.path, chunks), depth=3):
+            batch = []
+            for cid, log_time, data in _iter_message_records(records):
+                if cid in topics:
+                    batch.append((log_time, cid, data))
+            batch.sort(key=lambda m: m[0])
+            for log_time, cid, data in batch:
+                topic, msgtype = topics[cid]
+                yield RawMessage(topic, msgtype, log_time, data)
+
+    def deserialize(self, msg: RawMessage) -> Any:
+        return self.typestore.deserialize_cdr(msg.data, msg.msgtype)
+
+
 class _McapStream:
     """Reads a footer-less (truncated) MCAP record by record; keeps what precedes the cut."""
 
     def __init__(self, path: Path) -> None:
-        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
         self.path = path
-        self.typestore = get_typestore(Stores.EMPTY)
         self._channels: dict[int, tuple[str, str]] = {}
         counts: dict[str, list[Any]] = {}
         start, end, n, cut = None, None, 0, None
-        types: dict[str, Any] = {}
+        schemas: list[Any] = []
         for record in self._records():
             if isinstance(record, _cut_marker):
                 cut = record
                 break
             kind = type(record).__name__
             if kind == "Schema":
-                if record.encoding != "ros2msg":
-                    raise IngestError(
-                        f"{str(path)!r}: schema {record.name!r} is encoded as {record.encoding!r}; "
-                        "mapkit reads ROS2 CDR MCAP files (ros2msg schemas)"
-                    )
-                types.update(get_types_from_msg(record.data.decode(), _ros2_typename(record.name)))
+                schemas.append(record)
             elif kind == "Channel":
                 self._channels[record.id] = (normalize_topic(record.topic), record.schema_id)
             elif kind == "Message":
@@ -227,11 +310,8 @@ class _McapStream:
                 end = record.log_time if end is None else max(end, record.log_time)
                 topic = self._channels[record.channel_id][0]
                 counts.setdefault(topic, [record.channel_id, 0])[1] += 1
-        self.typestore.register(types)
-        self._schema_names: dict[int, str] = {}
-        for record in self._records():
-            if type(record).__name__ == "Schema":
-                self._schema_names[record.id] = _ros2_typename(record.name)
+        self.typestore = _typestore_from_schemas(path, schemas)
+        self._schema_names = {sch.id: _ros2_typename(sch.name) for sch in schemas}
         topics = {
             t: TopicSummary(t, self._schema_names[self._channels[cid][1]], c)
             for t, (cid, c) in counts.items()
@@ -264,6 +344,12 @@ class _McapStream:
                     return
                 yield record
                 record_start = f.tell()
+
+    def close(self) -> None:
+        pass
+
+    def deserialize(self, msg: RawMessage) -> Any:
+        return self.typestore.deserialize_cdr(msg.data, msg.msgtype)
 
     def messages(self, wanted: set[str]) -> Iterator[RawMessage]:
         for record in self._records():
@@ -330,3 +416,98 @@ def _partial_chunk_records(path: Path, offset: int) -> Iterator[Any]:
         except Exception:  # StopIteration or the cut record
             return
         yield record
+
+
+def prefetch(iterator: Iterator[Any], depth: int = 8) -> Iterator[Any]:
+    """Run `iterator` in a background thread, `depth` items ahead.
+
+    Chunk decompression (zstd/lz4) releases the GIL, so reading overlaps the consumer's decoding
+    on a second core. Exceptions are re-raised in the consumer; stopping early stops the thread.
+    """
+    import queue
+    import threading
+
+    items: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    done = object()
+
+    def produce() -> None:
+        try:
+            for item in iterator:
+                while not stop.is_set():
+                    try:
+                        items.put((item, None), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            items.put((done, None))
+        except BaseException as exc:  # handed to the consumer
+            items.put((done, exc))
+
+    thread = threading.Thread(target=produce, daemon=True, name="mapkit-prefetch")
+    thread.start()
+    try:
+        while True:
+            item, exc = items.get()
+            if item is done:
+                if exc is not None:
+                    raise exc
+                return
+            yield item
+    finally:
+        stop.set()
+        while thread.is_alive():
+            try:
+                items.get_nowait()
+            except queue.Empty:
+                thread.join(timeout=0.05)
+
+
+def _decompressed_chunks(path: Path, chunks: list[Any]) -> Iterator[bytes]:
+    """The records section of each chunk, decompressed (runs in the prefetch thread).
+
+    Why not the mcap package's iterator: it parses every record in Python in the same thread
+    that decompresses, so a reader thread would hold the GIL most of the time. Here the thread
+    only reads and decompresses (both release the GIL) and the consumer parses.
+    """
+    import struct
+
+    import lz4.frame
+    import zstandard
+
+    zstd = zstandard.ZstdDecompressor()
+    with open(path, "rb") as f:
+        for index in chunks:
+            f.seek(index.chunk_start_offset)
+            raw = f.read(index.chunk_length)
+            if len(raw) < index.chunk_length or raw[0] != 0x06:
+                raise IngestError(f"{str(path)!r}: chunk at byte {index.chunk_start_offset} is damaged or missing")
+            pos = 9 + 8 + 8
+            uncompressed_size, _crc, clen = struct.unpack_from("<QII", raw, pos)
+            pos += 16 + clen
+            (records_len,) = struct.unpack_from("<Q", raw, pos)
+            records = raw[pos + 8 : pos + 8 + records_len]
+            if index.compression == "zstd":
+                records = zstd.decompress(records, max_output_size=uncompressed_size)
+            elif index.compression == "lz4":
+                records = lz4.frame.decompress(records)
+            yield records
+
+
+def _iter_message_records(records: bytes) -> Iterator[tuple[int, int, memoryview]]:
+    """(channel id, log time, data) of each Message record (opcode 0x05) in a chunk's records."""
+    import struct
+
+    view = memoryview(records)
+    unpack = struct.unpack_from
+    pos, end = 0, len(records)
+    while pos + 9 <= end:
+        opcode = records[pos]
+        (length,) = unpack("<Q", records, pos + 1)
+        body = pos + 9
+        if opcode == 0x05:
+            channel_id, _seq, log_time, _pub = unpack("<HIQQ", records, body)
+            yield channel_id, log_time, view[body + 22 : body + length]
+        pos = body + length

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 from numpy.typing import NDArray
 
@@ -15,16 +13,22 @@ NO_POSE = "outside_pose_coverage"
 POSE_GAP = "pose_gap"
 
 
-@dataclass
 class EdgeSeries:
-    """T_parent_child sampled over time; interpolated linearly (translation) and by slerp."""
+    """T_parent_child sampled over time; interpolated linearly (translation) and by slerp.
 
-    parent: str
-    child: str
-    origin: str
-    stamps: list[int] = field(default_factory=list)
-    translations: list[NDArray[np.float64]] = field(default_factory=list)
-    quats: list[NDArray[np.float64]] = field(default_factory=list)
+    Samples arrive while a recording streams by: arrays grow by doubling, in-order appends are
+    O(1), and a late sample (tf publishers interleave) is inserted in place.
+    """
+
+    def __init__(self, parent: str, child: str, origin: str) -> None:
+        self.parent, self.child, self.origin = parent, child, origin
+        self._t = np.empty(64, dtype=np.int64)
+        self._trans = np.empty((64, 3))
+        self._quats = np.empty((64, 4))
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
 
     def add(self, stamp: int, translation: NDArray[np.float64], q_xyzw: NDArray[np.float64]) -> None:
         norm = float(np.linalg.norm(q_xyzw))
@@ -33,36 +37,44 @@ class EdgeSeries:
                 f"{self.origin}: transform {self.parent} -> {self.child} at stamp {stamp} ns has "
                 f"translation {translation.tolist()} and quaternion {q_xyzw.tolist()}; not a valid pose"
             )
-        self.stamps.append(stamp)
-        self.translations.append(translation)
-        self.quats.append(q_xyzw / norm)
+        q = q_xyzw / norm
+        n = self._n
+        if n and stamp <= self._t[n - 1]:
+            i = int(np.searchsorted(self._t[:n], stamp))
+            if self._t[i] == stamp:  # a repeated stamp: the later message wins
+                self._trans[i], self._quats[i] = translation, self._hemisphere(q, i)
+                return
+            self._t = np.insert(self._t[:n], i, stamp)
+            self._trans = np.insert(self._trans[:n], i, translation, axis=0)
+            self._quats = np.insert(self._quats[:n], i, self._hemisphere(q, i), axis=0)
+            self._n = n + 1
+            return
+        if n == len(self._t):
+            self._t = np.concatenate([self._t, np.empty_like(self._t)])
+            self._trans = np.concatenate([self._trans, np.empty_like(self._trans)])
+            self._quats = np.concatenate([self._quats, np.empty_like(self._quats)])
+        self._t[n], self._trans[n], self._quats[n] = stamp, translation, self._hemisphere(q, n)
+        self._n = n + 1
 
-    def finalize(self) -> None:
-        """Sort by stamp (tf publishers interleave); a repeated stamp keeps the last sample."""
-        stamps = np.asarray(self.stamps, dtype=np.int64)
-        order = np.argsort(stamps, kind="stable")
-        stamps = stamps[order]
-        keep = np.ones(len(stamps), dtype=bool)
-        keep[:-1] = stamps[1:] != stamps[:-1]
-        self._t = stamps[keep]
-        self._trans = np.asarray(self.translations)[order][keep]
-        quats = np.asarray(self.quats)[order][keep]
-        # Keep consecutive quaternions in one hemisphere so slerp takes the short way.
-        for i in range(1, len(quats)):
-            if np.dot(quats[i - 1], quats[i]) < 0:
-                quats[i] = -quats[i]
-        self._quats = quats
+    def _hemisphere(self, q: NDArray[np.float64], i: int) -> NDArray[np.float64]:
+        # Neighbouring quaternions in one hemisphere, so slerp takes the short way.
+        return -q if i > 0 and float(np.dot(self._quats[i - 1], q)) < 0 else q
 
     @property
     def span(self) -> tuple[int, int]:
-        return int(self._t[0]), int(self._t[-1])
+        return int(self._t[0]), int(self._t[self._n - 1])
+
+    @property
+    def last_stamp(self) -> int | None:
+        return int(self._t[self._n - 1]) if self._n else None
 
     def at(self, stamp: int, max_gap_ns: int) -> NDArray[np.float64] | str:
         """T_parent_child at `stamp`, or the reason it has none (NO_POSE / POSE_GAP)."""
+        n = self._n
         t = self._t
-        if stamp < t[0] or stamp > t[-1]:
+        if n == 0 or stamp < t[0] or stamp > t[n - 1]:
             return NO_POSE
-        i = int(np.searchsorted(t, stamp, side="right"))
+        i = int(np.searchsorted(t[:n], stamp, side="right"))
         if t[i - 1] == stamp:
             return transform_from_pose(self._trans[i - 1], self._quats[i - 1])
         gap = int(t[i] - t[i - 1])
@@ -78,8 +90,12 @@ class TfTree:
     def __init__(self) -> None:
         self.static: dict[str, tuple[str, NDArray[np.float64]]] = {}
         self.dynamic: dict[str, EdgeSeries] = {}
+        self.pinned: set[str] = set()
+        """Children whose edge the user or the pose topic fixed; tf messages about them are ignored."""
 
     def set_static(self, parent: str, child: str, T_parent_child: NDArray[np.float64]) -> None:
+        if child in self.pinned:
+            return
         self.dynamic.pop(child, None)
         self.static[child] = (parent, T_parent_child)
 
@@ -87,6 +103,8 @@ class TfTree:
         self, parent: str, child: str, stamp: int, translation: NDArray[np.float64],
         q_xyzw: NDArray[np.float64], origin: str,
     ) -> None:
+        if child in self.pinned:
+            return
         series = self.dynamic.get(child)
         if series is None or series.parent != parent:
             # A frame has one parent; the newest declaration of a different parent wins.
@@ -97,10 +115,6 @@ class TfTree:
         """Install an edge from a pose topic; it supersedes whatever tf said about that child."""
         self.static.pop(series.child, None)
         self.dynamic[series.child] = series
-
-    def finalize(self) -> None:
-        for series in self.dynamic.values():
-            series.finalize()
 
     @property
     def frames(self) -> set[str]:
