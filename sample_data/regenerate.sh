@@ -1,0 +1,9 @@
+#!/usr/bin/env bash
+# Regenerate the sample recordings (run from the repository root). Deterministic: the same
+# mapkit version gives the same files.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+MAPKIT=${MAPKIT:-.venv/bin/mapkit}
+$MAPKIT simulate --world forest --seed 1 -o sample_data/forest --width 160 --height 120 --rate 30 --duration 10 --noise none --overwrite
+$MAPKIT simulate --world office --seed 1 -o sample_data/office --width 160 --height 120 --rate 30 --duration 10 --noise realsense --overwrite
+$MAPKIT simulate --world garage --seed 1 -o sample_data/garage --width 160 --height 120 --rate 30 --duration 10 --noise none --overwrite
