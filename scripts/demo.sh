@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# The pipeline on sample_data/, as a user runs it. Later stages append their commands here.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+WS=${1:-demo_ws}
+MAPKIT=.venv/bin/mapkit
+shopt -s nullglob
+flights=(sample_data/*.mcap)
+if [ ${#flights[@]} -eq 0 ]; then
+  echo "demo: sample_data/ has no flights; regenerate them with sample_data/regenerate.sh" >&2
+  exit 1
+fi
+for flight in "${flights[@]}"; do
+  name=$(basename "$flight" .mcap)
+  echo "== mapkit info $flight"
+  $MAPKIT info "$flight"
+  echo "== mapkit ingest $flight -w $WS/$name"
+  $MAPKIT ingest "$flight" -w "$WS/$name" --overwrite
+done
+echo "demo: workspaces in $WS/"
