@@ -44,4 +44,5 @@ def main(verbose: int) -> None:
 
 # Command modules register themselves on `main` when imported.
 from mapkit.cli import ingest as _ingest  # noqa: E402,F401
+from mapkit.cli import mapping as _mapping  # noqa: E402,F401
 from mapkit.cli import simulate as _simulate  # noqa: E402,F401

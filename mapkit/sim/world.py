@@ -163,7 +163,7 @@ def _axis_coords(p: np.ndarray, A: np.ndarray, B: np.ndarray) -> tuple[np.ndarra
     """Axial coordinate s (from A), radial distance rho, and length L of each segment."""
     ab = B - A
     L = np.linalg.norm(ab, axis=1)
-    u = ab / L[:, None]
+    u = ab / np.where(L > 0, L, 1.0)[:, None]  # a zero-length capsule is a sphere: any axis works
     ap = p[:, None, :] - A[None, :, :]
     s = np.einsum("nmk,mk->nm", ap, u)
     rho2 = np.einsum("nmk,nmk->nm", ap, ap) - s * s
@@ -249,6 +249,9 @@ def _ray_cylinder_interval(
 ) -> tuple[np.ndarray, np.ndarray]:
     ab = b - a
     L = float(np.linalg.norm(ab))
+    if L == 0.0:  # zero-length capsule: only its end spheres exist
+        empty = np.full(len(d), np.inf)
+        return empty, -empty
     u = ab / L
     oa = o - a
     od = float(oa @ u)

@@ -1,0 +1,113 @@
+"""`mapkit fuse`, `mapkit esdf` and `mapkit slice`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+
+from mapkit.cli.ingest import build_config, ingest_options
+from mapkit.cli.main import library_call, main
+
+WORKSPACE = click.option("-w", "--workspace", required=True, type=click.Path(path_type=Path), help="Workspace directory.")
+OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
+
+
+@main.command()
+@click.argument("recordings", nargs=-1, type=click.Path(path_type=Path))
+@WORKSPACE
+@click.option("--voxel", type=float, default=0.05, show_default=True, help="TSDF voxel size (m).")
+@click.option("--trunc", type=float, default=4.0, show_default=True, help="TSDF truncation (voxels).")
+@click.option("--max-depth", type=float, default=8.0, show_default=True, help="Ignore depth beyond this (m).")
+@click.option("--device", default="cpu", show_default=True, help="cpu or cuda:N.")
+@click.option("--frame-stride", "frame_stride", type=int, default=1, show_default=True, help="Integrate every N-th frame.")
+@click.option("--mesh", is_flag=True, help="Also write WS/mesh.ply (marching cubes).")
+@OVERWRITE
+@ingest_options
+@library_call
+def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float, trunc: float, max_depth: float, device: str,
+         frame_stride: int, mesh: bool, overwrite: bool, **kw: Any) -> None:
+    """TSDF-fuse RECORDINGS (or WS/frames.zarr when none are given) into WS/cloud.ply.
+
+    Ingests first unless WS/frames.zarr is up to date for the same recordings and options.
+    """
+    from mapkit.fusion import FuseConfig
+    from mapkit.fusion import fuse as fuse_fn
+
+    config = FuseConfig(voxel=voxel, trunc=trunc, max_depth=max_depth, device=device, stride=frame_stride, mesh=mesh)
+    s = fuse_fn(list(recordings), workspace, config, build_config(**kw), overwrite=overwrite, progress=True)
+    dropped = ", ".join(f"{k} {v}" for k, v in s.dropped.items()) or "none"
+    lo, hi = s.bounds
+    click.echo(
+        f"fused {s.frames_used} of {s.frames_total} frames (dropped at ingest: {dropped}); {s.blocks} blocks, "
+        f"{s.voxels / 1e6:.1f} M voxels, {s.points} points; bounds [{lo[0]:.2f} {lo[1]:.2f} {lo[2]:.2f}] – "
+        f"[{hi[0]:.2f} {hi[1]:.2f} {hi[2]:.2f}] m; {s.seconds:.1f} s ({s.frames_per_second:.0f} frames/s, "
+        f"integrate {s.integrate_frames_per_second:.0f} frames/s)"
+    )
+    click.echo("wrote " + ", ".join(str(p) for p in s.outputs))
+
+
+@main.command()
+@WORKSPACE
+@click.option("--voxel", type=float, default=0.1, show_default=True, help="ESDF voxel size (m).")
+@click.option("--padding", type=float, default=1.0, show_default=True, help="Metres around the fused map.")
+@click.option("--sigma", type=float, default=0.1, show_default=True, help="Gaussian smoothing (m); 0 = none.")
+@click.option("--unknown", type=click.Choice(["occupied", "free"]), default="occupied", show_default=True,
+              help="Unobserved space: obstacles (safe) or free.")
+@click.option("--max-dist", type=float, default=None, help="Clamp |distance| to this (m).")
+@click.option("--backend", type=click.Choice(["edt", "scipy"]), default="edt", show_default=True, help="Exact EDT implementation.")
+@OVERWRITE
+@library_call
+def esdf(workspace: Path, voxel: float, padding: float, sigma: float, unknown: str, max_dist: float | None,
+         backend: str, overwrite: bool) -> None:
+    """Signed, Gaussian-smoothed ESDF of the fused map → WS/map.zarr."""
+    from mapkit.esdf._build import EsdfConfig, build_esdf
+
+    config = EsdfConfig(voxel=voxel, padding=padding, sigma=sigma, unknown=unknown, max_dist=max_dist, backend=backend)
+    s = build_esdf(workspace, config, overwrite=overwrite, progress=True)
+    nx, ny, nz = s.shape
+    click.echo(
+        f"wrote {s.path}: {nx}x{ny}x{nz} voxels of {s.voxel_size} m, origin {s.origin.round(3).tolist()}; "
+        f"observed {100 * s.observed_fraction:.1f} %, obstacles {100 * s.occupied_fraction:.1f} %; "
+        f"smoothing sign flips prevented: {s.sign_flips_prevented}; {s.seconds:.1f} s"
+    )
+
+
+def _parse_slices(tokens: tuple[str, ...]) -> dict[str, list[float]]:
+    """`--z 1.0 2.5 --x -3` → {"z": [1.0, 2.5], "x": [-3.0], "y": []} (click options take one value)."""
+    out: dict[str, list[float]] = {"x": [], "y": [], "z": []}
+    axis = None
+    for token in tokens:
+        if token in ("--x", "--y", "--z"):
+            axis = token[2:]
+            continue
+        try:
+            value = float(token)
+        except ValueError:
+            raise click.UsageError(f"unexpected {token!r}; use --z Z [Z ...], --x X [...], --y Y [...]") from None
+        if axis is None:
+            raise click.UsageError(f"value {token} comes before any of --z/--x/--y")
+        out[axis].append(value)
+    if not any(out.values()):
+        raise click.UsageError("give at least one slice: --z Z [Z ...], --x X [...] or --y Y [...]")
+    return out
+
+
+@main.command("slice", context_settings={"ignore_unknown_options": True})
+@WORKSPACE
+@click.option("-o", "--output", type=click.Path(path_type=Path), default=Path("slices.png"), show_default=True, help="PNG to write.")
+@click.option("--raw", is_flag=True, help="Show the unsmoothed distance (esdf_raw).")
+@click.argument("positions", nargs=-1, type=click.UNPROCESSED, metavar="--z Z [Z ...] | --x X [X ...] | --y Y [Y ...]")
+@library_call
+def slice_cmd(workspace: Path, output: Path, raw: bool, positions: tuple[str, ...]) -> None:
+    """PNG of ESDF slices at the given heights / positions (m), with a colour bar and metric axes.
+
+    Example: mapkit slice -w WS --z 1.0 2.5 3.5 -o slices.png
+    """
+    from mapkit.esdf import EsdfMap, render_slices
+    from mapkit.esdf._build import MAP
+
+    axes = _parse_slices(positions)
+    path = render_slices(EsdfMap.open(workspace / MAP), z=axes["z"], x=axes["x"], y=axes["y"], path=output, raw=raw)
+    click.echo(f"wrote {path}")

@@ -1,0 +1,161 @@
+"""From a fused TSDF and the frames that made it to a dense occupancy + observed grid for the ESDF."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapkit.fusion._tsdf import FusionError
+from mapkit.ingest import FramesStore
+
+log = logging.getLogger(__name__)
+
+_BLOCKS_PER_BATCH = 2048  # TSDF blocks read at a time: bounds memory on large maps
+
+
+@dataclass
+class Grid:
+    """A regular grid: voxel [i, j, k] has centre origin + voxel_size * (i, j, k)."""
+
+    origin: NDArray[np.float64]
+    voxel_size: float
+    shape: tuple[int, int, int]
+
+    @classmethod
+    def covering(cls, lo: NDArray[np.float64], hi: NDArray[np.float64], voxel_size: float) -> "Grid":
+        """The grid whose voxel centres cover [lo, hi]; centres on multiples of voxel_size so that a
+        TSDF voxel size dividing voxel_size puts TSDF samples exactly on ESDF centres."""
+        origin = np.floor(np.asarray(lo, float) / voxel_size) * voxel_size
+        shape = np.ceil((np.asarray(hi, float) - origin) / voxel_size - 1e-9).astype(int) + 1
+        return cls(origin, float(voxel_size), (int(shape[0]), int(shape[1]), int(shape[2])))
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    def coordinates(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        return tuple(self.origin[a] + self.voxel_size * np.arange(self.shape[a]) for a in range(3))  # type: ignore[return-value]
+
+
+def _tsdf_samples(vbg: object, batch: int = _BLOCKS_PER_BATCH):
+    """(positions (N,3), tsdf (N,), weight (N,)) of every voxel of a VoxelBlockGrid, in block batches."""
+    import open3d.core as o3c
+
+    active = vbg.hashmap().active_buf_indices()  # type: ignore[attr-defined]
+    tsdf_all = vbg.attribute("tsdf").reshape((-1,))  # type: ignore[attr-defined]
+    weight_all = vbg.attribute("weight").reshape((-1,))  # type: ignore[attr-defined]
+    n = active.shape[0]
+    for start in range(0, n, batch):
+        buf = active[start : start + batch].to(o3c.int64)
+        coords, flat = vbg.voxel_coordinates_and_flattened_indices(buf)  # type: ignore[attr-defined]
+        flat = flat.reshape((-1,))
+        yield coords.numpy().astype(np.float64), tsdf_all[flat].numpy(), weight_all[flat].numpy()
+
+
+def occupancy_from_tsdf(
+    tsdf_path: Path, grid: Grid, *, tsdf_voxel: float, min_weight: float = 1.0
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """(occupied, seen) on `grid` from the TSDF sample nearest each voxel centre.
+
+    occupied: the TSDF at the centre is negative (inside); seen: the centre has a TSDF sample with
+    weight >= min_weight. Sampling the centre (not "any fine voxel in the cell") keeps obstacle
+    boundaries unbiased; structures thinner than about one ESDF voxel can fall between centres.
+    """
+    import open3d as o3d
+
+    if not tsdf_path.exists():
+        raise FusionError(f"{tsdf_path} does not exist; run `mapkit fuse` first")
+    try:
+        vbg = o3d.t.geometry.VoxelBlockGrid.load(str(tsdf_path))
+    except Exception as exc:
+        raise FusionError(f"{tsdf_path} is not a readable TSDF ({exc}); re-run `mapkit fuse --overwrite`") from None
+    occupied = np.zeros(grid.shape, dtype=bool)
+    seen = np.zeros(grid.shape, dtype=bool)
+    half = 0.5 * tsdf_voxel + 1e-6
+    shape = np.asarray(grid.shape)
+    for pos, tsdf, weight in _tsdf_samples(vbg):
+        keep = weight >= min_weight
+        pos, tsdf = pos[keep], tsdf[keep]
+        rel = (pos - grid.origin) / grid.voxel_size
+        idx = np.rint(rel).astype(np.int64)
+        near = np.all(np.abs(rel - idx) * grid.voxel_size < half, axis=1)
+        inside = np.all((idx >= 0) & (idx < shape), axis=1)
+        sel = near & inside
+        i, j, k = idx[sel].T
+        seen[i, j, k] = True
+        occupied[i, j, k] = tsdf[sel] < 0
+    return occupied, seen
+
+
+def carve_free_space(
+    store: FramesStore, grid: Grid, observed: NDArray[np.bool_], *, max_depth: float,
+    max_frames: int = 300, progress: bool = False,
+) -> int:
+    """Mark voxels that depth rays passed through as observed (in place); returns the frames used.
+
+    Rays are subsampled so that neighbouring rays are about one voxel apart at the far range, and
+    sampled every half voxel up to half a voxel before the measured surface.
+    """
+    from tqdm import tqdm
+
+    K = store.K
+    n = len(store)
+    frame_step = max(1, int(np.ceil(n / max_frames)))
+    pix_step = max(1, int(np.floor(grid.voxel_size * min(K[0, 0], K[1, 1]) / max_depth)))
+    H, W = store.height, store.width
+    v, u = np.mgrid[0:H:pix_step, 0:W:pix_step]
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, dtype=float)], -1).reshape(-1, 3)
+    step = 0.5 * grid.voxel_size
+    shape = np.asarray(grid.shape)
+    strides = np.array([grid.shape[1] * grid.shape[2], grid.shape[2], 1])
+    flat = observed.reshape(-1)
+    used = 0
+    for i in tqdm(range(0, n, frame_step), desc="observed", unit="frame", disable=not progress):
+        depth = np.asarray(store.depth[i])[::pix_step, ::pix_step].reshape(-1)
+        ok = np.isfinite(depth)
+        z_end = np.minimum(depth[ok], max_depth) - step
+        if not len(z_end):
+            continue
+        T = store.T_world_camera[i]
+        dirs = rays[ok] @ T[:3, :3].T  # world-frame ray per unit optical depth
+        counts = np.maximum((z_end / step).astype(np.int64), 0)
+        ray_id = np.repeat(np.arange(len(z_end)), counts)
+        start = np.cumsum(counts) - counts
+        z = (np.arange(counts.sum()) - np.repeat(start, counts) + 0.5) * step
+        pts = T[:3, 3] + dirs[ray_id] * z[:, None]
+        idx = np.rint((pts - grid.origin) / grid.voxel_size).astype(np.int64)
+        inside = np.all((idx >= 0) & (idx < shape), axis=1)
+        flat[idx[inside] @ strides] = True
+        used += 1
+    return used
+
+
+def fill_unknown(occupied: NDArray[np.bool_], observed: NDArray[np.bool_], policy: str) -> NDArray[np.bool_]:
+    """Apply the unknown-space policy; returns the final obstacle mask.
+
+    occupied: unobserved voxels are obstacles. free: unobserved voxels are free, except pockets that
+    no observed voxel reaches and that do not touch the grid border (the unseen inside of a closed
+    object), which stay solid.
+    """
+    if policy == "occupied":
+        return occupied | ~observed
+    if policy != "free":
+        raise FusionError(f"--unknown {policy!r}: expected occupied or free")
+    from scipy import ndimage
+
+    labels, count = ndimage.label(~occupied)
+    if count == 0:
+        return occupied
+    reached = np.zeros(count + 1, dtype=bool)
+    reached[np.unique(labels[observed & ~occupied])] = True
+    border = np.concatenate([
+        labels[0].ravel(), labels[-1].ravel(), labels[:, 0].ravel(), labels[:, -1].ravel(),
+        labels[:, :, 0].ravel(), labels[:, :, -1].ravel(),
+    ])
+    reached[np.unique(border)] = True
+    reached[0] = False
+    return occupied | ~reached[labels] & (labels > 0)
