@@ -81,7 +81,7 @@ def test_cli_fuse_and_bad_inputs(tmp_path: Path, box_flight: Path) -> None:
     assert code == 0 and "fused 36 of 36 frames" in out and "frames/s" in out, out
 
 
-def test_empty_cloud_is_an_error(tmp_path: Path, box_flight: Path) -> None:
-    with pytest.raises(FusionError, match="empty cloud"):
+def test_no_depth_in_range_is_an_error(tmp_path: Path, box_flight: Path) -> None:
+    with pytest.raises(FusionError, match="no frame has depth within --max-depth 0.3"):
         fuse([box_flight], tmp_path, FuseConfig(voxel=0.05, max_depth=0.3), progress=False)
     assert not (tmp_path / "cloud.ply").exists()

@@ -157,15 +157,20 @@ def estimate_blocks(store: FramesStore, config: FuseConfig, *, sample: int = 24)
     seen: set[tuple[int, int, int]] = set()
     growth = []
     for i in idx:
+        depth = np.asarray(store.depth[int(i)])
+        if not np.any(depth <= config.max_depth):
+            continue
         coords = probe.compute_unique_block_coordinates(
-            _o3d_depth(store.depth[int(i)], o3c.Device("CPU:0")), K,
+            _o3d_depth(depth, o3c.Device("CPU:0")), K,
             o3c.Tensor(invert_transform(store.T_world_camera[int(i)]), o3c.float64),
             1.0, float(config.max_depth), float(config.trunc),
         ).numpy()
         before = len(seen)
         seen.update(map(tuple, coords.reshape(-1, 3).tolist()))
         growth.append(len(seen) - before)
-    per_frame_new = np.mean(growth[len(growth) // 2 :]) if len(growth) > 1 else growth[0]
+    if not growth:
+        return 256
+    per_frame_new = np.mean(growth[len(growth) // 2 :])
     # Frames between samples add about as many new blocks as the later samples did per sample.
     unseen_frames = max(n - len(idx), 0) * len(idx) / max(n, 1)
     return int(len(seen) + per_frame_new * unseen_frames + 256)
@@ -203,20 +208,29 @@ def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overw
     K = _o3d_intrinsics(store.K)
     indices = range(0, len(store), config.stride)
     integrate_s = 0.0
+    skipped = 0
     bar = tqdm(total=len(indices), unit="frame", desc="fuse", disable=not progress, dynamic_ncols=True)
     batch = 16
     for start in range(0, len(indices), batch):
         chunk = list(indices[start : start + batch])
         depths = store.depth[chunk[0] : chunk[-1] + 1 : config.stride]
         for i, depth in zip(chunk, depths):
+            bar.update(1)
+            if not np.any(depth <= config.max_depth):  # Open3D aborts on a frame that touches no block
+                skipped += 1
+                continue
             t = time.perf_counter()
             image = _o3d_depth(depth, device)
             extrinsic = o3c.Tensor(invert_transform(store.T_world_camera[i]), o3c.float64)
             coords = vbg.compute_unique_block_coordinates(image, K, extrinsic, 1.0, float(config.max_depth), float(config.trunc))
             vbg.integrate(coords, image, K, extrinsic, 1.0, float(config.max_depth), float(config.trunc))
             integrate_s += time.perf_counter() - t
-            bar.update(1)
     bar.close()
+    if skipped == len(indices):
+        raise FusionError(
+            f"no frame has depth within --max-depth {config.max_depth} m (nearest valid depth in the first frame: "
+            f"{np.nanmin(store.depth[0]):.2f} m); raise --max-depth"
+        )
 
     pcd = vbg.extract_point_cloud(weight_threshold=config.weight_threshold)
     n_points = int(pcd.point.positions.shape[0]) if "positions" in pcd.point else 0
@@ -254,7 +268,7 @@ def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overw
     (workspace / "fuse.json").write_text(json.dumps(meta, indent=2))
     active = int(vbg.hashmap().size())
     return FuseSummary(
-        frames_used=len(indices), frames_total=len(store), dropped=dict(store.attrs.get("dropped", {})),
+        frames_used=len(indices) - skipped, frames_total=len(store), dropped=dict(store.attrs.get("dropped", {})),
         blocks=active, voxels=active * BLOCK_RESOLUTION**3, points=n_points, bounds=bounds,
         seconds=time.perf_counter() - t0, integrate_seconds=integrate_s, outputs=outputs,
     )
