@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapkit._version import __version__
+from mapkit._threads import prefetch
 from mapkit.errors import MapkitError
 from mapkit.geometry import invert_transform
 from mapkit.ingest import FramesStore, IngestConfig, ingest, open_frames_store
@@ -118,8 +119,10 @@ def _o3d_depth(depth: NDArray[np.float32], device: Any) -> Any:
     import open3d as o3d
     import open3d.core as o3c
 
-    native = np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0).astype("=f4", copy=False)
-    return o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(native))).to(device)
+    native = np.empty(np.shape(depth), dtype=np.float32)
+    np.copyto(native, depth)
+    native[np.isnan(native)] = 0.0
+    return o3d.t.geometry.Image(o3c.Tensor(native)).to(device)
 
 
 def _o3d_intrinsics(K: NDArray[np.float64]) -> Any:
@@ -210,10 +213,13 @@ def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overw
     integrate_s = 0.0
     skipped = 0
     bar = tqdm(total=len(indices), unit="frame", desc="fuse", disable=not progress, dynamic_ncols=True)
-    batch = 16
-    for start in range(0, len(indices), batch):
-        chunk = list(indices[start : start + batch])
-        depths = store.depth[chunk[0] : chunk[-1] + 1 : config.stride]
+    def batches(size: int = 16) -> Any:
+        for start in range(0, len(indices), size):
+            chunk = list(indices[start : start + size])
+            yield chunk, store.depth[chunk[0] : chunk[-1] + 1 : config.stride]
+
+    # zarr decompression in a second thread overlaps Open3D's integration.
+    for chunk, depths in prefetch(batches(), depth=2):
         for i, depth in zip(chunk, depths):
             bar.update(1)
             if not np.any(depth <= config.max_depth):  # Open3D aborts on a frame that touches no block

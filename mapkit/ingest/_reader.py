@@ -28,7 +28,8 @@ from mapkit.ingest._decode import (
     tf_samples,
 )
 from mapkit.ingest._errors import IngestError
-from mapkit.ingest._sources import BagSummary, Source, normalize_topic, prefetch
+from mapkit._threads import prefetch
+from mapkit.ingest._sources import BagSummary, Source, normalize_topic
 from mapkit.ingest._tf import NO_POSE, POSE_GAP, EdgeSeries, TfTree
 
 log = logging.getLogger(__name__)
