@@ -1,0 +1,425 @@
+"""Differentiable minimum-snap trajectories: :func:`min_snap`."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Literal
+
+import numpy as np
+import torch
+
+from mapkit.trajopt import _qp
+from mapkit.trajopt._errors import TrajoptError
+from mapkit.trajopt._system import (
+    coefficients,
+    index_tensor,
+    knot_values,
+    layout,
+    partitioned_hessian,
+    sample_rows,
+    solve_knots,
+)
+from mapkit.trajopt._trajectory import Trajectory
+
+_WORK = torch.float64  # internal precision: float32 cannot hold the ill-conditioned KKT
+
+
+class TrajoptWarning(UserWarning):
+    """Some batch elements of a constrained problem could not be solved (see ``Trajectory.solved``)."""
+
+
+# ---------------------------------------------------------------------------------------- inputs
+def _as_tensor(x, name: str, like: torch.Tensor) -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        return x.to(device=like.device)
+    try:
+        return torch.as_tensor(np.asarray(x, dtype=np.float64), dtype=like.dtype, device=like.device)
+    except (TypeError, ValueError) as exc:
+        raise TrajoptError(f"{name} must be a number or a tensor, got {type(x).__name__}") from exc
+
+
+def _batch_param(x, name: str, B: int, tail: tuple[int, ...], like: torch.Tensor) -> torch.Tensor:
+    """Broadcast x to (B, *tail) in the work precision, naming the accepted shapes on error."""
+    t = _as_tensor(x, name, like).to(_WORK)
+    if t.shape == (B, *tail):
+        return t
+    try:
+        return torch.broadcast_to(t, (B, *tail))
+    except RuntimeError as exc:
+        shapes = " or ".join(str(s) for s in [(B, *tail), tail] if s)
+        raise TrajoptError(f"{name} must have shape {shapes} (or be a scalar), got {tuple(t.shape)}") from exc
+
+
+def _check_finite(t: torch.Tensor, name: str) -> None:
+    if not bool(torch.isfinite(t.detach()).all()):
+        raise TrajoptError(f"{name} contains NaN or inf; pass finite values")
+
+
+# ------------------------------------------------------------------------------- constraints
+def _corridor_rows(w: torch.Tensor, T: torch.Tensor, half_width: torch.Tensor, n_samples: int):
+    """Local rows (B, m, 3, 8), their segment (m,) and bounds lo/hi (B, m): the perpendicular
+    deviation of every sample from its segment's key-point line, per world axis, lies within
+    +-half_width (the corridor of Mellinger & Kumar 2011).
+
+    Samples: n_samples evenly spaced interior points of every segment plus both ends of every
+    segment except the trajectory's own start and end (so an interior knot lies in the corridors
+    of both of its segments).
+    """
+    B, M = T.shape
+    s = np.concatenate([[0.0], np.arange(1, n_samples + 1) / (n_samples + 1), [1.0]])
+    K = s.size
+    L = sample_rows(T, s, 0, 4)  # (B, M, K, 8)
+    seg = w[:, 1:] - w[:, :-1]
+    length = seg.norm(dim=-1, keepdim=True)
+    degenerate = (length < 1e-9).unsqueeze(-1)
+    u = seg / length.clamp_min(1e-9)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device)
+    Pp = eye - u.unsqueeze(-1) * u.unsqueeze(-2)  # (B, M, 3, 3)
+    Pp = torch.where(degenerate, eye.expand_as(Pp), Pp)
+    rows = Pp.unsqueeze(2).unsqueeze(-1) * L.unsqueeze(3).unsqueeze(3)  # (B, M, K, 3a, 3b, 8)
+    centre = torch.einsum("bmxy,bmy->bmx", Pp, w[:, :-1])  # (B, M, 3)
+    centre = centre.unsqueeze(2).expand(B, M, K, 3)
+    keep = np.ones((M, K), dtype=bool)
+    keep[0, 0] = False
+    keep[M - 1, K - 1] = False
+    kept = np.nonzero(keep.reshape(-1))[0]
+    keep_t = index_tensor(kept, w.device)
+    rows = rows.reshape(B, M * K, 3, 3, 8).index_select(1, keep_t).reshape(B, -1, 3, 8)
+    centre = centre.reshape(B, M * K, 3).index_select(1, keep_t).reshape(B, -1)
+    hw = half_width.unsqueeze(-1).unsqueeze(-1).expand(B, M, K, 3).reshape(B, M * K, 3)
+    hw = hw.index_select(1, keep_t).reshape(B, -1)
+    seg_of_row = np.repeat(kept // K, 3)
+    return rows, seg_of_row, centre - hw, centre + hw
+
+
+def _limit_rows(T: torch.Tensor, q: int, limit: torch.Tensor, n_samples: int):
+    """Local rows (B, m, 3, 8), segments (m,) and bounds: |q-th derivative| <= limit per axis at
+    the samples (segment starts except the first, and n_samples interior points of every segment)."""
+    B, M = T.shape
+    s = np.concatenate([[0.0], np.arange(1, n_samples + 1) / (n_samples + 1)])
+    K = s.size
+    L = sample_rows(T, s, q, 4)  # (B, M, K, 8)
+    eye = torch.eye(3, dtype=T.dtype, device=T.device)
+    rows = eye.reshape(1, 1, 1, 3, 3, 1) * L.unsqueeze(3).unsqueeze(3)  # (B, M, K, 3a, 3b, 8)
+    keep = np.ones((M, K), dtype=bool)
+    keep[0, 0] = False
+    kept = np.nonzero(keep.reshape(-1))[0]
+    keep_t = index_tensor(kept, T.device)
+    rows = rows.reshape(B, M * K, 3, 3, 8).index_select(1, keep_t).reshape(B, -1, 3, 8)
+    lim = limit.reshape(B, 1).expand(B, rows.shape[1])
+    return rows, np.repeat(kept // K, 3), -lim, lim
+
+
+def _to_global(local: torch.Tensor, seg: torch.Tensor, N: int) -> torch.Tensor:
+    """Scatter local rows (B, m, 3, 8) of segments seg (B, m) into knot-vector rows (B, m, 3, N)."""
+    B, m = seg.shape
+    cols = (seg * 4).unsqueeze(-1) + torch.arange(8, device=seg.device)  # (B, m, 8)
+    cols = cols.unsqueeze(2).expand(B, m, 3, 8)
+    out = torch.zeros(B, m, 3, N, dtype=local.dtype, device=local.device)
+    return out.scatter(3, cols, local)
+
+
+# ------------------------------------------------------------------------------------ solver
+def _solve_position_qp(
+    w, T, start, end, *, corridor, corridor_samples, v_max, a_max, solver
+):
+    """Knot vectors (B, N, 3), ok mask (B,) numpy, statuses and info for the inequality path."""
+    B, M = T.shape
+    lay = layout(M, 4, corridor is not None)
+    N = lay.n_knot
+    X0 = knot_values(w, start, end, 4)
+    dev = w.device
+    fi = index_tensor(lay.free, dev)
+    xi = index_tensor(lay.fixed, dev)
+    nf = lay.free.size
+    Hff, Hfp = partitioned_hessian(T, 4, lay)
+    Xp = X0.index_select(1, xi)  # (B, nfix, 3)
+    P = torch.zeros(B, 3 * nf, 3 * nf, dtype=_WORK, device=dev)
+    for a in range(3):
+        P[:, a * nf:(a + 1) * nf, a * nf:(a + 1) * nf] = 2.0 * Hff
+    q = (2.0 * (Hfp @ Xp)).transpose(1, 2).reshape(B, 3 * nf)
+
+    row_sets = []
+    if corridor is not None:
+        row_sets.append(_corridor_rows(w, T, corridor, corridor_samples))
+    if v_max is not None:
+        row_sets.append(_limit_rows(T, 1, v_max, corridor_samples))
+    if a_max is not None:
+        row_sets.append(_limit_rows(T, 2, a_max, corridor_samples))
+    local = torch.cat([r[0] for r in row_sets], dim=1)  # (B, m, 3, 8)
+    seg_np = np.concatenate([r[1] for r in row_sets])
+    lo = torch.cat([r[2] for r in row_sets], dim=1)
+    hi = torch.cat([r[3] for r in row_sets], dim=1)
+    m = local.shape[1]
+
+    # The whole constraint matrix, without autograd, for the numerical solve.
+    with torch.no_grad():
+        seg_all = index_tensor(seg_np, dev).unsqueeze(0).expand(B, m)
+        Cfull = _to_global(local.detach(), seg_all, N)
+        C = Cfull.index_select(3, fi).reshape(B, m, 3 * nf)
+        c_fix = torch.einsum("bman,bna->bm", Cfull.index_select(3, xi), Xp.detach())
+        d = torch.rsqrt(torch.diagonal(P.detach(), dim1=-2, dim2=-1))
+        Ps = P.detach() * d.unsqueeze(-1) * d.unsqueeze(-2)
+        qs = q.detach() * d
+        Cs = C * d.unsqueeze(1)
+        rn = Cs.norm(dim=-1)
+        rn = torch.where(rn > 0, rn, torch.ones_like(rn))
+        Cs = Cs / rn.unsqueeze(-1)
+        los = (lo.detach() - c_fix) / rn
+        his = (hi.detach() - c_fix) / rn
+    Cs_np = Cs.cpu().numpy()
+    res = _qp.solve_batch(
+        Ps.cpu().numpy(), qs.cpu().numpy(), Cs_np, los.cpu().numpy(), his.cpu().numpy(), solver=solver
+    )
+    ok = res.ok.copy()
+    status = list(res.status)
+
+    def differentiable_solve(active, upper):
+        k = max([a.size for a in active] + [0])
+        idx = np.zeros((B, k), dtype=np.int64)
+        msk = np.zeros((B, k), dtype=bool)
+        upm = np.zeros((B, k), dtype=bool)
+        for b, (a, u) in enumerate(zip(active, upper)):
+            idx[b, : a.size] = a
+            msk[b, : a.size] = True
+            upm[b, : a.size] = u
+        idx_t = torch.as_tensor(idx, device=dev)
+        # Only the held rows are rebuilt with autograd.
+        loc_a = torch.gather(local, 1, idx_t.reshape(B, k, 1, 1).expand(B, k, 3, 8))
+        seg_a = index_tensor(seg_np, dev)[idx_t]
+        Ca_full = _to_global(loc_a, seg_a, N)
+        Ca = Ca_full.index_select(3, fi).reshape(B, k, 3 * nf)
+        cfix_a = torch.einsum("bman,bna->bm", Ca_full.index_select(3, xi), Xp)
+        bound = torch.where(torch.as_tensor(upm, device=dev), torch.gather(hi, 1, idx_t),
+                            torch.gather(lo, 1, idx_t)) - cfix_a
+        return _qp.kkt_solve(P, q, Ca, bound, torch.as_tensor(msk, device=dev))
+
+    lo_p = (lo.detach() - c_fix)
+    hi_p = (hi.detach() - c_fix)
+    tol = 1e-8 * (1.0 + torch.maximum(lo.detach().abs(), hi.detach().abs()))
+
+    def check(z):
+        """Rows violated by more than ~1e-8 relative, in physical units (m, m/s, m/s²)."""
+        zd = z.detach()
+        cz = torch.einsum("bmn,bn->bm", C, zd)
+        viol = torch.clamp(cz - hi_p - tol, min=0) + torch.clamp(lo_p - tol - cz, min=0)
+        return (~torch.isfinite(zd).all(-1)) | (viol.amax(-1) > 0)
+
+    active, upper = res.active, res.upper
+    try:
+        z = differentiable_solve(active, upper)
+        bad = check(z).cpu().numpy() & ok
+    except RuntimeError:  # a singular KKT matrix somewhere in the batch
+        bad = ok.copy()
+    if bad.any():
+        # The solver's active set did not reproduce its solution (an interior-point backend's
+        # inexact multipliers, or a degenerate set): correct it with a few primal-dual active-set
+        # steps on the scaled problem, keeping a linearly independent set of rows.
+        Ps_np, qs_np = Ps.cpu().numpy(), qs.cpu().numpy()
+        los_np, his_np = los.cpu().numpy(), his.cpu().numpy()
+        active, upper = list(active), list(upper)
+        for b in np.nonzero(bad)[0]:
+            active[b], upper[b] = _correct_active_set(
+                Ps_np[b], qs_np[b], Cs_np[b], los_np[b], his_np[b], active[b], upper[b]
+            )
+        z = differentiable_solve(active, upper)
+        bad = check(z).cpu().numpy() & ok
+        for b in np.nonzero(bad)[0]:
+            ok[b] = False
+            status[b] = "the active-set KKT solve did not reproduce a feasible solution"
+    z = torch.where(torch.as_tensor(ok, device=dev).unsqueeze(-1), z, torch.zeros_like(z))
+    X = X0.index_copy(1, fi, z.reshape(B, 3, nf).transpose(1, 2))
+    info = {
+        "path": "qp",
+        "solver": solver,
+        "solver_seconds": res.seconds,
+        "active": [int(a.size) for a in active],
+        "rows": int(m),
+        "variables": int(3 * nf),
+    }
+    return X, ok, status, info
+
+
+def _correct_active_set(P, q, C, lo, hi, act, up):
+    """Repair an inexact active set (numpy, scaled problem): re-solve with DAQP, an exact dual
+    active-set method, warm-started from the guess. Returns the guess unchanged if DAQP fails."""
+    act = np.asarray(act, dtype=np.int64)
+    sense = np.zeros(C.shape[0], dtype=np.int32)
+    sense[act] = np.where(np.asarray(up, dtype=bool), 1, 3)  # ACTIVE (| LOWER)
+    z, lam, st = _qp._solve_daqp(P, q, C, lo, hi, sense=sense)
+    if z is None:
+        return act, np.asarray(up, dtype=bool)
+    a, u = _qp._active_from_duals(lam, C, z, lo, hi, True)
+    kept = _independent(C, a)
+    return kept, u[np.isin(a, kept)]
+
+
+def _independent(C: np.ndarray, act: np.ndarray) -> np.ndarray:
+    """Drop held rows that are linearly dependent on others (degenerate active sets)."""
+    if act.size <= 1:
+        return act
+    from scipy.linalg import qr
+
+    _, R, piv = qr(C[act].T, pivoting=True, mode="economic")
+    diag = np.abs(np.diag(R))
+    rank = int((diag > 1e-9 * diag[0]).sum())
+    return np.sort(act[piv[:rank]])
+
+
+def _yaw(yaw: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+    """Minimum yaw-acceleration cubic spline through unwrapped yaw key-points, rest at both ends."""
+    B, M1 = yaw.shape
+    d = yaw[:, 1:] - yaw[:, :-1]
+    d = d - (2 * math.pi) * torch.round(d.detach() / (2 * math.pi))
+    psi = torch.cat([yaw[:, :1], yaw[:, :1] + torch.cumsum(d, dim=1)], dim=1)
+    zeros = torch.zeros(B, 1, 1, dtype=yaw.dtype, device=yaw.device)
+    X0 = knot_values(psi.unsqueeze(-1), zeros, zeros, 2)
+    X = solve_knots(T, X0, layout(M1 - 1, 2, False))
+    return coefficients(X, T, 2)[:, :, 0, :]
+
+
+# -------------------------------------------------------------------------------------- public
+def min_snap(
+    waypoints: torch.Tensor,
+    durations: torch.Tensor,
+    *,
+    start: torch.Tensor | None = None,
+    end: torch.Tensor | None = None,
+    corridor: float | torch.Tensor | None = None,
+    corridor_samples: int = 5,
+    v_max: float | torch.Tensor | None = None,
+    a_max: float | torch.Tensor | None = None,
+    yaw: torch.Tensor | None = None,
+    solver: str = _qp.DEFAULT_SOLVER,
+    on_infeasible: Literal["warn", "raise", "ignore"] = "warn",
+) -> Trajectory:
+    """Minimum-snap piecewise 7th-order polynomial trajectory through key-points, differentiable
+    with respect to the key-points, the segment durations and the boundary derivatives.
+
+    Minimises ``sum_axes integral (d^4 p/dt^4)^2 dt`` subject to the start/end position, velocity,
+    acceleration and jerk, continuity up to jerk at every knot, and either passing through every
+    interior key-point (default) or — with ``corridor`` — staying in the flight corridor around the
+    key-point path. Without inequalities the optimum is a closed-form dense solve; with any
+    inequality (``corridor``, ``v_max``, ``a_max``) a QP solved exactly per element, whose gradient
+    comes from the KKT conditions at its active set.
+
+    Args:
+        waypoints: (B, M+1, 3) or (M+1, 3) metres: start, M-1 interior key-points, end.
+        durations: (B, M) or (M,) seconds, every one > 0.
+        start: (B, 3, 3) or (3, 3): rows velocity, acceleration, jerk at the start (default 0).
+        end: same at the end.
+        corridor: half-width in metres, a scalar, (M,) or (B, M) per segment. Interior key-points
+            become free; at ``corridor_samples`` interior points of every segment and at every
+            interior knot, each world-axis component of the deviation perpendicular to the
+            segment's straight key-point line stays within +-corridor.
+        corridor_samples: sample points per segment for the corridor and the limits (>= 1).
+        v_max: per-axis speed limit (m/s), scalar or (B,): ``|v_axis| <= v_max`` at the samples.
+        a_max: per-axis acceleration limit (m/s²), scalar or (B,), likewise.
+        yaw: (B, M+1) or (M+1,) yaw key-point angles (radians); adds a minimum
+            ``integral (d^2 psi/dt^2)^2`` cubic yaw spline (continuous to the 1st derivative, zero
+            yaw rate at both ends). Consecutive angles are unwrapped.
+        solver: QP backend for the inequality path, one of ``mapkit.trajopt.SOLVERS``.
+        on_infeasible: what to do when some elements of a constrained problem cannot be solved:
+            "warn" (default; a :class:`TrajoptWarning`), "raise" (:class:`TrajoptError`) or
+            "ignore". Either way ``Trajectory.solved`` is False for them and they hold the
+            closed-form solution through the key-points without the inequalities.
+
+    Returns:
+        A :class:`Trajectory` in the dtype and on the device of ``waypoints``; unbatched inputs
+        give an unbatched trajectory.
+    """
+    if not isinstance(waypoints, torch.Tensor):
+        raise TrajoptError(f"waypoints must be a torch tensor, got {type(waypoints).__name__}")
+    if not waypoints.is_floating_point():
+        raise TrajoptError(f"waypoints must be float32 or float64, got {waypoints.dtype}")
+    batched = waypoints.ndim == 3
+    if waypoints.ndim not in (2, 3) or waypoints.shape[-1] != 3 or waypoints.shape[-2] < 2:
+        raise TrajoptError(
+            f"waypoints must have shape (B, M+1, 3) or (M+1, 3) with M >= 1, got {tuple(waypoints.shape)}"
+        )
+    out_dtype = waypoints.dtype
+    w = (waypoints if batched else waypoints.unsqueeze(0)).to(_WORK)
+    B, M1, _ = w.shape
+    M = M1 - 1
+    if not isinstance(durations, torch.Tensor):
+        durations = torch.as_tensor(np.asarray(durations, dtype=np.float64), dtype=out_dtype, device=w.device)
+    T_in = durations if durations.ndim == 2 else durations.unsqueeze(0)
+    if T_in.shape[-1] != M:
+        raise TrajoptError(f"durations must have M={M} entries per element, got shape {tuple(durations.shape)}")
+    T_in = torch.broadcast_to(T_in, (B, M))
+    T = T_in.to(_WORK)
+    _check_finite(w, "waypoints")
+    _check_finite(T, "durations")
+    if bool((T.detach() <= 0).any()):
+        raise TrajoptError("durations must all be > 0 seconds; got a zero or negative duration")
+    start_t = (
+        torch.zeros(B, 3, 3, dtype=_WORK, device=w.device) if start is None
+        else _batch_param(start, "start", B, (3, 3), w)
+    )
+    end_t = (
+        torch.zeros(B, 3, 3, dtype=_WORK, device=w.device) if end is None
+        else _batch_param(end, "end", B, (3, 3), w)
+    )
+    if corridor_samples < 1:
+        raise TrajoptError(f"corridor_samples must be >= 1, got {corridor_samples}")
+    if solver not in _qp.SOLVERS:
+        raise TrajoptError(f"solver must be one of {_qp.SOLVERS}, got {solver!r}")
+    if on_infeasible not in ("warn", "raise", "ignore"):
+        raise TrajoptError(f"on_infeasible must be 'warn', 'raise' or 'ignore', got {on_infeasible!r}")
+    corr = None
+    if corridor is not None:
+        corr = _batch_param(corridor, "corridor", B, (M,), w)
+        if bool((corr.detach() <= 0).any()) or not bool(torch.isfinite(corr.detach()).all()):
+            raise TrajoptError("corridor half-widths must be finite and > 0 metres")
+    vm = am = None
+    if v_max is not None:
+        vm = _batch_param(v_max, "v_max", B, (), w)
+        if bool((vm.detach() <= 0).any()):
+            raise TrajoptError("v_max must be > 0 m/s")
+    if a_max is not None:
+        am = _batch_param(a_max, "a_max", B, (), w)
+        if bool((am.detach() <= 0).any()):
+            raise TrajoptError("a_max must be > 0 m/s²")
+
+    solved = torch.ones(B, dtype=torch.bool, device=w.device)
+    messages: tuple[str, ...] = ()
+    if corr is None and vm is None and am is None:
+        X = solve_knots(T, knot_values(w, start_t, end_t, 4), layout(M, 4, False))
+        info = {"path": "closed_form"}
+    else:
+        X, ok, status, info = _solve_position_qp(
+            w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples,
+            v_max=vm, a_max=am, solver=solver,
+        )
+        if not ok.all():
+            failed = np.nonzero(~ok)[0]
+            messages = tuple(f"batch element {int(b)}: {status[b]}" for b in failed)
+            X_eq = solve_knots(T, knot_values(w, start_t, end_t, 4), layout(M, 4, False))
+            ok_t = torch.as_tensor(ok, device=w.device)
+            X = torch.where(ok_t.reshape(B, 1, 1), X, X_eq)
+            solved = ok_t
+            text = (
+                f"min_snap: {failed.size} of {B} constrained problems could not be solved "
+                f"({'; '.join(messages[:3])}{'; ...' if failed.size > 3 else ''}); they hold the "
+                "solution through the key-points without corridor/limits. Widen the corridor, "
+                "relax v_max/a_max or lengthen the durations."
+            )
+            if on_infeasible == "raise":
+                raise TrajoptError(text)
+            if on_infeasible == "warn":
+                warnings.warn(text, TrajoptWarning, stacklevel=2)
+    coeffs = coefficients(X, T, 4).to(out_dtype)
+    yaw_c = None
+    if yaw is not None:
+        y = _as_tensor(yaw, "yaw", w).to(_WORK)
+        y = y if y.ndim == 2 else y.unsqueeze(0)
+        try:
+            y = torch.broadcast_to(y, (B, M1))
+        except RuntimeError as exc:
+            raise TrajoptError(f"yaw must have shape (B, M+1) or (M+1,), got {tuple(yaw.shape)}") from exc
+        _check_finite(y, "yaw")
+        yaw_c = _yaw(y, T).to(out_dtype)
+    return Trajectory(
+        coeffs, T_in, yaw_coeffs=yaw_c, solved=solved, messages=messages, batched=batched, info=info
+    )

@@ -1,0 +1,226 @@
+"""The smoothness cost as a quadratic form in the knot states, batched in torch.
+
+Knot ``k`` (0..M) carries the time derivatives of orders ``0..r-1`` of every axis. With the polynomial
+basis of :mod:`._basis`, segment ``i`` is fully determined by knots ``i`` and ``i+1`` (so continuity
+up to order ``r-1`` holds by construction) and its cost is
+``T_i^(1-2r) d^T S R S d`` with ``d`` the 2r knot entries and ``S = diag(T_i^q)``. Summing the
+segments gives ``J = sum_axes X^T H X`` with H (r(M+1), r(M+1)) block-tridiagonal. Knot entries are
+either fixed (boundary conditions, key-points) or free; the free ones are the decision variables.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+import torch
+
+from mapkit.trajopt._basis import basis_row, boundary_inverse, knot_cost_matrix
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Which knot entries are free (per axis; identical for every axis and batch element)."""
+
+    M: int
+    r: int
+    free: np.ndarray  # indices into the r(M+1) knot vector
+    fixed: np.ndarray
+
+    @property
+    def n_knot(self) -> int:
+        return self.r * (self.M + 1)
+
+
+@lru_cache(maxsize=None)
+def layout(M: int, r: int, free_positions: bool) -> Layout:
+    """Free entries: interior derivatives 1..r-1, plus interior positions when ``free_positions``."""
+    free, fixed = [], []
+    for k in range(M + 1):
+        for q in range(r):
+            idx = k * r + q
+            interior = 0 < k < M
+            if interior and (q > 0 or free_positions):
+                free.append(idx)
+            else:
+                fixed.append(idx)
+    return Layout(M, r, np.array(free, dtype=np.int64), np.array(fixed, dtype=np.int64))
+
+
+@lru_cache(maxsize=None)
+def _scatter_index(M: int, r: int) -> np.ndarray:
+    """Flat indices into an (N, N) matrix of every entry of the M local (2r, 2r) blocks."""
+    N = r * (M + 1)
+    loc = np.arange(2 * r)
+    out = np.empty((M, 2 * r, 2 * r), dtype=np.int64)
+    for i in range(M):
+        g = i * r + loc
+        out[i] = g[:, None] * N + g[None, :]
+    return out.reshape(-1)
+
+
+_CONST_CACHE: dict = {}
+
+
+def _const(name: str, r: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    key = (name, r, dtype, str(device))
+    t = _CONST_CACHE.get(key)
+    if t is None:
+        if name == "R":
+            arr = knot_cost_matrix(r)
+        elif name == "Ainv":
+            arr = boundary_inverse(r)
+        elif name.startswith("idx"):
+            M = int(name[3:])
+            t = torch.as_tensor(_scatter_index(M, r), device=device)
+            _CONST_CACHE[key] = t
+            return t
+        else:  # pragma: no cover - internal misuse
+            raise KeyError(name)
+        t = torch.as_tensor(arr, dtype=dtype, device=device)
+        _CONST_CACHE[key] = t
+    return t
+
+
+def index_tensor(arr: np.ndarray, device: torch.device) -> torch.Tensor:
+    key = ("index", arr.tobytes(), str(device))
+    t = _CONST_CACHE.get(key)
+    if t is None:
+        t = torch.as_tensor(arr, device=device)
+        _CONST_CACHE[key] = t
+    return t
+
+
+def time_powers(T: torch.Tensor, r: int) -> torch.Tensor:
+    """(B, M, 2r): [T^0 .. T^(r-1), T^0 .. T^(r-1)]."""
+    pows = [torch.ones_like(T)]
+    for _ in range(1, r):
+        pows.append(pows[-1] * T)
+    sv = torch.stack(pows, dim=-1)
+    return torch.cat([sv, sv], dim=-1)
+
+
+def hessian(T: torch.Tensor, r: int) -> torch.Tensor:
+    """H (B, N, N), N = r(M+1): per-axis cost ``X^T H X`` of the knot vector X."""
+    B, M = T.shape
+    R = _const("R", r, T.dtype, T.device)
+    sv = time_powers(T, r)
+    blocks = (T ** (1 - 2 * r)).unsqueeze(-1).unsqueeze(-1) * sv.unsqueeze(-1) * sv.unsqueeze(-2) * R
+    N = r * (M + 1)
+    H = torch.zeros(B, N * N, dtype=T.dtype, device=T.device)
+    H = H.index_add(1, _const(f"idx{M}", r, T.dtype, T.device), blocks.reshape(B, -1))
+    return H.reshape(B, N, N)
+
+
+@lru_cache(maxsize=None)
+def _perm_scatter_index(M: int, r: int, free_positions: bool) -> np.ndarray:
+    """Like _scatter_index, into the knot vector reordered as [free entries, fixed entries]."""
+    lay = layout(M, r, free_positions)
+    N = r * (M + 1)
+    pos = np.empty(N, dtype=np.int64)
+    pos[np.concatenate([lay.free, lay.fixed])] = np.arange(N)
+    loc = np.arange(2 * r)
+    out = np.empty((M, 2 * r, 2 * r), dtype=np.int64)
+    for i in range(M):
+        g = pos[i * r + loc]
+        out[i] = g[:, None] * N + g[None, :]
+    return out.reshape(-1)
+
+
+def partitioned_hessian(T: torch.Tensor, r: int, lay: Layout) -> tuple[torch.Tensor, torch.Tensor]:
+    """(H_ff (B, nf, nf), H_fp (B, nf, nfix)) of :func:`hessian`, assembled directly in the
+    [free, fixed] order so the blocks are slices (no gathers)."""
+    B, M = T.shape
+    R = _const("R", r, T.dtype, T.device)
+    sv = time_powers(T, r)
+    blocks = (T ** (1 - 2 * r)).unsqueeze(-1).unsqueeze(-1) * sv.unsqueeze(-1) * sv.unsqueeze(-2) * R
+    N = r * (M + 1)
+    key = ("perm", M, r, lay.free.size, str(T.device))
+    idx = _CONST_CACHE.get(key)
+    if idx is None:
+        idx = torch.as_tensor(_perm_scatter_index(M, r, lay.free.size > (M - 1) * (r - 1)), device=T.device)
+        _CONST_CACHE[key] = idx
+    H = torch.zeros(B, N * N, dtype=T.dtype, device=T.device).index_add(1, idx, blocks.reshape(B, -1))
+    H = H.reshape(B, N, N)
+    nf = lay.free.size
+    return H[:, :nf, :nf], H[:, :nf, nf:]
+
+
+def solve_knots(T: torch.Tensor, X: torch.Tensor, lay: Layout) -> torch.Tensor:
+    """:func:`solve_equality` with the Hessian of durations T (faster: no gathers)."""
+    if lay.free.size == 0:
+        return X
+    Hff, Hfp = partitioned_hessian(T, lay.r, lay)
+    return _reduced_solve(Hff, Hfp, X, lay)
+
+
+def _reduced_solve(Hff: torch.Tensor, Hfp: torch.Tensor, X: torch.Tensor, lay: Layout) -> torch.Tensor:
+    dev = X.device
+    fi = index_tensor(lay.free, dev)
+    xi = index_tensor(lay.fixed, dev)
+    Xp = X.index_select(1, xi)
+    rhs = -(Hfp @ Xp)
+    dscale = torch.rsqrt(torch.diagonal(Hff, dim1=-2, dim2=-1)).detach()
+    A = Hff * dscale.unsqueeze(-1) * dscale.unsqueeze(-2)
+    y = torch.linalg.solve(A, rhs * dscale.unsqueeze(-1))
+    xf = y * dscale.unsqueeze(-1)
+    return X.index_copy(1, fi, xf)
+
+
+def knot_values(
+    points: torch.Tensor, start: torch.Tensor, end: torch.Tensor, r: int
+) -> torch.Tensor:
+    """Knot vector template (B, N, A): positions of all knots, start/end derivatives 1..r-1,
+    zero for the interior derivatives.
+
+    points: (B, M+1, A); start/end: (B, r-1, A) derivatives of orders 1..r-1.
+    """
+    B, M1, A = points.shape
+    zeros = torch.zeros(B, M1 - 2, r - 1, A, dtype=points.dtype, device=points.device)
+    der = torch.cat([start.unsqueeze(1), zeros, end.unsqueeze(1)], dim=1)  # (B, M+1, r-1, A)
+    X = torch.cat([points.unsqueeze(2), der], dim=2)  # (B, M+1, r, A)
+    return X.reshape(B, M1 * r, A)
+
+
+def coefficients(X: torch.Tensor, T: torch.Tensor, r: int) -> torch.Tensor:
+    """Polynomial coefficients (B, M, A, 2r) from the full knot vector X (B, N, A)."""
+    B, N, A = X.shape
+    M = T.shape[1]
+    K = X.reshape(B, M + 1, r, A)
+    d = torch.cat([K[:, :-1], K[:, 1:]], dim=2)  # (B, M, 2r, A)
+    ds = d * time_powers(T, r).unsqueeze(-1)
+    Ainv = _const("Ainv", r, T.dtype, T.device)
+    dsT = ds.transpose(-1, -2).reshape(-1, 2 * r)  # one GEMM instead of many tiny batched ones
+    return (dsT @ Ainv.T).reshape(B, M, A, 2 * r)
+
+
+def sample_rows(T: torch.Tensor, s: np.ndarray, q: int, r: int) -> torch.Tensor:
+    """Rows mapping a segment's 2r knot entries to the q-th time derivative at local times ``s``.
+
+    Returns (B, M, K, 2r).
+    """
+    phi = torch.as_tensor(basis_row(s, 2 * r, q), dtype=T.dtype, device=T.device)  # (K, 2r)
+    Ainv = _const("Ainv", r, T.dtype, T.device)
+    base = phi @ Ainv  # (K, 2r) acting on s-derivatives
+    sv = time_powers(T, r)  # (B, M, 2r)
+    rows = base.unsqueeze(0).unsqueeze(0) * sv.unsqueeze(2)
+    if q:
+        rows = rows / (T ** q).unsqueeze(-1).unsqueeze(-1)
+    return rows
+
+
+def solve_equality(
+    H: torch.Tensor, X: torch.Tensor, lay: Layout
+) -> torch.Tensor:
+    """Minimise ``sum_axes X^T H X`` over the free entries; returns the full knot vector (B, N, A).
+
+    Exact dense solve of the reduced (Schur) system, symmetrically scaled to unit diagonal.
+    """
+    if lay.free.size == 0:
+        return X
+    dev = H.device
+    fi = index_tensor(lay.free, dev)
+    xi = index_tensor(lay.fixed, dev)
+    Hf = H.index_select(1, fi)
+    return _reduced_solve(Hf.index_select(2, fi), Hf.index_select(2, xi), X, lay)

@@ -1,0 +1,373 @@
+"""Segment-time allocation: heuristics, Mellinger & Kumar gradient descent, and the Time Allocation
+Net module. Entry point: :func:`allocate_times`."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import nn
+
+from mapkit.trajopt._basis import knot_cost_matrix
+from mapkit.trajopt._errors import TrajoptError
+from mapkit.trajopt._system import knot_values, layout, solve_knots, time_powers
+
+ALLOCATION_METHODS = ("uniform", "trapezoid", "poly5", "gradient", "net")
+"""Names accepted by ``allocate_times(method=...)``."""
+
+_WORK = torch.float64
+# 5th-order rest-to-rest profile s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5: peak speed and acceleration
+# per unit length and time.
+_POLY5_VPEAK = 15.0 / 8.0
+_POLY5_APEAK = 10.0 / math.sqrt(3.0)
+
+
+def _prep(waypoints) -> tuple[torch.Tensor, bool]:
+    if not isinstance(waypoints, torch.Tensor):
+        waypoints = torch.as_tensor(np.asarray(waypoints, dtype=np.float64))
+    if not waypoints.is_floating_point():
+        raise TrajoptError(f"waypoints must be float32 or float64, got {waypoints.dtype}")
+    if waypoints.ndim not in (2, 3) or waypoints.shape[-1] != 3 or waypoints.shape[-2] < 2:
+        raise TrajoptError(
+            f"waypoints must have shape (B, M+1, 3) or (M+1, 3) with M >= 1, got {tuple(waypoints.shape)}"
+        )
+    batched = waypoints.ndim == 3
+    return (waypoints if batched else waypoints.unsqueeze(0)), batched
+
+
+def _lengths(w: torch.Tensor) -> torch.Tensor:
+    return (w[:, 1:] - w[:, :-1]).norm(dim=-1)
+
+
+def _trapezoid_time(length: torch.Tensor, v_max: float, a_max: float) -> torch.Tensor:
+    """Rest-to-rest time over ``length`` with bounded speed and acceleration."""
+    cruise = length / v_max + v_max / a_max
+    short = 2.0 * torch.sqrt(length.clamp_min(0.0) / a_max)
+    return torch.where(length >= v_max * v_max / a_max, cruise, short)
+
+
+def _poly5_total(length: torch.Tensor, v_max: float, a_max: float) -> torch.Tensor:
+    """Shortest total time of the quintic rest-to-rest profile within v_max and a_max."""
+    return torch.maximum(_POLY5_VPEAK * length / v_max, torch.sqrt(_POLY5_APEAK * length.clamp_min(0.0) / a_max))
+
+
+def _poly5_inverse(y: torch.Tensor) -> torch.Tensor:
+    """tau in [0, 1] with 10 tau^3 - 15 tau^4 + 6 tau^5 = y (bisection, then one Newton step for
+    gradients)."""
+    yd = y.detach().clamp(0.0, 1.0)
+    lo = torch.zeros_like(yd)
+    hi = torch.ones_like(yd)
+    for _ in range(52):
+        mid = 0.5 * (lo + hi)
+        val = mid ** 3 * (10.0 - 15.0 * mid + 6.0 * mid * mid)
+        below = val < yd
+        lo = torch.where(below, mid, lo)
+        hi = torch.where(below, hi, mid)
+    tau = 0.5 * (lo + hi)
+    val = tau ** 3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
+    slope = 30.0 * tau ** 2 * (1.0 - tau) ** 2
+    return tau - (val - y) / slope.clamp_min(1e-12)
+
+
+def _min_duration(total: torch.Tensor, M: int) -> torch.Tensor:
+    return 1e-3 * total / M
+
+
+def snap_cost_of_times(
+    waypoints: torch.Tensor,
+    durations: torch.Tensor,
+    *,
+    start: torch.Tensor | None = None,
+    end: torch.Tensor | None = None,
+    with_grad: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """Minimum snap cost J(T) (B,) through the key-points (no inequalities), m²/s⁷.
+
+    With ``with_grad`` also returns dJ/dT (B, M), computed analytically (envelope theorem: at the
+    optimum only the explicit dependence on T counts), without autograd. Inputs as in
+    :func:`mapkit.trajopt.min_snap`; float64 internally. Non-finite costs are returned as +inf.
+    """
+    w, batched = _prep(waypoints)
+    w = w.to(_WORK)
+    B, M1, _ = w.shape
+    M = M1 - 1
+    T = torch.as_tensor(durations).to(device=w.device, dtype=_WORK)
+    T = torch.broadcast_to(T if T.ndim == 2 else T.unsqueeze(0), (B, M))
+    z = torch.zeros(B, 3, 3, dtype=_WORK, device=w.device)
+    st = z if start is None else torch.broadcast_to(torch.as_tensor(start).to(w.device, _WORK), (B, 3, 3))
+    en = z if end is None else torch.broadcast_to(torch.as_tensor(end).to(w.device, _WORK), (B, 3, 3))
+    X = solve_knots(T, knot_values(w, st, en, 4), layout(M, 4, False))
+    K = X.reshape(B, M + 1, 4, 3)
+    d = torch.cat([K[:, :-1], K[:, 1:]], dim=2)  # (B, M, 8, 3)
+    ds = d * time_powers(T, 4).unsqueeze(-1)
+    R = torch.as_tensor(knot_cost_matrix(4), dtype=_WORK, device=w.device)
+    Rds = torch.einsum("kl,bmla->bmka", R, ds)
+    quad = (ds * Rds).sum(dim=(2, 3))  # (B, M)
+    J = (quad * T ** (-7)).sum(-1)
+    J = torch.where(torch.isfinite(J), J, torch.full_like(J, math.inf))
+    if not with_grad:
+        return J if batched else J[0]
+    qv = torch.tensor([0, 1, 2, 3, 0, 1, 2, 3], dtype=_WORK, device=w.device)
+    dds = ds * (qv.reshape(1, 1, 8, 1) / T.reshape(B, M, 1, 1))
+    cross = (dds * Rds).sum(dim=(2, 3))
+    g = -7.0 * quad * T ** (-8) + 2.0 * cross * T ** (-7)
+    return (J, g) if batched else (J[0], g[0])
+
+
+def _gradient_allocation(
+    w: torch.Tensor,
+    T0: torch.Tensor,
+    *,
+    k_T: float | None,
+    total: torch.Tensor | None,
+    start,
+    end,
+    max_iters: int,
+    rel_tol: float,
+    solve_options: dict | None,
+) -> torch.Tensor:
+    """Projected gradient descent with Armijo backtracking, batched over problems (float64)."""
+    B, M = T0.shape
+    fixed_total = k_T is None
+    if fixed_total:
+        total = T0.sum(-1) if total is None else total
+        T = T0 * (total / T0.sum(-1)).unsqueeze(-1)
+    else:
+        T = T0.clone()
+    t_min = _min_duration(T.sum(-1), M).unsqueeze(-1).expand(B, M)
+
+    def cost(Tc: torch.Tensor, need_grad: bool):
+        if solve_options:
+            from mapkit.trajopt._minsnap import min_snap
+
+            Tv = Tc.clone().requires_grad_(need_grad)
+            with torch.enable_grad() if need_grad else torch.no_grad():
+                tr = min_snap(w, Tv, start=start, end=end, on_infeasible="ignore", **solve_options)
+                J = tr.snap_cost()
+                if need_grad:
+                    (g,) = torch.autograd.grad(J.sum(), Tv)
+                else:
+                    g = None
+            J = torch.where(tr.solved & torch.isfinite(J), J.detach(), torch.full_like(J, math.inf))
+        else:
+            if need_grad:
+                J, g = snap_cost_of_times(w, Tc, start=start, end=end, with_grad=True)
+            else:
+                J, g = snap_cost_of_times(w, Tc, start=start, end=end), None
+        if fixed_total:
+            return J, g
+        return J + k_T * Tc.sum(-1), (None if g is None else g + k_T)
+
+    def project(Tc: torch.Tensor) -> torch.Tensor:
+        if not fixed_total:
+            return torch.maximum(Tc, t_min)
+        # Euclidean projection onto {T >= t_min, sum T = total} (sort-based simplex projection).
+        y = Tc - t_min
+        s = (total - t_min.sum(-1)).unsqueeze(-1)
+        u, _ = torch.sort(y, dim=-1, descending=True)
+        css = torch.cumsum(u, dim=-1) - s
+        k = torch.arange(1, M + 1, dtype=Tc.dtype, device=Tc.device)
+        cond = u - css / k > 0
+        rho = cond.to(torch.int64).cumsum(-1).argmax(-1, keepdim=True)
+        theta = torch.gather(css, 1, rho) / (rho + 1).to(Tc.dtype)
+        return torch.clamp(y - theta, min=0.0) + t_min
+
+    with torch.no_grad():
+        f, g = cost(T, True)
+        if not bool(torch.isfinite(f).all()):
+            raise TrajoptError(
+                "gradient time allocation: the initial durations give no finite cost for some "
+                "elements; start from longer durations or relax the constraints"
+            )
+        step = 0.1 * T.mean(-1, keepdim=True) / g.abs().amax(-1, keepdim=True).clamp_min(1e-300)
+        active = torch.ones(B, dtype=torch.bool, device=T.device)
+        for _ in range(max_iters):
+            if not bool(active.any()):
+                break
+            accepted = torch.zeros(B, dtype=torch.bool, device=T.device)
+            T_new = T.clone()
+            f_new = f.clone()
+            trial = step.clone()
+            for _ls in range(40):
+                todo = active & ~accepted
+                if not bool(todo.any()):
+                    break
+                cand = project(T - trial * g)
+                fc, _ = cost(cand, False)
+                dec = ((cand - T) ** 2).sum(-1)
+                ok = torch.isfinite(fc) & (fc <= f - 1e-4 / trial.squeeze(-1) * dec)
+                take = todo & ok
+                T_new = torch.where(take.unsqueeze(-1), cand, T_new)
+                f_new = torch.where(take, fc, f_new)
+                accepted |= take
+                trial = torch.where((todo & ~ok).unsqueeze(-1), 0.5 * trial, trial)
+            rel = (f - f_new) / f.abs().clamp_min(1e-300)
+            moved = accepted & (rel > rel_tol)
+            active = active & moved
+            step = torch.where(accepted.unsqueeze(-1), 2.0 * trial, trial)
+            T = torch.where(accepted.unsqueeze(-1), T_new, T)
+            if bool(active.any()):
+                f, g = cost(T, True)
+    return T
+
+
+def allocate_times(
+    waypoints: torch.Tensor,
+    method: Literal["uniform", "trapezoid", "poly5", "gradient", "net"] = "trapezoid",
+    *,
+    v_max: float = 2.0,
+    a_max: float = 2.0,
+    total_time: float | torch.Tensor | None = None,
+    k_T: float | None = None,
+    start: torch.Tensor | None = None,
+    end: torch.Tensor | None = None,
+    initial: torch.Tensor | None = None,
+    max_iters: int = 100,
+    rel_tol: float = 1e-6,
+    solve_options: dict | None = None,
+    net: "TimeAllocationNet | None" = None,
+) -> torch.Tensor:
+    """Segment durations (B, M) — or (M,) for unbatched (M+1, 3) waypoints — in seconds.
+
+    Methods:
+        ``uniform``: ``total_time`` (default: the trapezoid time of the whole path) split evenly.
+        ``trapezoid``: every segment gets its own rest-to-rest time under ``v_max`` (m/s) and
+            ``a_max`` (m/s²); rescaled to ``total_time`` when given.
+        ``poly5``: the whole path follows one quintic rest-to-rest arc-length profile
+            ``s(tau) = L (10 tau^3 - 15 tau^4 + 6 tau^5)`` whose duration is the shortest within
+            ``v_max``/``a_max`` (or ``total_time``); each key-point gets the time the profile
+            reaches its arc length, so segments near the ends are slower.
+        ``gradient``: Mellinger & Kumar: minimise the snap cost J(T) + ``k_T`` * sum(T) (when
+            ``k_T`` is given) or J(T) with sum(T) fixed (``total_time``, default the sum of the
+            start); projected gradient descent with Armijo backtracking from ``initial``
+            (default trapezoid), every duration kept >= 1e-3 * total / M. ``solve_options``
+            (``corridor``, ``v_max``, ``a_max``, ...) are passed to :func:`min_snap`, making J the
+            constrained optimum; a failed solve counts as infinite cost. Not differentiable.
+        ``net``: the :class:`TimeAllocationNet` ``net`` (required) predicts the shares of
+            ``total_time`` (default: its poly5 total time).
+    """
+    if method not in ALLOCATION_METHODS:
+        raise TrajoptError(f"method must be one of {ALLOCATION_METHODS}, got {method!r}")
+    if not (v_max > 0 and a_max > 0):
+        raise TrajoptError(f"v_max and a_max must be > 0, got {v_max} and {a_max}")
+    w, batched = _prep(waypoints)
+    out_dtype = w.dtype
+    B, M1, _ = w.shape
+    M = M1 - 1
+    tot = None
+    if total_time is not None:
+        tot = torch.as_tensor(total_time).to(device=w.device, dtype=_WORK)
+        tot = torch.broadcast_to(tot.reshape(-1) if tot.ndim else tot, (B,))
+        if bool((tot <= 0).any()):
+            raise TrajoptError(f"total_time must be > 0 seconds, got {total_time}")
+
+    if method == "net":
+        if net is None:
+            raise TrajoptError("method='net' needs net=TimeAllocationNet(...)")
+        T = net(w.to(next(net.parameters()).dtype), total_time=None if tot is None else tot)
+        return (T if batched else T[0]).to(out_dtype)
+
+    w64 = w.to(_WORK)
+    lengths = _lengths(w64)
+    if bool((lengths.sum(-1) <= 0).any()):
+        raise TrajoptError("waypoints: every path needs a positive length (start and end coincide)")
+    if method == "uniform":
+        total = tot if tot is not None else _trapezoid_time(lengths.sum(-1), v_max, a_max)
+        T = (total / M).unsqueeze(-1).expand(B, M).clone()
+    elif method == "trapezoid":
+        T = _trapezoid_time(lengths, v_max, a_max)
+        T = torch.maximum(T, _min_duration(T.sum(-1), M).unsqueeze(-1).clamp_min(1e-6))
+        if tot is not None:
+            T = T * (tot / T.sum(-1)).unsqueeze(-1)
+    elif method == "poly5":
+        L = lengths.sum(-1)
+        total = tot if tot is not None else _poly5_total(L, v_max, a_max)
+        frac = torch.cumsum(lengths, dim=-1) / L.unsqueeze(-1)
+        tau = _poly5_inverse(frac[:, :-1])
+        tau = torch.cat([torch.zeros_like(tau[:, :1]), tau, torch.ones_like(tau[:, :1])], dim=1)
+        T = (tau[:, 1:] - tau[:, :-1]) * total.unsqueeze(-1)
+        T = torch.maximum(T, _min_duration(total, M).unsqueeze(-1))
+    else:  # gradient
+        if k_T is not None and not k_T > 0:
+            raise TrajoptError(f"k_T must be > 0, got {k_T}")
+        if initial is None:
+            T0 = _trapezoid_time(lengths, v_max, a_max)
+            T0 = torch.maximum(T0, _min_duration(T0.sum(-1), M).unsqueeze(-1).clamp_min(1e-6))
+        else:
+            T0 = torch.as_tensor(initial).to(device=w.device, dtype=_WORK)
+            T0 = torch.broadcast_to(T0 if T0.ndim == 2 else T0.unsqueeze(0), (B, M)).clone()
+            if bool((T0 <= 0).any()):
+                raise TrajoptError("initial durations must all be > 0 seconds")
+        T = _gradient_allocation(
+            w64.detach(), T0.detach(), k_T=k_T, total=tot, start=start, end=end,
+            max_iters=max_iters, rel_tol=rel_tol, solve_options=solve_options,
+        )
+    return (T if batched else T[0]).to(out_dtype)
+
+
+@dataclass
+class TimeAllocationNetConfig:
+    """Configuration of :class:`TimeAllocationNet`."""
+
+    num_segments: int = 5
+    """M, the number of segments (key-points minus one) the net allocates."""
+    hidden: tuple[int, ...] = (128, 128)
+    """Widths of the hidden layers of the MLP (ReLU between them)."""
+    v_max: float = 2.0
+    """m/s; with ``a_max`` gives the default total time (poly5 rule) when none is passed."""
+    a_max: float = 2.0
+    """m/s², see ``v_max``."""
+    extra: dict = field(default_factory=dict)
+    """Free-form notes stored with the config (ignored by the module)."""
+
+
+class TimeAllocationNet(nn.Module):
+    """Time Allocation Net (TAN): an MLP over the key-point geometry predicts each segment's share of
+    the total time (softmax), so durations are always positive and sum to the total.
+
+    Input features per element: the M segment vectors (metres) and their lengths, divided by the
+    path length (scale-free), plus the log of the path length.
+    """
+
+    def __init__(self, config: TimeAllocationNetConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or TimeAllocationNetConfig()
+        M = self.config.num_segments
+        if M < 1:
+            raise TrajoptError(f"num_segments must be >= 1, got {M}")
+        dims = [4 * M + 1, *self.config.hidden, M]
+        layers: list[nn.Module] = []
+        for i in range(len(dims) - 1):
+            layers.append(nn.Linear(dims[i], dims[i + 1]))
+            if i < len(dims) - 2:
+                layers.append(nn.ReLU())
+        self.mlp = nn.Sequential(*layers)
+
+    def shares(self, waypoints: torch.Tensor) -> torch.Tensor:
+        """(B, M) softmax shares of the total time for waypoints (B, M+1, 3)."""
+        M = self.config.num_segments
+        if waypoints.ndim != 3 or waypoints.shape[1] != M + 1 or waypoints.shape[2] != 3:
+            raise TrajoptError(
+                f"TimeAllocationNet for M={M} segments needs waypoints (B, {M + 1}, 3), "
+                f"got {tuple(waypoints.shape)}"
+            )
+        seg = waypoints[:, 1:] - waypoints[:, :-1]
+        lengths = seg.norm(dim=-1)
+        L = lengths.sum(-1, keepdim=True).clamp_min(1e-6)
+        feats = torch.cat(
+            [(seg / L.unsqueeze(-1)).flatten(1), lengths / L, torch.log(L)], dim=-1
+        )
+        return torch.softmax(self.mlp(feats), dim=-1)
+
+    def forward(self, waypoints: torch.Tensor, total_time: torch.Tensor | None = None) -> torch.Tensor:
+        """Durations (B, M) for waypoints (B, M+1, 3); ``total_time`` (B,) seconds, default the
+        poly5 rule's total time from the config limits."""
+        shares = self.shares(waypoints)
+        if total_time is None:
+            L = _lengths(waypoints).sum(-1)
+            total_time = _poly5_total(L, self.config.v_max, self.config.a_max)
+        total_time = torch.as_tensor(total_time, dtype=shares.dtype, device=shares.device)
+        return shares * total_time.reshape(-1, 1)
