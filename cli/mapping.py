@@ -53,18 +53,21 @@ def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float, trunc: flo
 @click.option("--voxel", type=float, default=0.1, show_default=True, help="ESDF voxel size (m).")
 @click.option("--padding", type=float, default=1.0, show_default=True, help="Metres around the fused map.")
 @click.option("--sigma", type=float, default=0.1, show_default=True, help="Gaussian smoothing (m); 0 = none.")
-@click.option("--unknown", type=click.Choice(["occupied", "free"]), default="occupied", show_default=True,
-              help="Unobserved space: obstacles (safe) or free.")
+@click.option("--unknown", type=click.Choice(["free", "occupied"]), default="free", show_default=True,
+              help="Unobserved space: free (as the paper; enclosed unseen pockets stay solid) or occupied (conservative).")
+@click.option("--solid-depth", type=float, default=0.5, show_default=True,
+              help="With --unknown free: unseen space this far (m) behind measured surfaces is solid.")
 @click.option("--max-dist", type=float, default=None, help="Clamp |distance| to this (m).")
 @click.option("--backend", type=click.Choice(["edt", "scipy"]), default="edt", show_default=True, help="Exact EDT implementation.")
 @OVERWRITE
 @library_call
-def esdf(workspace: Path, voxel: float, padding: float, sigma: float, unknown: str, max_dist: float | None,
-         backend: str, overwrite: bool) -> None:
+def esdf(workspace: Path, voxel: float, padding: float, sigma: float, unknown: str, solid_depth: float,
+         max_dist: float | None, backend: str, overwrite: bool) -> None:
     """Signed, Gaussian-smoothed ESDF of the fused map → WS/map.zarr."""
     from mapkit.esdf._build import EsdfConfig, build_esdf
 
-    config = EsdfConfig(voxel=voxel, padding=padding, sigma=sigma, unknown=unknown, max_dist=max_dist, backend=backend)
+    config = EsdfConfig(voxel=voxel, padding=padding, sigma=sigma, unknown=unknown, solid_depth=solid_depth,
+                        max_dist=max_dist, backend=backend)
     s = build_esdf(workspace, config, overwrite=overwrite, progress=True)
     nx, ny, nz = s.shape
     click.echo(

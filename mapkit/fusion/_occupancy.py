@@ -50,20 +50,21 @@ def _tsdf_samples(vbg: object, batch: int = _BLOCKS_PER_BATCH):
     weight_all = vbg.attribute("weight").reshape((-1,))  # type: ignore[attr-defined]
     n = active.shape[0]
     for start in range(0, n, batch):
-        buf = active[start : start + batch].to(o3c.int64)
+        buf = active[start : start + batch].to(o3c.int32)
         coords, flat = vbg.voxel_coordinates_and_flattened_indices(buf)  # type: ignore[attr-defined]
         flat = flat.reshape((-1,))
         yield coords.numpy().astype(np.float64), tsdf_all[flat].numpy(), weight_all[flat].numpy()
 
 
 def occupancy_from_tsdf(
-    tsdf_path: Path, grid: Grid, *, tsdf_voxel: float, min_weight: float = 1.0
-) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    """(occupied, seen) on `grid` from the TSDF sample nearest each voxel centre.
+    tsdf_path: Path, grid: Grid, *, tsdf_voxel: float, trunc_voxels: float, min_weight: float = 1.0
+) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
+    """(occupied, tsdf) on `grid` from the TSDF sample nearest each voxel centre.
 
-    occupied: the TSDF at the centre is negative (inside); seen: the centre has a TSDF sample with
-    weight >= min_weight. Sampling the centre (not "any fine voxel in the cell") keeps obstacle
-    boundaries unbiased; structures thinner than about one ESDF voxel can fall between centres.
+    tsdf: signed distance in metres at the centre (Open3D stores it divided by the truncation
+    distance), NaN where no sample has weight >= min_weight; occupied: tsdf < 0. Sampling the centre
+    (not "any fine voxel in the cell") keeps obstacle boundaries unbiased; structures thinner than
+    about one ESDF voxel can fall between centres.
     """
     import open3d as o3d
 
@@ -73,10 +74,10 @@ def occupancy_from_tsdf(
         vbg = o3d.t.geometry.VoxelBlockGrid.load(str(tsdf_path))
     except Exception as exc:
         raise FusionError(f"{tsdf_path} is not a readable TSDF ({exc}); re-run `mapkit fuse --overwrite`") from None
-    occupied = np.zeros(grid.shape, dtype=bool)
-    seen = np.zeros(grid.shape, dtype=bool)
+    tsdf_m = np.full(grid.shape, np.nan, dtype=np.float32)
     half = 0.5 * tsdf_voxel + 1e-6
     shape = np.asarray(grid.shape)
+    trunc_m = trunc_voxels * tsdf_voxel
     for pos, tsdf, weight in _tsdf_samples(vbg):
         keep = weight >= min_weight
         pos, tsdf = pos[keep], tsdf[keep]
@@ -86,19 +87,20 @@ def occupancy_from_tsdf(
         inside = np.all((idx >= 0) & (idx < shape), axis=1)
         sel = near & inside
         i, j, k = idx[sel].T
-        seen[i, j, k] = True
-        occupied[i, j, k] = tsdf[sel] < 0
-    return occupied, seen
+        tsdf_m[i, j, k] = tsdf[sel] * trunc_m
+    return tsdf_m < 0, tsdf_m
 
 
 def carve_free_space(
     store: FramesStore, grid: Grid, observed: NDArray[np.bool_], *, max_depth: float,
+    behind: NDArray[np.bool_] | None = None, solid_depth: float = 0.0,
     max_frames: int = 300, progress: bool = False,
 ) -> int:
     """Mark voxels that depth rays passed through as observed (in place); returns the frames used.
 
     Rays are subsampled so that neighbouring rays are about one voxel apart at the far range, and
-    sampled every half voxel up to half a voxel before the measured surface.
+    sampled every half voxel up to half a voxel before the measured surface. With `behind`, the
+    voxels up to `solid_depth` beyond each measured surface (along the ray) are marked there.
     """
     from tqdm import tqdm
 
@@ -114,6 +116,18 @@ def carve_free_space(
     strides = np.array([grid.shape[1] * grid.shape[2], grid.shape[2], 1])
     flat = observed.reshape(-1)
     used = 0
+
+    def mark(target: NDArray[np.bool_], origin: NDArray[np.float64], dirs: NDArray[np.float64],
+             z0: NDArray[np.float64], counts: NDArray[np.int64]) -> None:
+        """Set the voxels at optical depths z0 + (n + 0.5) * step, n < counts, along each ray."""
+        ray_id = np.repeat(np.arange(len(counts)), counts)
+        start = np.cumsum(counts) - counts
+        z = np.repeat(z0, counts) + (np.arange(counts.sum()) - np.repeat(start, counts) + 0.5) * step
+        pts = origin + dirs[ray_id] * z[:, None]
+        idx = np.rint((pts - grid.origin) / grid.voxel_size).astype(np.int64)
+        inside = np.all((idx >= 0) & (idx < shape), axis=1)
+        target[idx[inside] @ strides] = True
+
     for i in tqdm(range(0, n, frame_step), desc="observed", unit="frame", disable=not progress):
         depth = np.asarray(store.depth[i])[::pix_step, ::pix_step].reshape(-1)
         ok = np.isfinite(depth)
@@ -123,23 +137,24 @@ def carve_free_space(
         T = store.T_world_camera[i]
         dirs = rays[ok] @ T[:3, :3].T  # world-frame ray per unit optical depth
         counts = np.maximum((z_end / step).astype(np.int64), 0)
-        ray_id = np.repeat(np.arange(len(z_end)), counts)
-        start = np.cumsum(counts) - counts
-        z = (np.arange(counts.sum()) - np.repeat(start, counts) + 0.5) * step
-        pts = T[:3, 3] + dirs[ray_id] * z[:, None]
-        idx = np.rint((pts - grid.origin) / grid.voxel_size).astype(np.int64)
-        inside = np.all((idx >= 0) & (idx < shape), axis=1)
-        flat[idx[inside] @ strides] = True
+        mark(flat, T[:3, 3], dirs, np.zeros_like(z_end), counts)
+        if behind is not None and solid_depth > 0:
+            hit = depth[ok] <= max_depth
+            n_behind = int(np.ceil(solid_depth / step))
+            mark(behind.reshape(-1), T[:3, 3], dirs[hit], depth[ok][hit] + step,
+                 np.full(int(hit.sum()), n_behind, dtype=np.int64))
         used += 1
     return used
 
 
-def fill_unknown(occupied: NDArray[np.bool_], observed: NDArray[np.bool_], policy: str) -> NDArray[np.bool_]:
+def fill_unknown(
+    occupied: NDArray[np.bool_], observed: NDArray[np.bool_], policy: str, *, behind: NDArray[np.bool_] | None = None
+) -> NDArray[np.bool_]:
     """Apply the unknown-space policy; returns the final obstacle mask.
 
-    occupied: unobserved voxels are obstacles. free: unobserved voxels are free, except pockets that
-    no observed voxel reaches and that do not touch the grid border (the unseen inside of a closed
-    object), which stay solid.
+    occupied: every unobserved voxel is an obstacle. free: unobserved voxels are free, except
+    (a) those just behind a measured surface along the sensor's rays (`behind`: the inside of a box
+    or a trunk, the ground under the floor) and (b) pockets that no observed free voxel reaches.
     """
     if policy == "occupied":
         return occupied | ~observed
@@ -147,15 +162,11 @@ def fill_unknown(occupied: NDArray[np.bool_], observed: NDArray[np.bool_], polic
         raise FusionError(f"--unknown {policy!r}: expected occupied or free")
     from scipy import ndimage
 
-    labels, count = ndimage.label(~occupied)
+    solid = occupied | (behind & ~observed) if behind is not None else occupied.copy()
+    labels, count = ndimage.label(~solid)
     if count == 0:
-        return occupied
+        return solid
     reached = np.zeros(count + 1, dtype=bool)
-    reached[np.unique(labels[observed & ~occupied])] = True
-    border = np.concatenate([
-        labels[0].ravel(), labels[-1].ravel(), labels[:, 0].ravel(), labels[:, -1].ravel(),
-        labels[:, :, 0].ravel(), labels[:, :, -1].ravel(),
-    ])
-    reached[np.unique(border)] = True
-    reached[0] = False
-    return occupied | ~reached[labels] & (labels > 0)
+    reached[np.unique(labels[observed & ~solid])] = True
+    reached[0] = True  # label 0: the obstacles themselves
+    return ~reached[labels] | solid

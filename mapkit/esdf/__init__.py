@@ -1,0 +1,43 @@
+"""Signed distance fields (ESDF) of occupancy grids, map.zarr, and queries and slices of it.
+
+The ESDF stage of the pipeline: a boolean occupancy grid [nx, ny, nz] (indexed [x, y, z], voxel
+[i, j, k] centred at ``origin + voxel_size * (i, j, k)``) becomes an exact signed Euclidean distance in
+metres (positive in free space, negative inside obstacles), Gaussian-smoothed without letting the
+smoothing flip the sign away from the surface, and stored as map.zarr.
+
+>>> import numpy as np
+>>> from mapkit.esdf import signed_distance, smooth
+>>> occ = np.zeros((40, 40, 20), bool); occ[:, :, :2] = True          # a floor
+>>> raw = signed_distance(occ, voxel_size=0.1)
+>>> round(float(raw[0, 0, 5]), 4)        # centre 4 voxels above the top floor voxel: 3.5 voxels to the surface
+0.35
+>>> esdf, n_prevented = smooth(raw, voxel_size=0.1, sigma=0.2)
+
+Large grids: :func:`signed_distance_chunked` streams chunk by chunk into :func:`create_map`'s arrays.
+"""
+
+from mapkit.esdf._chunked import ChunkedSummary, chunk_halo, signed_distance_chunked
+from mapkit.esdf._distance import BACKENDS, signed_distance, smooth
+from mapkit.esdf._errors import EsdfError
+from mapkit.esdf._map import OUTSIDE_POLICIES, EsdfMap
+from mapkit.esdf._slice import Slice, render_slices, slice_plane
+from mapkit.esdf._store import UNKNOWN_POLICIES, MapWriter, create_map, write_map
+
+__all__ = [
+    "BACKENDS",
+    "OUTSIDE_POLICIES",
+    "UNKNOWN_POLICIES",
+    "ChunkedSummary",
+    "EsdfError",
+    "EsdfMap",
+    "MapWriter",
+    "Slice",
+    "chunk_halo",
+    "create_map",
+    "render_slices",
+    "signed_distance",
+    "signed_distance_chunked",
+    "slice_plane",
+    "smooth",
+    "write_map",
+]

@@ -1,0 +1,65 @@
+"""Argument checks shared by the ESDF modules: one specific message per bad value, naming the fix."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from mapkit.esdf._errors import EsdfError
+
+
+def positive(name: str, value: Any, *, unit: str = "m") -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise EsdfError(f"{name}={value!r} is not a number; pass a positive length in {unit}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise EsdfError(f"{name}={value!r} must be a finite positive length in {unit}")
+    return v
+
+
+def non_negative(name: str, value: Any, *, unit: str = "m") -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise EsdfError(f"{name}={value!r} is not a number; pass a length >= 0 in {unit}") from None
+    if not math.isfinite(v) or v < 0:
+        raise EsdfError(f"{name}={value!r} must be a finite length >= 0 in {unit} (0 turns it off)")
+    return v
+
+
+def grid_shape(name: str, shape: Any) -> tuple[int, int, int]:
+    if len(shape) != 3:
+        raise EsdfError(f"{name} must be 3-D [nx, ny, nz]; got shape {tuple(shape)}")
+    if min(shape) < 1:
+        raise EsdfError(f"{name} has an empty axis (shape {tuple(shape)}); the grid needs at least one voxel per axis")
+    return int(shape[0]), int(shape[1]), int(shape[2])
+
+
+def bool_grid(name: str, arr: Any) -> np.ndarray:
+    """A 3-D bool numpy array (no copy when it already is one)."""
+    a = np.asarray(arr)
+    if a.dtype != np.bool_:
+        raise EsdfError(
+            f"{name} must be a boolean occupancy grid; got dtype {a.dtype}. "
+            f"Pass `{name} != 0` (or `{name} > threshold` for probabilities)"
+        )
+    grid_shape(name, a.shape)
+    return a
+
+
+def float_grid(name: str, arr: Any) -> np.ndarray:
+    """A 3-D float32 C-contiguous array (converted, with a copy, only when needed)."""
+    a = np.asarray(arr)
+    if not np.issubdtype(a.dtype, np.floating):
+        raise EsdfError(f"{name} must be a float array of signed distances in metres; got dtype {a.dtype}")
+    grid_shape(name, a.shape)
+    return np.ascontiguousarray(a, dtype=np.float32)
+
+
+def threads(value: Any) -> int:
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+        raise EsdfError(f"threads={value!r} must be a positive integer (the number of CPU threads to use)")
+    return int(value)

@@ -1,0 +1,177 @@
+"""Axis-aligned slices of a map and the ESDF slice figure (matplotlib, Agg backend)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import NamedTuple, Sequence
+
+import numpy as np
+
+from mapkit.esdf._errors import EsdfError
+from mapkit.esdf._map import EsdfMap, _axis_index
+
+_PLANE_AXES = {"x": ("y", "z"), "y": ("x", "z"), "z": ("x", "y")}
+
+
+class Slice(NamedTuple):
+    """One axis-aligned plane of a map."""
+
+    values: np.ndarray
+    """float32 [nu, nv]: signed distance (metres); u, v are the two remaining axes in x, y, z order
+    (z-slice: [x, y]; y-slice: [x, z]; x-slice: [y, z])."""
+    extent: tuple[float, float, float, float]
+    """(u_min, u_max, v_min, v_max): outer voxel edges in metres (matplotlib ``imshow`` extent of values.T)."""
+    position: float
+    """The plane's coordinate (metres), snapped to the nearest voxel centre."""
+    observed: np.ndarray
+    """bool [nu, nv]: True where a depth ray observed the voxel (all True if the map has no mask)."""
+
+
+def slice_plane(map: EsdfMap, *, axis: str, position: float, raw: bool = False) -> Slice:
+    """The plane of voxels nearest to ``axis = position`` (metres), reading only the zarr chunks it crosses.
+
+    Returns a :class:`Slice` (values, extent, snapped position, observed). Raises :class:`EsdfError`
+    when `position` is beyond the grid (the message gives the valid range).
+    """
+    a = _axis_index(axis)
+    try:
+        pos = float(position)
+    except (TypeError, ValueError):
+        raise EsdfError(f"{axis}={position!r} is not a number (metres)") from None
+    vs, n = map.voxel_size, map.shape[a]
+    lo_edge = map.origin[a] - 0.5 * vs
+    hi_edge = map.origin[a] + (n - 0.5) * vs
+    if not (math.isfinite(pos) and lo_edge <= pos <= hi_edge):
+        raise EsdfError(
+            f"{axis}={position!r} m is outside the map: valid {axis} is {lo_edge:.3f} .. {hi_edge:.3f} m "
+            f"(voxel centres {map.origin[a]:.3f} .. {map.origin[a] + (n - 1) * vs:.3f} m)"
+        )
+    k = int(min(max(round((pos - map.origin[a]) / vs), 0), n - 1))
+    index: list[slice | int] = [slice(None)] * 3
+    index[a] = k
+    name = "esdf_raw" if raw else "esdf"
+    src = map._dense.get(name, getattr(map, name))
+    if src is None:
+        raise EsdfError(f"this map has no {name!r} grid")
+    values = np.asarray(src[tuple(index)], dtype=np.float32)
+    obs_src = map._dense.get("observed", map.observed)
+    observed = np.ones(values.shape, dtype=bool) if obs_src is None else np.asarray(obs_src[tuple(index)]) > 0
+    u_ax, v_ax = (_axis_index(s) for s in _PLANE_AXES[axis])
+    ext = []
+    for b in (u_ax, v_ax):
+        ext += [float(map.origin[b] - 0.5 * vs), float(map.origin[b] + (map.shape[b] - 0.5) * vs)]
+    return Slice(values, (ext[0], ext[1], ext[2], ext[3]), float(map.origin[a] + k * vs), observed)
+
+
+def render_slices(
+    map: EsdfMap,
+    *,
+    path: str | Path,
+    z: Sequence[float] = (),
+    x: Sequence[float] = (),
+    y: Sequence[float] = (),
+    raw: bool = False,
+    cmap: str = "RdBu",
+    vmin: float | None = None,
+    vmax: float | None = None,
+    columns: int = 3,
+    dpi: int = 120,
+    title: str | None = None,
+) -> Path:
+    """Write a PNG with one panel per requested slice (z first, then x, then y); returns its path.
+
+    Each panel shows the signed distance on metric axes (metres, equal aspect) with the surface
+    (zero level) drawn black, unobserved voxels hatched grey, and the panel title giving the plane.
+    One shared colour bar labelled "signed distance [m]". With a diverging `cmap` (RdBu, coolwarm, ...)
+    the colours are centred at 0 (obstacles red, free space blue; each side scaled to its own range);
+    with a sequential one ("viridis") the range is [vmin, vmax]. Default range: the slices' own.
+    """
+    fig = _slice_figure(map, z=z, x=x, y=y, raw=raw, cmap=cmap, vmin=vmin, vmax=vmax, columns=columns, title=title)
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi)
+    return out
+
+
+def _slice_figure(
+    map: EsdfMap,
+    *,
+    z: Sequence[float],
+    x: Sequence[float],
+    y: Sequence[float],
+    raw: bool,
+    cmap: str,
+    vmin: float | None,
+    vmax: float | None,
+    columns: int,
+    title: str | None,
+):
+    """The matplotlib Figure behind :func:`render_slices`."""
+    # A bare Figure renders with Agg and leaves pyplot's global state (and backend) alone.
+    from matplotlib import colormaps
+    from matplotlib.figure import Figure
+    from matplotlib.colors import ListedColormap, Normalize, TwoSlopeNorm
+    from matplotlib.patches import Patch
+
+    requests = [("z", v) for v in z] + [("x", v) for v in x] + [("y", v) for v in y]
+    if not requests:
+        raise EsdfError("no slice requested; pass z=(heights in m,), x=(...) or y=(...)")
+    if cmap not in colormaps:
+        raise EsdfError(f"cmap={cmap!r} is not a matplotlib colormap; try 'RdBu' or 'viridis'")
+    if isinstance(columns, bool) or not isinstance(columns, int) or columns < 1:
+        raise EsdfError(f"columns={columns!r} must be a positive integer")
+    slices = [(ax, slice_plane(map, axis=ax, position=v, raw=raw)) for ax, v in requests]
+    finite = np.concatenate([s.values[np.isfinite(s.values)].ravel() for _, s in slices])
+    if finite.size == 0:
+        raise EsdfError("the requested slices hold no finite distance (unwritten map?)")
+    diverging = cmap.lower().removesuffix("_r") in {
+        "rdbu", "rdylbu", "coolwarm", "bwr", "seismic", "puor", "brbg", "prgn", "piyg", "rdgy", "spectral", "rdylgn",
+    }
+    lo = float(finite.min()) if vmin is None else float(vmin)
+    hi = float(finite.max()) if vmax is None else float(vmax)
+    if diverging:
+        # each side of 0 spans its own range, so shallow obstacle interiors still show saturated
+        lo, hi = min(lo, -0.5 * map.voxel_size), max(hi, 0.5 * map.voxel_size)
+        norm = TwoSlopeNorm(vcenter=0.0, vmin=lo, vmax=hi)
+    else:
+        if not hi > lo:
+            hi = lo + 1e-6
+        norm = Normalize(vmin=lo, vmax=hi)
+
+    cols = min(columns, len(slices))
+    rows = math.ceil(len(slices) / cols)
+    fig = Figure(figsize=(4.6 * cols + 1.2, 4.2 * rows + 0.6), layout="constrained")
+    axes = fig.subplots(rows, cols, squeeze=False)
+    grey = ListedColormap([(0.5, 0.5, 0.5, 0.6)])
+    image = None
+    for panel, (axis, s) in zip(axes.flat, slices):
+        u_name, v_name = _PLANE_AXES[axis]
+        image = panel.imshow(s.values.T, origin="lower", extent=s.extent, cmap=cmap, norm=norm, interpolation="nearest")
+        unobs = ~s.observed
+        if unobs.any():
+            panel.imshow(np.ma.masked_where(~unobs.T, np.ones(unobs.T.shape)), origin="lower", extent=s.extent,
+                         cmap=grey, interpolation="nearest", vmin=0, vmax=1)
+            uu = np.linspace(s.extent[0], s.extent[1], unobs.shape[0] + 1)
+            vv = np.linspace(s.extent[2], s.extent[3], unobs.shape[1] + 1)
+            panel.contourf(0.5 * (uu[1:] + uu[:-1]), 0.5 * (vv[1:] + vv[:-1]), unobs.T.astype(float), levels=[0.5, 1.5],
+                           colors="none", hatches=["///"])
+        if s.values.shape[0] > 1 and s.values.shape[1] > 1 and (s.values < 0).any() and (s.values > 0).any():
+            uc = np.linspace(s.extent[0] + 0.5 * map.voxel_size, s.extent[1] - 0.5 * map.voxel_size, s.values.shape[0])
+            vc = np.linspace(s.extent[2] + 0.5 * map.voxel_size, s.extent[3] - 0.5 * map.voxel_size, s.values.shape[1])
+            panel.contour(uc, vc, s.values.T, levels=[0.0], colors="k", linewidths=0.8)
+        panel.set_aspect("equal")
+        panel.set_xlabel(f"{u_name} [m]")
+        panel.set_ylabel(f"{v_name} [m]")
+        label = "height z" if axis == "z" else axis
+        panel.set_title(f"{label} = {s.position:.2f} m")
+    for panel in list(axes.flat)[len(slices):]:
+        panel.set_visible(False)
+    cbar = fig.colorbar(image, ax=axes.ravel().tolist(), shrink=0.9)
+    cbar.set_label("signed distance [m]")
+    handles = [Patch(facecolor=(0.55, 0.55, 0.55), hatch="///", label="unobserved"),
+               Patch(facecolor="white", edgecolor="k", label="surface (d = 0)")]
+    fig.legend(handles=handles, loc="outside lower center", ncols=2, frameon=False)
+    kind = "raw ESDF" if raw else f"ESDF (Gaussian sigma = {map.sigma:g} m)"
+    fig.suptitle(title or f"{kind}, voxel {map.voxel_size:g} m, frame {map.frame_id}")
+    return fig
