@@ -77,7 +77,9 @@ def signed_distance_chunked(
         larger ones are clamped to +-max_dist.
     chunk
         Edge, in voxels, of the cube computed at once. Peak memory is about
-        ``(chunk + 2*halo)**3 * 14`` bytes plus the writer's queue of two chunks.
+        ``(chunk + 2*halo)**3 * 18`` bytes of work arrays plus up to three finished chunks
+        (``chunk**3 * 8`` bytes each) waiting for the writer thread; nothing grid-sized. Measured:
+        chunk 128 ~0.2 GB, chunk 256 ~0.6 GB above the baseline (halo 22); 256 is ~20 % faster.
     sigma, truncate
         Gaussian smoothing as in :func:`smooth` (metres; 0 = none).
     out_raw
