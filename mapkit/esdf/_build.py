@@ -17,7 +17,11 @@ from mapkit.ingest import open_frames_store
 from mapkit.workspace import check_writable
 
 MAP = "map.zarr"
-_DENSE_BYTES_PER_VOXEL = 18  # occupancy, observed, esdf_raw, esdf and EDT scratch
+# Measured peaks per voxel: the dense sub-voxel path holds the EDT's distances (float64), feature
+# indices and outputs; the chunked path only the masks and TSDF samples plus one chunk with halo.
+_DENSE_BYTES_PER_VOXEL = 48
+_CHUNKED_BYTES_PER_VOXEL = 8
+_CHUNKED_DEFAULT_MAX_DIST = 2.0
 
 
 class EsdfBuildError(MapkitError):
@@ -143,7 +147,7 @@ def plan_grid(workspace: Path, config: EsdfConfig) -> tuple[Grid, dict]:
             f"--voxel {config.voxel} is larger than the map itself ({extent.round(2).tolist()} m); use a smaller voxel"
         )
     grid = Grid.covering(lo - config.padding, hi + config.padding, config.voxel)
-    need = grid.size * _DENSE_BYTES_PER_VOXEL
+    need = grid.size * _CHUNKED_BYTES_PER_VOXEL
     have = _available_memory()
     if need > 0.8 * have:
         fits = config.voxel * (need / (0.6 * have)) ** (1 / 3)
@@ -155,6 +159,11 @@ def plan_grid(workspace: Path, config: EsdfConfig) -> tuple[Grid, dict]:
     return grid, meta
 
 
+def fits_dense(grid: Grid) -> bool:
+    """Whether the whole-grid (sub-voxel) computation fits in memory; else it runs chunk by chunk."""
+    return grid.size * _DENSE_BYTES_PER_VOXEL < 0.5 * _available_memory()
+
+
 def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overwrite: bool = False, progress: bool = True) -> EsdfSummary:
     """Build ``workspace/map.zarr`` from ``workspace/tsdf.npz`` and ``workspace/frames.zarr``."""
     config = config or EsdfConfig()
@@ -164,7 +173,7 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
     check_writable(target, overwrite=overwrite)
     t0 = time.perf_counter()
     grid, meta = plan_grid(workspace, config)
-    from mapkit.esdf import signed_distance, smooth, write_map
+    from mapkit.esdf import create_map, signed_distance, signed_distance_chunked, smooth, write_map
 
     fuse_cfg = meta["config"]
     occupied, tsdf_m = occupancy_from_tsdf(
@@ -186,23 +195,42 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
             f"the occupancy grid has {what} ({int(observed.sum())} observed voxels); check the fused map "
             f"(mapkit fuse) and --unknown {config.unknown}"
         )
-    if config.subvoxel:
-        import open3d as o3d
-
-        surface = np.asarray(o3d.io.read_point_cloud(str(workspace / CLOUD)).points)
-        esdf_raw = subvoxel_signed_distance(
-            solid, surface, origin=grid.origin, voxel_size=config.voxel, max_dist=config.max_dist
-        )
+    frame_id = str(store.attrs.get("world_frame", "world"))
+    parameters = {**asdict(config), "tsdf_voxel": fuse_cfg["voxel"]}
+    if not fits_dense(grid):
+        # Large site: exact up to max_dist (clamped beyond), one chunk plus halo at a time, written
+        # straight into the store; the half-voxel convention (no sub-voxel refinement) applies.
+        del tsdf_m
+        max_dist = config.max_dist or _CHUNKED_DEFAULT_MAX_DIST
+        parameters.update(chunked=True, max_dist=max_dist)
+        with create_map(
+            target, shape=grid.shape, origin=grid.origin, voxel_size=config.voxel, frame_id=frame_id,
+            sigma=config.sigma, unknown_policy=config.unknown, parameters=parameters, overwrite=overwrite,
+        ) as writer:
+            result = signed_distance_chunked(
+                solid, writer.esdf, out_raw=writer.esdf_raw, voxel_size=config.voxel, max_dist=max_dist,
+                sigma=config.sigma, progress=progress,
+            )
+            writer.observed[:] = observed.astype(np.uint8)
+            writer.finalize()
+        prevented = result.n_prevented
     else:
-        esdf_raw = signed_distance(solid, voxel_size=config.voxel, max_dist=config.max_dist, backend=config.backend)
-    del tsdf_m
-    esdf, prevented = smooth(esdf_raw, voxel_size=config.voxel, sigma=config.sigma)
-    write_map(
-        target, esdf=esdf, esdf_raw=esdf_raw, observed=observed.astype(np.uint8), origin=grid.origin,
-        voxel_size=config.voxel, frame_id=str(store.attrs.get("world_frame", "world")), sigma=config.sigma,
-        unknown_policy=config.unknown, parameters={**asdict(config), "tsdf_voxel": fuse_cfg["voxel"]},
-        overwrite=overwrite,
-    )
+        if config.subvoxel:
+            import open3d as o3d
+
+            surface = np.asarray(o3d.io.read_point_cloud(str(workspace / CLOUD)).points)
+            esdf_raw = subvoxel_signed_distance(
+                solid, surface, origin=grid.origin, voxel_size=config.voxel, max_dist=config.max_dist
+            )
+        else:
+            esdf_raw = signed_distance(solid, voxel_size=config.voxel, max_dist=config.max_dist, backend=config.backend)
+        del tsdf_m
+        esdf, prevented = smooth(esdf_raw, voxel_size=config.voxel, sigma=config.sigma)
+        write_map(
+            target, esdf=esdf, esdf_raw=esdf_raw, observed=observed.astype(np.uint8), origin=grid.origin,
+            voxel_size=config.voxel, frame_id=frame_id, sigma=config.sigma, unknown_policy=config.unknown,
+            parameters=parameters, overwrite=overwrite,
+        )
     return EsdfSummary(
         target, grid.shape, grid.origin, config.voxel, float(observed.mean()), float(solid.mean()),
         int(prevented), time.perf_counter() - t0,
