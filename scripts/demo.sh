@@ -16,5 +16,11 @@ for flight in "${flights[@]}"; do
   $MAPKIT info "$flight"
   echo "== mapkit ingest $flight -w $WS/$name"
   $MAPKIT ingest "$flight" -w "$WS/$name" --overwrite
+  echo "== mapkit fuse $flight -w $WS/$name   (reuses the up-to-date frames.zarr)"
+  $MAPKIT fuse "$flight" -w "$WS/$name" --voxel 0.05 --mesh --overwrite
+  echo "== mapkit esdf -w $WS/$name --voxel 0.1"
+  $MAPKIT esdf -w "$WS/$name" --voxel 0.1 --overwrite
+  echo "== mapkit slice -w $WS/$name --z 0.5 1.0 1.5"
+  $MAPKIT slice -w "$WS/$name" --z 0.5 1.0 1.5 -o "$WS/$name/slices.png"
 done
-echo "demo: workspaces in $WS/"
+echo "demo: workspaces in $WS/ (frames.zarr, cloud.ply, mesh.ply, map.zarr, slices.png)"
