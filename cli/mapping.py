@@ -64,7 +64,7 @@ def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float, trunc: flo
 def esdf(workspace: Path, voxel: float, padding: float, sigma: float, unknown: str, solid_depth: float,
          max_dist: float | None, backend: str, overwrite: bool) -> None:
     """Signed, Gaussian-smoothed ESDF of the fused map → WS/map.zarr."""
-    from mapkit.esdf._build import EsdfConfig, build_esdf
+    from mapkit.esdf import EsdfConfig, build_esdf
 
     config = EsdfConfig(voxel=voxel, padding=padding, sigma=sigma, unknown=unknown, solid_depth=solid_depth,
                         max_dist=max_dist, backend=backend)
@@ -109,7 +109,7 @@ def slice_cmd(workspace: Path, output: Path, raw: bool, positions: tuple[str, ..
     Example: mapkit slice -w WS --z 1.0 2.5 3.5 -o slices.png
     """
     from mapkit.esdf import EsdfMap, render_slices
-    from mapkit.esdf._build import MAP
+    from mapkit.esdf import MAP
 
     axes = _parse_slices(positions)
     path = render_slices(EsdfMap.open(workspace / MAP), z=axes["z"], x=axes["x"], y=axes["y"], path=output, raw=raw)

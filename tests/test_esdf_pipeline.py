@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from mapkit.cli.main import main
 from mapkit.esdf import EsdfMap
-from mapkit.esdf._build import EsdfBuildError, EsdfConfig, build_esdf
+from mapkit.esdf import EsdfBuildError, EsdfConfig, build_esdf
 from mapkit.fusion import FuseConfig, fuse
 from mapkit.sim.world import Box, HalfSpace, World
 from scenes import box_world, orbit_poses, record_scene, sphere_world

@@ -13,9 +13,11 @@ smoothing flip the sign away from the surface, and stored as map.zarr.
 0.35
 >>> esdf, n_prevented = smooth(raw, voxel_size=0.1, sigma=0.2)
 
+From a fused workspace: :func:`build_esdf` (``mapkit esdf``) turns tsdf.npz + frames.zarr into map.zarr.
 Large grids: :func:`signed_distance_chunked` streams chunk by chunk into :func:`create_map`'s arrays.
 """
 
+from mapkit.esdf._build import MAP, EsdfBuildError, EsdfConfig, EsdfSummary, build_esdf
 from mapkit.esdf._chunked import ChunkedSummary, chunk_halo, signed_distance_chunked
 from mapkit.esdf._distance import BACKENDS, signed_distance, smooth
 from mapkit.esdf._errors import EsdfError
@@ -24,6 +26,11 @@ from mapkit.esdf._slice import Slice, render_slices, slice_plane
 from mapkit.esdf._store import UNKNOWN_POLICIES, MapWriter, create_map, write_map
 
 __all__ = [
+    "MAP",
+    "EsdfBuildError",
+    "EsdfConfig",
+    "EsdfSummary",
+    "build_esdf",
     "BACKENDS",
     "OUTSIDE_POLICIES",
     "UNKNOWN_POLICIES",

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from mapkit.errors import MapkitError
+from mapkit._resources import available_memory
+from mapkit.esdf._errors import EsdfError
 from mapkit.fusion import CLOUD, TSDF
 from mapkit.fusion._occupancy import Grid, carve_free_space, fill_unknown, occupancy_from_tsdf
 from mapkit.ingest import open_frames_store
@@ -24,7 +25,7 @@ _CHUNKED_BYTES_PER_VOXEL = 8
 _CHUNKED_DEFAULT_MAX_DIST = 2.0
 
 
-class EsdfBuildError(MapkitError):
+class EsdfBuildError(EsdfError):
     """The ESDF cannot be built from this workspace with these options."""
 
 
@@ -79,12 +80,6 @@ class EsdfSummary:
     occupied_fraction: float
     sign_flips_prevented: int
     seconds: float
-
-
-def _available_memory() -> int:
-    from mapkit.fusion._tsdf import _available_memory as avail
-
-    return avail()
 
 
 def subvoxel_signed_distance(
@@ -148,7 +143,7 @@ def plan_grid(workspace: Path, config: EsdfConfig) -> tuple[Grid, dict]:
         )
     grid = Grid.covering(lo - config.padding, hi + config.padding, config.voxel)
     need = grid.size * _CHUNKED_BYTES_PER_VOXEL
-    have = _available_memory()
+    have = available_memory()
     if need > 0.8 * have:
         fits = config.voxel * (need / (0.6 * have)) ** (1 / 3)
         raise EsdfBuildError(
@@ -161,7 +156,7 @@ def plan_grid(workspace: Path, config: EsdfConfig) -> tuple[Grid, dict]:
 
 def fits_dense(grid: Grid) -> bool:
     """Whether the whole-grid (sub-voxel) computation fits in memory; else it runs chunk by chunk."""
-    return grid.size * _DENSE_BYTES_PER_VOXEL < 0.5 * _available_memory()
+    return grid.size * _DENSE_BYTES_PER_VOXEL < 0.5 * available_memory()
 
 
 def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overwrite: bool = False, progress: bool = True) -> EsdfSummary:
@@ -173,7 +168,9 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
     check_writable(target, overwrite=overwrite)
     t0 = time.perf_counter()
     grid, meta = plan_grid(workspace, config)
-    from mapkit.esdf import create_map, signed_distance, signed_distance_chunked, smooth, write_map
+    from mapkit.esdf._chunked import signed_distance_chunked
+    from mapkit.esdf._distance import signed_distance, smooth
+    from mapkit.esdf._store import create_map, write_map
 
     fuse_cfg = meta["config"]
     occupied, tsdf_m = occupancy_from_tsdf(

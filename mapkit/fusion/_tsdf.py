@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapkit._version import __version__
+from mapkit._resources import available_memory
 from mapkit._threads import prefetch
 from mapkit.errors import MapkitError
 from mapkit.geometry import invert_transform
@@ -102,27 +103,21 @@ def _device(name: str) -> Any:
     raise FusionError(f"--device {name!r}: expected cpu or cuda:N")
 
 
-def _available_memory() -> int:
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
-def _o3d_depth(depth: NDArray[np.float32], device: Any) -> Any:
-    """Open3D image of a depth frame: native-endian float32 (zarr hands out explicit '<f4', which
-    Open3D's buffer protocol rejects), invalid as 0 (Open3D's convention, not a measurement)."""
-    import open3d as o3d
-    import open3d.core as o3c
-
+def _o3d_ready(depth: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Native-endian float32 (zarr hands out explicit '<f4', which Open3D's buffer protocol
+    rejects) with invalid pixels as 0 (Open3D's convention, not a measurement)."""
     native = np.empty(np.shape(depth), dtype=np.float32)
     np.copyto(native, depth)
     native[np.isnan(native)] = 0.0
-    return o3d.t.geometry.Image(o3c.Tensor(native)).to(device)
+    return native
+
+
+def _o3d_depth(depth: NDArray[np.float32], device: Any, *, ready: bool = False) -> Any:
+    """Open3D image of a depth frame (see `_o3d_ready`)."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    return o3d.t.geometry.Image(o3c.Tensor(depth if ready else _o3d_ready(depth))).to(device)
 
 
 def _o3d_intrinsics(K: NDArray[np.float64]) -> Any:
@@ -197,7 +192,7 @@ def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overw
     blocks = estimate_blocks(store, config)
     block_bytes = BLOCK_RESOLUTION**3 * _BYTES_PER_VOXEL * 2  # hash map keeps ~2x headroom
     need = blocks * block_bytes
-    have = _available_memory()
+    have = available_memory()
     if need > 0.8 * have:
         fits = config.voxel * (need / (0.6 * have)) ** 0.5  # surface blocks scale ~ 1/voxel²
         raise FusionError(
@@ -216,17 +211,18 @@ def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overw
     def batches(size: int = 16) -> Any:
         for start in range(0, len(indices), size):
             chunk = list(indices[start : start + size])
-            yield chunk, store.depth[chunk[0] : chunk[-1] + 1 : config.stride]
+            block = store.depth[chunk[0] : chunk[-1] + 1 : config.stride]
+            yield chunk, [(_o3d_ready(d), bool(np.any(d <= config.max_depth))) for d in block]
 
-    # zarr decompression in a second thread overlaps Open3D's integration.
+    # zarr decompression and conversion in a second thread overlap Open3D's integration.
     for chunk, depths in prefetch(batches(), depth=2):
-        for i, depth in zip(chunk, depths):
+        for i, (depth, in_range) in zip(chunk, depths):
             bar.update(1)
-            if not np.any(depth <= config.max_depth):  # Open3D aborts on a frame that touches no block
+            if not in_range:  # Open3D aborts on a frame that touches no block
                 skipped += 1
                 continue
             t = time.perf_counter()
-            image = _o3d_depth(depth, device)
+            image = _o3d_depth(depth, device, ready=True)
             extrinsic = o3c.Tensor(invert_transform(store.T_world_camera[i]), o3c.float64)
             coords = vbg.compute_unique_block_coordinates(image, K, extrinsic, 1.0, float(config.max_depth), float(config.trunc))
             vbg.integrate(coords, image, K, extrinsic, 1.0, float(config.max_depth), float(config.trunc))
