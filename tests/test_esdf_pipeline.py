@@ -131,16 +131,18 @@ def test_large_grids_run_chunked(workspaces: dict, monkeypatch: pytest.MonkeyPat
     import mapkit.esdf._build as build
 
     ws, _ = workspaces["box"]
-    build_esdf(ws, EsdfConfig(voxel=0.1, sigma=0.0, max_dist=1.0), overwrite=True, progress=False)
+    # With --unknown occupied both paths measure distances to the same obstacles.
+    config = EsdfConfig(voxel=0.1, sigma=0.0, max_dist=1.0, unknown="occupied")
+    build_esdf(ws, config, overwrite=True, progress=False)
     dense = np.asarray(EsdfMap.open(ws / "map.zarr").esdf[:])
     monkeypatch.setattr(build, "fits_dense", lambda grid: False)
-    build_esdf(ws, EsdfConfig(voxel=0.1, sigma=0.0, max_dist=1.0), overwrite=True, progress=False)
+    build_esdf(ws, config, overwrite=True, progress=False)
     m = EsdfMap.open(ws / "map.zarr")
     chunked = np.asarray(m.esdf[:])
     assert m.parameters["chunked"] is True and np.abs(chunked).max() <= 1.0 + 1e-6
     inner = np.abs(dense) < 0.8
-    # Same occupancy; only the sub-voxel refinement differs (the surface point tied to a boundary
-    # voxel lies within one voxel of its centre, the half-voxel convention puts it at 0.5 voxel).
+    # Same occupancy; only the sub-voxel refinement differs (distances to surface points instead
+    # of the half-voxel convention; surface points also seed thin parts the occupancy missed).
     assert np.mean(np.sign(chunked[inner]) == np.sign(dense[inner])) > 0.99
     diff = np.abs(chunked - dense)[inner]
-    assert diff.max() <= 0.16 and diff.mean() <= 0.05
+    assert np.percentile(diff, 99) <= 0.1 and diff.mean() <= 0.05

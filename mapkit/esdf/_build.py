@@ -84,46 +84,73 @@ class EsdfSummary:
 
 def subvoxel_signed_distance(
     solid: NDArray[np.bool_], surface: NDArray[np.float64], *, origin: NDArray[np.float64], voxel_size: float,
-    max_dist: float | None = None, slab: int = 1 << 22,
+    anchor: NDArray[np.bool_] | None = None, max_dist: float | None = None, slab: int = 1 << 18,
 ) -> NDArray[np.float32]:
     """Signed distance measured to the fused surface points instead of to voxel centres.
 
-    An exact EDT with feature transform gives every free voxel its nearest obstacle voxel o (every
-    obstacle voxel its nearest free voxel). Each such boundary voxel is tied to the nearest fused
-    surface point within one voxel of its centre, and the distance is taken to that point: the
-    zero crossing then follows the surface inside the voxel (the half-voxel convention is off by up
-    to half a voxel on grid-aligned walls and floors). Boundary voxels with no surface point nearby
-    (solid only by the unknown policy) keep the half-voxel convention. The `edt` package has no
-    feature transform, hence scipy here.
+    Every boundary voxel (an obstacle voxel touching free space, or the reverse) is tied to the
+    nearest fused surface point within one voxel of its centre. An exact EDT with feature transform
+    gives each voxel its nearest boundary voxel o; the distance is the smallest to the surface points
+    of o and its 26 neighbours, so the zero crossing follows the surface inside the voxel, also on
+    curved obstacles (the plain half-voxel convention is off by up to half a voxel on grid-aligned
+    walls). Where no surface point is near (solid only by the unknown policy) the half-voxel
+    convention stands in. The `edt` package has no feature transform, hence scipy here.
+
+    anchor: the obstacles free-space distances are measured to (default: all of `solid`). Passing
+    only the sensed obstacles keeps solid-by-assumption space (behind surfaces, unseen pockets)
+    negative without shortening the distances measured in observed free space.
     """
     from scipy import ndimage
     from scipy.spatial import cKDTree
 
+    anchor = solid if anchor is None else anchor
+
     tree = cKDTree(surface)
-    out = np.empty(solid.shape, dtype=np.float32)
-    flat_out = out.reshape(-1)
     shape = solid.shape
-    for region, sign in ((~solid, 1.0), (solid, -1.0)):
+    out = np.empty(shape, dtype=np.float32)
+    flat_out = out.reshape(-1)
+    # Voxels holding surface points seed the transform too: where the centre-sampled occupancy
+    # misses a thin part of an obstacle, its surface points still pull the distance to them.
+    cell = np.rint((surface - origin) / voxel_size).astype(np.int64)
+    inside = np.all((cell >= 0) & (cell < np.asarray(shape)), axis=1)
+    has_point = np.zeros(shape, dtype=bool)
+    has_point[tuple(cell[inside].T)] = True
+    del cell, inside
+    offsets = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
+    upper = np.asarray(shape) - 1
+    for region, target, sign in ((~solid, anchor, 1.0), (solid, ~solid, -1.0)):
         if not region.any():
             continue
-        dist, idx = ndimage.distance_transform_edt(region, return_indices=True)
-        nearest = np.ravel_multi_index(tuple(idx), shape).reshape(-1)
-        del idx
-        cells = np.flatnonzero(region)
-        seeds, inverse = np.unique(nearest[cells], return_inverse=True)
-        centres = origin + voxel_size * np.stack(np.unravel_index(seeds, shape), axis=1)
+        # Seeds: target voxels bordering the rest and voxels holding surface points, each tied to
+        # its nearest surface point (none when no point is within a voxel).
+        boundary = np.flatnonzero((target & ndimage.binary_dilation(~target)) | has_point)
+        centres = origin + voxel_size * np.stack(np.unravel_index(boundary, shape), axis=1)
         gap, hit = tree.query(centres, distance_upper_bound=voxel_size)
-        found = np.isfinite(gap)
-        seed_points = np.where(found[:, None], surface[np.minimum(hit, len(surface) - 1)], np.nan)
+        near = np.isfinite(gap)
+        point_id = np.full(solid.size, -1, dtype=np.int32)
+        point_id[boundary[near]] = np.arange(int(near.sum()), dtype=np.int32)
+        points = surface[hit[near]]
+        del boundary, centres, gap, hit, near
+        dist, idx = ndimage.distance_transform_edt(~target & ~has_point, return_indices=True)
         flat_dist = dist.reshape(-1)
+        nearest_xyz = [i.reshape(-1) for i in idx]
+        cells = np.flatnonzero(region)
         for start in range(0, len(cells), slab):  # bounded temporaries on large grids
             part = cells[start : start + slab]
-            inv = inverse[start : start + slab]
             c = origin + voxel_size * np.stack(np.unravel_index(part, shape), axis=1)
-            to_surface = np.linalg.norm(c - seed_points[inv], axis=1)
+            o = np.stack([n[part] for n in nearest_xyz], axis=1)
+            best = np.full(len(part), np.inf)
+            for off in offsets:
+                q = np.clip(o + off, 0, upper)
+                pid = point_id[np.ravel_multi_index(q.T, shape)]
+                ok = pid >= 0
+                d = np.full(len(part), np.inf)
+                d[ok] = np.linalg.norm(c[ok] - points[pid[ok]], axis=1)
+                np.minimum(best, d, out=best)
             fallback = (flat_dist[part] - 0.5) * voxel_size
-            flat_out[part] = sign * np.where(found[inv], to_surface, fallback)
-        del dist, nearest
+            flat_out[part] = sign * np.where(np.isfinite(best), best, fallback)
+        del dist, idx, nearest_xyz, point_id
+    del has_point
     if max_dist is not None:
         np.clip(out, -max_dist, max_dist, out=out)
     return out
@@ -196,7 +223,8 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
     parameters = {**asdict(config), "tsdf_voxel": fuse_cfg["voxel"]}
     if not fits_dense(grid):
         # Large site: exact up to max_dist (clamped beyond), one chunk plus halo at a time, written
-        # straight into the store; the half-voxel convention (no sub-voxel refinement) applies.
+        # straight into the store; the half-voxel convention (no sub-voxel refinement) applies, and
+        # free-space distances count assumed-solid space (behind surfaces) as obstacles too.
         del tsdf_m
         max_dist = config.max_dist or _CHUNKED_DEFAULT_MAX_DIST
         parameters.update(chunked=True, max_dist=max_dist)
@@ -217,7 +245,8 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
 
             surface = np.asarray(o3d.io.read_point_cloud(str(workspace / CLOUD)).points)
             esdf_raw = subvoxel_signed_distance(
-                solid, surface, origin=grid.origin, voxel_size=config.voxel, max_dist=config.max_dist
+                solid, surface, origin=grid.origin, voxel_size=config.voxel, max_dist=config.max_dist,
+                anchor=occupied if config.unknown == "free" else solid,
             )
         else:
             esdf_raw = signed_distance(solid, voxel_size=config.voxel, max_dist=config.max_dist, backend=config.backend)
