@@ -103,10 +103,9 @@ def subvoxel_signed_distance(
     from scipy import ndimage
     from scipy.spatial import cKDTree
 
-    anchor = solid if anchor is None else anchor
-
     tree = cKDTree(surface)
     shape = solid.shape
+    anchor = solid if anchor is None else anchor
     out = np.empty(shape, dtype=np.float32)
     flat_out = out.reshape(-1)
     # Voxels holding surface points seed the transform too: where the centre-sampled occupancy
@@ -156,6 +155,23 @@ def subvoxel_signed_distance(
     return out
 
 
+def drop_stray_obstacles(occupied: NDArray[np.bool_], surface: NDArray[np.float64], *, origin: NDArray[np.float64],
+                         voxel_size: float) -> NDArray[np.bool_]:
+    """Sensed obstacle voxels with a fused surface point within 1.5 voxels.
+
+    The others are TSDF artefacts (negative samples beside grazing silhouettes) or lie deep inside an
+    object behind nearer ones; as anchors of free-space distance they would only shorten distances
+    (they stay solid for the sign).
+    """
+    from scipy.spatial import cKDTree
+
+    ijk = np.argwhere(occupied)
+    gap, _ = cKDTree(surface).query(origin + voxel_size * ijk, distance_upper_bound=1.5 * voxel_size)
+    kept = np.zeros(occupied.shape, dtype=bool)
+    kept[tuple(ijk[np.isfinite(gap)].T)] = True
+    return kept
+
+
 def plan_grid(workspace: Path, config: EsdfConfig) -> tuple[Grid, dict]:
     """The ESDF grid over the fused map's bounds plus padding; errors for impossible sizes."""
     meta_path = workspace / "fuse.json"
@@ -201,7 +217,7 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
 
     fuse_cfg = meta["config"]
     occupied, tsdf_m = occupancy_from_tsdf(
-        workspace / TSDF, grid, tsdf_voxel=float(fuse_cfg["voxel"]), trunc_voxels=float(fuse_cfg["trunc"])
+        workspace / TSDF, grid, tsdf_voxel=float(fuse_cfg["voxel"]), trunc_voxels=float(fuse_cfg["trunc"]),
     )
     seen = ~np.isnan(tsdf_m)
     store = open_frames_store(workspace)
@@ -244,10 +260,13 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
             import open3d as o3d
 
             surface = np.asarray(o3d.io.read_point_cloud(str(workspace / CLOUD)).points)
+            sensed = drop_stray_obstacles(occupied, surface, origin=grid.origin, voxel_size=config.voxel)
+            # free: distances to what was sensed; occupied: to unseen space as well.
+            anchor = sensed if config.unknown == "free" else sensed | (solid & ~occupied)
             esdf_raw = subvoxel_signed_distance(
-                solid, surface, origin=grid.origin, voxel_size=config.voxel, max_dist=config.max_dist,
-                anchor=occupied if config.unknown == "free" else solid,
+                solid, surface, origin=grid.origin, voxel_size=config.voxel, max_dist=config.max_dist, anchor=anchor,
             )
+            del sensed, anchor
         else:
             esdf_raw = signed_distance(solid, voxel_size=config.voxel, max_dist=config.max_dist, backend=config.backend)
         del tsdf_m
