@@ -123,6 +123,7 @@ class SourcePlan:
     body_frame: str = ""
     camera_frame: str = ""
     pose_parent: str = ""
+    needs_dynamic_tf: bool = True
 
 
 def _find(summary: BagSummary, name: str, option: str) -> str:
@@ -255,7 +256,8 @@ class _PoseFeed:
 
     @property
     def topics(self) -> list[str]:
-        return self.plan.tf_topics + ([self.plan.pose.topic] if self.plan.pose.topic else [])
+        tf = [t for t in self.plan.tf_topics if self.plan.needs_dynamic_tf or "static" in t]
+        return tf + ([self.plan.pose.topic] if self.plan.pose.topic else [])
 
     def add(self, topic: str, msgtype: str, msg: Any) -> None:
         if topic == self.plan.pose.topic:
@@ -367,6 +369,10 @@ def load_poses(source: Source, plan: SourcePlan, config: IngestConfig) -> None:
         if a != b and (a not in tree.frames or b not in tree.frames or not tree.connected(a, b)):
             raise IngestError(f"no transform from frame {a!r} to frame {b!r} (tf frames: {known}); {hint}")
     plan.world_frame, plan.body_frame, plan.camera_frame = world, body, camera
+    # With a pose topic, /tf is only read again if a moving frame other than the body's lies on the
+    # chain (e.g. a gimbal); skipping it halves the pose messages a bag like ours needs.
+    moving = tree.dynamic_edges(world, camera)
+    plan.needs_dynamic_tf = pose_series is None or any(e is not pose_series for e in moving)
 
 
 _MAX_PENDING = 256  # depth frames held while waiting for later poses (the poses' lag behind depth)
@@ -440,9 +446,12 @@ class FrameStream:
                 return None
             return Frame(depth, stamp, T_world_body @ T_body_camera, T_world_body, plan.K, index)  # type: ignore[arg-type]
 
+        edges_cache: list[Any] = [-1, []]  # [tree version, moving edges world → camera]
+
         def ready(stamp: int) -> bool:
-            edges = tree.dynamic_edges(plan.world_frame, plan.camera_frame)
-            return all(e.last_stamp is not None and e.last_stamp >= stamp for e in edges)
+            if edges_cache[0] != tree.version:
+                edges_cache[:] = [tree.version, tree.dynamic_edges(plan.world_frame, plan.camera_frame)]
+            return all(e.last_stamp is not None and e.last_stamp >= stamp for e in edges_cache[1])
 
         with Source(path) as source:
             messages = source.messages([plan.depth.topic] + feed.topics)  # type: ignore[list-item]

@@ -92,12 +92,15 @@ class TfTree:
         self.dynamic: dict[str, EdgeSeries] = {}
         self.pinned: set[str] = set()
         """Children whose edge the user or the pose topic fixed; tf messages about them are ignored."""
+        self.version = 0
+        """Bumped whenever an edge is added or replaced (not when samples arrive): caches key on it."""
 
     def set_static(self, parent: str, child: str, T_parent_child: NDArray[np.float64]) -> None:
         if child in self.pinned:
             return
         self.dynamic.pop(child, None)
         self.static[child] = (parent, T_parent_child)
+        self.version += 1
 
     def add_dynamic(
         self, parent: str, child: str, stamp: int, translation: NDArray[np.float64],
@@ -109,12 +112,14 @@ class TfTree:
         if series is None or series.parent != parent:
             # A frame has one parent; the newest declaration of a different parent wins.
             series = self.dynamic[child] = EdgeSeries(parent, child, origin)
+            self.version += 1
         series.add(stamp, translation, q_xyzw)
 
     def replace_dynamic(self, series: EdgeSeries) -> None:
         """Install an edge from a pose topic; it supersedes whatever tf said about that child."""
         self.static.pop(series.child, None)
         self.dynamic[series.child] = series
+        self.version += 1
 
     @property
     def frames(self) -> set[str]:
