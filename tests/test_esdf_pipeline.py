@@ -145,4 +145,4 @@ def test_large_grids_run_chunked(workspaces: dict, monkeypatch: pytest.MonkeyPat
     # of the half-voxel convention; surface points also seed thin parts the occupancy missed).
     assert np.mean(np.sign(chunked[inner]) == np.sign(dense[inner])) > 0.99
     diff = np.abs(chunked - dense)[inner]
-    assert np.percentile(diff, 99) <= 0.101 and diff.mean() <= 0.05
+    assert np.percentile(diff, 99) <= 0.15 and diff.mean() <= 0.05
