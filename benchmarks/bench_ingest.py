@@ -22,7 +22,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 
 def make_recording(path: Path, n: int) -> Path:
-    from recordings import T_BODY_CAMERA  # noqa: F401  (same frames as the tests)
     from mapkit.sim.record import BagRecorder
 
     T0 = 1_700_000_000_000_000_000

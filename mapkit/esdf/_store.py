@@ -16,7 +16,6 @@ The store is written under a temporary sibling name and renamed into place only 
 from __future__ import annotations
 
 import json
-import math
 import warnings
 from contextlib import AbstractContextManager
 from pathlib import Path

@@ -28,6 +28,7 @@ from mapkit.ingest._decode import (
     tf_samples,
 )
 from mapkit.ingest._errors import IngestError
+from mapkit.ingest._fastcdr import parse_image, parse_odometry
 from mapkit._threads import prefetch
 from mapkit.ingest._sources import BagSummary, Source, normalize_topic
 from mapkit.ingest._tf import NO_POSE, POSE_GAP, EdgeSeries, TfTree
@@ -261,20 +262,7 @@ class _PoseFeed:
 
     def add(self, topic: str, msgtype: str, msg: Any) -> None:
         if topic == self.plan.pose.topic:
-            stamp, parent, child, t, q = pose_sample(msg, msgtype)
-            last = self._last_pose_stamp
-            if last is not None and stamp < last:
-                if not self.config.drop_nonmonotonic:
-                    raise IngestError(
-                        f"pose topic {topic}: stamp goes backwards ({stamp} ns after {last} ns); fix the "
-                        "recording's clock or pass --drop-nonmonotonic to drop such messages"
-                    )
-                self.dropped_poses += 1
-                return
-            self._last_pose_stamp = stamp
-            if self.pose_series is None:  # planning: the body frame is not known yet
-                self.pose_series = EdgeSeries(parent, child or "", f"pose topic {topic}")
-            self.pose_series.add(stamp, t, q)
+            self.add_pose(topic, *pose_sample(msg, msgtype))
             return
         static = "static" in topic
         for stamp, parent, child, t, q in tf_samples(msg):
@@ -282,6 +270,24 @@ class _PoseFeed:
                 self.tree.set_static(parent, child, transform_from_pose(t, q))
             else:
                 self.tree.add_dynamic(parent, child, stamp, t, q, f"topic {topic}")
+
+    def add_pose(
+        self, topic: str, stamp: int, parent: str, child: str | None, t: NDArray[np.float64], q: NDArray[np.float64]
+    ) -> None:
+        """One sample of the pose topic (parent → child frame)."""
+        last = self._last_pose_stamp
+        if last is not None and stamp < last:
+            if not self.config.drop_nonmonotonic:
+                raise IngestError(
+                    f"pose topic {topic}: stamp goes backwards ({stamp} ns after {last} ns); fix the "
+                    "recording's clock or pass --drop-nonmonotonic to drop such messages"
+                )
+            self.dropped_poses += 1
+            return
+        self._last_pose_stamp = stamp
+        if self.pose_series is None:  # planning: the body frame is not known yet
+            self.pose_series = EdgeSeries(parent, child or "", f"pose topic {topic}")
+        self.pose_series.add(stamp, t, q)
 
 
 def load_poses(source: Source, plan: SourcePlan, config: IngestConfig) -> None:
@@ -456,15 +462,24 @@ class FrameStream:
         with Source(path) as source:
             messages = source.messages([plan.depth.topic] + feed.topics)  # type: ignore[list-item]
             # MCAP sources decompress in their own thread; the others read ahead in one here.
+            cdr = source.kind != "ros1"
             for raw in messages if source.kind == "mcap" else prefetch(messages):
                 if raw.topic != plan.depth.topic:
-                    feed.add(raw.topic, raw.msgtype, source.deserialize(raw))
+                    fast = None
+                    if cdr and raw.topic == plan.pose.topic and raw.msgtype == "nav_msgs/msg/Odometry":
+                        fast = parse_odometry(raw.data)
+                    if fast is not None:
+                        stamp, parent, child, t, q = fast
+                        feed.add_pose(raw.topic, stamp, frame_name(parent), frame_name(child) or None, t, q)
+                    else:
+                        feed.add(raw.topic, raw.msgtype, source.deserialize(raw))
                 else:
                     n += 1
                     self.depth_messages += 1
                     if n % self.config.stride:
                         continue
-                    msg = source.deserialize(raw)
+                    msg = parse_image(raw.data) if cdr and raw.msgtype == "sensor_msgs/msg/Image" else None
+                    msg = msg or source.deserialize(raw)
                     stamp = stamp_ns(msg.header)
                     first_stamp = stamp if first_stamp is None else first_stamp
                     if last_stamp is not None and stamp <= last_stamp:
