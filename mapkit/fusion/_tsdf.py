@@ -96,8 +96,8 @@ def _device(name: str) -> Any:
         index = int(text.split(":")[1]) if ":" in text else 0
         if not o3c.cuda.is_available() or index >= o3c.cuda.device_count():
             raise FusionError(
-                f"--device {name}: no CUDA device {index} available to Open3D "
-                f"({o3c.cuda.device_count()} found; this Open3D build {'has' if hasattr(o3c, 'cuda') else 'lacks'} CUDA); use --device cpu"
+                f"--device {name}: Open3D sees {o3c.cuda.device_count()} CUDA device(s), not device {index}; "
+                "use --device cpu (or a machine with a GPU and Open3D's CUDA build)"
             )
         return o3c.Device(f"CUDA:{index}")
     raise FusionError(f"--device {name!r}: expected cpu or cuda:N")
@@ -288,6 +288,7 @@ def fuse(
     """Ingest `recordings` (reusing an up-to-date frames.zarr) and fuse them (see `fuse_store`)."""
     config = config or FuseConfig()
     config.validate()
+    _device(config.device)  # before ingesting: a missing GPU should not cost an ingest first
     ingest_config = ingest_config or IngestConfig()
     workspace = Path(workspace)
     frames_path = workspace / FRAMES
