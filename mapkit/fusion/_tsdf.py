@@ -152,7 +152,7 @@ def estimate_blocks(store: FramesStore, config: FuseConfig, *, sample: int = 24)
         voxel_size=config.voxel, block_resolution=BLOCK_RESOLUTION, block_count=1000,
     )
     K = _o3d_intrinsics(store.K)
-    seen: set[tuple[int, int, int]] = set()
+    seen = np.empty(0, dtype=np.int64)
     growth = []
     for i in idx:
         depth = np.asarray(store.depth[int(i)])
@@ -163,8 +163,10 @@ def estimate_blocks(store: FramesStore, config: FuseConfig, *, sample: int = 24)
             o3c.Tensor(invert_transform(store.T_world_camera[int(i)]), o3c.float64),
             1.0, float(config.max_depth), float(config.trunc),
         ).numpy()
+        c = coords.reshape(-1, 3).astype(np.int64) + (1 << 20)  # block keys packed into one int64
+        keys = (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
         before = len(seen)
-        seen.update(map(tuple, coords.reshape(-1, 3).tolist()))
+        seen = np.union1d(seen, keys)
         growth.append(len(seen) - before)
     if not growth:
         return 256
