@@ -22,5 +22,7 @@ for flight in "${flights[@]}"; do
   $MAPKIT esdf -w "$WS/$name" --voxel 0.1 --overwrite
   echo "== mapkit slice -w $WS/$name --z 0.5 1.0 1.5"
   $MAPKIT slice -w "$WS/$name" --z 0.5 1.0 1.5 -o "$WS/$name/slices.png"
+  echo "== mapkit export -w $WS/$name"
+  $MAPKIT export -w "$WS/$name" --overwrite
 done
-echo "demo: workspaces in $WS/ (frames.zarr, cloud.ply, mesh.ply, map.zarr, slices.png)"
+echo "demo: workspaces in $WS/ (frames.zarr, cloud.ply, mesh.ply, map.zarr, slices.png, tuples.zarr)"

@@ -1,0 +1,27 @@
+"""Training tuples: frames.zarr + map.zarr → tuples.zarr (depth, poses, velocities, goals, split)."""
+
+from mapkit.export._tuples import (
+    FUTURE,
+    RANDOM,
+    TUPLES,
+    ExportConfig,
+    ExportError,
+    ExportSummary,
+    body_velocities,
+    export_tuples,
+    map_digest,
+    split_segments,
+)
+
+__all__ = [
+    "FUTURE",
+    "RANDOM",
+    "TUPLES",
+    "ExportConfig",
+    "ExportError",
+    "ExportSummary",
+    "body_velocities",
+    "export_tuples",
+    "map_digest",
+    "split_segments",
+]

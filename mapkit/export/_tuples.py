@@ -1,0 +1,300 @@
+"""`mapkit export`: frames.zarr + map.zarr → tuples.zarr (depth, poses, goals, split) for training."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapkit._version import __version__
+from mapkit.errors import MapkitError
+from mapkit.geometry import invert_transform
+from mapkit.workspace import FRAMES, atomic_output, check_writable
+
+TUPLES = "tuples.zarr"
+FUTURE, RANDOM = 0, 1  # goal_kind values
+
+
+class ExportError(MapkitError):
+    """A workspace that cannot be exported; the message says which store or option and why."""
+
+
+@dataclass
+class ExportConfig:
+    """Options of `mapkit export` (each has a CLI option of the same name)."""
+
+    goals_per_frame: int = 5
+    """Goals stored per frame (half future poses, half random free-space goals when possible)."""
+    goal_range: tuple[float, float] = (2.0, 8.0)
+    """Metres from the camera within which random goals are drawn, inside its field of view."""
+    future_horizon: tuple[float, float] = (1.0, 5.0)
+    """Seconds ahead along the flight from which future-pose goals are taken (iPlanner style)."""
+    clearance: float = 0.3
+    """Metres of signed distance a goal must keep from every obstacle."""
+    val_fraction: float = 0.2
+    """Share of contiguous flight segments held out for validation."""
+    segment_seconds: float = 2.0
+    """Length of the contiguous segments the split assigns whole (neighbouring frames are near
+    duplicates, so a random per-frame split would leak)."""
+    seed: int = 0
+    """Seed of the goal sampling and the split."""
+    stride: int = 1
+    """Export every stride-th frame."""
+
+    def validate(self) -> None:
+        lo, hi = self.goal_range
+        if not (0 < lo < hi):
+            raise ExportError(f"--goal-range {lo} {hi}: need 0 < min < max metres")
+        a, b = self.future_horizon
+        if not (0 < a <= b):
+            raise ExportError(f"--future-horizon {a} {b}: need 0 < min <= max seconds")
+        if self.goals_per_frame < 1:
+            raise ExportError(f"--goals-per-frame {self.goals_per_frame} must be at least 1")
+        if not (0 <= self.val_fraction < 1):
+            raise ExportError(f"--val-fraction {self.val_fraction} must be in [0, 1)")
+        if not self.segment_seconds > 0:
+            raise ExportError(f"--segment-seconds {self.segment_seconds} must be positive")
+        if self.clearance < 0:
+            raise ExportError(f"--clearance {self.clearance} must be >= 0 metres")
+        if self.stride < 1:
+            raise ExportError(f"--stride {self.stride} must be at least 1")
+
+
+@dataclass
+class ExportSummary:
+    path: Path
+    frames: int
+    train: int
+    val: int
+    goals: int
+    future_goals: int
+    dropped_frames: int
+    seconds: float
+
+
+def map_digest(map_path: Path) -> str:
+    """sha256 over the map store's files (names and bytes): the tuples' reference to their map."""
+    h = hashlib.sha256()
+    for p in sorted(q for q in map_path.rglob("*") if q.is_file()):
+        h.update(str(p.relative_to(map_path)).encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def body_velocities(stamps_ns: NDArray[np.int64], T_world_body: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N, 3) body-frame velocity from the pose history (central differences; one-sided at ends)."""
+    t = stamps_ns.astype(np.float64) * 1e-9
+    p = T_world_body[:, :3, 3]
+    if len(t) < 2:
+        return np.zeros((len(t), 3))
+    v_world = np.gradient(p, t, axis=0)
+    return np.einsum("nji,nj->ni", T_world_body[:, :3, :3], v_world)  # R^T v
+
+
+def split_segments(stamps_ns: NDArray[np.int64], source_index: NDArray[np.int32], config: ExportConfig) -> NDArray[np.uint8]:
+    """0 = train, 1 = validation, assigned per contiguous segment of `segment_seconds` per input."""
+    rng = np.random.default_rng(config.seed)
+    seg_id = np.zeros(len(stamps_ns), dtype=np.int64)
+    next_id = 0
+    for src in np.unique(source_index):
+        sel = np.flatnonzero(source_index == src)
+        t = (stamps_ns[sel] - stamps_ns[sel].min()) * 1e-9
+        seg_id[sel] = next_id + (t // config.segment_seconds).astype(np.int64)
+        next_id = int(seg_id[sel].max()) + 1
+    segments = np.unique(seg_id)
+    n_val = int(round(config.val_fraction * len(segments)))
+    if config.val_fraction > 0 and len(segments) >= 2:
+        n_val = max(n_val, 1)
+    val = rng.choice(segments, size=min(n_val, len(segments) - 1), replace=False) if n_val else np.empty(0, int)
+    return np.isin(seg_id, val).astype(np.uint8)
+
+
+def _sample_goals(
+    i: int, *, frames_T_wb: NDArray[np.float64], stamps_s: NDArray[np.float64], source_index: NDArray[np.int32],
+    T_world_camera: NDArray[np.float64], depth: NDArray[np.float32], K: NDArray[np.float64],
+    esdf: "object", config: ExportConfig, rng: np.random.Generator,
+) -> tuple[list[NDArray[np.float64]], list[int], list[float]]:
+    """Up to goals_per_frame world-frame goals for frame i: future poses first, then random ones."""
+    want = config.goals_per_frame
+    goals: list[NDArray[np.float64]] = []
+    kinds: list[int] = []
+    clear: list[float] = []
+    # Future poses on the same flight, 1-5 s ahead.
+    dt = stamps_s - stamps_s[i]
+    future = np.flatnonzero((dt >= config.future_horizon[0]) & (dt <= config.future_horizon[1]) & (source_index == source_index[i]))
+    if len(future):
+        pick = rng.choice(future, size=min(len(future), (want + 1) // 2), replace=False)
+        pts = frames_T_wb[pick, :3, 3]
+        d, _ = esdf.query(pts, outside="nan")  # type: ignore[attr-defined]
+        for p, di in zip(pts, d):
+            if np.isfinite(di) and di >= config.clearance:
+                goals.append(p)
+                kinds.append(FUTURE)
+                clear.append(float(di))
+    # Random goals in the camera's field of view, in observed free space with clearance.
+    H, W = depth.shape
+    need = want - len(goals)
+    tries = 0
+    while need > 0 and tries < 8:
+        tries += 1
+        n = 16 * need
+        u = rng.uniform(0, W - 1, n)
+        v = rng.uniform(0, H - 1, n)
+        r = rng.uniform(config.goal_range[0], config.goal_range[1], n)
+        ray = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(n)], axis=1)
+        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+        z = r * ray[:, 2]
+        # In front of what the camera saw along that pixel (unknown beyond the surface).
+        measured = depth[np.rint(v).astype(int), np.rint(u).astype(int)]
+        front = ~np.isfinite(measured) | (z < measured - config.clearance)
+        pts = (T_world_camera[:3, :3] @ (ray * r[:, None]).T).T + T_world_camera[:3, 3]
+        d, _ = esdf.query(pts, outside="nan")  # type: ignore[attr-defined]
+        observed = esdf.observed_at(pts)  # type: ignore[attr-defined]
+        ok = front & np.isfinite(d) & (d >= config.clearance) & observed
+        for p, di in zip(pts[ok][:need], d[ok][:need]):
+            goals.append(p)
+            kinds.append(RANDOM)
+            clear.append(float(di))
+        need = want - len(goals)
+    return goals, kinds, clear
+
+
+def export_tuples(workspace: str | Path, config: ExportConfig | None = None, *, overwrite: bool = False, progress: bool = True) -> ExportSummary:
+    """Write ``workspace/tuples.zarr`` from ``frames.zarr`` and ``map.zarr`` (atomically)."""
+    import zarr
+    from tqdm import tqdm
+
+    from mapkit.esdf import MAP, EsdfMap
+    from mapkit.ingest import open_frames_store
+
+    config = config or ExportConfig()
+    config.validate()
+    ws = Path(workspace)
+    target = ws / TUPLES
+    check_writable(target, overwrite=overwrite)
+    if not (ws / MAP).exists():
+        raise ExportError(f"{ws / MAP} does not exist; run `mapkit fuse` and `mapkit esdf -w {ws}` before export")
+    if not (ws / FRAMES).exists():
+        raise ExportError(f"{ws / FRAMES} does not exist; run `mapkit ingest` (or `mapkit fuse`) first")
+    t0 = time.perf_counter()
+    store = open_frames_store(ws)
+    esdf = _ObservedMap(EsdfMap.open(ws / MAP))
+    if esdf.frame_id != store.attrs.get("world_frame"):
+        raise ExportError(
+            f"map.zarr is in frame {esdf.frame_id!r} but frames.zarr in {store.attrs.get('world_frame')!r}; "
+            "rebuild the map from these frames (mapkit fuse/esdf --overwrite)"
+        )
+    lo, hi = esdf.bounds
+    cams = store.T_world_camera[:, :3, 3]
+    inside = np.all((cams >= lo) & (cams <= hi), axis=1)
+    if not inside.any():
+        raise ExportError(
+            f"no camera position of frames.zarr lies inside map.zarr's bounds {lo.round(2).tolist()}–{hi.round(2).tolist()}; "
+            "the map was built from other frames: rebuild it (mapkit fuse/esdf --overwrite)"
+        )
+    indices = np.arange(0, len(store), config.stride)
+    stamps_s = store.stamp_ns.astype(np.float64) * 1e-9
+    velocity = body_velocities(store.stamp_ns, store.T_world_body)
+    rng = np.random.default_rng(config.seed)
+    G = config.goals_per_frame
+    keep: list[int] = []
+    goals_body: list[NDArray[np.float32]] = []
+    kinds_all: list[NDArray[np.uint8]] = []
+    clear_all: list[NDArray[np.float32]] = []
+    for i in tqdm(indices, desc="goals", unit="frame", disable=not progress):
+        depth = np.asarray(store.depth[int(i)])
+        goals, kinds, clear = _sample_goals(
+            int(i), frames_T_wb=store.T_world_body, stamps_s=stamps_s, source_index=store.source_index,
+            T_world_camera=store.T_world_camera[i], depth=depth, K=store.K, esdf=esdf, config=config, rng=rng,
+        )
+        if len(goals) < G:
+            continue  # a frame with too few valid goals is left out (counted in the summary)
+        T_body_world = invert_transform(store.T_world_body[i])
+        pts = np.asarray(goals)
+        goals_body.append((pts @ T_body_world[:3, :3].T + T_body_world[:3, 3]).astype(np.float32))
+        kinds_all.append(np.asarray(kinds, dtype=np.uint8))
+        clear_all.append(np.asarray(clear, dtype=np.float32))
+        keep.append(int(i))
+    if not keep:
+        frac = float(np.asarray(esdf.map.observed[:]).mean())
+        raise ExportError(
+            f"no valid goals in any of {len(indices)} frames: no observed free space with {config.clearance} m clearance "
+            f"within --goal-range {config.goal_range[0]}–{config.goal_range[1]} m in front of the camera "
+            f"(observed voxels: {100 * frac:.1f} %); lower --clearance or change --goal-range"
+        )
+    sel = np.asarray(keep)
+    split = split_segments(store.stamp_ns[sel], store.source_index[sel], config)
+    digest = map_digest(ws / MAP)
+    with atomic_output(target, overwrite=overwrite) as tmp:
+        root = zarr.open_group(tmp, mode="w-", zarr_format=3)
+        H, W = store.height, store.width
+        from zarr.codecs import BloscCodec
+
+        depth_out = root.create_array(
+            "depth", shape=(len(sel), H, W), chunks=(1, H, W), dtype="float32", fill_value=float("nan"),
+            compressors=[BloscCodec(cname="lz4", clevel=1, shuffle="bitshuffle")], dimension_names=["tuple", "v", "u"],
+        )
+        for start in tqdm(range(0, len(sel), 32), desc="depth", unit="batch", disable=not progress):
+            part = sel[start : start + 32]
+            depth_out[start : start + len(part)] = np.stack([np.asarray(store.depth[int(j)]) for j in part])
+
+        def small(name: str, data: NDArray, dims: list[str]) -> None:
+            root.create_array(name, data=data, dimension_names=dims)
+
+        small("frame_index", sel.astype(np.int32), ["tuple"])
+        small("stamp_ns", store.stamp_ns[sel], ["tuple"])
+        small("source_index", store.source_index[sel], ["tuple"])
+        small("T_world_body", store.T_world_body[sel], ["tuple", "row", "col"])
+        small("T_world_camera", store.T_world_camera[sel], ["tuple", "row", "col"])
+        small("velocity_body", velocity[sel].astype(np.float32), ["tuple", "xyz"])
+        small("goals_body", np.stack(goals_body), ["tuple", "goal", "xyz"])
+        small("goal_kind", np.stack(kinds_all), ["tuple", "goal"])
+        small("goal_clearance", np.stack(clear_all), ["tuple", "goal"])
+        small("split", split, ["tuple"])
+        root.attrs.update({
+            "mapkit_version": __version__,
+            "kind": "mapkit.tuples",
+            "K": store.K.tolist(),
+            "width": W,
+            "height": H,
+            "world_frame": store.attrs.get("world_frame"),
+            "body_frame": store.attrs.get("body_frame"),
+            "map": {"path": str((ws / MAP).resolve()), "sha256": digest, "voxel_size": esdf.map.voxel_size},
+            "frames": str((ws / FRAMES).resolve()),
+            "goal_kinds": {"future_pose": FUTURE, "random_free": RANDOM},
+            "split_values": {"train": 0, "val": 1},
+            "parameters": json.loads(json.dumps(asdict(config))),
+            "units": {"goals_body": "m (body frame FLU)", "velocity_body": "m/s (body frame)", "depth": "m"},
+        })
+    kinds = np.stack(kinds_all)
+    return ExportSummary(
+        target, len(sel), int((split == 0).sum()), int((split == 1).sum()), int(kinds.size),
+        int((kinds == FUTURE).sum()), len(indices) - len(sel), time.perf_counter() - t0,
+    )
+
+
+class _ObservedMap:
+    """EsdfMap plus nearest-voxel lookups of the observed mask (goals must lie in seen space)."""
+
+    def __init__(self, esdf_map: "object") -> None:
+        self.map = esdf_map
+        self._observed = np.asarray(esdf_map.observed[:]).astype(bool)  # type: ignore[attr-defined]
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self.map, name)
+
+    def query(self, points: NDArray[np.float64], *, outside: str = "nan") -> tuple[NDArray, NDArray]:
+        return self.map.query(points, outside=outside)  # type: ignore[attr-defined]
+
+    def observed_at(self, points: NDArray[np.float64]) -> NDArray[np.bool_]:
+        idx = np.rint((points - self.map.origin) / self.map.voxel_size).astype(np.int64)  # type: ignore[attr-defined]
+        shape = np.asarray(self._observed.shape)
+        ok = np.all((idx >= 0) & (idx < shape), axis=1)
+        out = np.zeros(len(points), dtype=bool)
+        out[ok] = self._observed[tuple(idx[ok].T)]
+        return out
