@@ -47,3 +47,4 @@ from mapkit.cli import export as _export  # noqa: E402,F401
 from mapkit.cli import ingest as _ingest  # noqa: E402,F401
 from mapkit.cli import mapping as _mapping  # noqa: E402,F401
 from mapkit.cli import simulate as _simulate  # noqa: E402,F401
+from mapkit.cli import train as _train  # noqa: E402,F401

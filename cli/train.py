@@ -1,0 +1,72 @@
+"""`mapkit train`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import click
+
+from mapkit.cli.main import library_call, main
+
+
+def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for text in values:
+        key, sep, raw = text.partition("=")
+        if not sep or not key:
+            raise click.UsageError(f"{option} {text!r}: expected FIELD=VALUE (VALUE as JSON, e.g. input_size=[96,160])")
+        try:
+            out[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            out[key] = raw
+    return out
+
+
+@main.command("train")
+@click.option("-w", "--workspace", "workspaces", multiple=True, required=True, type=click.Path(path_type=Path),
+              help="Workspace with tuples.zarr and map.zarr; repeat to train on several.")
+@click.option("--preset", default="cpu", show_default=True, type=click.Choice(["cpu", "paper"]), help="Named configuration.")
+@click.option("--name", default=None, help="Run name (default: the preset's name).")
+@click.option("--runs-dir", type=click.Path(path_type=Path), default=None, help="Where runs go (default: first WS/runs).")
+@click.option("--epochs", type=int, default=None, help="Override the preset's epochs.")
+@click.option("--batch-size", type=int, default=None, help="Override the preset's batch size.")
+@click.option("--lr", type=float, default=None, help="Override the preset's Adam learning rate.")
+@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed (CPU runs are reproducible).")
+@click.option("--max-steps", type=int, default=None, help="Stop after this many optimiser steps.")
+@click.option("--val-batches", type=int, default=None, help="Limit validation batches.")
+@click.option("--planner", "planner_items", multiple=True, metavar="FIELD=VALUE", help="PlannerConfig field override (repeatable).")
+@click.option("--loss", "loss_items", multiple=True, metavar="FIELD=VALUE", help="LossConfig field override (repeatable).")
+@click.option("--resume", is_flag=True, help="Continue the run after its last completed epoch.")
+@click.option("--overwrite", is_flag=True, help="Restart an existing run from scratch.")
+@library_call
+def train_cmd(workspaces: tuple[Path, ...], preset: str, name: str | None, runs_dir: Path | None, epochs: int | None,
+              batch_size: int | None, lr: float | None, device: str, seed: int, max_steps: int | None,
+              val_batches: int | None, planner_items: tuple[str, ...], loss_items: tuple[str, ...], resume: bool,
+              overwrite: bool) -> None:
+    """Train the self-supervised planner on WS/tuples.zarr (+ map.zarr) → runs/NAME.
+
+    Multi-GPU / multi-node: torchrun --nproc-per-node N -m mapkit.cli train ...
+    """
+    from mapkit.train import preset as make_preset
+    from mapkit.train import train
+
+    overrides: dict[str, Any] = {"name": name or preset, "device": device, "seed": seed, "max_steps": max_steps,
+                                 "val_batches": val_batches}
+    for key, value in (("epochs", epochs), ("batch_size", batch_size), ("lr", lr)):
+        if value is not None:
+            overrides[key] = value
+    overrides["planner"] = _pairs(planner_items, "--planner")
+    overrides["loss"] = _pairs(loss_items, "--loss")
+    config = make_preset(preset, **overrides)
+    s = train(list(workspaces), config, runs_dir=runs_dir, resume=resume, overwrite=overwrite, progress=True)
+    if s.last:
+        v, b = s.last["val"], s.baseline
+        click.echo(
+            f"run {s.run_dir}: {s.epochs_done} epochs, {s.steps} steps, {s.seconds:.0f} s ({s.samples_per_second:.1f} samples/s); "
+            f"val obstacle {v['obstacle']:.4f} collision {v['collision_rate']:.3f}"
+            + (f" (untrained {b['val']['obstacle']:.4f} / {b['val']['collision_rate']:.3f}, straight "
+               f"{b['straight']['obstacle']:.4f} / {b['straight']['collision_rate']:.3f})" if b else "")
+        )

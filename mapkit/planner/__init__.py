@@ -1,0 +1,81 @@
+"""The learned planner: depth image + goal → key-points + collision probability η → Time Allocation
+Net → differentiable minimum-snap trajectory, and the self-supervised loss that trains it.
+
+Model (the paper's upper level): :class:`PlannerNet` — a ResNet-18 depth encoder (:class:`ResNet18`,
+written here; :func:`load_torchvision_state_dict` loads torchvision's ImageNet weights), a linear goal
+embedding concatenated over the feature map, two conv layers and three-layer MLPs predicting K
+key-points (as offsets from the straight origin → goal line) and η; :meth:`PlannerNet.trajectory`
+turns key-points into a :class:`mapkit.trajopt.Trajectory` through the net's TAN and
+:func:`mapkit.trajopt.min_snap`. Everything is in the body frame (FLU, robot at the origin).
+
+Loss: :func:`planner_loss` = γ1 U_O (:func:`obstacle_cost` on the ESDF) + γ2 U_G (:func:`goal_cost`) +
+γ3 U_S (:func:`smoothness_cost`) + γ4 U_E (:func:`escape_cost`) + γ5 U_T (:func:`time_cost` against
+:func:`time_targets`).
+
+>>> import torch
+>>> from mapkit.planner import PlannerNet, planner_preset
+>>> net = PlannerNet(planner_preset("cpu")).eval()
+>>> depth = torch.full((1, 120, 200), 6.0); depth[:, :10] = float("nan")
+>>> with torch.inference_mode():
+...     p = net.plan(depth, torch.tensor([[8.0, 0.0, 0.0]]), start_velocity=torch.zeros(1, 3))
+>>> p.keypoints.shape, p.eta.shape, p.trajectory.num_segments
+(torch.Size([1, 5, 3]), torch.Size([1]), 5)
+"""
+
+from mapkit.planner._errors import PlannerError
+from mapkit.planner._loss import (
+    LossConfig,
+    body_to_world,
+    collision_labels,
+    escape_cost,
+    goal_cost,
+    obstacle_cost,
+    obstacle_penalty,
+    planner_loss,
+    sample_trajectory,
+    smoothness_cost,
+    time_cost,
+    time_targets,
+)
+from mapkit.planner._model import (
+    PLANNER_PRESETS,
+    Plan,
+    PlannerConfig,
+    PlannerNet,
+    PlannerOutput,
+    count_parameters,
+    plan,
+    planner_preset,
+    preprocess_depth,
+    total_time_heuristic,
+)
+from mapkit.planner._resnet import ResNet18, load_torchvision_state_dict, torchvision_resnet18_keys
+
+__all__ = [
+    "PLANNER_PRESETS",
+    "LossConfig",
+    "Plan",
+    "PlannerConfig",
+    "PlannerError",
+    "PlannerNet",
+    "PlannerOutput",
+    "ResNet18",
+    "body_to_world",
+    "collision_labels",
+    "count_parameters",
+    "escape_cost",
+    "goal_cost",
+    "load_torchvision_state_dict",
+    "obstacle_cost",
+    "obstacle_penalty",
+    "plan",
+    "planner_loss",
+    "planner_preset",
+    "preprocess_depth",
+    "sample_trajectory",
+    "smoothness_cost",
+    "time_cost",
+    "time_targets",
+    "torchvision_resnet18_keys",
+    "total_time_heuristic",
+]

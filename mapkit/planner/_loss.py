@@ -1,0 +1,323 @@
+"""The self-supervised upper-level loss U = γ1 U_O + γ2 U_G + γ3 U_S + γ4 U_E + γ5 U_T and its terms.
+
+Every term is a function of tensors with a batch axis B and returns (B,) per-element values;
+:func:`planner_loss` weights them, averages over the batch and returns the scalar to back-propagate.
+Trajectories are planned in the body frame (FLU, robot at the origin); points are moved to the world
+frame with ``T_world_body`` (B, 4, 4) before every ESDF lookup.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import torch
+import torch.nn.functional as F
+
+from mapkit.planner._errors import PlannerError
+from mapkit.planner._model import Plan
+from mapkit.trajopt import Trajectory, allocate_times
+
+if TYPE_CHECKING:  # the ESDF stage is only needed at call time (duck-typed query_torch)
+    from mapkit.esdf import EsdfMap
+
+
+@dataclass
+class LossConfig:
+    """Weights and parameters of :func:`planner_loss`. The γ defaults are starting points that put the
+    terms on comparable scales for a fresh net, not tuned values."""
+
+    gamma_obstacle: float = 2.0
+    """γ1, weight of the obstacle cost U_O (:func:`obstacle_cost`)."""
+    gamma_goal: float = 1.0
+    """γ2, weight of the goal cost U_G (:func:`goal_cost`, metres)."""
+    gamma_smooth: float = 0.5
+    """γ3, weight of the smoothness cost U_S (:func:`smoothness_cost`, metres)."""
+    gamma_escape: float = 1.0
+    """γ4, weight of the escape cost U_E (:func:`escape_cost`, BCE of η)."""
+    gamma_time: float = 10.0
+    """γ5, weight of the time cost U_T (:func:`time_cost`: MSE of shares, which are ~1/K, so the raw
+    term is small)."""
+    robot_radius: float = 0.3
+    """Metres. The obstacle cost acts on the clearance d − robot_radius."""
+    obstacle_softness: float = 1.0
+    """ε, metres: width of the smooth hinge in :func:`obstacle_penalty`. Larger ε gives more gradient
+    far from obstacles (it decays like ε²/(4 u²) at clearance u)."""
+    obstacle_reduction: str = "mean"
+    """"mean" (default: independent of the trajectory's duration and sample count) or "sum" (the
+    paper's sum over trajectory points) over the samples of each trajectory."""
+    samples_per_second: float = 10.0
+    """Trajectory samples per second of flight for U_O, U_S and the collision label (the longest
+    trajectory of the batch sets the count N; every element is sampled at N instants evenly spread
+    over its own duration)."""
+    min_samples: int = 8
+    """Lower bound on N, the samples per trajectory."""
+    collision_distance: float | None = None
+    """Metres; a trajectory whose sampled ESDF distance drops below this counts as colliding (label
+    1 for U_E). Default: ``robot_radius``."""
+    label_from_raw: bool = True
+    """Use the map's unsmoothed ``esdf_raw`` (exact distances) for the collision label when the map
+    has it; the smoothed ``esdf`` otherwise. U_O always uses the smoothed field."""
+    smoothness_on: str = "keypoints"
+    """What U_S measures against the straight line: "keypoints" (default; the K+1 waypoints origin,
+    k1..kK, whose equal spacing on the line gives zero) or "samples" (the N time samples of the
+    trajectory; a rest-to-rest minimum-snap trajectory is never evenly spaced in time, so this
+    penalises its speed profile even on the straight line: measured ≈ 3.3 m for an 8 m path)."""
+    time_target_iters: int = 10
+    """Iterations of the Mellinger & Kumar gradient allocation for the U_T target (10: ≈ 20 ms for a
+    batch of 16 on 2 CPU cores, MSE to the converged shares ≈ 4e-5 against ≈ 5e-3 for uniform
+    shares)."""
+    time_target_tol: float = 1e-3
+    """Relative cost decrease below which that allocation stops early."""
+
+    def __post_init__(self) -> None:
+        for name in ("robot_radius", "collision_distance"):
+            v = getattr(self, name)
+            if v is not None and not v >= 0:
+                raise PlannerError(f"{name} must be >= 0 metres, got {v}")
+        if not self.obstacle_softness > 0:
+            raise PlannerError(f"obstacle_softness must be > 0 metres, got {self.obstacle_softness}")
+        if self.obstacle_reduction not in ("mean", "sum"):
+            raise PlannerError(f"obstacle_reduction must be 'mean' or 'sum', got {self.obstacle_reduction!r}")
+        if not self.samples_per_second > 0:
+            raise PlannerError(f"samples_per_second must be > 0, got {self.samples_per_second}")
+        if self.smoothness_on not in ("keypoints", "samples"):
+            raise PlannerError(f"smoothness_on must be 'keypoints' or 'samples', got {self.smoothness_on!r}")
+        if self.min_samples < 2:
+            raise PlannerError(f"min_samples must be >= 2, got {self.min_samples}")
+
+    @property
+    def collision_threshold(self) -> float:
+        """The collision distance in effect (``collision_distance`` or ``robot_radius``), metres."""
+        return self.robot_radius if self.collision_distance is None else float(self.collision_distance)
+
+
+# ------------------------------------------------------------------------------------ helpers
+def _safe_norm(x: torch.Tensor) -> torch.Tensor:
+    """Euclidean norm over the last axis with a finite gradient at zero (bias below 1e-12 m)."""
+    return torch.sqrt((x * x).sum(-1) + 1e-24)
+
+
+def sample_trajectory(trajectory: Trajectory, *, samples_per_second: float, min_samples: int = 2) -> torch.Tensor:
+    """Positions (B, N, 3) at N instants evenly spread over each element's own duration (first =
+    start, last = end). N = max(min_samples, ceil(longest total time × samples_per_second) + 1), so
+    every element has at least ``samples_per_second`` samples per second and no padding. Gradients
+    flow to the coefficients and the durations."""
+    if not trajectory.batched:
+        raise PlannerError("sample_trajectory needs a batched trajectory (B elements)")
+    total = trajectory.total_time  # (B,)
+    N = max(int(min_samples), int(math.ceil(float(total.detach().max()) * samples_per_second)) + 1)
+    frac = torch.linspace(0.0, 1.0, N, dtype=total.dtype, device=total.device)
+    t = total.unsqueeze(-1) * frac
+    # Keep the last instant inside the final segment (t == total exactly is clamped anyway).
+    return trajectory.position(t)
+
+
+def body_to_world(points: torch.Tensor, T_world_body: torch.Tensor) -> torch.Tensor:
+    """Points (B, N, 3) in the body frame → world frame with T_world_body (B, 4, 4) (float64 is cast
+    to the points' dtype)."""
+    if points.ndim != 3 or points.shape[-1] != 3:
+        raise PlannerError(f"points must have shape (B, N, 3), got {tuple(points.shape)}")
+    T = torch.as_tensor(T_world_body, device=points.device)
+    if T.shape != (points.shape[0], 4, 4):
+        raise PlannerError(f"T_world_body must have shape (B={points.shape[0]}, 4, 4), got {tuple(T.shape)}")
+    T = T.to(points.dtype)
+    return points @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
+
+
+# --------------------------------------------------------------------------------------- terms
+def obstacle_penalty(distance: torch.Tensor, *, robot_radius: float, softness: float) -> torch.Tensor:
+    """Elementwise obstacle cost of signed distances (metres): a hyperbolic smooth hinge of the
+    clearance ``u = distance − robot_radius``::
+
+        c(u) = (sqrt(u² + ε²) − u) / 2,      ε = softness
+
+    Strictly decreasing everywhere (dc/du = (u / sqrt(u² + ε²) − 1) / 2 ∈ (−1, 0)): inside an obstacle
+    or within the robot radius it grows linearly with the penetration (slope → 1 per metre), at the
+    radius it is ε/2, and in free space it decays only like ε² / (4u) with gradient ≈ −ε² / (4u²):
+    polynomial, not exponential, so it never plateaus in open space (the paper's reason for an ESDF
+    with distances everywhere). Cost is in metres."""
+    u = distance - robot_radius
+    return 0.5 * (torch.sqrt(u * u + softness * softness) - u)
+
+
+def obstacle_cost(
+    points: torch.Tensor,
+    esdf_map: "EsdfMap",
+    *,
+    robot_radius: float = 0.3,
+    softness: float = 1.0,
+    reduction: str = "mean",
+) -> torch.Tensor:
+    """U_O: obstacle cost (B,) of world points (B, N, 3) — the mean (or sum) over the N samples of
+    :func:`obstacle_penalty` of the smoothed ESDF distance there. Outside the map grid the distance is
+    that of the nearest grid point (``outside="clamp"``). Differentiable w.r.t. ``points``."""
+    if points.ndim != 3 or points.shape[-1] != 3:
+        raise PlannerError(f"points must have shape (B, N, 3) in the world frame, got {tuple(points.shape)}")
+    d = esdf_map.query_torch(points, outside="clamp")
+    c = obstacle_penalty(d, robot_radius=robot_radius, softness=softness)
+    if reduction == "mean":
+        return c.mean(-1)
+    if reduction == "sum":
+        return c.sum(-1)
+    raise PlannerError(f"reduction must be 'mean' or 'sum', got {reduction!r}")
+
+
+def goal_cost(end: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+    """U_G: ‖end − goal‖₂ (B,) metres, for end and goal (B, 3) in the same frame."""
+    if end.shape != goal.shape or end.shape[-1] != 3:
+        raise PlannerError(f"end and goal must both be (B, 3), got {tuple(end.shape)} and {tuple(goal.shape)}")
+    return _safe_norm(end - goal.to(end.dtype))
+
+
+def smoothness_cost(points: torch.Tensor, start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+    """U_S (B,) metres: Σ_i | ‖p_{i+1} − p_i‖ − ‖p̂_{i+1} − p̂_i‖ | over the N trajectory samples
+    ``points`` (B, N, 3) against N equally spaced points p̂ on the straight ``start`` → ``goal`` line
+    (both (B, 3), same frame). Zero exactly when the samples advance in equal steps of the straight
+    line's step length (e.g. equally spaced points on that line); it penalises uneven speed and
+    detours. A sum, as in the paper (its scale hardly depends on N for a smooth curve)."""
+    if points.ndim != 3 or points.shape[-1] != 3 or points.shape[1] < 2:
+        raise PlannerError(f"points must have shape (B, N>=2, 3), got {tuple(points.shape)}")
+    B, N, _ = points.shape
+    if start.shape != (B, 3) or goal.shape != (B, 3):
+        raise PlannerError(f"start and goal must be (B={B}, 3), got {tuple(start.shape)} and {tuple(goal.shape)}")
+    step = _safe_norm(points[:, 1:] - points[:, :-1])  # (B, N-1)
+    ref = (_safe_norm(goal.to(points.dtype) - start.to(points.dtype)) / (N - 1)).unsqueeze(-1)
+    return (step - ref).abs().sum(-1)
+
+
+@torch.no_grad()
+def collision_labels(
+    points: torch.Tensor, esdf_map: "EsdfMap", *, threshold: float, raw: bool = False
+) -> torch.Tensor:
+    """(B,) bool: some world point of (B, N, 3) has ESDF distance < ``threshold`` metres (from
+    ``esdf_raw`` when ``raw`` and the map has it). Outside the grid: nearest grid point. No gradient."""
+    use_raw = bool(raw and esdf_map.esdf_raw is not None)
+    d = esdf_map.query_torch(points.detach(), raw=use_raw, outside="clamp")
+    return (d < threshold).any(dim=-1)
+
+
+def escape_cost(eta: torch.Tensor, collided: torch.Tensor, *, logit: torch.Tensor | None = None) -> torch.Tensor:
+    """U_E (B,): BCE(η, 1) where the trajectory collided (``collided`` (B,) bool, e.g. from
+    :func:`collision_labels`), BCE(η, 0) otherwise. The label carries no gradient.
+
+    Pass ``logit`` (B,) (``PlannerOutput.eta_logit``, with η = sigmoid(logit)) whenever you have it:
+    the BCE is then computed from the logit, exact and with a gradient that never vanishes (a
+    saturated η = 1.0 in float32 still learns when its label flips to 0). From η alone, η is clamped
+    to [1e-7, 1 − 1e-7], which keeps the cost finite but gives no gradient once η saturates."""
+    if eta.shape != collided.shape or eta.ndim != 1:
+        raise PlannerError(f"eta and collided must both be (B,), got {tuple(eta.shape)} and {tuple(collided.shape)}")
+    label = collided.detach().to(eta.dtype)
+    if logit is not None:
+        if logit.shape != eta.shape:
+            raise PlannerError(f"logit must have the shape of eta {tuple(eta.shape)}, got {tuple(logit.shape)}")
+        return F.binary_cross_entropy_with_logits(logit, label.to(logit.dtype), reduction="none")
+    return F.binary_cross_entropy(eta.clamp(1e-7, 1.0 - 1e-7), label, reduction="none")
+
+
+@torch.no_grad()
+def time_targets(
+    waypoints: torch.Tensor,
+    *,
+    total_time: torch.Tensor,
+    start: torch.Tensor | None = None,
+    max_iters: int = 10,
+    rel_tol: float = 1e-3,
+) -> torch.Tensor:
+    """U_T target shares (B, M): the Mellinger & Kumar gradient-descent allocation
+    (``allocate_times(method="gradient")``, fixed total ``total_time`` (B,), start derivatives
+    ``start`` (B, 3, 3)) for the same waypoints (B, M+1, 3), divided by the total. Batched, float64
+    inside, no gradient."""
+    w = waypoints.detach().to(torch.float64)
+    tot = torch.as_tensor(total_time).detach().to(torch.float64)
+    st = None if start is None else start.detach().to(torch.float64)
+    T = allocate_times(w, "gradient", total_time=tot, start=st, max_iters=max_iters, rel_tol=rel_tol)
+    return (T / T.sum(-1, keepdim=True)).to(waypoints.dtype)
+
+
+def time_cost(shares: torch.Tensor, target_shares: torch.Tensor) -> torch.Tensor:
+    """U_T (B,): mean over the M segments of (shares − target)², both (B, M). The target carries no
+    gradient."""
+    if shares.shape != target_shares.shape or shares.ndim != 2:
+        raise PlannerError(
+            f"shares and target_shares must both be (B, M), got {tuple(shares.shape)} and {tuple(target_shares.shape)}"
+        )
+    return ((shares - target_shares.detach().to(shares.dtype)) ** 2).mean(-1)
+
+
+# -------------------------------------------------------------------------------------- total
+def planner_loss(
+    plan: Plan,
+    *,
+    goal: torch.Tensor,
+    T_world_body: torch.Tensor,
+    esdf_map: "EsdfMap",
+    eta: torch.Tensor | None = None,
+    eta_logit: torch.Tensor | None = None,
+    target_shares: torch.Tensor | None = None,
+    config: LossConfig | None = None,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """U = γ1 U_O + γ2 U_G + γ3 U_S + γ4 U_E + γ5 U_T averaged over the batch.
+
+    Args:
+        plan: from :meth:`PlannerNet.trajectory` / :meth:`PlannerNet.plan` (body frame).
+        goal: (B, 3) goal in the body frame, metres.
+        T_world_body: (B, 4, 4) pose of the body at planning time (float64 fine).
+        esdf_map: the world's :class:`mapkit.esdf.EsdfMap`.
+        eta: (B,) collision probability; default ``plan.eta``.
+        eta_logit: (B,) its logit (``PlannerOutput.eta_logit``); default ``plan.eta_logit``. Pass it:
+            U_E is then computed from the logit and never stops learning (see :func:`escape_cost`).
+        target_shares: (B, K) precomputed U_T target (e.g. from a worker thread); default computed
+            here with :func:`time_targets`.
+        config: :class:`LossConfig` (defaults if None).
+
+    Returns:
+        (total, terms): ``total`` a scalar tensor to back-propagate; ``terms`` detached batch means
+        of the unweighted terms "obstacle", "goal", "smoothness", "escape", "time", plus
+        "collision_rate" (fraction of labels 1) and "total".
+    """
+    cfg = config or LossConfig()
+    eta = plan.eta if eta is None else eta
+    eta_logit = plan.eta_logit if eta_logit is None else eta_logit
+    if eta is None and eta_logit is not None:
+        eta = torch.sigmoid(eta_logit)
+    if eta is None:
+        raise PlannerError("planner_loss needs eta (B,): pass eta_logit=net(x, goal).eta_logit or a plan from PlannerNet.plan")
+    traj = plan.trajectory
+    B = traj.batch_size
+    goal = torch.as_tensor(goal, dtype=plan.waypoints.dtype, device=plan.waypoints.device)
+    if goal.shape != (B, 3):
+        raise PlannerError(f"goal must have shape (B={B}, 3) in the body frame, got {tuple(goal.shape)}")
+    pts_body = sample_trajectory(traj, samples_per_second=cfg.samples_per_second, min_samples=cfg.min_samples)
+    pts_world = body_to_world(pts_body, T_world_body)
+    u_o = obstacle_cost(
+        pts_world, esdf_map, robot_radius=cfg.robot_radius, softness=cfg.obstacle_softness,
+        reduction=cfg.obstacle_reduction,
+    )
+    u_g = goal_cost(plan.waypoints[:, -1], goal)
+    smooth_pts = plan.waypoints if cfg.smoothness_on == "keypoints" else pts_body
+    u_s = smoothness_cost(smooth_pts, torch.zeros_like(goal), goal)
+    collided = collision_labels(pts_world, esdf_map, threshold=cfg.collision_threshold, raw=cfg.label_from_raw)
+    u_e = escape_cost(eta, collided, logit=eta_logit)
+    if target_shares is None:
+        target_shares = time_targets(
+            plan.waypoints, total_time=plan.total_time, start=plan.start,
+            max_iters=cfg.time_target_iters, rel_tol=cfg.time_target_tol,
+        )
+    u_t = time_cost(plan.shares, target_shares)
+    per = (
+        cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s
+        + cfg.gamma_escape * u_e + cfg.gamma_time * u_t
+    )
+    total = per.mean()
+    terms = {
+        "obstacle": u_o.detach().mean(),
+        "goal": u_g.detach().mean(),
+        "smoothness": u_s.detach().mean(),
+        "escape": u_e.detach().mean(),
+        "time": u_t.detach().mean(),
+        "collision_rate": collided.to(total.dtype).mean(),
+        "total": total.detach(),
+    }
+    return total, terms

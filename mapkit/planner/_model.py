@@ -1,0 +1,409 @@
+"""The planner network: depth + goal → key-points and collision probability η, and the trajectory
+through those key-points (Time Allocation Net + differentiable minimum snap)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from mapkit.planner._errors import PlannerError
+from mapkit.planner._resnet import ResNet18
+from mapkit.trajopt import TimeAllocationNet, TimeAllocationNetConfig, Trajectory, min_snap
+
+
+@dataclass
+class PlannerConfig:
+    """Configuration of :class:`PlannerNet` (and of how its trajectory is built).
+
+    Named presets: :func:`planner_preset` ("paper", "cpu").
+    """
+
+    input_size: tuple[int, int] = (96, 160)
+    """(h, w) pixels the depth image is resized to before the encoder. Paper: (360, 640)."""
+    max_depth: float = 10.0
+    """Metres. Depth is clipped to [0, max_depth] and divided by it (channel 0 in [0, 1]); the goal
+    is divided by it too before its embedding."""
+    num_keypoints: int = 5
+    """K, predicted key-points; the trajectory has K segments (origin → k1 → ... → kK)."""
+    encoder_width: float = 0.25
+    """ResNet-18 channel scale (1.0 = 64/128/256/512, the only width that loads torchvision weights)."""
+    goal_embed_dim: int = 16
+    """Width of the goal's linear embedding, broadcast over the feature map and concatenated to it."""
+    conv_channels: tuple[int, int] = (64, 32)
+    """Output channels of the head's two 3×3 conv layers (ReLU after each)."""
+    pooled_size: tuple[int, int] = (3, 5)
+    """(h, w) the head's conv output is adaptively average-pooled to before flattening; keeps the
+    coarse spatial layout (left/right/up/down of obstacles) and makes the MLP input size independent
+    of ``input_size``."""
+    mlp_hidden: tuple[int, int] = (256, 128)
+    """Hidden widths of the three-layer key-point MLP (flattened features → h1 → h2 → 3K)."""
+    eta_hidden: tuple[int, int] = (64, 32)
+    """Hidden widths of the parallel three-layer η MLP (flattened features → h1 → h2 → 1)."""
+    keypoint_init_scale: float = 0.01
+    """Scale applied to the default init of the key-point MLP's last layer (bias zero), so the
+    untrained net predicts offsets of millimetres-to-centimetres around the straight line."""
+    tan_hidden: tuple[int, ...] = (64, 64)
+    """Hidden widths of the Time Allocation Net MLP."""
+    cruise_speed: float = 2.0
+    """m/s. Total time heuristic: (polyline length origin → k1 → ... → kK) / cruise_speed."""
+    min_total_time: float = 1.0
+    """Seconds, lower bound of the total time heuristic."""
+    max_total_time: float = 15.0
+    """Seconds, upper bound of the total time heuristic."""
+    extra: dict = field(default_factory=dict)
+    """Free-form notes stored with the config (ignored by the module)."""
+
+    def __post_init__(self) -> None:
+        h, w = (int(v) for v in self.input_size)
+        if h < 32 or w < 32:
+            raise PlannerError(f"input_size must be at least (32, 32) pixels, got {self.input_size}")
+        self.input_size = (h, w)
+        if not self.max_depth > 0:
+            raise PlannerError(f"max_depth must be > 0 metres, got {self.max_depth}")
+        if self.num_keypoints < 1:
+            raise PlannerError(f"num_keypoints must be >= 1, got {self.num_keypoints}")
+        if not self.cruise_speed > 0:
+            raise PlannerError(f"cruise_speed must be > 0 m/s, got {self.cruise_speed}")
+        if not 0 < self.min_total_time <= self.max_total_time:
+            raise PlannerError(
+                f"need 0 < min_total_time <= max_total_time, got {self.min_total_time} and {self.max_total_time}"
+            )
+        if len(self.conv_channels) != 2 or len(self.mlp_hidden) != 2 or len(self.eta_hidden) != 2:
+            raise PlannerError("conv_channels, mlp_hidden and eta_hidden must each have two entries")
+
+    def to_dict(self) -> dict:
+        """Plain-data form (tuples as lists) for JSON; :meth:`from_dict` inverts it."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "PlannerConfig":
+        """Build a config from :meth:`to_dict` output; unknown keys raise :class:`PlannerError`."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise PlannerError(f"unknown PlannerConfig fields {unknown}; known: {sorted(names)}")
+        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items()}
+        return cls(**kw)
+
+
+PLANNER_PRESETS: dict[str, dict] = {
+    "paper": dict(
+        input_size=(360, 640), encoder_width=1.0, goal_embed_dim=16, conv_channels=(512, 256),
+        pooled_size=(3, 5), mlp_hidden=(1024, 512), eta_hidden=(256, 64), tan_hidden=(128, 128),
+    ),
+    "cpu": dict(
+        input_size=(96, 160), encoder_width=0.25, goal_embed_dim=16, conv_channels=(64, 32),
+        pooled_size=(3, 5), mlp_hidden=(256, 128), eta_hidden=(64, 32), tan_hidden=(64, 64),
+    ),
+}
+"""Named presets: "paper" (ResNet-18 at full width on 360×640 depth, as in the paper) and "cpu"
+(quarter-width encoder on 96×160 for training and tests on a laptop CPU)."""
+
+
+def planner_preset(name: str, **overrides) -> PlannerConfig:
+    """A fresh :class:`PlannerConfig` for the preset ``name`` ("paper" or "cpu") with ``overrides``."""
+    if name not in PLANNER_PRESETS:
+        raise PlannerError(f"unknown planner preset {name!r}; choose one of {sorted(PLANNER_PRESETS)}")
+    return PlannerConfig(**{**PLANNER_PRESETS[name], **overrides})
+
+
+# ------------------------------------------------------------------------------ preprocessing
+def preprocess_depth(depth: torch.Tensor, *, input_size: tuple[int, int], max_depth: float) -> torch.Tensor:
+    """Depth images in metres → the network input (B, 2, h, w), float32.
+
+    Args:
+        depth: (B, H, W) or (H, W) float metres along the optical axis; NaN (and any non-finite or
+            non-positive value) is invalid.
+        input_size: (h, w) output pixels.
+        max_depth: metres; valid depth is clipped to [0, max_depth] (far returns saturate) before
+            resizing.
+
+    Returns:
+        (B, 2, h, w) float32. Channel 0: depth / max_depth in [0, 1], averaged over the VALID source
+        pixels only (the zero-filled depth and the valid mask are resized with the same weights and
+        divided), and exactly 0 where no valid pixel contributes. Channel 1: the valid mask, i.e.
+        the fraction of valid source pixels behind each output pixel (1 all valid, 0 none). Invalid
+        depth is thus never replaced by a plausible depth; the mask tells the network where channel 0
+        carries no measurement. Output contains no NaN.
+
+    Resizing: "area" (average over each output pixel's footprint) where the image shrinks along both
+    axes, bilinear (``align_corners=False``) otherwise; no-op when the size already matches.
+    """
+    if not isinstance(depth, torch.Tensor):
+        raise PlannerError(f"depth must be a torch.Tensor (B, H, W) in metres, got {type(depth).__name__}")
+    if depth.ndim == 2:
+        depth = depth.unsqueeze(0)
+    if depth.ndim != 3:
+        raise PlannerError(f"depth must have shape (B, H, W) or (H, W), got {tuple(depth.shape)}")
+    if not depth.is_floating_point():
+        raise PlannerError(f"depth must be float metres (NaN invalid), got {depth.dtype}")
+    if not max_depth > 0:
+        raise PlannerError(f"max_depth must be > 0 metres, got {max_depth}")
+    h, w = (int(v) for v in input_size)
+    d = depth.to(torch.float32)
+    valid = torch.isfinite(d) & (d > 0)
+    filled = torch.where(valid, d.clamp(max=float(max_depth)), torch.zeros_like(d)) / float(max_depth)
+    x = torch.stack([filled, valid.to(torch.float32)], dim=1)  # (B, 2, H, W)
+    H, W = d.shape[-2:]
+    if (H, W) != (h, w):
+        if H >= h and W >= w:
+            x = F.interpolate(x, size=(h, w), mode="area")
+        else:
+            x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False)
+    num, mask = x[:, 0], x[:, 1].clamp(0.0, 1.0)
+    has = mask > 1e-6
+    depth_n = torch.where(has, num / torch.where(has, mask, torch.ones_like(mask)), torch.zeros_like(num))
+    mask = torch.where(has, mask, torch.zeros_like(mask))
+    return torch.stack([depth_n.clamp(0.0, 1.0), mask], dim=1)
+
+
+# ------------------------------------------------------------------------------- outputs
+@dataclass
+class PlannerOutput:
+    """What :meth:`PlannerNet.forward` predicts (body frame FLU, metres)."""
+
+    keypoints: torch.Tensor
+    """(B, K, 3) key-points; the last one is the trajectory's end point."""
+    eta: torch.Tensor
+    """(B,) collision probability in (0, 1); execute the plan only when eta < 0.5."""
+    eta_logit: torch.Tensor
+    """(B,) the logit of ``eta`` (for numerically exact BCE)."""
+
+
+@dataclass
+class Plan:
+    """A planned trajectory in the body frame at planning time (origin = the robot)."""
+
+    trajectory: Trajectory
+    """Minimum-snap trajectory through ``waypoints`` (batched, B elements), body frame."""
+    waypoints: torch.Tensor
+    """(B, K+1, 3): the origin, then the K key-points."""
+    shares: torch.Tensor
+    """(B, K) Time Allocation Net shares of the total time (softmax; sum to 1)."""
+    durations: torch.Tensor
+    """(B, K) segment durations, seconds (= shares × total_time)."""
+    total_time: torch.Tensor
+    """(B,) seconds, from the speed heuristic (no gradient)."""
+    start: torch.Tensor
+    """(B, 3, 3) start velocity / acceleration / jerk rows passed to min_snap."""
+    keypoints: torch.Tensor
+    """(B, K, 3) the predicted key-points (= waypoints[:, 1:])."""
+    eta: torch.Tensor | None = None
+    """(B,) collision probability when the plan came from :meth:`PlannerNet.plan`, else None."""
+    eta_logit: torch.Tensor | None = None
+    """(B,) its logit, likewise."""
+
+
+def total_time_heuristic(
+    waypoints: torch.Tensor, *, cruise_speed: float, min_total_time: float, max_total_time: float
+) -> torch.Tensor:
+    """Total flight time (B,) for waypoints (B, M+1, 3): polyline length / ``cruise_speed``, clamped
+    to [``min_total_time``, ``max_total_time``] seconds. Computed without gradient: the time scale is
+    a fixed rule, so the key-points learn the geometry and the TAN learns how to split the time."""
+    with torch.no_grad():
+        length = (waypoints[:, 1:] - waypoints[:, :-1]).norm(dim=-1).sum(-1)
+        return (length / cruise_speed).clamp(min_total_time, max_total_time)
+
+
+# ----------------------------------------------------------------------------------- network
+def _mlp(dims: list[int]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i in range(len(dims) - 1):
+        layers.append(nn.Linear(dims[i], dims[i + 1]))
+        if i < len(dims) - 2:
+            layers.append(nn.ReLU(inplace=True))
+    return nn.Sequential(*layers)
+
+
+class PlannerNet(nn.Module):
+    """Depth image + goal → K key-points and a collision probability η (the paper's upper level),
+    plus its Time Allocation Net.
+
+    Architecture (shapes for the cpu preset, 96×160 input, K=5):
+        - ``encoder``: :class:`ResNet18` on the (B, 2, h, w) preprocessed input → (B, C, h/32, w/32)
+          (C = 512 × width).
+        - ``goal_embed``: Linear(3 → E) of goal / max_depth, broadcast over the feature map and
+          concatenated → (B, C + E, h/32, w/32).
+        - ``head_conv``: two 3×3 conv layers (ReLU) → adaptive average pool to ``pooled_size`` →
+          flattened features F.
+        - ``keypoint_mlp``: three linear layers (ReLU between) F → 3K offsets; ``eta_mlp``: a parallel
+          three-layer MLP F → 1 logit, η = sigmoid(logit).
+        - ``tan``: :class:`mapkit.trajopt.TimeAllocationNet` over the waypoints.
+
+    Key-points: ``k_i = (i / K) · goal + offset_i`` (i = 1..K, metres, body frame): the network
+    predicts offsets from equally spaced points on the straight origin → goal line. The key-point
+    MLP's last layer starts with zero bias and weights scaled by ``keypoint_init_scale``, so the
+    untrained net's key-points lie (within centimetres) on that line and the last one near the goal;
+    training moves them around obstacles. The goal itself is NOT forced to be the last waypoint: as in
+    the paper, the last key-point is the trajectory's end and the goal cost U_G pulls it to the goal
+    (so a goal inside an obstacle or behind a wall need not be reached).
+    """
+
+    def __init__(self, config: PlannerConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or PlannerConfig()
+        c = self.config
+        K = c.num_keypoints
+        self.encoder = ResNet18(in_channels=2, width=c.encoder_width)
+        C = self.encoder.out_channels
+        self.goal_embed = nn.Linear(3, c.goal_embed_dim)
+        self.head_conv = nn.Sequential(
+            nn.Conv2d(C + c.goal_embed_dim, c.conv_channels[0], 3, padding=1),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(c.conv_channels[0], c.conv_channels[1], 3, padding=1),
+            nn.ReLU(inplace=True),
+            nn.AdaptiveAvgPool2d(tuple(c.pooled_size)),
+        )
+        flat = c.conv_channels[1] * c.pooled_size[0] * c.pooled_size[1]
+        self.keypoint_mlp = _mlp([flat, *c.mlp_hidden, 3 * K])
+        self.eta_mlp = _mlp([flat, *c.eta_hidden, 1])
+        with torch.no_grad():
+            last = self.keypoint_mlp[-1]
+            last.weight.mul_(c.keypoint_init_scale)
+            last.bias.zero_()
+        self.tan = TimeAllocationNet(TimeAllocationNetConfig(num_segments=K, hidden=tuple(c.tan_hidden)))
+
+    # ------------------------------------------------------------------ pieces
+    def preprocess(self, depth: torch.Tensor) -> torch.Tensor:
+        """:func:`preprocess_depth` with this config's ``input_size`` and ``max_depth``."""
+        return preprocess_depth(depth, input_size=self.config.input_size, max_depth=self.config.max_depth)
+
+    def straight_line(self, goal: torch.Tensor) -> torch.Tensor:
+        """(B, K, 3): the K equally spaced points (i / K) · goal, i = 1..K, on the origin → goal line."""
+        K = self.config.num_keypoints
+        frac = torch.arange(1, K + 1, dtype=goal.dtype, device=goal.device) / K
+        return frac.reshape(1, K, 1) * goal.unsqueeze(1)
+
+    def forward(self, x: torch.Tensor, goal: torch.Tensor) -> PlannerOutput:
+        """Predict key-points and η.
+
+        Args:
+            x: (B, 2, h, w) preprocessed depth (:meth:`preprocess`), h, w = ``config.input_size``.
+            goal: (B, 3) goal in the body frame (FLU), metres.
+
+        Returns:
+            :class:`PlannerOutput` with keypoints (B, K, 3), eta (B,), eta_logit (B,).
+        """
+        c = self.config
+        if x.ndim != 4 or x.shape[1] != 2 or tuple(x.shape[2:]) != tuple(c.input_size):
+            raise PlannerError(
+                f"x must be preprocessed depth (B, 2, {c.input_size[0]}, {c.input_size[1]}), got "
+                f"{tuple(x.shape)}; pass raw depth through PlannerNet.preprocess first"
+            )
+        if goal.shape != (x.shape[0], 3):
+            raise PlannerError(f"goal must have shape (B={x.shape[0]}, 3) in the body frame, got {tuple(goal.shape)}")
+        goal = goal.to(x.dtype)
+        feat = self.encoder(x)
+        B, _, fh, fw = feat.shape
+        g = self.goal_embed(goal / c.max_depth)
+        feat = torch.cat([feat, g.reshape(B, -1, 1, 1).expand(B, g.shape[1], fh, fw)], dim=1)
+        flat = self.head_conv(feat).flatten(1)
+        offsets = self.keypoint_mlp(flat).reshape(B, c.num_keypoints, 3)
+        logit = self.eta_mlp(flat).squeeze(-1)
+        return PlannerOutput(keypoints=self.straight_line(goal) + offsets, eta=torch.sigmoid(logit), eta_logit=logit)
+
+    def trajectory(
+        self,
+        keypoints: torch.Tensor,
+        *,
+        start_velocity: torch.Tensor | None = None,
+        start_acceleration: torch.Tensor | None = None,
+    ) -> Plan:
+        """Key-points → minimum-snap trajectory (differentiable w.r.t. key-points and TAN weights).
+
+        Waypoints are [origin, k1, ..., kK] (the robot sits at the body-frame origin). The total time
+        comes from :func:`total_time_heuristic` (path length / ``cruise_speed``, bounded; no gradient),
+        the TAN splits it into K durations, and :func:`mapkit.trajopt.min_snap` (closed form, exact
+        pass through every key-point) builds the trajectory with the start velocity/acceleration
+        given, zero start jerk, and rest (zero velocity/acceleration/jerk) at the last key-point.
+
+        Args:
+            keypoints: (B, K, 3) metres, body frame.
+            start_velocity: (B, 3) m/s in the body frame (default zero).
+            start_acceleration: (B, 3) m/s² in the body frame (default zero).
+
+        Returns:
+            :class:`Plan` (``eta`` None).
+        """
+        c = self.config
+        K = c.num_keypoints
+        if keypoints.ndim != 3 or keypoints.shape[1:] != (K, 3):
+            raise PlannerError(f"keypoints must have shape (B, {K}, 3), got {tuple(keypoints.shape)}")
+        B = keypoints.shape[0]
+        start = torch.zeros(B, 3, 3, dtype=keypoints.dtype, device=keypoints.device)
+        for row, (name, v) in enumerate((("start_velocity", start_velocity), ("start_acceleration", start_acceleration))):
+            if v is None:
+                continue
+            v = torch.as_tensor(v, dtype=keypoints.dtype, device=keypoints.device)
+            if v.shape == (3,):
+                v = v.expand(B, 3)
+            if v.shape != (B, 3):
+                raise PlannerError(f"{name} must have shape (B={B}, 3) or (3,), got {tuple(v.shape)}")
+            start[:, row] = v
+        waypoints = torch.cat([torch.zeros_like(keypoints[:, :1]), keypoints], dim=1)
+        total = total_time_heuristic(
+            waypoints, cruise_speed=c.cruise_speed, min_total_time=c.min_total_time, max_total_time=c.max_total_time
+        )
+        tan_dtype = next(self.tan.parameters()).dtype
+        shares = self.tan.shares(waypoints.to(tan_dtype)).to(keypoints.dtype)
+        # Keep every segment above a tiny floor: the softmax can underflow for a degenerate input.
+        shares = shares.clamp_min(1e-4)
+        shares = shares / shares.sum(-1, keepdim=True)
+        durations = shares * total.unsqueeze(-1)
+        traj = min_snap(waypoints, durations, start=start)
+        return Plan(
+            trajectory=traj, waypoints=waypoints, shares=shares, durations=durations,
+            total_time=total, start=start, keypoints=keypoints,
+        )
+
+    def plan(
+        self,
+        depth: torch.Tensor,
+        goal: torch.Tensor,
+        *,
+        start_velocity: torch.Tensor | None = None,
+        start_acceleration: torch.Tensor | None = None,
+    ) -> Plan:
+        """Depth image(s) in metres + goal → :class:`Plan` (preprocess, forward, trajectory).
+
+        Args:
+            depth: (B, H, W) float metres, NaN invalid (any size; resized to ``input_size``).
+            goal: (B, 3) body frame metres.
+            start_velocity, start_acceleration: (B, 3) body frame, see :meth:`trajectory`.
+
+        Gradients flow as usual; wrap the call in ``torch.inference_mode()`` and put the net in
+        ``eval()`` mode for deployment.
+        """
+        x = self.preprocess(depth)
+        goal = torch.as_tensor(goal, dtype=x.dtype, device=x.device)
+        if goal.ndim == 1:
+            goal = goal.unsqueeze(0)
+        out = self(x, goal)
+        p = self.trajectory(out.keypoints, start_velocity=start_velocity, start_acceleration=start_acceleration)
+        p.eta, p.eta_logit = out.eta, out.eta_logit
+        return p
+
+
+def plan(
+    net: PlannerNet,
+    depth: torch.Tensor,
+    goal: torch.Tensor,
+    *,
+    start_velocity: torch.Tensor | None = None,
+    start_acceleration: torch.Tensor | None = None,
+) -> Plan:
+    """Plan with ``net``: depth (B, H, W) metres (NaN invalid) + goal (B, 3) body frame →
+    :class:`Plan` whose trajectory is in the body frame. Same as :meth:`PlannerNet.plan`."""
+    if not isinstance(net, PlannerNet):
+        raise PlannerError(f"net must be a PlannerNet, got {type(net).__name__}")
+    return net.plan(depth, goal, start_velocity=start_velocity, start_acceleration=start_acceleration)
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Number of trainable parameters of ``module``."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)
+

@@ -1,0 +1,18 @@
+"""Training the self-supervised planner (`mapkit train`): presets, data, loop, checkpoints, DDP."""
+
+from mapkit.train._config import PRESETS, TrainConfig, TrainConfigError, preset
+from mapkit.train._data import TrainDataError, TupleSamples, TupleStore
+from mapkit.train._loop import TrainSummary, evaluate, train
+
+__all__ = [
+    "PRESETS",
+    "TrainConfig",
+    "TrainConfigError",
+    "TrainDataError",
+    "TrainSummary",
+    "TupleSamples",
+    "TupleStore",
+    "evaluate",
+    "preset",
+    "train",
+]

@@ -1,0 +1,94 @@
+"""Typed training configuration and its named presets."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+from mapkit.errors import MapkitError
+
+
+class TrainConfigError(MapkitError):
+    """A training option or preset that cannot be used."""
+
+
+@dataclass
+class TrainConfig:
+    """Everything a run needs; saved as runs/NAME/config.json. Each field is a `mapkit train`
+    option (nested fields as --planner.FIELD / --loss.FIELD)."""
+
+    name: str = "run"
+    """Run directory name under --runs-dir."""
+    preset: str = "cpu"
+    """The preset this config started from ('paper' or 'cpu')."""
+    epochs: int = 8
+    """Passes over the training samples."""
+    batch_size: int = 16
+    """Samples per optimiser step (per process under torchrun)."""
+    lr: float = 1e-4
+    """Adam learning rate."""
+    weight_decay: float = 0.0
+    """Adam weight decay."""
+    seed: int = 0
+    """Seeds weights, shuffling and sampling; CPU runs are reproducible."""
+    device: str = "cpu"
+    """'cpu', 'cuda' or 'cuda:N'."""
+    max_steps: int | None = None
+    """Stop after this many optimiser steps in total (smoke tests, quick looks)."""
+    val_batches: int | None = None
+    """Limit validation to this many batches (None: all)."""
+    corridor: float | None = None
+    """Flight-corridor half-width (m) for min_snap during training; None = through the key-points."""
+    planner: dict[str, Any] = field(default_factory=dict)
+    """PlannerConfig fields (mapkit.planner)."""
+    loss: dict[str, Any] = field(default_factory=dict)
+    """LossConfig fields (mapkit.planner)."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "TrainConfig":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise TrainConfigError(f"unknown training options {unknown}; known: {sorted(known)}")
+        return cls(**data)
+
+    def validate(self) -> None:
+        if self.epochs < 1:
+            raise TrainConfigError(f"--epochs {self.epochs} must be at least 1")
+        if self.batch_size < 1:
+            raise TrainConfigError(f"--batch-size {self.batch_size} must be at least 1")
+        if not self.lr > 0:
+            raise TrainConfigError(f"--lr {self.lr} must be positive")
+        if self.corridor is not None:
+            raise TrainConfigError("--corridor is not supported in training yet (the planner builds its trajectory through the key-points)")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise TrainConfigError(f"--max-steps {self.max_steps} must be at least 1")
+
+
+PRESETS: dict[str, TrainConfig] = {
+    # The paper's set-up: 360x640 input, batch 16, Adam 1e-4, 50 epochs, full-width ResNet-18.
+    "paper": TrainConfig(preset="paper", epochs=50, batch_size=16, lr=1e-4,
+                         planner={"input_size": [360, 640], "encoder_width": 1.0}),
+    # A first useful model on a 2-core CPU in minutes: small input, a quarter-width encoder, a
+    # larger learning rate for few epochs.
+    "cpu": TrainConfig(preset="cpu", epochs=8, batch_size=16, lr=1e-3,
+                       planner={"input_size": [96, 160], "encoder_width": 0.25}),
+}
+
+
+def preset(preset_name: str, /, **overrides: Any) -> TrainConfig:
+    """A copy of a named preset with fields replaced (nested dicts are merged)."""
+    if preset_name not in PRESETS:
+        raise TrainConfigError(f"--preset {preset_name!r}: expected one of {', '.join(PRESETS)}")
+    data = PRESETS[preset_name].to_dict()
+    for key, value in overrides.items():
+        if key in ("planner", "loss") and isinstance(value, dict):
+            data[key] = {**data[key], **value}
+        else:
+            data[key] = value
+    return TrainConfig.from_dict(data)

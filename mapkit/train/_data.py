@@ -1,0 +1,95 @@
+"""Training samples from one or more tuples.zarr stores: one sample per (tuple, goal)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+import torch
+
+from mapkit.errors import MapkitError
+
+
+class TrainDataError(MapkitError):
+    """Training data that cannot be used (missing, foreign or inconsistent stores)."""
+
+
+@dataclass
+class TupleStore:
+    """One workspace's tuples.zarr, with its arrays loaded except depth (read per batch)."""
+
+    workspace: Path
+    depth: Any
+    goals_body: np.ndarray
+    velocity_body: np.ndarray
+    T_world_body: np.ndarray
+    split: np.ndarray
+    attrs: dict
+
+    @classmethod
+    def open(cls, workspace: str | Path) -> "TupleStore":
+        import zarr
+
+        ws = Path(workspace)
+        path = ws / "tuples.zarr"
+        if not path.exists():
+            raise TrainDataError(f"{path} does not exist; run `mapkit export -w {ws}` first")
+        try:
+            root = zarr.open_group(path, mode="r")
+            attrs = dict(root.attrs)
+            if attrs.get("kind") != "mapkit.tuples":
+                raise KeyError("kind")
+            return cls(ws, root["depth"], root["goals_body"][:], root["velocity_body"][:], root["T_world_body"][:],
+                       root["split"][:], attrs)
+        except Exception as exc:
+            raise TrainDataError(f"{path} is not a mapkit tuples store ({type(exc).__name__}: {exc}); re-run `mapkit export --overwrite`") from None
+
+
+class TupleSamples:
+    """(store, tuple, goal) triples of one split over several stores; batches stay within one store
+    so that each batch is scored against a single map."""
+
+    def __init__(self, stores: Sequence[TupleStore], split: str) -> None:
+        if split not in ("train", "val"):
+            raise TrainDataError(f"split {split!r}: expected train or val")
+        code = 0 if split == "train" else 1
+        self.stores = list(stores)
+        self.index: list[np.ndarray] = []  # per store: (n, 2) tuple index, goal index
+        for s in self.stores:
+            tuples = np.flatnonzero(s.split == code)
+            goals = np.arange(s.goals_body.shape[1])
+            grid = np.stack(np.meshgrid(tuples, goals, indexing="ij"), axis=-1).reshape(-1, 2)
+            self.index.append(grid)
+
+    def __len__(self) -> int:
+        return int(sum(len(i) for i in self.index))
+
+    def batches(self, batch_size: int, *, shuffle: bool, generator: np.random.Generator | None = None,
+                rank: int = 0, world_size: int = 1) -> Iterator[tuple[int, np.ndarray]]:
+        """(store index, (b, 2) [tuple, goal]) batches; with world_size > 1 each rank takes every
+        world_size-th batch (same order on every rank, from the shared seed)."""
+        batches: list[tuple[int, np.ndarray]] = []
+        for k, idx in enumerate(self.index):
+            order = generator.permutation(len(idx)) if shuffle and generator is not None else np.arange(len(idx))
+            for start in range(0, len(order), batch_size):
+                part = idx[order[start : start + batch_size]]
+                if len(part):
+                    batches.append((k, part))
+        if shuffle and generator is not None:
+            batches = [batches[i] for i in generator.permutation(len(batches))]
+        yield from batches[rank::world_size]
+
+    def load(self, store_index: int, part: np.ndarray, device: torch.device) -> dict[str, torch.Tensor]:
+        """Tensors of one batch: depth (B,H,W) metres with NaN, goal (B,3), velocity (B,3), T_world_body (B,4,4)."""
+        s = self.stores[store_index]
+        tuples, goals = part[:, 0], part[:, 1]
+        unique, inverse = np.unique(tuples, return_inverse=True)
+        depth = np.stack([np.asarray(s.depth[int(t)]) for t in unique])[inverse]
+        return {
+            "depth": torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32)).to(device),
+            "goal": torch.from_numpy(s.goals_body[tuples, goals].astype(np.float32)).to(device),
+            "velocity": torch.from_numpy(s.velocity_body[tuples].astype(np.float32)).to(device),
+            "T_world_body": torch.from_numpy(s.T_world_body[tuples].astype(np.float32)).to(device),
+        }

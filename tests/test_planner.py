@@ -1,0 +1,375 @@
+"""mapkit.planner: ResNet-18 encoder and torchvision mapping, preprocessing, PlannerNet, loss terms."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from mapkit.esdf import EsdfMap, signed_distance
+from mapkit.planner import (
+    LossConfig,
+    PlannerConfig,
+    PlannerError,
+    PlannerNet,
+    ResNet18,
+    body_to_world,
+    collision_labels,
+    count_parameters,
+    escape_cost,
+    goal_cost,
+    load_torchvision_state_dict,
+    obstacle_cost,
+    obstacle_penalty,
+    plan,
+    planner_loss,
+    planner_preset,
+    preprocess_depth,
+    sample_trajectory,
+    smoothness_cost,
+    time_cost,
+    time_targets,
+    torchvision_resnet18_keys,
+)
+from mapkit.trajopt import allocate_times, min_snap
+
+VOXEL = 0.2
+ORIGIN = (-2.0, -4.0, -2.0)
+
+
+@pytest.fixture(scope="module")
+def box_map() -> EsdfMap:
+    """Box world: a 1 m (x) × 2 m (y) pillar through the whole height, x in [4, 5], y in [-1, 1]."""
+    occ = np.zeros((70, 40, 20), bool)  # x in [-2, 11.8], y in [-4, 3.8], z in [-2, 1.8]
+    x = ORIGIN[0] + VOXEL * np.arange(70)
+    y = ORIGIN[1] + VOXEL * np.arange(40)
+    ix = (x >= 4.0 - 1e-9) & (x <= 5.0 + 1e-9)
+    iy = (y >= -1.0 - 1e-9) & (y <= 1.0 + 1e-9)
+    occ[np.ix_(ix, iy, np.ones(20, bool))] = True
+    esdf = signed_distance(occ, voxel_size=VOXEL)
+    return EsdfMap(esdf=esdf, esdf_raw=esdf, voxel_size=VOXEL, origin=ORIGIN)
+
+
+def _inputs(B: int, cfg: PlannerConfig, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    depth = torch.rand(B, 120, 200, generator=g) * 8 + 0.5
+    depth[:, :15, :40] = float("nan")
+    goal = torch.randn(B, 3, generator=g) * torch.tensor([1.0, 1.5, 0.2]) + torch.tensor([8.0, 0.0, 0.0])
+    return depth, goal
+
+
+# ----------------------------------------------------------------------------- network shapes
+@pytest.mark.parametrize("preset", ["cpu", "paper"])
+def test_preset_shapes(preset):
+    torch.manual_seed(0)
+    cfg = planner_preset(preset)
+    net = PlannerNet(cfg).eval()
+    h, w = cfg.input_size
+    B = 2 if preset == "cpu" else 1
+    x = preprocess_depth(torch.rand(B, 240, 400) * 5 + 0.5, input_size=cfg.input_size, max_depth=cfg.max_depth)
+    assert x.shape == (B, 2, h, w)
+    with torch.no_grad():
+        feat = net.encoder(x)
+        out = net(x, torch.tensor([[6.0, 1.0, 0.0]]).expand(B, 3))
+    assert feat.shape == (B, net.encoder.out_channels, math.ceil(h / 32), math.ceil(w / 32))
+    assert net.encoder.out_channels == (512 if preset == "paper" else 128)
+    assert out.keypoints.shape == (B, cfg.num_keypoints, 3)
+    assert out.eta.shape == (B,) and bool(((out.eta > 0) & (out.eta < 1)).all())
+    n = count_parameters(net)
+    assert (15e6 < n < 30e6) if preset == "paper" else (0.5e6 < n < 2e6)
+
+
+def test_config_checks_and_roundtrip():
+    cfg = planner_preset("cpu", num_keypoints=4)
+    assert PlannerConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(PlannerError, match="unknown planner preset"):
+        planner_preset("huge")
+    with pytest.raises(PlannerError, match="max_depth"):
+        PlannerConfig(max_depth=0)
+    with pytest.raises(PlannerError, match="unknown PlannerConfig fields"):
+        PlannerConfig.from_dict({"bogus": 1})
+    net = PlannerNet(cfg)
+    with pytest.raises(PlannerError, match="preprocess"):
+        net(torch.zeros(1, 1, 96, 160), torch.zeros(1, 3))
+
+
+# ------------------------------------------------------------------------------ preprocessing
+def test_preprocess_nan_and_mask():
+    depth = torch.full((1, 64, 64), 4.0)
+    depth[0, :32, :32] = float("nan")  # one whole quadrant invalid
+    depth[0, 40, 40] = float("inf")
+    depth[0, 41, 41] = 0.0
+    depth[0, 50:, 50:] = 25.0  # beyond max_depth: clipped, still valid
+    x = preprocess_depth(depth, input_size=(32, 32), max_depth=10.0)
+    assert x.shape == (1, 2, 32, 32) and x.dtype == torch.float32
+    assert bool(torch.isfinite(x).all())
+    d, m = x[0, 0], x[0, 1]
+    assert torch.all(m[:16, :16] == 0) and torch.all(d[:16, :16] == 0)  # invalid: mask 0, depth 0
+    assert torch.all(m[16:, :16] == 1) and torch.allclose(d[16:, :16], torch.tensor(0.4))
+    assert m[20, 20] == 0.5 and torch.isclose(d[20, 20], torch.tensor(0.4))  # half valid: depth not diluted
+    assert torch.allclose(d[26:, 26:], torch.tensor(1.0))
+    # bilinear upsampling path, and an unbatched image
+    up = preprocess_depth(depth[0], input_size=(96, 96), max_depth=10.0)
+    assert up.shape == (1, 2, 96, 96) and bool(torch.isfinite(up).all())
+    assert torch.all(up[0, 1, :40, :40] == 0) and torch.all(up[0, 0, :40, :40] == 0)
+    with pytest.raises(PlannerError, match="shape"):
+        preprocess_depth(torch.zeros(1, 1, 2, 8, 8), input_size=(32, 32), max_depth=10.0)
+
+
+def test_no_nan_reaches_the_network():
+    torch.manual_seed(0)
+    net = PlannerNet(planner_preset("cpu")).eval()
+    seen = []
+    net.encoder.conv1.register_forward_hook(lambda mod, inp, out: seen.append(bool(torch.isfinite(inp[0]).all())))
+    depth = torch.full((1, 120, 200), float("nan"))
+    depth[0, 60:, :] = 3.0
+    with torch.no_grad():
+        p = net.plan(depth, torch.tensor([[5.0, 0.0, 0.0]]))
+    assert seen == [True]
+    assert bool(torch.isfinite(p.keypoints).all()) and bool(torch.isfinite(p.eta).all())
+
+
+# ------------------------------------------------------------------------- planning behaviour
+def test_untrained_keypoints_near_straight_line_and_plan():
+    torch.manual_seed(0)
+    cfg = planner_preset("cpu")
+    net = PlannerNet(cfg).eval()
+    depth, goal = _inputs(4, cfg)
+    v0 = torch.tensor([[0.5, 0.2, 0.0]]).expand(4, 3)
+    with torch.no_grad():
+        p = plan(net, depth, goal, start_velocity=v0)
+    K = cfg.num_keypoints
+    line = torch.arange(1, K + 1).reshape(1, K, 1) / K * goal.unsqueeze(1)
+    assert float((p.keypoints - line).norm(dim=-1).max()) < 0.05  # by construction, centimetres
+    assert float((p.keypoints[:, -1] - goal).norm(dim=-1).max()) < 0.05
+    assert p.waypoints.shape == (4, K + 1, 3) and torch.all(p.waypoints[:, 0] == 0)
+    assert torch.allclose(p.shares.sum(-1), torch.ones(4), atol=1e-5)
+    assert torch.allclose(p.durations.sum(-1), p.total_time, atol=1e-4)
+    L = (p.waypoints[:, 1:] - p.waypoints[:, :-1]).norm(dim=-1).sum(-1)
+    assert torch.allclose(p.total_time, (L / cfg.cruise_speed).clamp(cfg.min_total_time, cfg.max_total_time))
+    tr = p.trajectory
+    assert torch.allclose(tr.position(0.0)[:, 0], torch.zeros(4, 3), atol=1e-4)
+    assert torch.allclose(tr.derivative(0.0, 1)[:, 0], v0, atol=1e-4)
+    assert torch.allclose(tr.position(tr.total_time.unsqueeze(-1))[:, 0], p.keypoints[:, -1], atol=1e-3)
+
+
+def test_seeded_determinism(box_map):
+    def run():
+        torch.manual_seed(123)
+        cfg = planner_preset("cpu")
+        net = PlannerNet(cfg)
+        depth, goal = _inputs(2, cfg, seed=5)
+        out = net(net.preprocess(depth), goal)
+        p = net.trajectory(out.keypoints)
+        loss, _ = planner_loss(p, goal=goal, T_world_body=torch.eye(4, dtype=torch.float64).repeat(2, 1, 1),
+                               esdf_map=box_map, eta_logit=out.eta_logit)
+        loss.backward()
+        return out.keypoints.detach(), out.eta.detach(), loss.detach(), net.encoder.conv1.weight.grad.clone()
+
+    a, b = run(), run()
+    for x, y in zip(a, b):
+        assert torch.equal(x, y)
+
+
+# ------------------------------------------------------------------------------- gradients
+def test_gradients_reach_every_parameter_group(box_map):
+    torch.manual_seed(0)
+    cfg = planner_preset("cpu")
+    net = PlannerNet(cfg).train()
+    B = 3
+    depth, _ = _inputs(B, cfg)
+    goal = torch.tensor([[9.0, 0.3, 0.0], [8.0, -0.5, 0.2], [7.0, 2.5, 0.0]])
+    T = torch.eye(4, dtype=torch.float64).repeat(B, 1, 1)
+    T[:, :3, 3] = torch.tensor([-0.5, 0.2, 0.3], dtype=torch.float64)  # body 0.5 m behind the world origin
+    out = net(net.preprocess(depth), goal)
+    p = net.trajectory(out.keypoints, start_velocity=torch.tensor([[1.0, 0.0, 0.0]]).expand(B, 3))
+    loss, terms = planner_loss(p, goal=goal, T_world_body=T, esdf_map=box_map, eta_logit=out.eta_logit)
+    assert loss.ndim == 0 and bool(torch.isfinite(loss))
+    assert set(terms) >= {"obstacle", "goal", "smoothness", "escape", "time", "collision_rate", "total"}
+    assert float(terms["collision_rate"]) > 0  # the first two fly straight through the pillar
+    loss.backward()
+    groups = {
+        "encoder.conv1": net.encoder.conv1.weight,
+        "encoder.layer4": net.encoder.layer4[1].conv2.weight,
+        "goal_embed": net.goal_embed.weight,
+        "head_conv": net.head_conv[0].weight,
+        "keypoint_mlp": net.keypoint_mlp[0].weight,
+        "keypoint_mlp.last": net.keypoint_mlp[-1].weight,
+        "eta_mlp": net.eta_mlp[0].weight,
+        "tan": net.tan.mlp[0].weight,
+        "tan.last": net.tan.mlp[-1].weight,
+    }
+    for name, prm in groups.items():
+        assert prm.grad is not None, name
+        assert bool(torch.isfinite(prm.grad).all()), name
+        assert float(prm.grad.abs().max()) > 0, name
+
+
+def test_obstacle_penalty_monotone_with_gradient_far_away():
+    d = torch.linspace(-2.0, 10.0, 1201, dtype=torch.float64, requires_grad=True)
+    c = obstacle_penalty(d, robot_radius=0.3, softness=1.0)
+    assert bool((c[1:] < c[:-1]).all())  # strictly decreasing
+    (g,) = torch.autograd.grad(c.sum(), d)
+    assert bool((g < 0).all())
+    at3 = g[torch.argmin((d - 3.0).abs())]
+    assert float(-at3) > 1e-2  # no plateau 3 m from obstacles
+    c = c.detach()
+    assert float(c[0]) > 20 * float(c[torch.argmin((d - 3.0).abs())])  # large inside
+
+
+def test_obstacle_cost_on_map(box_map):
+    # points on a line leaving the pillar's +y face (y = 1) at x = 4.5: 0.5 .. 3.5 m away
+    ys = torch.tensor([1.5, 2.0, 2.5, 3.0, 3.5])
+    pts = torch.stack([torch.full_like(ys, 4.5), ys, torch.zeros_like(ys)], -1).unsqueeze(1)  # (5, 1, 3)
+    pts.requires_grad_(True)
+    c = obstacle_cost(pts, box_map, robot_radius=0.3, softness=1.0)
+    assert c.shape == (5,) and bool((c[1:] < c[:-1]).all())
+    (g,) = torch.autograd.grad(c.sum(), pts)
+    assert float(g[3, 0, 1]) < -1e-3  # 3 m away: the cost still falls moving away from the pillar
+    inside = obstacle_cost(torch.tensor([[[4.5, 0.0, 0.0]]]), box_map)
+    assert float(inside) > 5 * float(c[3].detach())
+    far = obstacle_cost(torch.tensor([[[50.0, 0.0, 0.0]]]), box_map)  # outside the grid: clamped, finite
+    assert bool(torch.isfinite(far).all())
+
+
+def test_obstacle_cost_gradcheck_float64(box_map):
+    g = torch.Generator().manual_seed(3)
+    pts = (torch.rand(2, 6, 3, generator=g, dtype=torch.float64) * torch.tensor([8.0, 6.0, 2.0], dtype=torch.float64)
+           + torch.tensor([0.5, -3.0, -1.0], dtype=torch.float64))
+    pts.requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda p: obstacle_cost(p, box_map, robot_radius=0.3, softness=0.7), (pts,), eps=1e-6, atol=1e-6, rtol=1e-4
+    )
+
+
+# ------------------------------------------------------------------------------ other terms
+def _straight(y: float) -> torch.Tensor:
+    wp = torch.tensor([[[0.0, y, 0.0], [3.0, y, 0.0], [6.0, y, 0.0], [9.0, y, 0.0]]])
+    tr = min_snap(wp, torch.tensor([[1.5, 1.5, 1.5]]))
+    return sample_trajectory(tr, samples_per_second=20.0)
+
+
+def test_escape_labels_through_and_beside_box(box_map):
+    through, beside, grazing = _straight(0.0), _straight(2.5), _straight(1.2)
+    pts = torch.cat([through, beside, grazing])
+    lab = collision_labels(pts, box_map, threshold=0.3)
+    assert lab.tolist() == [True, False, True]  # 0.2 m from the face is inside the robot radius
+    eta = torch.tensor([0.2, 0.2, 0.9], requires_grad=True)
+    e = escape_cost(eta, lab)
+    assert torch.allclose(e, torch.tensor([-math.log(0.2), -math.log(0.8), -math.log(0.9)]), atol=1e-5)
+    e.sum().backward()
+    assert eta.grad is not None and float(eta.grad[0]) < 0 < float(eta.grad[1])
+    # from the logit: same values, and a saturated eta (float32 sigmoid == 1) still gets a gradient
+    logit = torch.tensor([math.log(0.2 / 0.8), 30.0], requires_grad=True)
+    lab2 = torch.tensor([True, False])
+    e2 = escape_cost(torch.sigmoid(logit), lab2, logit=logit)
+    assert torch.isclose(e2[0], torch.tensor(-math.log(0.2)), atol=1e-5) and torch.isclose(e2[1], torch.tensor(30.0))
+    e2.sum().backward()
+    assert float(logit.grad[1]) > 0.99
+
+
+def test_smoothness_goal_and_time_terms():
+    goal = torch.tensor([[6.0, 2.0, 1.0]])
+    start = torch.zeros(1, 3)
+    line = torch.linspace(0, 1, 11).reshape(1, 11, 1) * goal.unsqueeze(1)
+    assert float(smoothness_cost(line, start, goal)) < 1e-5
+    bent = line.clone()
+    bent[0, 5, 2] += 1.0
+    assert float(smoothness_cost(bent, start, goal)) > 0.5
+    assert torch.allclose(goal_cost(torch.tensor([[3.0, 4.0, 0.0]]), torch.zeros(1, 3)), torch.tensor([5.0]))
+    # U_T target: the gradient allocation's shares
+    wp = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [4.0, 1.0, 0], [5.0, 1.5, 0], [8.0, 0, 0]]])
+    tot = torch.tensor([5.0])
+    tgt = time_targets(wp, total_time=tot, max_iters=100, rel_tol=1e-9)
+    ref = allocate_times(wp.double(), "gradient", total_time=tot.double(), max_iters=100, rel_tol=1e-9)
+    assert torch.allclose(tgt, (ref / ref.sum(-1, keepdim=True)).float(), atol=1e-6)
+    assert float(time_cost(tgt, tgt)) == 0.0
+    shares = torch.full((1, 4), 0.25, requires_grad=True)
+    time_cost(shares, tgt).sum().backward()
+    assert float(shares.grad.abs().max()) > 0
+
+
+def test_body_to_world():
+    T = torch.eye(4, dtype=torch.float64).unsqueeze(0)
+    T[0, :3, :3] = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]], dtype=torch.float64)  # yaw +90°
+    T[0, :3, 3] = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    out = body_to_world(torch.tensor([[[1.0, 0.0, 0.0]]]), T)
+    assert torch.allclose(out, torch.tensor([[[1.0, 3.0, 3.0]]]))
+    with pytest.raises(PlannerError, match="T_world_body"):
+        body_to_world(torch.zeros(2, 4, 3), T)
+
+
+def test_loss_config_checks():
+    with pytest.raises(PlannerError, match="obstacle_reduction"):
+        LossConfig(obstacle_reduction="max")
+    assert LossConfig(robot_radius=0.4).collision_threshold == 0.4
+
+
+# ----------------------------------------------------------------------- torchvision weights
+def _torchvision_keys_and_shapes() -> dict[str, tuple[int, ...]]:
+    """torchvision resnet18().state_dict() names and shapes, written out from the architecture."""
+    shapes: dict[str, tuple[int, ...]] = {}
+
+    def bn(prefix: str, c: int) -> None:
+        for s in ("weight", "bias", "running_mean", "running_var"):
+            shapes[f"{prefix}.{s}"] = (c,)
+        shapes[f"{prefix}.num_batches_tracked"] = ()
+
+    shapes["conv1.weight"] = (64, 3, 7, 7)
+    bn("bn1", 64)
+    prev = 64
+    for layer, c in zip((1, 2, 3, 4), (64, 128, 256, 512)):
+        for block in (0, 1):
+            p = f"layer{layer}.{block}"
+            cin = prev if block == 0 else c
+            shapes[f"{p}.conv1.weight"] = (c, cin, 3, 3)
+            bn(f"{p}.bn1", c)
+            shapes[f"{p}.conv2.weight"] = (c, c, 3, 3)
+            bn(f"{p}.bn2", c)
+            if layer > 1 and block == 0:
+                shapes[f"{p}.downsample.0.weight"] = (c, prev, 1, 1)
+                bn(f"{p}.downsample.1", c)
+        prev = c
+    shapes["fc.weight"] = (1000, 512)
+    shapes["fc.bias"] = (1000,)
+    return shapes
+
+
+def test_torchvision_key_mapping():
+    shapes = _torchvision_keys_and_shapes()
+    assert len(shapes) == 122
+    assert set(torchvision_resnet18_keys()) == set(shapes)
+    g = torch.Generator().manual_seed(0)
+    sd = {
+        k: (torch.tensor(7, dtype=torch.int64) if k.endswith("num_batches_tracked")
+            else torch.rand(s, generator=g) + 0.1)
+        for k, s in shapes.items()
+    }
+    model = ResNet18(in_channels=2, width=1.0)
+    assert set(model.state_dict()) == set(shapes) - {"fc.weight", "fc.bias"}
+    ignored = load_torchvision_state_dict(model, sd)
+    assert ignored == ["fc.bias", "fc.weight"]
+    w = model.conv1.weight
+    assert torch.allclose(w[:, 0], sd["conv1.weight"].sum(1))
+    assert torch.all(w[:, 1] == 0)  # the mask channel starts unused
+    own = model.state_dict()
+    for k in ("bn1.running_var", "layer1.0.conv1.weight", "layer3.1.bn2.bias", "layer4.0.downsample.0.weight",
+              "layer2.0.downsample.1.running_mean", "layer4.1.bn1.num_batches_tracked"):
+        assert torch.equal(own[k], sd[k]), k
+    # through PlannerNet (paper preset encoder), with a DataParallel-style prefix
+    net = PlannerNet(planner_preset("paper"))
+    load_torchvision_state_dict(net.encoder, {f"module.{k}": v for k, v in sd.items()})
+    assert torch.equal(net.encoder.layer2[1].conv2.weight, sd["layer2.1.conv2.weight"])
+    # errors: wrong width, missing key, wrong shape
+    with pytest.raises(PlannerError, match="width"):
+        load_torchvision_state_dict(ResNet18(width=0.25), sd)
+    bad = dict(sd)
+    del bad["layer3.0.bn1.weight"]
+    with pytest.raises(PlannerError, match="missing"):
+        load_torchvision_state_dict(ResNet18(), bad)
+    bad = dict(sd)
+    bad["layer1.0.conv2.weight"] = torch.zeros(64, 64, 5, 5)
+    with pytest.raises(PlannerError, match="layer1.0.conv2.weight"):
+        load_torchvision_state_dict(ResNet18(), bad)

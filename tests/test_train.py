@@ -1,0 +1,111 @@
+"""Training: smoke run, resume after a stop, incompatible resume, bad inputs, 2-process DDP (gloo)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+from mapkit.cli.main import main
+from mapkit.esdf import EsdfConfig, build_esdf
+from mapkit.export import ExportConfig, export_tuples
+from mapkit.fusion import FuseConfig, fuse
+from mapkit.sim import SimConfig, simulate
+from mapkit.train import TrainConfigError, preset, train
+
+TINY = {"input_size": [32, 48], "encoder_width": 0.125}
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    tmp = tmp_path_factory.mktemp("train")
+    result = simulate(SimConfig(world="forest", seed=4, duration=4.0, width=64, height=48), tmp / "flight", progress=False)
+    ws = tmp / "ws"
+    fuse([result.bag_path], ws, FuseConfig(voxel=0.1), progress=False)
+    build_esdf(ws, EsdfConfig(voxel=0.2, sigma=0.2), progress=False)
+    export_tuples(ws, ExportConfig(goals_per_frame=2, stride=4, segment_seconds=1.0), progress=False)
+    return ws
+
+
+def tiny(name: str, **kw: object):
+    return preset("cpu", name=name, epochs=kw.pop("epochs", 1), batch_size=4, max_steps=kw.pop("max_steps", 2),
+                  val_batches=2, planner=TINY, **kw)
+
+
+def test_smoke_run_writes_the_run_directory(workspace: Path, tmp_path: Path) -> None:
+    s = train([workspace], tiny("smoke"), runs_dir=tmp_path, progress=False)
+    run = tmp_path / "smoke"
+    assert s.steps == 2
+    for name in ("config.json", "metrics.jsonl", "checkpoint.pt", "model.pt", "training_curves.png"):
+        assert (run / name).exists(), name
+    lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert lines[0]["epoch"] == 0 and "straight" in lines[0] and lines[1]["epoch"] == 1
+    model = torch.load(run / "model.pt", map_location="cpu", weights_only=True)
+    assert "state_dict" in model and list(model["planner_config"]["input_size"]) == [32, 48]
+    # Seeded: the same run gives the same weights on CPU.
+    train([workspace], tiny("smoke"), runs_dir=tmp_path, overwrite=True, progress=False)
+    again = torch.load(run / "model.pt", map_location="cpu", weights_only=True)
+    for key, value in model["state_dict"].items():
+        assert torch.equal(value, again["state_dict"][key]), key
+
+
+def test_resume_continues_after_the_last_epoch(workspace: Path, tmp_path: Path) -> None:
+    train([workspace], tiny("r", epochs=1, max_steps=None), runs_dir=tmp_path, progress=False)
+    s = train([workspace], tiny("r", epochs=2, max_steps=None), runs_dir=tmp_path, resume=True, progress=False)
+    epochs = [json.loads(x)["epoch"] for x in (tmp_path / "r" / "metrics.jsonl").read_text().splitlines()]
+    assert epochs == [0, 1, 2] and s.epochs_done == 2
+    with pytest.raises(TrainConfigError, match="incompatible config: planner"):
+        train([workspace], preset("cpu", name="r", epochs=3, batch_size=4, planner={"input_size": [48, 64]}),
+              runs_dir=tmp_path, resume=True, progress=False)
+    with pytest.raises(TrainConfigError, match="exists; pass --resume"):
+        train([workspace], tiny("r"), runs_dir=tmp_path, progress=False)
+
+
+def test_cli_bad_inputs(workspace: Path, tmp_path: Path) -> None:
+    runner = CliRunner()
+    result = runner.invoke(main, ["train", "-w", str(tmp_path), "--runs-dir", str(tmp_path / "runs")])
+    assert result.exit_code == 1 and "mapkit export" in result.output and "Traceback" not in result.output
+    result = runner.invoke(main, ["train", "-w", str(workspace), "--device", "cuda:7", "--runs-dir", str(tmp_path / "runs")])
+    assert result.exit_code == 1 and "cuda" in result.output.lower() and "Traceback" not in result.output
+    result = runner.invoke(main, ["train", "-w", str(workspace), "--lr", "-1", "--runs-dir", str(tmp_path / "runs")])
+    assert result.exit_code == 1 and "--lr" in result.output
+
+
+def test_gradients_reach_every_parameter_group(workspace: Path) -> None:
+    from mapkit.esdf import EsdfMap
+    from mapkit.planner import LossConfig, PlannerConfig, PlannerNet, planner_loss
+    from mapkit.train import TupleSamples, TupleStore
+
+    torch.manual_seed(0)
+    samples = TupleSamples([TupleStore.open(workspace)], "train")
+    k, part = next(samples.batches(4, shuffle=False))
+    batch = samples.load(k, part, torch.device("cpu"))
+    net = PlannerNet(PlannerConfig.from_dict(TINY))
+    plan = net.plan(batch["depth"], batch["goal"], start_velocity=batch["velocity"])
+    loss, _ = planner_loss(plan, goal=batch["goal"], T_world_body=batch["T_world_body"],
+                           esdf_map=EsdfMap.open(workspace / "map.zarr"), config=LossConfig())
+    loss.backward()
+    groups = {"encoder": net.encoder, "goal": net.goal_embed, "keypoints": net.keypoint_mlp, "eta": net.eta_mlp, "tan": net.tan}
+    for name, module in groups.items():
+        grads = [p.grad for p in module.parameters() if p.grad is not None]
+        assert grads and any(float(g.abs().sum()) > 0 for g in grads), name
+
+
+def test_two_process_ddp_with_gloo(workspace: Path, tmp_path: Path) -> None:
+    """The documented multi-process command, with 2 CPU processes (gloo)."""
+    env = {**os.environ, "MAPKIT_DDP_BACKEND": "gloo", "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", "29531",
+           "-m", "mapkit.cli", "train", "-w", str(workspace), "--name", "ddp", "--runs-dir", str(tmp_path),
+           "--epochs", "1", "--batch-size", "4", "--max-steps", "2", "--val-batches", "1",
+           "--planner", "input_size=[32,48]", "--planner", "encoder_width=0.125"]
+    result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert (tmp_path / "ddp" / "model.pt").exists()
+    lines = [json.loads(x) for x in (tmp_path / "ddp" / "metrics.jsonl").read_text().splitlines()]
+    assert lines[-1]["epoch"] == 1 and lines[-1]["step"] == 2
