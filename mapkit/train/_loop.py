@@ -99,7 +99,7 @@ def evaluate(net: nn.Module, samples: TupleSamples, maps: list[Any], loss_config
             keypoints = net.straight_line(batch["goal"]) if straight else out.keypoints
             plan = net.trajectory(keypoints, start_velocity=batch["velocity"])
             _, terms = planner_loss(plan, goal=batch["goal"], T_world_body=batch["T_world_body"], esdf_map=maps[k],
-                                    eta=out.eta, config=loss_config)
+                                    eta=out.eta, eta_logit=out.eta_logit, config=loss_config)
             m = len(part)
             for key in METRIC_KEYS:
                 totals[key] += float(terms[key]) * m
