@@ -36,6 +36,8 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed (CPU runs are reproducible).")
 @click.option("--max-steps", type=int, default=None, help="Stop after this many optimiser steps.")
+@click.option("--weight-decay", type=float, default=None, help="Override the Adam weight decay.")
+@click.option("--corridor", type=float, default=None, help="Flight-corridor half-width (m) for min_snap during training.")
 @click.option("--val-batches", type=int, default=None, help="Limit validation batches.")
 @click.option("--planner", "planner_items", multiple=True, metavar="FIELD=VALUE", help="PlannerConfig field override (repeatable).")
 @click.option("--loss", "loss_items", multiple=True, metavar="FIELD=VALUE", help="LossConfig field override (repeatable).")
@@ -44,7 +46,7 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @library_call
 def train_cmd(workspaces: tuple[Path, ...], preset: str, name: str | None, runs_dir: Path | None, epochs: int | None,
               batch_size: int | None, lr: float | None, device: str, seed: int, max_steps: int | None,
-              val_batches: int | None, planner_items: tuple[str, ...], loss_items: tuple[str, ...], resume: bool,
+              val_batches: int | None, weight_decay: float | None, corridor: float | None, planner_items: tuple[str, ...], loss_items: tuple[str, ...], resume: bool,
               overwrite: bool) -> None:
     """Train the self-supervised planner on WS/tuples.zarr (+ map.zarr) → runs/NAME.
 
@@ -55,7 +57,8 @@ def train_cmd(workspaces: tuple[Path, ...], preset: str, name: str | None, runs_
 
     overrides: dict[str, Any] = {"name": name or preset, "device": device, "seed": seed, "max_steps": max_steps,
                                  "val_batches": val_batches}
-    for key, value in (("epochs", epochs), ("batch_size", batch_size), ("lr", lr)):
+    overrides["corridor"] = corridor
+    for key, value in (("epochs", epochs), ("batch_size", batch_size), ("lr", lr), ("weight_decay", weight_decay)):
         if value is not None:
             overrides[key] = value
     overrides["planner"] = _pairs(planner_items, "--planner")

@@ -25,4 +25,6 @@ for flight in "${flights[@]}"; do
   echo "== mapkit export -w $WS/$name"
   $MAPKIT export -w "$WS/$name" --overwrite
 done
-echo "demo: workspaces in $WS/ (frames.zarr, cloud.ply, mesh.ply, map.zarr, slices.png, tuples.zarr)"
+echo "== mapkit train (cpu preset; a few steps here, drop --max-steps for the full ~3 minute run)"
+$MAPKIT train -w "$WS/forest" -w "$WS/garage" -w "$WS/office" --preset cpu --name demo --max-steps 40 --overwrite
+echo "demo: workspaces in $WS/ (frames.zarr, cloud.ply, mesh.ply, map.zarr, slices.png, tuples.zarr, runs/demo)"

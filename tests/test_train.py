@@ -109,3 +109,10 @@ def test_two_process_ddp_with_gloo(workspace: Path, tmp_path: Path) -> None:
     assert (tmp_path / "ddp" / "model.pt").exists()
     lines = [json.loads(x) for x in (tmp_path / "ddp" / "metrics.jsonl").read_text().splitlines()]
     assert lines[-1]["epoch"] == 1 and lines[-1]["step"] == 2
+
+
+def test_corridor_training_step(workspace: Path, tmp_path: Path) -> None:
+    s = train([workspace], tiny("corr", corridor=0.2), runs_dir=tmp_path, progress=False)
+    assert s.steps == 2 and (tmp_path / "corr" / "model.pt").exists()
+    with pytest.raises(TrainConfigError, match="--corridor"):
+        train([workspace], tiny("bad", corridor=-1.0), runs_dir=tmp_path, progress=False)

@@ -312,6 +312,7 @@ class PlannerNet(nn.Module):
         *,
         start_velocity: torch.Tensor | None = None,
         start_acceleration: torch.Tensor | None = None,
+        corridor: float | None = None,
     ) -> Plan:
         """Key-points → minimum-snap trajectory (differentiable w.r.t. key-points and TAN weights).
 
@@ -354,7 +355,9 @@ class PlannerNet(nn.Module):
         shares = shares.clamp_min(1e-4)
         shares = shares / shares.sum(-1, keepdim=True)
         durations = shares * total.unsqueeze(-1)
-        traj = min_snap(waypoints, durations, start=start)
+        # corridor: the paper's flight corridor (half-width, metres) around each key-point segment;
+        # the interior key-points then bound the path instead of pinning it (a QP, see min_snap).
+        traj = min_snap(waypoints, durations, start=start, corridor=corridor)
         return Plan(
             trajectory=traj, waypoints=waypoints, shares=shares, durations=durations,
             total_time=total, start=start, keypoints=keypoints,
@@ -367,6 +370,7 @@ class PlannerNet(nn.Module):
         *,
         start_velocity: torch.Tensor | None = None,
         start_acceleration: torch.Tensor | None = None,
+        corridor: float | None = None,
     ) -> Plan:
         """Depth image(s) in metres + goal → :class:`Plan` (preprocess, forward, trajectory).
 
@@ -383,7 +387,8 @@ class PlannerNet(nn.Module):
         if goal.ndim == 1:
             goal = goal.unsqueeze(0)
         out = self(x, goal)
-        p = self.trajectory(out.keypoints, start_velocity=start_velocity, start_acceleration=start_acceleration)
+        p = self.trajectory(out.keypoints, start_velocity=start_velocity, start_acceleration=start_acceleration,
+                            corridor=corridor)
         p.eta, p.eta_logit = out.eta, out.eta_logit
         return p
 

@@ -64,8 +64,8 @@ class TrainConfig:
             raise TrainConfigError(f"--batch-size {self.batch_size} must be at least 1")
         if not self.lr > 0:
             raise TrainConfigError(f"--lr {self.lr} must be positive")
-        if self.corridor is not None:
-            raise TrainConfigError("--corridor is not supported in training yet (the planner builds its trajectory through the key-points)")
+        if self.corridor is not None and not self.corridor > 0:
+            raise TrainConfigError(f"--corridor {self.corridor} must be a positive half-width in metres")
         if self.max_steps is not None and self.max_steps < 1:
             raise TrainConfigError(f"--max-steps {self.max_steps} must be at least 1")
 

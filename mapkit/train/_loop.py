@@ -35,12 +35,13 @@ class TrainSummary:
 class _Step(nn.Module):
     """net.plan behind a forward(), so DistributedDataParallel sees (and syncs) the whole step."""
 
-    def __init__(self, net: nn.Module) -> None:
+    def __init__(self, net: nn.Module, corridor: float | None = None) -> None:
         super().__init__()
         self.net = net
+        self.corridor = corridor
 
     def forward(self, depth: torch.Tensor, goal: torch.Tensor, velocity: torch.Tensor) -> Any:
-        return self.net.plan(depth, goal, start_velocity=velocity)
+        return self.net.plan(depth, goal, start_velocity=velocity, corridor=self.corridor)
 
 
 def _device(name: str) -> torch.device:
@@ -82,7 +83,8 @@ def _distributed() -> tuple[int, int]:
 
 
 def evaluate(net: nn.Module, samples: TupleSamples, maps: list[Any], loss_config: Any, device: torch.device, *,
-             straight: bool = False, max_batches: int | None = None, batch_size: int = 16) -> dict[str, float]:
+             straight: bool = False, max_batches: int | None = None, batch_size: int = 16,
+             corridor: float | None = None) -> dict[str, float]:
     """Mean loss terms over a split; with straight=True for key-points on the start–goal line."""
     from mapkit.planner import planner_loss
 
@@ -97,7 +99,7 @@ def evaluate(net: nn.Module, samples: TupleSamples, maps: list[Any], loss_config
             x = net.preprocess(batch["depth"])
             out = net(x, batch["goal"])
             keypoints = net.straight_line(batch["goal"]) if straight else out.keypoints
-            plan = net.trajectory(keypoints, start_velocity=batch["velocity"])
+            plan = net.trajectory(keypoints, start_velocity=batch["velocity"], corridor=corridor)
             _, terms = planner_loss(plan, goal=batch["goal"], T_world_body=batch["T_world_body"], esdf_map=maps[k],
                                     eta=out.eta, eta_logit=out.eta_logit, config=loss_config)
             m = len(part)
@@ -190,7 +192,7 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     planner_cfg = PlannerConfig.from_dict(config.planner) if config.planner else PlannerConfig()
     loss_cfg = LossConfig(**config.loss)
     net = PlannerNet(planner_cfg).to(device)
-    step_module: nn.Module = _Step(net)
+    step_module: nn.Module = _Step(net, config.corridor)
     if world > 1:
         step_module = nn.parallel.DistributedDataParallel(step_module, device_ids=[device.index] if device.type == "cuda" else None)
     optimizer = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
@@ -227,9 +229,10 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     if rank == 0 and not resume:
         base = {
             "epoch": 0,
-            "val": evaluate(net, val_set, maps, loss_cfg, device, max_batches=config.val_batches, batch_size=config.batch_size),
+            "val": evaluate(net, val_set, maps, loss_cfg, device, max_batches=config.val_batches, batch_size=config.batch_size,
+                            corridor=config.corridor),
             "straight": evaluate(net, val_set, maps, loss_cfg, device, straight=True, max_batches=config.val_batches,
-                                 batch_size=config.batch_size),
+                                 batch_size=config.batch_size, corridor=config.corridor),
         }
         log(base)
     baseline = next((m for m in metrics if m.get("epoch") == 0), {})
@@ -274,7 +277,8 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
         steps_seconds = time.perf_counter() - t_steps
         train_seconds += steps_seconds
         if rank == 0:
-            val = evaluate(net, val_set, maps, loss_cfg, device, max_batches=config.val_batches, batch_size=config.batch_size)
+            val = evaluate(net, val_set, maps, loss_cfg, device, max_batches=config.val_batches, batch_size=config.batch_size,
+                           corridor=config.corridor)
             seconds = time.perf_counter() - t_epoch
             log({"epoch": epoch, "step": step, "train": {k: v / max(count, 1) for k, v in sums.items()}, "val": val,
                  "seconds": seconds, "samples_per_second": count * world / steps_seconds})
