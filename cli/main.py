@@ -46,5 +46,6 @@ def main(verbose: int) -> None:
 from mapkit.cli import export as _export  # noqa: E402,F401
 from mapkit.cli import ingest as _ingest  # noqa: E402,F401
 from mapkit.cli import mapping as _mapping  # noqa: E402,F401
+from mapkit.cli import plan as _plan  # noqa: E402,F401
 from mapkit.cli import simulate as _simulate  # noqa: E402,F401
 from mapkit.cli import train as _train  # noqa: E402,F401

@@ -116,3 +116,28 @@ def test_corridor_training_step(workspace: Path, tmp_path: Path) -> None:
     assert s.steps == 2 and (tmp_path / "corr" / "model.pt").exists()
     with pytest.raises(TrainConfigError, match="--corridor"):
         train([workspace], tiny("bad", corridor=-1.0), runs_dir=tmp_path, progress=False)
+
+
+def test_plan_from_a_recorded_frame(workspace: Path, tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    train([workspace], tiny("p"), runs_dir=tmp_path, progress=False)
+    runner = CliRunner()
+    out = tmp_path / "plans"
+    result = runner.invoke(main, ["plan", "--model", str(tmp_path / "p"), "-w", str(workspace), "--frame", "3",
+                                  "--goal", "4", "0.5", "0", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "eta" in result.output and "latency" in result.output
+    data = json.loads((out / "plan_000003.json").read_text())
+    assert len(data["positions_world"]) == len(data["t"]) > 10
+    tum = (out / "plan_000003.tum").read_text().splitlines()
+    assert len(tum) == len(data["t"]) and len(tum[0].split()) == 8
+    with open(out / "plan_000003.mcap", "rb") as f:
+        schemas = {s.name for s in make_reader(f).get_summary().schemas.values()}
+    assert "nav_msgs/msg/Path" in schemas
+    result = runner.invoke(main, ["plan", "--model", str(tmp_path / "nope"), "-w", str(workspace), "--frame", "3",
+                                  "--goal", "4", "0", "0"])
+    assert result.exit_code == 1 and "no model.pt" in result.output
+    result = runner.invoke(main, ["plan", "--model", str(tmp_path / "p"), "-w", str(workspace), "--frame", "99999",
+                                  "--goal", "4", "0", "0"])
+    assert result.exit_code == 1 and "--frame 99999" in result.output

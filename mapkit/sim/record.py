@@ -271,6 +271,10 @@ class BagRecorder:
             return Header(seq=self._seq.get(topic or "", 0), stamp=stamp, frame_id=frame_id)
         return Header(stamp=stamp, frame_id=frame_id)
 
+    def pose_message(self, T: np.ndarray) -> Any:
+        """geometry_msgs/Pose of a 4x4 transform (for building messages such as nav_msgs/Path)."""
+        return self._pose(T)
+
     def _pose(self, T: np.ndarray) -> Any:
         T = _check_T(T)
         Point = self._type("geometry_msgs/msg/Point")

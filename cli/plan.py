@@ -1,0 +1,50 @@
+"""`mapkit plan`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import numpy as np
+
+from mapkit.cli.main import library_call, main
+
+
+@main.command("plan")
+@click.option("--model", "run_dir", required=True, type=click.Path(path_type=Path), help="Run directory with model.pt.")
+@click.option("-w", "--workspace", required=True, type=click.Path(path_type=Path), help="Workspace with frames.zarr.")
+@click.option("--frame", "frame_index", type=int, required=True, help="Index of the frame in frames.zarr.")
+@click.option("--goal", type=float, nargs=3, required=True, metavar="X Y Z", help="Goal, metres.")
+@click.option("--goal-frame", type=click.Choice(["body", "world"]), default="body", show_default=True, help="Frame of --goal.")
+@click.option("-o", "--output", type=click.Path(path_type=Path), default=None, help="Output folder (default: WS/plans).")
+@click.option("--device", default="cpu", show_default=True, help="cpu or cuda.")
+@library_call
+def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float, float, float], goal_frame: str,
+             output: Path | None, device: str) -> None:
+    """Plan from a recorded frame; writes the trajectory as JSON, TUM and MCAP (nav_msgs/Path)."""
+    from mapkit.export import body_velocities
+    from mapkit.geometry import invert_transform
+    from mapkit.ingest import open_frames_store
+    from mapkit.planning import Planner, PlanningError, write_plan_outputs
+
+    store = open_frames_store(workspace)
+    if not 0 <= frame_index < len(store):
+        raise PlanningError(f"--frame {frame_index}: frames.zarr has frames 0..{len(store) - 1}")
+    T_wb = store.T_world_body[frame_index]
+    g = np.asarray(goal, dtype=np.float64)
+    if goal_frame == "world":
+        T_bw = invert_transform(T_wb)
+        g = T_bw[:3, :3] @ g + T_bw[:3, 3]
+    velocity = body_velocities(store.stamp_ns, store.T_world_body)[frame_index]
+    planner = Planner.load(run_dir, device=device)
+    result = planner.plan(np.asarray(store.depth[frame_index]), g, velocity_body=velocity)
+    out = output or workspace / "plans"
+    paths = write_plan_outputs(result, T_wb, int(store.stamp_ns[frame_index]), out,
+                               world_frame=str(store.attrs.get("world_frame", "world")), stem=f"plan_{frame_index:06d}")
+    verdict = "execute" if result.execute else "do NOT execute (eta >= 0.5)"
+    click.echo(
+        f"eta {result.eta:.3f} → {verdict}; segment times {np.round(result.durations.astype(float), 2).tolist()} s "
+        f"(total {result.durations.sum():.2f} s); control effort {result.control_effort:.2f} m²/s⁷; "
+        f"latency {result.latency_ms:.1f} ms"
+    )
+    click.echo("wrote " + ", ".join(str(p) for p in paths))

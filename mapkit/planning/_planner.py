@@ -1,0 +1,127 @@
+"""A trained planner ready to use: `Planner.load(run_dir)` and `mapkit plan` from a recorded frame."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mapkit.errors import MapkitError
+from mapkit.geometry import quat_xyzw_from_matrix
+
+
+class PlanningError(MapkitError):
+    """A run directory, frame or goal the planner cannot use."""
+
+
+@dataclass
+class PlanResult:
+    """One plan, body frame at planning time unless named otherwise."""
+
+    keypoints: np.ndarray
+    """(K, 3) metres."""
+    eta: float
+    """Collision probability; the plan is not to be executed when eta >= 0.5."""
+    durations: np.ndarray
+    """(K,) seconds per segment."""
+    samples_t: np.ndarray
+    """(N,) seconds."""
+    samples_body: np.ndarray
+    """(N, 3) trajectory positions."""
+    control_effort: float
+    """∫‖snap‖² dt, m²/s⁷."""
+    latency_ms: float
+    """Depth → trajectory, wall clock."""
+
+    @property
+    def execute(self) -> bool:
+        return self.eta < 0.5
+
+
+class Planner:
+    """A trained PlannerNet with its config, on a device, in inference mode."""
+
+    def __init__(self, net: Any, device: torch.device) -> None:
+        self.net = net.eval().to(device)
+        self.device = device
+
+    @classmethod
+    def load(cls, run_dir: str | Path, *, device: str = "cpu") -> "Planner":
+        """Load runs/NAME/model.pt (state dict + planner config; nothing pickled but tensors)."""
+        from mapkit.planner import PlannerConfig, PlannerNet
+
+        path = Path(run_dir) / "model.pt"
+        if not path.exists():
+            raise PlanningError(f"{run_dir} has no model.pt; train one with `mapkit train` (or check the run path)")
+        if device.startswith("cuda") and not torch.cuda.is_available():
+            raise PlanningError(f"--device {device}: torch sees no CUDA device; use --device cpu")
+        try:
+            saved = torch.load(path, map_location="cpu", weights_only=True)
+            net = PlannerNet(PlannerConfig.from_dict(saved["planner_config"]))
+            net.load_state_dict(saved["state_dict"])
+        except Exception as exc:
+            raise PlanningError(f"{path} is not a mapkit planner ({type(exc).__name__}: {exc})") from None
+        return cls(net, torch.device(device))
+
+    def plan(self, depth: np.ndarray, goal_body: np.ndarray, *, velocity_body: np.ndarray | None = None,
+             rate_hz: float = 50.0) -> PlanResult:
+        """Depth (H, W) metres (NaN invalid) + goal (3,) body frame [+ velocity (3,)] → PlanResult."""
+        goal = np.asarray(goal_body, dtype=np.float32).reshape(3)
+        if not np.all(np.isfinite(goal)):
+            raise PlanningError(f"goal {goal.tolist()} is not finite")
+        vel = np.zeros(3, np.float32) if velocity_body is None else np.asarray(velocity_body, np.float32).reshape(3)
+        d = torch.from_numpy(np.asarray(depth, dtype=np.float32)[None]).to(self.device)
+        with torch.inference_mode():
+            t0 = time.perf_counter()
+            p = self.net.plan(d, torch.from_numpy(goal[None]).to(self.device),
+                              start_velocity=torch.from_numpy(vel[None]).to(self.device))
+            if self.device.type == "cuda":
+                torch.cuda.synchronize()
+            latency = 1e3 * (time.perf_counter() - t0)
+            total = float(p.durations.sum())
+            t = torch.linspace(0.0, total, max(2, int(total * rate_hz) + 1), dtype=p.keypoints.dtype, device=self.device)
+            pos = p.trajectory.position(t)
+        return PlanResult(
+            keypoints=p.keypoints[0].cpu().numpy(), eta=float(p.eta[0]), durations=p.durations[0].cpu().numpy(),
+            samples_t=t.cpu().numpy(), samples_body=pos.reshape(-1, 3).cpu().numpy(),
+            control_effort=float(p.trajectory.snap_cost().reshape(-1)[0]), latency_ms=latency,
+        )
+
+
+def write_plan_outputs(result: PlanResult, T_world_body: np.ndarray, stamp_ns: int, out_dir: Path, *,
+                       world_frame: str = "world", stem: str = "plan") -> list[Path]:
+    """plan.json, plan.tum (t x y z qx qy qz qw, world frame) and plan.mcap (nav_msgs/Path)."""
+    from mapkit.sim.record import BagRecorder
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    R, p0 = T_world_body[:3, :3], T_world_body[:3, 3]
+    world = result.samples_body @ R.T + p0
+    q = quat_xyzw_from_matrix(R)  # the body's attitude at planning time (the planner plans positions)
+    t_abs = stamp_ns * 1e-9 + result.samples_t
+    json_path = out_dir / f"{stem}.json"
+    json_path.write_text(json.dumps({
+        "frame": world_frame, "stamp_ns": int(stamp_ns), "eta": result.eta, "execute": result.execute,
+        "keypoints_body": result.keypoints.tolist(), "durations": result.durations.tolist(),
+        "control_effort_m2_s7": result.control_effort, "latency_ms": result.latency_ms,
+        "t": result.samples_t.tolist(), "positions_world": world.tolist(),
+    }, indent=1))
+    tum_path = out_dir / f"{stem}.tum"
+    tum_path.write_text("".join(f"{t:.9f} {x:.6f} {y:.6f} {z:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n"
+                                for t, (x, y, z) in zip(t_abs, world)))
+    mcap_path = out_dir / f"{stem}.mcap"
+    with BagRecorder(mcap_path, "mcap", overwrite=True) as bag:
+        Path_ = bag.typestore.types["nav_msgs/msg/Path"]
+        PoseStamped = bag.typestore.types["geometry_msgs/msg/PoseStamped"]
+        poses = []
+        for t, pos in zip(t_abs, world):
+            T = np.eye(4)
+            T[:3, :3] = R
+            T[:3, 3] = pos
+            poses.append(PoseStamped(header=bag.header(int(round(t * 1e9)), world_frame), pose=bag.pose_message(T)))
+        bag.write_raw("/planner/path", "nav_msgs/msg/Path", Path_(header=bag.header(int(stamp_ns), world_frame), poses=poses), int(stamp_ns))
+    return [json_path, tum_path, mcap_path]
