@@ -354,7 +354,10 @@ class PlannerNet(nn.Module):
         # Keep every segment above a tiny floor: the softmax can underflow for a degenerate input.
         shares = shares.clamp_min(1e-4)
         shares = shares / shares.sum(-1, keepdim=True)
-        durations = shares * total.unsqueeze(-1)
+        # The TAN is supervised by U_T alone (as in the paper): the trajectory sees its shares without
+        # gradient. Letting U_O reach the TAN taught it to rush through segments (a mean over time
+        # samples is lowered by spending no time near obstacles), with ~0 s segments and absurd snap.
+        durations = shares.detach() * total.unsqueeze(-1)
         # corridor: the paper's flight corridor (half-width, metres) around each key-point segment;
         # the interior key-points then bound the path instead of pinning it (a QP, see min_snap).
         traj = min_snap(waypoints, durations, start=start, corridor=corridor)
