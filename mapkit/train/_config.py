@@ -23,7 +23,7 @@ class TrainConfig:
     """Run directory name under --runs-dir."""
     preset: str = "cpu"
     """The preset this config started from ('paper' or 'cpu')."""
-    epochs: int = 8
+    epochs: int = 24
     """Passes over the training samples."""
     batch_size: int = 16
     """Samples per optimiser step (per process under torchrun)."""
@@ -76,7 +76,7 @@ PRESETS: dict[str, TrainConfig] = {
                          planner={"input_size": [360, 640], "encoder_width": 1.0}),
     # A first useful model on a 2-core CPU in minutes: small input, a quarter-width encoder, a
     # larger learning rate for few epochs.
-    "cpu": TrainConfig(preset="cpu", epochs=8, batch_size=16, lr=1e-3,
+    "cpu": TrainConfig(preset="cpu", epochs=24, batch_size=16, lr=1e-3,
                        planner={"input_size": [96, 160], "encoder_width": 0.25}),
 }
 
