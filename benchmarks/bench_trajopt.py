@@ -175,6 +175,11 @@ def coefficient_qp(w: np.ndarray, T: np.ndarray, corridor: float | None, samples
                         row[:, col(i, bb)] = Pp[:, a, bb, None] * _phi(s, 0)[None]
                     G_rows += [row, -row]
                     h_rows += [centre[:, a] + corridor, -(centre[:, a] - corridor)]
+                row = np.zeros((B, n))  # along the segment, within its ends extended by the corridor
+                for bb in range(3):
+                    row[:, col(i, bb)] = u[:, bb, None] * _phi(s, 0)[None]
+                G_rows += [row, -row]
+                h_rows += [(u * w[:, i + 1]).sum(-1) + corridor, -((u * w[:, i]).sum(-1) - corridor)]
     else:
         row = np.zeros((B, n))
         row[:, 0] = 1.0  # qpth needs some inequality: a far-away bound on one coefficient

@@ -291,3 +291,40 @@ def test_limit_gradients_vs_central_differences():
 
     _fd_check(f_T, T, [(0, i) for i in range(4)])
     _fd_check(f_w, w, [(0, 1, 0), (0, 2, 1), (0, 3, 2)])
+
+
+def test_corridor_is_bounded_along_each_segment():
+    """A door-like sharp turn, long legs split into collinear segments (free interior key-points):
+    every corridor sample stays within its segment extended by the corridor, and the whole
+    trajectory stays near the path (bounding only the deviation across the lines let it run on
+    1.4 m past the corner along the first leg)."""
+    from mapkit.trajopt import allocate_times
+
+    corner = torch.tensor([[16.0, 1.5, 1.6], [15.5, 3.0, 1.6], [7.5, 7.25, 1.35], [7.5, 8.25, 1.35],
+                           [2.25, 13.25, 2.1]], dtype=F64)
+    pts = [corner[0]]
+    for a, b in zip(corner[:-1], corner[1:]):
+        k = int(torch.ceil((b - a).norm() / 3.0))
+        pts += [a + (b - a) * j / k for j in range(1, k + 1)]
+    w = torch.stack(pts)[None]
+    T = allocate_times(w, "trapezoid", v_max=2.0, a_max=2.0)
+    width, n = 0.1, 5
+    traj = min_snap(w, T, corridor=width, corridor_samples=n)
+    assert bool(traj.solved.all())
+    M = T.shape[1]
+    assert float(corridor_samples_deviation(traj, w, T, n)[0]) <= width + 1e-7
+    s = torch.cat([torch.zeros(1), torch.arange(1, n + 1) / (n + 1), torch.ones(1)]).to(F64)
+    starts = torch.cumsum(T, 1) - T
+    for i in range(M):
+        p = traj.position(starts[:, i:i + 1] + s[None] * T[:, i:i + 1])[0]
+        a, b = w[0, i], w[0, i + 1]
+        u = (b - a) / (b - a).norm()
+        along = (p - a) @ u
+        assert float(along.min()) >= -width - 1e-7
+        assert float(along.max()) <= float((b - a).norm()) + width + 1e-7
+    dense = traj.position(torch.linspace(0, float(T.sum()), 800, dtype=F64))[0]
+    seg_a, seg_b = corner[:-1], corner[1:]
+    d = seg_b - seg_a
+    t = ((dense[:, None] - seg_a[None]) * d[None]).sum(-1) / (d * d).sum(-1)[None]
+    closest = seg_a[None] + t.clamp(0, 1)[..., None] * d[None]
+    assert float((dense[:, None] - closest).norm(dim=-1).min(dim=1).values.max()) < 0.25

@@ -60,7 +60,8 @@ def _check_finite(t: torch.Tensor, name: str) -> None:
 def _corridor_rows(w: torch.Tensor, T: torch.Tensor, half_width: torch.Tensor, n_samples: int):
     """Local rows (B, m, 3, 8), their segment (m,) and bounds lo/hi (B, m): the perpendicular
     deviation of every sample from its segment's key-point line, per world axis, lies within
-    +-half_width (the corridor of Mellinger & Kumar 2011).
+    +-half_width (the corridor of Mellinger & Kumar 2011), and its position along the line lies
+    between the segment's ends extended by half_width (so the corridor is a bounded prism).
 
     Samples: n_samples evenly spaced interior points of every segment plus both ends of every
     segment except the trajectory's own start and end (so an interior knot lies in the corridors
@@ -89,8 +90,21 @@ def _corridor_rows(w: torch.Tensor, T: torch.Tensor, half_width: torch.Tensor, n
     centre = centre.reshape(B, M * K, 3).index_select(1, keep_t).reshape(B, -1)
     hw = half_width.unsqueeze(-1).unsqueeze(-1).expand(B, M, K, 3).reshape(B, M * K, 3)
     hw = hw.index_select(1, keep_t).reshape(B, -1)
-    seg_of_row = np.repeat(kept // K, 3)
-    return rows, seg_of_row, centre - hw, centre + hw
+    # Along the segment: u·p within [u·a − W, u·b + W]. Without it the free interior key-points may
+    # slide along their lines, and a sharp turn is overshot by metres.
+    along = u.unsqueeze(2).unsqueeze(-1) * L.unsqueeze(3)  # (B, M, K, 3b, 8)
+    along = torch.where(degenerate.unsqueeze(-1), torch.zeros_like(along), along)
+    along = along.reshape(B, M * K, 3, 8).index_select(1, keep_t)
+    ua = (u * w[:, :-1]).sum(-1) - half_width  # (B, M)
+    ub = (u * w[:, 1:]).sum(-1) + half_width
+    big = torch.full_like(ua, 1e9)
+    ua = torch.where(degenerate[..., 0, 0], -big, ua)
+    ub = torch.where(degenerate[..., 0, 0], big, ub)
+    a_lo = ua.unsqueeze(-1).expand(B, M, K).reshape(B, M * K).index_select(1, keep_t)
+    a_hi = ub.unsqueeze(-1).expand(B, M, K).reshape(B, M * K).index_select(1, keep_t)
+    rows = torch.cat([rows, along], dim=1)
+    seg_of_row = np.concatenate([np.repeat(kept // K, 3), kept // K])
+    return rows, seg_of_row, torch.cat([centre - hw, a_lo], dim=1), torch.cat([centre + hw, a_hi], dim=1)
 
 
 def _limit_rows(T: torch.Tensor, q: int, limit: torch.Tensor, n_samples: int):
@@ -312,7 +326,8 @@ def min_snap(
         corridor: half-width in metres, a scalar, (M,) or (B, M) per segment. Interior key-points
             become free; at ``corridor_samples`` interior points of every segment and at every
             interior knot, each world-axis component of the deviation perpendicular to the
-            segment's straight key-point line stays within +-corridor.
+            segment's straight key-point line stays within +-corridor, and the position along that
+            line stays within the segment extended by ``corridor`` at both ends.
         corridor_samples: sample points per segment for the corridor and the limits (>= 1).
         v_max: per-axis speed limit (m/s), scalar or (B,): ``|v_axis| <= v_max`` at the samples.
         a_max: per-axis acceleration limit (m/s²), scalar or (B,), likewise.

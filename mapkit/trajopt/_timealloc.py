@@ -73,7 +73,9 @@ def _poly5_inverse(y: torch.Tensor) -> torch.Tensor:
 
 
 def _min_duration(total: torch.Tensor, M: int) -> torch.Tensor:
-    return 1e-3 * total / M
+    # 2 % of the mean segment: shorter segments are never the optimum between separated key-points,
+    # and the cost's float64 evaluation loses its digits below ~1 % (it can even turn negative).
+    return 0.02 * total / M
 
 
 def snap_cost_of_times(
@@ -198,7 +200,8 @@ def _gradient_allocation(
                 cand = project(T - trial * g)
                 fc, _ = cost(cand, False)
                 dec = ((cand - T) ** 2).sum(-1)
-                ok = torch.isfinite(fc) & (fc <= f - 1e-4 / trial.squeeze(-1) * dec)
+                # A snap cost is never negative: a negative value is lost precision, not a descent.
+                ok = torch.isfinite(fc) & (fc >= 0) & (fc <= f - 1e-4 / trial.squeeze(-1) * dec)
                 take = todo & ok
                 T_new = torch.where(take.unsqueeze(-1), cand, T_new)
                 f_new = torch.where(take, fc, f_new)
@@ -243,7 +246,7 @@ def allocate_times(
         ``gradient``: Mellinger & Kumar: minimise the snap cost J(T) + ``k_T`` * sum(T) (when
             ``k_T`` is given) or J(T) with sum(T) fixed (``total_time``, default the sum of the
             start); projected gradient descent with Armijo backtracking from ``initial``
-            (default trapezoid), every duration kept >= 1e-3 * total / M. ``solve_options``
+            (default trapezoid), every duration kept >= 0.02 * total / M. ``solve_options``
             (``corridor``, ``v_max``, ``a_max``, ...) are passed to :func:`min_snap`, making J the
             constrained optimum; a failed solve counts as infinite cost. Not differentiable.
         ``net``: the :class:`TimeAllocationNet` ``net`` (required) predicts the shares of

@@ -1,0 +1,50 @@
+"""`mapkit eval`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from mapkit.cli.main import library_call, main
+
+
+@main.command("eval")
+@click.option("--model", "run_dir", type=click.Path(path_type=Path), default=None,
+              help="Run directory with model.pt (needed by every method but straight and oracle).")
+@click.option("--world", "world", default="all", show_default=True, help="forest, office, garage, all, or a comma list.")
+@click.option("--pairs", type=int, default=60, show_default=True, help="Start-goal pairs per world.")
+@click.option("--seed", type=int, default=0, show_default=True,
+              help="Seed of the evaluation worlds and pairs (must not be a training world's seed).")
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@click.option("--methods", default="all", show_default=True,
+              help="Comma list of: learned, learned+uniform, learned+poly5, learned+gradient, iplanner-style, "
+                   "straight, oracle.")
+@click.option("--workers", type=int, default=1, show_default=True, help="Processes running pairs in parallel.")
+@click.option("--replan-interval", type=float, default=0.5, show_default=True, help="Seconds between plans.")
+@click.option("--horizon", type=float, default=6.0, show_default=True, help="Local goal distance, metres.")
+@click.option("--min-distance", type=float, default=8.0, show_default=True, help="Start-goal distance, metres.")
+@click.option("--ignore-eta", is_flag=True, help="Execute plans even when eta >= 0.5.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
+@library_call
+def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int,
+             replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, overwrite: bool) -> None:
+    """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
+    from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, LoopConfig, evaluate
+
+    worlds = WORLD_ORDER if world.strip() == "all" else tuple(w.strip() for w in world.split(",") if w.strip())
+    names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
+    config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
+                        workers=workers,
+                        loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta))
+    result = evaluate(run_dir, output, config, overwrite=overwrite)
+    s, lat = result.summary["success"], result.summary["latency"]
+    cols = [*config.worlds, "overall"]
+    click.echo(f"{'method':<18}" + "".join(f"{c:>10}" for c in cols) + f"{'effort':>12}{'latency':>11}")
+    for m in config.methods:
+        eff = s[m]["overall"]["control_effort"]["mean"]
+        ms = lat[m]["overall"]["mean_ms"]
+        click.echo(f"{m:<18}" + "".join(f"{100 * (s[m][c]['success_rate'] or 0):>9.1f}%" for c in cols)
+                   + (f"{eff:>12.4g}" if eff is not None else f"{'–':>12}") + (f"{ms:>9.2f}ms" if ms is not None else ""))
+    click.echo(f"wrote {output}/results.json, latency.json, report.md, trajectories.npz and "
+               f"{sum(p.suffix == '.png' for p in result.files)} PNGs")

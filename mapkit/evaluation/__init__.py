@@ -1,0 +1,29 @@
+"""Closed-loop evaluation of planners in simulated worlds (`mapkit eval`).
+
+Every method flies the same start–goal pairs in worlds generated with a seed the model never saw:
+depth is rendered from the vehicle's pose, the method plans, the vehicle flies the plan for a replan
+interval, and so on until the goal, a collision (exact distance to the world) or the time limit.
+
+>>> from mapkit.evaluation import EvalConfig, evaluate
+>>> evaluate("ws/runs/cpu", "eval_out", EvalConfig(worlds=("office",), pairs=5))  # doctest: +SKIP
+
+Building blocks for other loops: :func:`run_episode` with any object that has ``name``,
+``needs_depth``, ``replans`` and ``plan(Observation) -> MethodPlan``; :class:`Pieces` (world-frame
+piecewise polynomials with exact snap effort); :func:`sample_pairs`.
+"""
+
+from mapkit.evaluation._loop import Episode, LoopConfig, MethodPlan, Observation, level_pose, run_episode
+from mapkit.evaluation._methods import METHODS, LearnedMethod, OracleMethod, StraightMethod, make_methods
+from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
+from mapkit.evaluation._paths import load_paths
+from mapkit.evaluation._pieces import Pieces, hold, pieces_from_body
+from mapkit.evaluation._run import WORLD_ORDER, CameraSpec, EvalConfig, EvalResult, evaluate, summarise
+
+__all__ = [
+    "METHODS", "WORLD_ORDER",
+    "CameraSpec", "EvalConfig", "EvalError", "EvalResult", "evaluate", "summarise",
+    "Episode", "LoopConfig", "MethodPlan", "Observation", "level_pose", "run_episode",
+    "LearnedMethod", "OracleMethod", "StraightMethod", "make_methods",
+    "Pair", "sample_pairs", "load_paths",
+    "Pieces", "hold", "pieces_from_body",
+]

@@ -1,0 +1,241 @@
+"""report.md (tables shaped like the paper's Tables I–III) and the PNGs of `mapkit eval`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from mapkit.sim import World
+
+PAPER_SUCCESS = {  # % office / garage / forest / overall, from the paper
+    "MP": (86.7, 96.7, 48.3, 77.2), "iPlanner": (75.0, 78.3, 63.3, 72.2), "paper (TAN)": (96.7, 91.7, 76.7, 88.3),
+}
+PAPER_EFFORT_LATENCY = {  # m²/s⁷ mean ± std, latency ms
+    "MP": ("97.65 ± 32.52", "29.13"), "EGO": ("32.97 ± 7.83", "20.08"), "iPlanner": ("58.24 ± 11.95", "7.51"),
+    "paper (TAN)": ("21.16 ± 4.86", "13.16"),
+}
+PAPER_TIME_ALLOCATION = {"uniform": ("601.50", "13.13"), "poly5": ("22.93", "11.78"),
+                         "gradient": ("26.99", "118.19"), "TAN": ("21.16", "13.16")}
+METHOD_COLOURS = {"learned": "tab:blue", "learned+uniform": "tab:cyan", "learned+poly5": "tab:olive",
+                  "learned+gradient": "tab:purple", "iplanner-style": "tab:orange", "straight": "tab:gray",
+                  "oracle": "tab:green"}
+OUTCOME_COLOURS = {"success": "tab:green", "collision": "tab:red", "timeout": "tab:orange"}
+
+
+def _pct(x: float | None) -> str:
+    return "–" if x is None else f"{100 * x:.1f}"
+
+
+def _pm(s: dict, fmt: str = "{:.2f}") -> str:
+    if s.get("mean") is None:
+        return "–"
+    return f"{fmt.format(s['mean'])} ± {fmt.format(s['std'])}"
+
+
+def _effort(s: dict) -> str:
+    if s.get("mean") is None:
+        return "–"
+    return f"{s['mean']:.4g} ± {s['std']:.3g}"
+
+
+def _lat(lat: dict) -> str:
+    return "–" if lat.get("mean_ms") is None else f"{lat['mean_ms']:.2f} ± {lat['std_ms']:.2f}"
+
+
+def write_report(out: Path, doc: dict, latency: dict, worlds: dict[str, World]) -> list[Path]:
+    """Write report.md, paths_<world>.png per world and effort_latency.png into ``out``."""
+    files = []
+    for kind, world in worlds.items():
+        files.append(_paths_figure(out / f"paths_{kind}.png", doc, kind, world))
+    files.append(_bars_figure(out / "effort_latency.png", doc, latency))
+    files.append(_markdown(out / "report.md", doc, latency, [f.name for f in files]))
+    return files
+
+
+def _markdown(path: Path, doc: dict, latency: dict, figures: list[str]) -> Path:
+    s, methods = doc["summary"], doc["methods"]
+    worlds = list(doc["worlds"])
+    cfg, loop = doc["config"], doc["config"]["loop"]
+    model = doc["model"]
+    n_pairs = {k: len(v["pairs"]) for k, v in doc["worlds"].items()}
+    L = ["# mapkit eval report", ""]
+    if model:
+        L.append(f"Model `{model['path']}` (sha256 `{model['sha256'][:16]}…`, input "
+                 f"{model['planner_config']['input_size'][0]}×{model['planner_config']['input_size'][1]}).")
+    L += [
+        f"Worlds {', '.join(f'{k} ({n} pairs)' for k, n in n_pairs.items())}, generated with seed {doc['seed']} "
+        f"(pairs seeded likewise); start–goal ≥ {cfg['min_distance']} m apart with {cfg['pair_clearance']} m clearance, "
+        f"goals hidden from the start where possible.",
+        f"Closed loop: depth {doc['camera']['width']}×{doc['camera']['height']} at {loop['depth_rate']:g} Hz, replan every "
+        f"{loop['replan_interval']} s, local goal clipped to {loop['horizon']} m, success within {loop['goal_radius']} m "
+        f"of the goal, collision when the body centre comes closer than {loop['robot_radius']} m to the world "
+        f"(exact distance, {loop['control_rate']:g} Hz samples), time limit max({loop['timeout_min']:g} s, "
+        f"{loop['timeout_factor']:g} × distance / {loop['cruise_speed']:g} m/s). Plans with η ≥ 0.5 are "
+        f"{'not executed' if loop['respect_eta'] else 'executed anyway'}. Control effort is ∫‖snap‖² dt (m²/s⁷) of the "
+        f"executed trajectory (reference tracked by a 4th-order loop with poles at −{loop['tracking_bandwidth']:g} rad/s), "
+        f"over successful flights. Latency: wall clock, one CPU thread ({doc['versions']['torch']}).",
+        "",
+        "## Table I — success rate (%)",
+        "",
+        "| method | " + " | ".join(worlds) + " | overall | collision | timeout |",
+        "|---|" + "---|" * (len(worlds) + 3),
+    ]
+    for m in methods:
+        row = [_pct(s[m][w]["success_rate"]) for w in worlds]
+        o = s[m]["overall"]
+        L.append(f"| {m} | " + " | ".join(row) + f" | **{_pct(o['success_rate'])}** | {_pct(o['collision_rate'])} | "
+                 f"{_pct(o['timeout_rate'])} |")
+    L += ["", "Paper (its own worlds, 60 pairs each; office / garage / forest / overall): " + "; ".join(
+        f"{k} {' / '.join(f'{v:g}' for v in vals)}" for k, vals in PAPER_SUCCESS.items()) + ".", "",
+        "## Table II — control effort and planning latency", "",
+        "| method | control effort m²/s⁷ (successful) | latency ms | path length / straight | min distance m (mean, min) |",
+        "|---|---|---|---|---|"]
+    for m in methods:
+        o = s[m]["overall"]
+        md = o["min_distance"]
+        mind = "–" if md.get("mean") is None else f"{md['mean']:.2f}, {md['min']:.2f}"
+        L.append(f"| {m} | {_effort(o['control_effort'])} | {_lat(latency[m]['overall'])} | "
+                 f"{_pm(o['path_length_ratio'])} | {mind} |")
+    L += ["", "Paper: " + "; ".join(f"{k} {e} m²/s⁷, {t} ms" for k, (e, t) in PAPER_EFFORT_LATENCY.items()) + ".", ""]
+    if "learned" in methods and "iplanner-style" in methods:
+        a, b = s["learned"]["overall"]["control_effort"]["mean"], s["iplanner-style"]["overall"]["control_effort"]["mean"]
+        if a is not None and b:
+            L += [f"Learned planner vs iPlanner-style interpolation: effort {100 * (1 - a / b):+.1f} % lower "
+                  f"(paper: 30.9 % lower).", ""]
+    ta = [m for m in ("learned+uniform", "learned+poly5", "learned+gradient", "learned") if m in methods]
+    if ta:
+        L += ["## Table III — time allocation (same key-points and total time)", "",
+              "| allocation | control effort m²/s⁷ | latency ms | success % | paper effort / latency |",
+              "|---|---|---|---|---|"]
+        for m in ta:
+            name = "TAN" if m == "learned" else m.split("+")[1]
+            pe, pl = PAPER_TIME_ALLOCATION[name]
+            o = s[m]["overall"]
+            L.append(f"| {name} | {_effort(o['control_effort'])} | {_lat(latency[m]['overall'])} | "
+                     f"{_pct(o['success_rate'])} | {pe} / {pl} |")
+        L.append("")
+    L += ["## Per world", "", "| method | world | success % | collision % | timeout % | effort m²/s⁷ | latency ms |",
+          "|---|---|---|---|---|---|---|"]
+    for m in methods:
+        for w in worlds:
+            o = s[m][w]
+            L.append(f"| {m} | {w} | {_pct(o['success_rate'])} | {_pct(o['collision_rate'])} | "
+                     f"{_pct(o['timeout_rate'])} | {_effort(o['control_effort'])} | {_lat(latency[m][w])} |")
+    L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
+    L += [f"Versions: {', '.join(f'{k} {v}' for k, v in doc['versions'].items())}.", ""]
+    path.write_text("\n".join(L))
+    return path
+
+
+def _occupancy_views(world: World, z: float, res: float) -> tuple[np.ndarray, np.ndarray, tuple, tuple]:
+    """Top view: obstacles at height z; side view: fraction of each x–z column (over y) inside."""
+    lo, hi = world.bounds
+    xs = np.arange(lo[0], hi[0] + 1e-9, res)
+    ys = np.arange(lo[1], hi[1] + 1e-9, res)
+    zs = np.arange(lo[2], hi[2] + 1e-9, res)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    top = world.signed_distance(np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, z)])).reshape(X.shape) < 0
+    ys_side = ys[:: max(1, len(ys) // 40)]
+    Xs, Ys, Zs = np.meshgrid(xs, ys_side, zs, indexing="ij")
+    inside = world.signed_distance(np.column_stack([Xs.ravel(), Ys.ravel(), Zs.ravel()])).reshape(Xs.shape) < 0
+    side = inside.mean(axis=1)
+    return top, side, (lo[0], hi[0], lo[1], hi[1]), (lo[0], hi[0], lo[2], hi[2])
+
+
+def _paths_figure(path: Path, doc: dict, kind: str, world: World) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = doc["methods"]
+    eps = [e for e in doc["episodes"] if e["world"] == kind]
+    starts = np.array([p["start"] for p in doc["worlds"][kind]["pairs"]])
+    z = float(np.median(starts[:, 2])) if len(starts) else float(np.mean(world.flight_z))
+    res = float(np.clip(max(world.bounds[1] - world.bounds[0]) / 200.0, 0.05, 0.25))
+    top, side, ext_top, ext_side = _occupancy_views(world, z, res)
+    from mapkit.evaluation._paths import load_paths  # lazily: the npz is written beside the figure
+
+    paths = load_paths(path.parent)
+    n = len(methods)
+    aspect_top = (ext_top[3] - ext_top[2]) / (ext_top[1] - ext_top[0])
+    aspect_side = (ext_side[3] - ext_side[2]) / (ext_side[1] - ext_side[0])
+    w = 3.2
+    fig, axes = plt.subplots(2, n, figsize=(w * n, w * (aspect_top + aspect_side) + 1.0), squeeze=False,
+                             gridspec_kw={"height_ratios": [aspect_top, max(aspect_side, 0.15)]})
+    for j, m in enumerate(methods):
+        ax_t, ax_s = axes[0, j], axes[1, j]
+        ax_t.imshow(top.T, origin="lower", extent=ext_top, cmap="Greys", vmin=0, vmax=1.6, interpolation="nearest")
+        ax_s.imshow(side.T, origin="lower", extent=ext_side, cmap="Greys", vmin=0, vmax=1.6, interpolation="nearest",
+                    aspect="auto")
+        ok = 0
+        for e in (e for e in eps if e["method"] == m):
+            p = paths.get(f"{kind}/{e['pair']:03d}/{m}")
+            c = OUTCOME_COLOURS[e["outcome"]]
+            ok += e["outcome"] == "success"
+            if p is not None and len(p):
+                ax_t.plot(p[:, 1], p[:, 2], color=c, lw=0.7, alpha=0.8)
+                ax_s.plot(p[:, 1], p[:, 3], color=c, lw=0.7, alpha=0.8)
+            if e["collision_point"] is not None:
+                cp = e["collision_point"]
+                ax_t.plot(cp[0], cp[1], "x", color="tab:red", ms=5)
+                ax_s.plot(cp[0], cp[2], "x", color="tab:red", ms=5)
+        if len(starts):
+            goals = np.array([p["goal"] for p in doc["worlds"][kind]["pairs"]])
+            ax_t.plot(starts[:, 0], starts[:, 1], "o", ms=2.5, color="black")
+            ax_t.plot(goals[:, 0], goals[:, 1], "*", ms=4, color="tab:blue")
+        n_ep = sum(e["method"] == m for e in eps)
+        ax_t.set_title(f"{m}\n{ok}/{n_ep} reached", fontsize=9)
+        ax_t.set_xlabel("x (m)", fontsize=7)
+        ax_s.set_xlabel("x (m)", fontsize=7)
+        if j == 0:
+            ax_t.set_ylabel(f"top view, obstacles at z={z:.1f} m\ny (m)", fontsize=7)
+            ax_s.set_ylabel("side view\nz (m)", fontsize=7)
+        for ax in (ax_t, ax_s):
+            ax.tick_params(labelsize=6)
+    handles = [plt.Line2D([], [], color=c, label=k) for k, c in OUTCOME_COLOURS.items()]
+    handles.append(plt.Line2D([], [], ls="", marker="x", color="tab:red", label="collision point"))
+    fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8, frameon=False)
+    fig.suptitle(f"{kind} (seed {doc['seed']}): executed trajectories", fontsize=11)
+    fig.tight_layout(rect=(0, 0.04, 1, 0.96))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _bars_figure(path: Path, doc: dict, latency: dict) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = doc["methods"]
+    groups = [*doc["worlds"], "overall"]
+    s = doc["summary"]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    width = 0.8 / len(methods)
+    x = np.arange(len(groups))
+    for i, m in enumerate(methods):
+        col = METHOD_COLOURS.get(m, None)
+        succ = [100 * (s[m][g]["success_rate"] or 0) for g in groups]
+        eff = [s[m][g]["control_effort"]["mean"] or np.nan for g in groups]
+        eff_sd = [s[m][g]["control_effort"]["std"] or 0 for g in groups]
+        lat = [latency[m][g]["mean_ms"] or np.nan for g in groups]
+        lat_sd = [latency[m][g]["std_ms"] or 0 for g in groups]
+        off = x + (i - (len(methods) - 1) / 2) * width
+        axes[0].bar(off, succ, width, color=col, label=m)
+        axes[1].bar(off, eff, width, yerr=eff_sd, color=col, capsize=2)
+        axes[2].bar(off, lat, width, yerr=lat_sd, color=col, capsize=2)
+    axes[0].set_ylabel("success rate (%)")
+    axes[1].set_ylabel("control effort ∫‖snap‖² (m²/s⁷), successful flights")
+    axes[1].set_yscale("log")
+    axes[2].set_ylabel("planning latency (ms)")
+    axes[2].set_yscale("log")
+    for ax in axes:
+        ax.set_xticks(x, groups)
+    axes[0].legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,448 @@
+"""`mapkit eval`: every method on the same start–goal pairs in unseen simulated worlds."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+import os
+import platform
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mapkit._version import __version__
+from mapkit.evaluation._loop import LoopConfig, run_episode
+from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, make_methods
+from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
+from mapkit.workspace import atomic_output, check_writable
+
+log = logging.getLogger(__name__)
+
+WORLD_ORDER = ("office", "garage", "forest")
+"""The paper's table order; ``--world all`` runs these."""
+FORMAT = "mapkit-eval/1"
+PATH_RATE_HZ = 20.0
+
+
+@dataclass
+class EvalConfig:
+    """What `mapkit eval` runs (every field ends up in results.json)."""
+
+    worlds: tuple[str, ...] = WORLD_ORDER
+    """World kinds, each generated with ``seed``."""
+    pairs: int = 60
+    """Start–goal pairs per world (the paper: 60)."""
+    seed: int = 0
+    """Seed of the worlds and the pairs; must differ from the seeds of the training worlds."""
+    methods: tuple[str, ...] = METHODS
+    """Methods to compare (see :data:`mapkit.evaluation.METHODS`)."""
+    min_distance: float = 8.0
+    """Metres between start and goal, at least."""
+    pair_clearance: float = 0.6
+    """Metres from starts and goals to the nearest obstacle; also the oracle's search clearance."""
+    oracle_corridor: float = 0.1
+    """Half-width (m) of the oracle's flight corridor around its search path."""
+    workers: int = 1
+    """Processes; pairs run in parallel. Results do not depend on it (one torch thread per process)."""
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    """The closed loop (replan interval, goal radius, robot radius, horizon, time limit, tracker)."""
+
+    def validate(self) -> None:
+        unknown = [w for w in self.worlds if w not in WORLD_ORDER]
+        if unknown or not self.worlds:
+            raise EvalError(f"unknown world {unknown[0] if unknown else '(none)'!r}; "
+                            f"use one of {', '.join(WORLD_ORDER)} or all")
+        bad = [m for m in self.methods if m not in METHODS]
+        if bad or not self.methods:
+            raise EvalError(f"unknown method {bad[0] if bad else '(none)'!r}; use some of {', '.join(METHODS)}")
+        if self.pairs < 1:
+            raise EvalError(f"--pairs must be >= 1, got {self.pairs}")
+        if self.workers < 1:
+            raise EvalError(f"--workers must be >= 1, got {self.workers}")
+        if not self.min_distance > 0:
+            raise EvalError(f"--min-distance must be > 0 metres, got {self.min_distance}")
+        lc = self.loop
+        frames = lc.replan_interval * lc.depth_rate
+        if not lc.replan_interval > 0 or abs(frames - round(frames)) > 1e-6:
+            raise EvalError(f"--replan-interval {lc.replan_interval} s must be a positive whole number of depth "
+                            f"frames at {lc.depth_rate} Hz (e.g. 0.5)")
+        if not self.pair_clearance > lc.robot_radius:
+            raise EvalError(f"pair clearance {self.pair_clearance} m must exceed the robot radius {lc.robot_radius} m")
+
+
+@dataclass
+class CameraSpec:
+    """The depth camera rendered in the loop: the training data's camera when it can be read."""
+
+    width: int
+    height: int
+    K: list[list[float]]
+    T_body_camera: list[list[float]]
+    source: str
+
+
+@dataclass
+class EvalResult:
+    """What :func:`evaluate` wrote and its summary."""
+
+    out_dir: Path
+    summary: dict[str, Any]
+    files: list[Path]
+
+
+# ------------------------------------------------------------------------------------ set-up
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _run_config(run_dir: Path) -> dict:
+    path = run_dir / "config.json"
+    if not path.exists():
+        return {}
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise EvalError(f"{path} is not readable JSON ({exc}); is {run_dir} a mapkit run directory?") from None
+
+
+def _training_camera(run_cfg: dict) -> CameraSpec | None:
+    """The camera of the first readable training workspace's frames.zarr."""
+    from mapkit.geometry import invert_transform
+    from mapkit.ingest import open_frames_store
+
+    for ws in run_cfg.get("workspaces", []):
+        try:
+            store = open_frames_store(ws)
+            T_bc = invert_transform(store.T_world_body[0]) @ store.T_world_camera[0]
+            return CameraSpec(width=int(store.width), height=int(store.height), K=np.asarray(store.K).tolist(),
+                              T_body_camera=T_bc.tolist(), source=f"{ws}/frames.zarr")
+        except Exception:  # a moved or deleted workspace: try the next one
+            continue
+    return None
+
+
+def _training_worlds(run_cfg: dict) -> set[tuple[str, int]]:
+    """(kind, seed) of simulated worlds behind the training workspaces (their .world.json files)."""
+    from mapkit.ingest import open_frames_store
+    from mapkit.sim.simulate import ground_truth_paths
+
+    out: set[tuple[str, int]] = set()
+    for ws in run_cfg.get("workspaces", []):
+        try:
+            sources = open_frames_store(ws).attrs.get("sources", [])
+        except Exception:
+            continue
+        for src in sources:
+            p = Path(src.get("path", ""))
+            for fmt in ("mcap", "ros2"):
+                wj = ground_truth_paths(p, fmt)[0]
+                if wj.exists():
+                    try:
+                        d = json.loads(wj.read_text())
+                        out.add((str(d["kind"]), int(d["seed"])))
+                    except (OSError, ValueError, KeyError):
+                        pass
+                    break
+    return out
+
+
+def _default_camera() -> CameraSpec:
+    from mapkit.sim import CameraModel, camera_extrinsics
+
+    cam = CameraModel(width=160, height=120)
+    Tbl, Tlo = camera_extrinsics()
+    return CameraSpec(width=160, height=120, K=cam.K.tolist(), T_body_camera=(Tbl @ Tlo).tolist(),
+                      source="default: D435 scaled to 160x120 (training workspaces not readable)")
+
+
+# --------------------------------------------------------------------------------- workers
+_STATE: dict[str, Any] = {}
+
+
+def _init_worker(payload: dict) -> None:
+    """Per process: one torch thread (deterministic results whatever --workers is), the model."""
+    import torch
+
+    torch.set_num_threads(1)
+    _STATE.clear()
+    _STATE.update(payload)
+    _STATE["net"] = None
+    if payload["model"] is not None:
+        from mapkit.planning import Planner
+
+        _STATE["net"] = Planner.load(payload["model"]).net
+    _STATE["worlds"] = {}
+
+
+def _world_bundle(kind: str) -> dict:
+    from mapkit.sim import CameraModel, make_world
+    from mapkit.sim.search import FreeSpaceGraph
+
+    cache = _STATE["worlds"]
+    if kind not in cache:
+        world = make_world(kind, seed=_STATE["seed"])
+        graph = FreeSpaceGraph(world, clearance=_STATE["pair_clearance"])
+        cam = _STATE["camera"]
+        K = np.asarray(cam["K"])
+        camera = CameraModel(width=cam["width"], height=cam["height"], fx=float(K[0, 0]), fy=float(K[1, 1]))
+        u = (np.arange(camera.width) - K[0, 2]) / K[0, 0]
+        v = (np.arange(camera.height) - K[1, 2]) / K[1, 1]
+        uu, vv = np.meshgrid(u, v, indexing="xy")
+        rays = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], axis=1)
+        methods = make_methods(list(_STATE["methods"]), _STATE["net"], world, graph,
+                               oracle_corridor=_STATE["oracle_corridor"], robot_radius=_STATE["loop"]["robot_radius"])
+        cache[kind] = dict(world=world, graph=graph, camera=camera, rays=rays, methods=methods)
+    return cache[kind]
+
+
+def _run_pair(kind: str, pair: dict) -> list[dict]:
+    from mapkit.sim import render_depth
+
+    b = _world_bundle(kind)
+    world, camera, rays = b["world"], b["camera"], b["rays"]
+    T_bc = np.asarray(_STATE["camera"]["T_body_camera"])
+    loop = LoopConfig(**_STATE["loop"])
+
+    def render(T_world_body: np.ndarray) -> np.ndarray:
+        return render_depth(world, T_world_body @ T_bc, camera, rays=rays)
+
+    start, goal = np.asarray(pair["start"]), np.asarray(pair["goal"])
+    out = []
+    for method in b["methods"]:
+        ep = run_episode(world, start, goal, method, loop, render=render)
+        step = max(1, int(round(loop.control_rate / PATH_RATE_HZ)))
+        path = ep.samples[::step]
+        if len(ep.samples) and (len(ep.samples) - 1) % step:
+            path = np.concatenate([path, ep.samples[-1:]])
+        straight = pair["distance"]
+        out.append({
+            "world": kind, "pair": pair["pair"], "method": method.name, "outcome": ep.outcome,
+            "start": pair["start"], "goal": pair["goal"], "distance": straight,
+            "line_of_sight": pair["line_of_sight"], "time_s": ep.time_s, "path_length": ep.path_length,
+            "path_length_ratio": ep.path_length / straight, "control_effort": ep.control_effort,
+            # inf in a world without obstacles: JSON has no infinity, so "none in reach"
+            "min_distance": ep.min_distance if math.isfinite(ep.min_distance) else None,
+            "collision_point": ep.collision_point,
+            "collision_time": ep.collision_time, "plans": ep.plans, "rejected_plans": ep.rejected_plans,
+            "_latencies_ms": ep.latencies_ms, "_path": path.astype(np.float32),
+        })
+    return out
+
+
+def _call(args: tuple[str, dict]) -> tuple[str, int, list[dict]]:
+    kind, pair = args
+    return kind, pair["pair"], _run_pair(kind, pair)
+
+
+# -------------------------------------------------------------------------------- summaries
+def _stats(values: list[float]) -> dict[str, float | None]:
+    if not values:
+        return {"mean": None, "std": None}
+    a = np.asarray(values, dtype=np.float64)
+    return {"mean": float(a.mean()), "std": float(a.std())}
+
+
+def summarise(episodes: list[dict], worlds: list[str], methods: list[str]) -> dict:
+    """Per method: per world and ``overall`` rates and metric statistics (effort and path ratio over
+    successful episodes; clearance over all)."""
+    out: dict[str, dict] = {}
+    for m in methods:
+        out[m] = {}
+        for w in [*worlds, "overall"]:
+            eps = [e for e in episodes if e["method"] == m and (w == "overall" or e["world"] == w)]
+            n = len(eps)
+            ok = [e for e in eps if e["outcome"] == "success"]
+            dists = [e["min_distance"] for e in eps if e["min_distance"] is not None]
+            out[m][w] = {
+                "episodes": n,
+                "success_rate": len(ok) / n if n else None,
+                "collision_rate": sum(e["outcome"] == "collision" for e in eps) / n if n else None,
+                "timeout_rate": sum(e["outcome"] == "timeout" for e in eps) / n if n else None,
+                "control_effort": _stats([e["control_effort"] for e in ok]),
+                "path_length_ratio": _stats([e["path_length_ratio"] for e in ok]),
+                "min_distance": {**_stats(dists), "min": float(min(dists)) if dists else None},
+                "rejected_plan_rate": (sum(e["rejected_plans"] for e in eps) / max(1, sum(e["plans"] for e in eps))
+                                       if eps else None),
+            }
+    return out
+
+
+def latency_summary(latencies: dict[tuple[str, str], list[float]], worlds: list[str], methods: list[str]) -> dict:
+    out: dict[str, dict] = {}
+    for m in methods:
+        out[m] = {}
+        for w in [*worlds, "overall"]:
+            vals = [v for (wk, mk), vs in latencies.items() if mk == m and (w == "overall" or wk == w) for v in vs]
+            a = np.asarray(vals) if vals else np.zeros(0)
+            out[m][w] = {"plans": len(vals), "mean_ms": float(a.mean()) if len(a) else None,
+                         "std_ms": float(a.std()) if len(a) else None,
+                         "median_ms": float(np.median(a)) if len(a) else None,
+                         "p90_ms": float(np.percentile(a, 90)) if len(a) else None}
+    return out
+
+
+def _versions() -> dict[str, str]:
+    import scipy
+    import torch
+
+    return {"mapkit": __version__, "python": platform.python_version(), "numpy": np.__version__,
+            "scipy": scipy.__version__, "torch": torch.__version__}
+
+
+# ------------------------------------------------------------------------------------ main
+def evaluate(
+    model: str | os.PathLike[str] | None,
+    out_dir: str | os.PathLike[str],
+    config: EvalConfig | None = None,
+    *,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> EvalResult:
+    """Fly every method of ``config`` from the same start–goal pairs in unseen simulated worlds and
+    write ``out_dir``: results.json (every outcome and number, the model hash, seeds, versions;
+    identical for the same inputs on CPU), latency.json (wall-clock planning times, which cannot be
+    identical), trajectories.npz (executed paths, ``"{world}/{pair:03d}/{method}"`` → (N, 4) [t, x, y,
+    z]), worlds/*.world.json, report.md (tables shaped like the paper's) and PNGs.
+
+    Args:
+        model: run directory with model.pt (None only when no method needs a model).
+        out_dir: output folder (refused if it exists, unless ``overwrite``).
+        config: what to run.
+    """
+    from tqdm import tqdm
+
+    from mapkit.evaluation._report import write_report
+    from mapkit.planning import Planner
+    from mapkit.sim import make_world
+    from mapkit.sim.search import FreeSpaceGraph
+
+    config = config or EvalConfig()
+    out_dir = Path(out_dir)
+    config.validate()
+    check_writable(out_dir, overwrite=overwrite)
+    need_model = [m for m in config.methods if m in NEEDS_MODEL]
+    model_info: dict[str, Any] | None = None
+    camera = _default_camera()
+    loop = dataclasses.replace(config.loop)
+    if need_model and model is None:
+        raise EvalError(f"methods {need_model} need a trained model: pass --model RUN")
+    trained_worlds: set[tuple[str, int]] = set()
+    if model is not None:
+        run_dir = Path(model)
+        planner = Planner.load(run_dir)  # a missing or foreign model.pt is a one-line error here
+        net = planner.net
+        run_cfg = _run_config(run_dir)
+        cam = _training_camera(run_cfg)
+        if cam is None:
+            log.warning("the run's training workspaces are not readable; rendering %s", camera.source)
+        else:
+            camera = cam
+        h, w = net.config.input_size
+        if h > camera.height or w > camera.width:
+            raise EvalError(
+                f"model {run_dir} expects depth resized to {h}x{w} but its training camera renders "
+                f"{camera.height}x{camera.width}; this model was trained for another camera and cannot be evaluated "
+                f"with it (retrain, or evaluate a model whose input size is at most the camera's)"
+            )
+        loss = run_cfg.get("loss", {}) or {}
+        if "robot_radius" in loss:
+            loop = dataclasses.replace(loop, robot_radius=float(loss["robot_radius"]))
+        loop = dataclasses.replace(loop, cruise_speed=float(net.config.cruise_speed))
+        trained_worlds = _training_worlds(run_cfg)
+        model_info = {"path": str(run_dir.resolve()), "sha256": _sha256(run_dir / "model.pt"),
+                      "planner_config": net.config.to_dict(), "training_worlds": sorted(map(list, trained_worlds))}
+    clash = [k for k in config.worlds if (k, config.seed) in trained_worlds]
+    if clash:
+        raise EvalError(f"--seed {config.seed} made the training world(s) {', '.join(clash)} of this model; "
+                        f"pass another --seed so the evaluation worlds are unseen")
+    config = dataclasses.replace(config, loop=loop)
+
+    # Pairs (deterministic in the seed), sampled here so every method and worker gets the same.
+    worlds = {k: make_world(k, seed=config.seed) for k in config.worlds}
+    pairs: dict[str, list[Pair]] = {}
+    for kind, world in worlds.items():
+        graph = FreeSpaceGraph(world, clearance=config.pair_clearance)
+        pairs[kind] = sample_pairs(graph, config.pairs, seed=config.seed, min_distance=config.min_distance)
+
+    payload = {
+        "model": None if model is None or not need_model else str(model), "seed": config.seed,
+        "pair_clearance": config.pair_clearance, "camera": dataclasses.asdict(camera),
+        "methods": list(config.methods), "oracle_corridor": config.oracle_corridor,
+        "loop": dataclasses.asdict(config.loop),
+    }
+    tasks = [(k, p.to_dict()) for k in config.worlds for p in pairs[k]]
+    results: dict[tuple[str, int], list[dict]] = {}
+    bar = tqdm(total=len(tasks), unit="pair", desc="eval", dynamic_ncols=True, disable=not progress)
+    try:
+        if config.workers == 1:
+            import torch
+
+            threads = torch.get_num_threads()
+            try:
+                _init_worker(payload)
+                for task in tasks:
+                    kind, idx, recs = _call(task)
+                    results[(kind, idx)] = recs
+                    bar.update(1)
+            finally:
+                torch.set_num_threads(threads)
+                _STATE.clear()
+        else:
+            with ProcessPoolExecutor(max_workers=config.workers, mp_context=get_context("spawn"),
+                                     initializer=_init_worker, initargs=(payload,)) as pool:
+                for kind, idx, recs in pool.map(_call, tasks):
+                    results[(kind, idx)] = recs
+                    bar.update(1)
+    finally:
+        bar.close()
+
+    episodes: list[dict] = []
+    latencies: dict[tuple[str, str], list[float]] = {}
+    paths: dict[str, np.ndarray] = {}
+    for kind in config.worlds:
+        for p in pairs[kind]:
+            for rec in results[(kind, p.index)]:
+                latencies.setdefault((kind, rec["method"]), []).extend(rec.pop("_latencies_ms"))
+                paths[f"{kind}/{p.index:03d}/{rec['method']}"] = rec.pop("_path")
+                episodes.append(rec)
+    summary = summarise(episodes, list(config.worlds), list(config.methods))
+    lat = latency_summary(latencies, list(config.worlds), list(config.methods))
+    doc = {
+        "format": FORMAT,
+        "versions": _versions(),
+        "model": model_info,
+        "seed": config.seed,
+        "config": dataclasses.asdict(config),
+        "camera": dataclasses.asdict(camera),
+        "worlds": {k: {"seed": config.seed, "world_json": f"worlds/{k}.world.json",
+                       "pairs": [p.to_dict() for p in pairs[k]]} for k in config.worlds},
+        "methods": list(config.methods),
+        "summary": summary,
+        "episodes": episodes,
+    }
+    del doc["config"]["workers"]  # does not change any result
+    with atomic_output(out_dir, overwrite=overwrite) as tmp:
+        tmp.mkdir(parents=True)
+        (tmp / "worlds").mkdir()
+        for kind, world in worlds.items():
+            world.to_json(tmp / "worlds" / f"{kind}.world.json")
+        (tmp / "results.json").write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+        (tmp / "latency.json").write_text(json.dumps(
+            {"format": FORMAT, "device": platform.processor() or platform.machine(), "torch_threads": 1,
+             "workers": config.workers, "latency": lat}, indent=1) + "\n")
+        np.savez_compressed(tmp / "trajectories.npz", **paths)
+        write_report(tmp, doc, lat, worlds)
+    files = sorted(p for p in out_dir.rglob("*") if p.is_file())
+    return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat}, files=files)
+

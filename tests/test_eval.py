@@ -1,0 +1,246 @@
+"""Closed-loop evaluation: the loop against analytic answers, determinism, reports, bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from mapkit.cli.main import main
+from mapkit.evaluation import (
+    EvalConfig,
+    LoopConfig,
+    MethodPlan,
+    Observation,
+    Pieces,
+    StraightMethod,
+    evaluate,
+    hold,
+    load_paths,
+    pieces_from_body,
+    run_episode,
+)
+from mapkit.planner import PlannerConfig, PlannerNet, planner_preset
+from mapkit.sim import Box, World
+from mapkit.trajopt import min_snap
+
+BOUNDS = np.array([[0.0, 0.0, 0.0], [20.0, 10.0, 4.0]])
+START, GOAL = np.array([1.0, 5.0, 1.5]), np.array([15.0, 5.0, 1.5])
+
+
+def empty_world() -> World:
+    return World(primitives=[], bounds=BOUNDS, kind="custom", flight_z=(0.5, 3.0))
+
+
+def wall_world(x: float = 8.0, half: float = 0.1) -> World:
+    return World(primitives=[Box(center=[x, 5.0, 2.0], half_extents=[half, 6.0, 3.0])], bounds=BOUNDS,
+                 kind="custom", flight_z=(0.5, 3.0))
+
+
+def rest_to_rest(d: float, T: float, t0: float = 0.0) -> Pieces:
+    """One minimum-snap segment from rest at START to rest d metres along +x, in T seconds."""
+    wp = torch.tensor([[[0.0, 0.0, 0.0], [d, 0.0, 0.0]]], dtype=torch.float64)
+    traj = min_snap(wp, torch.tensor([[T]], dtype=torch.float64))
+    T_wb = np.eye(4)
+    T_wb[:3, 3] = START
+    return pieces_from_body(traj.coeffs[0].numpy(), np.array([T]), T_wb, t0)
+
+
+class Scripted:
+    """Flies a fixed reference once (no camera, no replanning)."""
+
+    name = "scripted"
+    needs_depth = False
+    replans = False
+
+    def __init__(self, pieces: Pieces) -> None:
+        self.pieces = pieces
+
+    def plan(self, obs: Observation) -> MethodPlan:
+        return MethodPlan(pieces=self.pieces, latency_ms=0.0)
+
+
+# ------------------------------------------------------------------------------- the loop
+def test_straight_line_reaches_the_goal_in_an_empty_world():
+    loop = LoopConfig(horizon=100.0)  # the whole line at once: a straight-line "planner"
+    ep = run_episode(empty_world(), START, GOAL, StraightMethod(), loop)
+    assert ep.outcome == "success"
+    assert ep.collision_point is None
+    assert np.linalg.norm(ep.samples[-1, 1:] - GOAL) <= loop.goal_radius + 1e-9
+    # It flew the line: no sideways deviation, length = distance minus the goal radius.
+    assert np.abs(ep.samples[:, 2:] - START[1:]).max() < 1e-9
+    assert ep.path_length == pytest.approx(np.linalg.norm(GOAL - START) - loop.goal_radius, abs=0.02)
+
+
+@pytest.mark.parametrize("x_wall", [6.0, 9.5])
+def test_straight_line_hits_a_wall_across_it_where_the_wall_is(x_wall: float):
+    loop = LoopConfig(horizon=100.0, control_rate=400.0)
+    half = 0.1
+    ep = run_episode(wall_world(x_wall, half), START, GOAL, StraightMethod(), loop)
+    assert ep.outcome == "collision"
+    x, y, z = ep.collision_point
+    # First sample closer than the robot radius to the face at x_wall - half.
+    face = x_wall - half - loop.robot_radius
+    speed = np.abs(np.diff(ep.samples[-3:, 1])).max() * loop.control_rate
+    assert face <= x <= face + speed / loop.control_rate + 1e-9
+    assert (y, z) == pytest.approx((START[1], START[2]), abs=1e-9)
+    assert ep.min_distance < loop.robot_radius
+    assert ep.samples[-1, 1] == pytest.approx(x)
+
+
+def test_effort_of_a_rest_to_rest_segment_is_the_analytic_value():
+    d, T = 6.0, 3.0
+    ref = rest_to_rest(d, T)
+    assert ref.snap_effort(0.0, T) == pytest.approx(100800.0 * d * d / T ** 7, rel=1e-9)
+    # A goal past the end: the whole segment is flown, then the vehicle hovers until the time limit.
+    goal = START + np.array([d + 5.0, 0.0, 0.0])
+    ep = run_episode(empty_world(), START, goal, Scripted(ref), LoopConfig())
+    assert ep.outcome == "timeout"
+    assert ep.control_effort == pytest.approx(100800.0 * d * d / T ** 7, rel=1e-9)
+    assert ep.path_length == pytest.approx(d, rel=1e-6)
+    assert ep.samples[-1, 1:] == pytest.approx(START + [d, 0.0, 0.0])
+    # Reaching the goal ends the flight there: the effort is the integral up to that sample.
+    ep = run_episode(empty_world(), START, START + np.array([d / 2, 0.0, 0.0]), Scripted(ref), LoopConfig(goal_radius=0.01))
+    assert ep.outcome == "success"
+    assert ep.control_effort == pytest.approx(ref.snap_effort(0.0, ep.time_s), rel=1e-12)
+    assert ep.control_effort < 100800.0 * d * d / T ** 7
+
+
+def test_effort_is_additive_over_replans_of_the_same_trajectory():
+    """Replanning from the vehicle's state onto the same curve changes nothing."""
+    d, T = 5.0, 4.0
+    whole = rest_to_rest(d, T)
+
+    class Replanner(Scripted):
+        replans = True
+
+        def plan(self, obs: Observation) -> MethodPlan:
+            # The rest of the same curve, restarted at obs.t: same polynomial, shifted knots.
+            return MethodPlan(pieces=_tail(whole, obs.t), latency_ms=0.0)
+
+    goal = START + np.array([d + 5.0, 0.0, 0.0])
+    ep = run_episode(empty_world(), START, goal, Replanner(whole), LoopConfig(timeout_min=T, timeout_factor=0.1))
+    assert ep.plans == 8
+    assert ep.control_effort == pytest.approx(100800.0 * d * d / T ** 7, rel=1e-9)
+
+
+def _tail(p: Pieces, t: float) -> Pieces:
+    """The part of a one-segment reference after t, as its own segment (re-expressed in s')."""
+    T = float(p.durations[0])
+    a = t / T
+    n = p.coeffs.shape[-1]
+    # p(s) with s = a + (1 - a) s' : expand the polynomial in s'.
+    from math import comb
+
+    c = np.zeros_like(p.coeffs[0])
+    for k in range(n):
+        for j in range(k + 1):
+            c[:, j] += p.coeffs[0, :, k] * comb(k, j) * a ** (k - j) * (1 - a) ** j
+    return Pieces(t0=t, durations=np.array([T - t]), coeffs=c[None])
+
+
+def test_a_reference_with_a_jump_is_tracked_smoothly():
+    """A position step in the reference: the tracker converges, the executed path is continuous,
+    and the snap stays finite (the effort is that of the critically damped error response)."""
+    ref = hold(START + np.array([0.5, 0.0, 0.0]), 0.0, duration=0.5)
+    loop = LoopConfig(goal_radius=0.01, tracking_bandwidth=5.0)
+    ep = run_episode(empty_world(), START, START + np.array([0.5, 0.0, 0.0]), Scripted(ref), loop)
+    assert ep.outcome == "success"
+    steps = np.linalg.norm(np.diff(ep.samples[:, 1:], axis=0), axis=1)
+    assert steps.max() < 0.05  # no teleport
+    # e(t) = 0.5 · (1 + ωt + (ωt)²/2 + (ωt)³/6) e^{-ωt}; its snap integral is finite and > 0.
+    w = 5.0
+    t = np.linspace(0.0, 12.0, 200001)
+    k = (1 + w * t + (w * t) ** 2 / 2 + (w * t) ** 3 / 6)
+    e = 0.5 * k * np.exp(-w * t)
+    snap = np.gradient(np.gradient(np.gradient(np.gradient(e, t), t), t), t)
+    assert ep.outcome == "success"
+    assert 0.0 < ep.control_effort <= np.trapezoid(snap ** 2, t) * 1.05
+
+
+# ------------------------------------------------------------------------------ evaluate()
+def save_model(run_dir: Path, config: PlannerConfig, **run_cfg: object) -> Path:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(0)
+    net = PlannerNet(config)
+    torch.save({"state_dict": net.state_dict(), "planner_config": config.to_dict()}, run_dir / "model.pt")
+    (run_dir / "config.json").write_text(json.dumps(run_cfg))
+    return run_dir
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return save_model(tmp_path_factory.mktemp("run") / "tiny", planner_preset("cpu", input_size=(48, 64)))
+
+
+def small_config(**kw: object) -> EvalConfig:
+    return EvalConfig(worlds=("office",), pairs=2, seed=3, methods=("learned", "iplanner-style", "straight", "oracle"),
+                      **kw)
+
+
+def test_same_seed_gives_identical_results_json(tiny_run: Path, tmp_path: Path):
+    a = evaluate(tiny_run, tmp_path / "a", small_config(), progress=False)
+    b = evaluate(tiny_run, tmp_path / "b", small_config(workers=2), progress=False)
+    assert (tmp_path / "a" / "results.json").read_bytes() == (tmp_path / "b" / "results.json").read_bytes()
+    doc = json.loads((tmp_path / "a" / "results.json").read_text())
+    assert doc["format"] == "mapkit-eval/1"
+    assert doc["model"]["sha256"] and doc["seed"] == 3 and doc["versions"]["mapkit"]
+    assert len(doc["episodes"]) == 2 * 4
+    assert {e["outcome"] for e in doc["episodes"]} <= {"success", "collision", "timeout"}
+    # The oracle plans on the exact world: it gets there.
+    assert all(e["outcome"] == "success" for e in doc["episodes"] if e["method"] == "oracle")
+    paths = load_paths(tmp_path / "a")
+    assert set(paths) == {f"office/{e['pair']:03d}/{e['method']}" for e in doc["episodes"]}
+    for e in doc["episodes"]:
+        p = paths[f"office/{e['pair']:03d}/{e['method']}"]
+        assert p.shape[1] == 4 and np.allclose(p[0, 1:], e["start"], atol=1e-5)
+    out = {p.name for p in a.files}
+    assert {"results.json", "latency.json", "report.md", "trajectories.npz", "paths_office.png",
+            "effort_latency.png", "office.world.json"} <= out
+    report = (tmp_path / "a" / "report.md").read_text()
+    assert "Table I" in report and "Table II" in report and "88.3" in report
+    assert b.summary["success"]["oracle"]["office"]["success_rate"] == 1.0
+
+
+def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
+    r = CliRunner().invoke(main, ["eval", "--model", str(tiny_run), "--world", "office", "--pairs", "1", "--seed", "3",
+                                  "--methods", "straight,oracle", "-o", str(tmp_path / "ev")])
+    assert r.exit_code == 0, r.output
+    assert "oracle" in r.output and "wrote" in r.output
+    r = CliRunner().invoke(main, ["eval", "--model", str(tiny_run), "--world", "office", "--pairs", "1", "--seed", "3",
+                                  "--methods", "straight", "-o", str(tmp_path / "ev")])
+    assert r.exit_code == 1 and "exists" in r.output and "--overwrite" in r.output
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--world", "moon"], "unknown world 'moon'"),
+    (["--methods", "learned,teleport"], "unknown method 'teleport'"),
+    (["--world", "office", "--pairs", "3", "--min-distance", "200"], "could sample only 0 of 3"),
+    (["--replan-interval", "0.01"], "whole number of depth frames"),
+])
+def test_cli_bad_settings(tiny_run: Path, tmp_path: Path, args: list[str], message: str):
+    r = CliRunner().invoke(main, ["eval", "--model", str(tiny_run), "-o", str(tmp_path / "ev"), *args])
+    assert r.exit_code == 1, r.output
+    assert message in r.output and "Traceback" not in r.output
+    assert len(r.output.strip().splitlines()) == 1
+
+
+def test_cli_bad_models(tmp_path: Path):
+    empty = tmp_path / "empty_run"
+    empty.mkdir()
+    r = CliRunner().invoke(main, ["eval", "--model", str(empty), "-o", str(tmp_path / "ev")])
+    assert r.exit_code == 1 and "has no model.pt" in r.output
+    big = save_model(tmp_path / "big", PlannerConfig(input_size=(360, 640), encoder_width=0.125))
+    r = CliRunner().invoke(main, ["eval", "--model", str(big), "-o", str(tmp_path / "ev")])
+    assert r.exit_code == 1 and "360x640" in r.output and "120x160" in r.output
+    r = CliRunner().invoke(main, ["eval", "-o", str(tmp_path / "ev"), "--methods", "learned"])
+    assert r.exit_code == 1 and "--model" in r.output
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "model.pt").write_bytes(b"not a model")
+    r = CliRunner().invoke(main, ["eval", "--model", str(tmp_path / "broken"), "-o", str(tmp_path / "ev")])
+    assert r.exit_code == 1 and "is not a mapkit planner" in r.output
+    assert not (tmp_path / "ev").exists()
