@@ -25,6 +25,9 @@ for flight in "${flights[@]}"; do
   echo "== mapkit export -w $WS/$name"
   $MAPKIT export -w "$WS/$name" --overwrite
 done
-echo "== mapkit train (cpu preset; a few steps here, drop --max-steps for the full ~3 minute run)"
+echo "== mapkit train (cpu preset; a few steps here, drop --max-steps for the full ~9 minute run)"
 $MAPKIT train -w "$WS/forest" -w "$WS/garage" -w "$WS/office" --preset cpu --name demo --max-steps 40 --overwrite
-echo "demo: workspaces in $WS/ (frames.zarr, cloud.ply, mesh.ply, map.zarr, slices.png, tuples.zarr, runs/demo)"
+echo "== mapkit eval (closed loop in an unseen office world; the paper's protocol is --world all --pairs 60)"
+$MAPKIT eval --model "$WS/forest/runs/demo" --world office --pairs 3 --seed 0 \
+  --methods learned,iplanner-style,straight,oracle -o "$WS/eval" --overwrite
+echo "demo: workspaces in $WS/ (frames.zarr, cloud.ply, mesh.ply, map.zarr, slices.png, tuples.zarr, runs/demo), eval report in $WS/eval/report.md"

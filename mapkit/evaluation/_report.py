@@ -78,14 +78,14 @@ def _markdown(path: Path, doc: dict, latency: dict, figures: list[str]) -> Path:
         "",
         "## Table I — success rate (%)",
         "",
-        "| method | " + " | ".join(worlds) + " | overall | collision | timeout |",
-        "|---|" + "---|" * (len(worlds) + 3),
+        "| method | " + " | ".join(worlds) + " | overall | collision | timeout | goal hidden from start |",
+        "|---|" + "---|" * (len(worlds) + 4),
     ]
     for m in methods:
         row = [_pct(s[m][w]["success_rate"]) for w in worlds]
         o = s[m]["overall"]
         L.append(f"| {m} | " + " | ".join(row) + f" | **{_pct(o['success_rate'])}** | {_pct(o['collision_rate'])} | "
-                 f"{_pct(o['timeout_rate'])} |")
+                 f"{_pct(o['timeout_rate'])} | {_pct(o['hidden_goal_success_rate'])} ({o['hidden_goal_episodes']}) |")
     L += ["", "Paper (its own worlds, 60 pairs each; office / garage / forest / overall): " + "; ".join(
         f"{k} {' / '.join(f'{v:g}' for v in vals)}" for k, vals in PAPER_SUCCESS.items()) + ".", "",
         "## Table II — control effort and planning latency", "",

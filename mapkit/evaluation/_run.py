@@ -264,6 +264,7 @@ def summarise(episodes: list[dict], worlds: list[str], methods: list[str]) -> di
             n = len(eps)
             ok = [e for e in eps if e["outcome"] == "success"]
             dists = [e["min_distance"] for e in eps if e["min_distance"] is not None]
+            hidden = [e for e in eps if not e["line_of_sight"]]
             out[m][w] = {
                 "episodes": n,
                 "success_rate": len(ok) / n if n else None,
@@ -272,6 +273,9 @@ def summarise(episodes: list[dict], worlds: list[str], methods: list[str]) -> di
                 "control_effort": _stats([e["control_effort"] for e in ok]),
                 "path_length_ratio": _stats([e["path_length_ratio"] for e in ok]),
                 "min_distance": {**_stats(dists), "min": float(min(dists)) if dists else None},
+                "hidden_goal_episodes": len(hidden),
+                "hidden_goal_success_rate": (sum(e["outcome"] == "success" for e in hidden) / len(hidden)
+                                             if hidden else None),
                 "rejected_plan_rate": (sum(e["rejected_plans"] for e in eps) / max(1, sum(e["plans"] for e in eps))
                                        if eps else None),
             }
