@@ -50,3 +50,4 @@ from mapkit.cli import mapping as _mapping  # noqa: E402,F401
 from mapkit.cli import plan as _plan  # noqa: E402,F401
 from mapkit.cli import simulate as _simulate  # noqa: E402,F401
 from mapkit.cli import train as _train  # noqa: E402,F401
+from mapkit.cli import view as _view  # noqa: E402,F401

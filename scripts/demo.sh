@@ -31,3 +31,5 @@ echo "== mapkit eval (closed loop in an unseen office world; the paper's protoco
 $MAPKIT eval --model "$WS/forest/runs/demo" --world office --pairs 3 --seed 0 \
   --methods learned,iplanner-style,straight,oracle -o "$WS/eval" --overwrite
 echo "demo: workspaces in $WS/ (frames.zarr, cloud.ply, mesh.ply, map.zarr, slices.png, tuples.zarr, runs/demo), eval report in $WS/eval/report.md"
+echo "demo: look at it in the browser (point cloud, ESDF slices, the flight, live plans, corridors, eval paths):"
+echo "  $MAPKIT view -w $WS/forest --model $WS/forest/runs/demo --eval $WS/eval"

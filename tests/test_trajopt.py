@@ -225,3 +225,26 @@ def test_numpy_durations_and_broadcast():
     b = min_snap(w, T[0].expand(3, 2))
     assert torch.allclose(a.coeffs, b.coeffs)
     assert np.isfinite(a.snap_cost().numpy()).all()
+
+
+def test_cached_constants_made_in_inference_mode_still_serve_autograd():
+    """A planner at run time (inference_mode) fills the constant caches first; training in the same
+    process must still backpropagate. Fresh process: the caches must start empty."""
+    import subprocess
+    import sys
+
+    code = (
+        "import torch\n"
+        "from mapkit.trajopt import min_snap\n"
+        "w = torch.tensor([[[0.0, 0, 0], [1, 1, 0], [2, 0, 1], [3, 1, 1]]], dtype=torch.float64)\n"
+        "T = torch.ones(1, 3, dtype=torch.float64)\n"
+        "with torch.inference_mode():\n"
+        "    min_snap(w, T); min_snap(w, T, corridor=0.1)\n"
+        "for kw in ({}, {'corridor': 0.1}):\n"
+        "    wg = w.clone().requires_grad_(True)\n"
+        "    min_snap(wg, T, **kw).snap_cost().sum().backward()\n"
+        "    assert torch.isfinite(wg.grad).all()\n"
+        "print('ok')\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]

@@ -1,1 +1,12 @@
-"""The viser web viewer (``mapkit view``); a thin layer over library functions in ``mapkit``."""
+"""The viser web viewer (``mapkit view``); a thin layer over library functions in :mod:`mapkit.viz`.
+
+>>> from mapkit.viewer import ViewerApp, ViewerConfig          # doctest: +SKIP
+>>> with ViewerApp(ViewerConfig(workspace="ws", port=0)) as app:  # doctest: +SKIP
+...     print(app.url)
+...     app.gui["slice_axis"].value = "x"
+"""
+
+from mapkit.viewer._app import LAYERS, ViewerApp, ViewerConfig, ViewerError
+from mapkit.viewer._browser import BrowserError, find_chromium, screenshot
+
+__all__ = ["LAYERS", "BrowserError", "ViewerApp", "ViewerConfig", "ViewerError", "find_chromium", "screenshot"]

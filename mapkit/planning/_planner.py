@@ -69,8 +69,12 @@ class Planner:
         return cls(net, torch.device(device))
 
     def plan(self, depth: np.ndarray, goal_body: np.ndarray, *, velocity_body: np.ndarray | None = None,
-             rate_hz: float = 50.0) -> PlanResult:
-        """Depth (H, W) metres (NaN invalid) + goal (3,) body frame [+ velocity (3,)] → PlanResult."""
+             rate_hz: float = 50.0, corridor: float | None = None) -> PlanResult:
+        """Depth (H, W) metres (NaN invalid) + goal (3,) body frame [+ velocity (3,)] → PlanResult.
+
+        `corridor`: half-width (m) of the flight corridor around each key-point segment (body
+        axes); the min-snap trajectory is then a QP bounded by it instead of passing through the
+        interior key-points (see :func:`mapkit.trajopt.min_snap`). None: through the key-points."""
         goal = np.asarray(goal_body, dtype=np.float32).reshape(3)
         if not np.all(np.isfinite(goal)):
             raise PlanningError(f"goal {goal.tolist()} is not finite")
@@ -79,7 +83,7 @@ class Planner:
         with torch.inference_mode():
             t0 = time.perf_counter()
             p = self.net.plan(d, torch.from_numpy(goal[None]).to(self.device),
-                              start_velocity=torch.from_numpy(vel[None]).to(self.device))
+                              start_velocity=torch.from_numpy(vel[None]).to(self.device), corridor=corridor)
             if self.device.type == "cuda":
                 torch.cuda.synchronize()
             latency = 1e3 * (time.perf_counter() - t0)

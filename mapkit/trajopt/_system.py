@@ -73,12 +73,14 @@ def _const(name: str, r: int, dtype: torch.dtype, device: torch.device) -> torch
             arr = boundary_inverse(r)
         elif name.startswith("idx"):
             M = int(name[3:])
-            t = torch.as_tensor(_scatter_index(M, r), device=device)
+            with torch.inference_mode(False):  # cached for later autograd use too (see index_tensor)
+                t = torch.as_tensor(_scatter_index(M, r), device=device)
             _CONST_CACHE[key] = t
             return t
         else:  # pragma: no cover - internal misuse
             raise KeyError(name)
-        t = torch.as_tensor(arr, dtype=dtype, device=device)
+        with torch.inference_mode(False):
+            t = torch.as_tensor(arr, dtype=dtype, device=device)
         _CONST_CACHE[key] = t
     return t
 
@@ -87,7 +89,10 @@ def index_tensor(arr: np.ndarray, device: torch.device) -> torch.Tensor:
     key = ("index", arr.tobytes(), str(device))
     t = _CONST_CACHE.get(key)
     if t is None:
-        t = torch.as_tensor(arr, device=device)
+        # a tensor made under torch.inference_mode (a planner at run time) could never be used by
+        # autograd again (training later in the same process): cache ordinary tensors only
+        with torch.inference_mode(False):
+            t = torch.as_tensor(arr, device=device)
         _CONST_CACHE[key] = t
     return t
 
@@ -139,7 +144,8 @@ def partitioned_hessian(T: torch.Tensor, r: int, lay: Layout) -> tuple[torch.Ten
     key = ("perm", M, r, lay.free.size, str(T.device))
     idx = _CONST_CACHE.get(key)
     if idx is None:
-        idx = torch.as_tensor(_perm_scatter_index(M, r, lay.free.size > (M - 1) * (r - 1)), device=T.device)
+        with torch.inference_mode(False):  # cached: must serve autograd later too (see index_tensor)
+            idx = torch.as_tensor(_perm_scatter_index(M, r, lay.free.size > (M - 1) * (r - 1)), device=T.device)
         _CONST_CACHE[key] = idx
     H = torch.zeros(B, N * N, dtype=T.dtype, device=T.device).index_add(1, idx, blocks.reshape(B, -1))
     H = H.reshape(B, N, N)
