@@ -320,7 +320,7 @@ def test_cli_serves_until_ctrl_c(data) -> None:
         with urllib.request.urlopen(url, timeout=30) as resp:
             assert resp.status == 200 and b"<html" in resp.read(2000).lower()
         proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=60)
+        out, _ = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -225,11 +225,12 @@ class ViewerApp:
     def stop(self) -> None:
         """Stop the player thread and the server (idempotent)."""
         self._stop_event.set()
-        for attr in ("_player", "_warmup"):
-            thread = getattr(self, attr, None)
-            if thread is not None:
-                thread.join(timeout=30.0)
-                setattr(self, attr, None)
+        if self._player is not None:
+            self._player.join(timeout=30.0)
+            self._player = None
+        # The warm-up thread only imports torch (a daemon; an import cannot be cut short): waiting
+        # for it made Ctrl-C take tens of seconds on a loaded machine.
+        self._warmup = None
         if self.server is not None:
             self._quiet_stop(self.server)
             self.server = None
