@@ -98,11 +98,10 @@ def _markdown(path: Path, doc: dict, latency: dict, figures: list[str]) -> Path:
         L.append(f"| {m} | {_effort(o['control_effort'])} | {_lat(latency[m]['overall'])} | "
                  f"{_pm(o['path_length_ratio'])} | {mind} |")
     L += ["", "Paper: " + "; ".join(f"{k} {e} m²/s⁷, {t} ms" for k, (e, t) in PAPER_EFFORT_LATENCY.items()) + ".", ""]
-    if "learned" in methods and "iplanner-style" in methods:
-        a, b = s["learned"]["overall"]["control_effort"]["mean"], s["iplanner-style"]["overall"]["control_effort"]["mean"]
-        if a is not None and b:
-            L += [f"Learned planner vs iPlanner-style interpolation: effort {100 * (1 - a / b):+.1f} % lower "
-                  f"(paper: 30.9 % lower).", ""]
+    for other, paper in (("iplanner-style", "paper: 30.9 % lower than iPlanner"),
+                         ("learned+gradient", "paper: TAN 21.16 vs gradient descent 26.99")):
+        if "learned" in methods and other in methods:
+            L += [_effort_comparison(doc, "learned", other, paper), ""]
     ta = [m for m in ("learned+uniform", "learned+poly5", "learned+gradient", "learned") if m in methods]
     if ta:
         L += ["## Table III — time allocation (same key-points and total time)", "",
@@ -126,6 +125,29 @@ def _markdown(path: Path, doc: dict, latency: dict, figures: list[str]) -> Path:
     L += [f"Versions: {', '.join(f'{k} {v}' for k, v in doc['versions'].items())}.", ""]
     path.write_text("\n".join(L))
     return path
+
+
+def _effort_comparison(doc: dict, a: str, b: str, paper: str) -> str:
+    """Effort of a vs b over all their successful flights and over the pairs both reached."""
+    s = doc["summary"]
+    ea, eb = s[a]["overall"]["control_effort"]["mean"], s[b]["overall"]["control_effort"]["mean"]
+    if ea is None or not eb:
+        return f"Effort {a} vs {b}: no comparison (one of them reached no goal; {paper})."
+    ok = {}
+    for e in doc["episodes"]:
+        if e["method"] in (a, b) and e["outcome"] == "success":
+            ok.setdefault((e["world"], e["pair"]), {})[e["method"]] = e["control_effort"]
+    both = [v for v in ok.values() if len(v) == 2]
+
+    def rel(x: float, y: float) -> str:
+        return f"{100 * abs(1 - x / y):.1f} % {'lower' if x < y else 'higher'}"
+
+    text = f"Effort {a} vs {b}: {rel(ea, eb)} over each one's successful flights"
+    if both:
+        ma = float(np.mean([v[a] for v in both]))
+        mb = float(np.mean([v[b] for v in both]))
+        text += f"; {rel(ma, mb)} on the {len(both)} pairs both reached ({ma:.4g} vs {mb:.4g} m²/s⁷)"
+    return text + f" ({paper})."
 
 
 def _occupancy_views(world: World, z: float, res: float) -> tuple[np.ndarray, np.ndarray, tuple, tuple]:
