@@ -77,7 +77,11 @@ class _Cdp:
         self._ws.send(json.dumps({"id": my_id, "method": method, "params": params}))
         deadline = time.monotonic() + timeout
         while True:
-            msg = json.loads(self._ws.recv(timeout=max(0.1, deadline - time.monotonic())))
+            try:
+                msg = json.loads(self._ws.recv(timeout=max(0.1, deadline - time.monotonic())))
+            except TimeoutError:
+                raise BrowserError(f"Chromium did not answer {method} within {timeout:.0f} s (a heavy scene "
+                                   f"rendered in software, or a loaded machine); try again or show fewer layers") from None
             if msg.get("id") == my_id:
                 if "error" in msg:
                     raise BrowserError(f"Chromium refused {method}: {msg['error'].get('message')}")
