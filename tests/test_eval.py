@@ -244,3 +244,24 @@ def test_cli_bad_models(tmp_path: Path):
     r = CliRunner().invoke(main, ["eval", "--model", str(tmp_path / "broken"), "-o", str(tmp_path / "ev")])
     assert r.exit_code == 1 and "is not a mapkit planner" in r.output
     assert not (tmp_path / "ev").exists()
+
+
+def test_refuses_the_seed_of_a_training_world(tmp_path: Path):
+    """The run's training workspace came from a simulated office with seed 3: evaluating office
+    worlds with seed 3 would fly the training world."""
+    from mapkit.ingest import ingest
+    from mapkit.sim import SimConfig, simulate
+
+    sim = simulate(SimConfig(world="office", seed=3, duration=1.0, width=48, height=36), tmp_path / "flight",
+                   progress=False)
+    ws = tmp_path / "ws"
+    ingest([sim.bag_path], ws, progress=False)
+    run = save_model(tmp_path / "run", planner_preset("cpu", input_size=(32, 48)), workspaces=[str(ws)])
+    r = CliRunner().invoke(main, ["eval", "--model", str(run), "--world", "office", "--seed", "3", "--pairs", "1",
+                                  "-o", str(tmp_path / "ev")])
+    assert r.exit_code == 1 and "--seed 3 made the training world(s) office" in r.output, r.output
+    # The camera comes from that workspace: 48x36, so a 48x48 input is too tall for it.
+    tall = save_model(tmp_path / "tall", planner_preset("cpu", input_size=(48, 48)), workspaces=[str(ws)])
+    r = CliRunner().invoke(main, ["eval", "--model", str(tall), "--world", "garage", "--seed", "3", "--pairs", "1",
+                                  "-o", str(tmp_path / "ev")])
+    assert r.exit_code == 1 and "48x48" in r.output and "36x48" in r.output, r.output
