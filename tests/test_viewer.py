@@ -304,7 +304,10 @@ def test_cli_serves_until_ctrl_c(data) -> None:
     """The real command: prints what it loaded and the URL, serves the page, stops on SIGINT."""
     proc = subprocess.Popen([sys.executable, "-m", "mapkit.cli", "view", "-w", str(data["ws"]), "--port", "0"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                            # A shell without job control starts background jobs (CI) with SIGINT
+                            # ignored, and children inherit that: give the command Ctrl-C back.
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines = []
     try:
         url = None

@@ -215,10 +215,9 @@ class ViewerApp:
             raise
         self._player = threading.Thread(target=self._play_loop, name="mapkit-view-player", daemon=True)
         self._player.start()
-        if self.slicer is not None and self.planner is None:
-            # the "obstacle cost" slice mode imports torch (about 2 s): do it now, not on the first switch
-            self._warmup = threading.Thread(target=_import_planner, name="mapkit-view-warmup", daemon=True)
-            self._warmup.start()
+        # No background warm-up of torch for the "obstacle cost" mode: a daemon thread still inside
+        # `import torch` when Ctrl-C came could hang the interpreter's exit (seen on a loaded CI
+        # machine). The first switch to cost mode pays the import (about 2 s) instead.
         self.timings["start_s"] = time.perf_counter() - t0
         return self.url
 
@@ -228,9 +227,6 @@ class ViewerApp:
         if self._player is not None:
             self._player.join(timeout=30.0)
             self._player = None
-        # The warm-up thread only imports torch (a daemon; an import cannot be cut short): waiting
-        # for it made Ctrl-C take tens of seconds on a loaded machine.
-        self._warmup = None
         if self.server is not None:
             self._quiet_stop(self.server)
             self.server = None
@@ -821,13 +817,6 @@ class ViewerApp:
         if missing:
             rows.append(f"\n{missing} executed path(s) missing from trajectories.npz")
         self.gui["eval_table"].content = "\n".join(rows)
-
-
-def _import_planner() -> None:
-    try:
-        import mapkit.planner  # noqa: F401
-    except Exception:  # noqa: BLE001 - the cost mode will report it when used
-        pass
 
 
 def _decimals(step: float) -> int:
