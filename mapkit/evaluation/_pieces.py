@@ -73,7 +73,7 @@ class Pieces:
         return val
 
     def state(self, t: float) -> np.ndarray:
-        """(4, 3) position, velocity, acceleration, jerk at ``t`` (just before any knot at ``t``)."""
+        """(4, 3) position, velocity, acceleration, jerk at ``t`` (from the segment that starts at a knot)."""
         return np.stack([self.derivative(np.array([t]), q)[0] for q in range(4)])
 
     def limits_at_knots(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
