@@ -1,7 +1,8 @@
 """Planner training throughput (samples/s, both presets) and planning latency (depth → trajectory).
 
 Issue 5 goals: report training samples/s on CPU for the `cpu` and `paper` presets' input sizes;
-planning latency at batch 1 on CPU for the `cpu` preset ≤ 13 ms (the paper: 13.16 ms on an RTX 4060).
+planning latency at batch 1 on CPU for the `cpu` preset ≤ 13 ms (the paper: 13.16 ms on an RTX 4060);
+issue 11: the shipped model's closed-loop success on a few unseen pairs.
 A synthetic scene (floor + boxes) stands in for a map so the figures measure the network, the
 min-snap layer and the loss, not disk reads.
 """
@@ -28,31 +29,35 @@ def synthetic_map():
     return EsdfMap(esdf=esdf, voxel_size=0.1, origin=np.array([-6.0, -6.0, -0.3]))
 
 
-def throughput(preset_name: str, esdf_map, *, batch: int, steps: int) -> float:
-    from mapkit.planner import LossConfig, PlannerConfig, PlannerNet, planner_loss
+def throughput(preset_name: str, esdf_map, *, batch: int, steps: int, goals_per_image: int = 1) -> float:
+    """Training samples/s of the preset's full step (network, every candidate's min-snap, loss,
+    backward); ``goals_per_image`` > 1 shares each depth image among that many goals, as the cpu
+    preset's batches do (``goals_together``)."""
+    from mapkit.planner import LossConfig, PlannerConfig, PlannerNet, candidate_loss
     from mapkit.train import preset
 
     cfg = preset(preset_name)
     net = PlannerNet(PlannerConfig.from_dict(cfg.planner))
     opt = torch.optim.Adam(net.parameters(), lr=1e-4)
-    h, w = cfg.planner["input_size"]
-    depth = torch.rand(batch, 480, 640) * 8 + 0.5
-    goal = torch.tensor([[6.0, 0.5, 0.0]]).repeat(batch, 1)
+    images = max(1, batch // goals_per_image)
+    depth = torch.rand(images, 480, 640) * 8 + 0.5
+    index = torch.arange(batch) % images
+    goal = torch.tensor([[6.0, 0.5, 0.0]]).repeat(batch, 1) + torch.randn(batch, 3) * 0.5
     T = torch.eye(4).repeat(batch, 1, 1)
     T[:, 2, 3] = 1.5
     vel = torch.zeros(batch, 3)
-    loss_cfg = LossConfig()
+    loss_cfg = LossConfig(**cfg.loss)
     times = []
     for i in range(steps + 1):
         t = time.perf_counter()
-        plan = net.plan(depth, goal, start_velocity=vel)
-        loss, _ = planner_loss(plan, goal=goal, T_world_body=T, esdf_map=esdf_map, config=loss_cfg)
+        out = net(net.preprocess(depth), goal, index)
+        loss, _ = candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=esdf_map, start_velocity=vel,
+                                 config=loss_cfg)
         opt.zero_grad()
         loss.backward()
         opt.step()
         if i:  # the first step pays one-off costs
             times.append(time.perf_counter() - t)
-    del h, w
     return batch / float(np.median(times))
 
 
@@ -78,16 +83,38 @@ def latency(esdf_map) -> tuple[float, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--pairs", type=int, default=5, help="Unseen pairs per world for the shipped model's success.")
     args = parser.parse_args()
     torch.manual_seed(0)
     esdf_map = synthetic_map()
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, CPU")
-    print(f"{'preset':<8}{'input':>10}{'batch':>7}{'train samples/s':>17}")
-    for name, size, batch in (("cpu", "96x160", 16), ("paper", "360x640", 16)):
-        rate = throughput(name, esdf_map, batch=batch, steps=args.steps if name == "cpu" else 2)
-        print(f"{name:<8}{size:>10}{batch:>7}{rate:>17.1f}")
+    print(f"torch {torch.__version__}, CPU")
+    from mapkit.train import set_threads
+
+    set_threads()
+    print(f"{'preset':<8}{'input':>10}{'batch':>7}{'goals/image':>13}{'train samples/s':>17}")
+    for name, size, batch, per_image in (("cpu", "96x160", 16, 1), ("cpu", "96x160", 16, 5), ("paper", "360x640", 16, 1)):
+        rate = throughput(name, esdf_map, batch=batch, steps=args.steps if name == "cpu" else 2, goals_per_image=per_image)
+        print(f"{name:<8}{size:>10}{batch:>7}{per_image:>13}{rate:>17.1f}")
+    torch.set_num_threads(1)
     med, p90 = latency(esdf_map)
-    print(f"planning latency (cpu preset, batch 1, depth 640x480 → trajectory): median {med:.2f} ms, p90 {p90:.2f} ms; goal <= 13 ms")
+    print(f"planning latency (cpu preset, 1 thread, batch 1, depth 640x480 → trajectory): median {med:.2f} ms, "
+          f"p90 {p90:.2f} ms; goal <= 13 ms")
+    shipped_success(args.pairs)
+
+
+def shipped_success(pairs: int) -> None:
+    """Closed-loop success of the shipped model (`--model pretrained`) on a few unseen pairs, with
+    the straight line and the oracle on the same pairs (the full protocol: README, 60 pairs per world)."""
+    import tempfile
+
+    from mapkit.evaluation import EvalConfig, evaluate
+
+    with tempfile.TemporaryDirectory() as tmp:
+        config = EvalConfig(pairs=pairs, seed=101, methods=("learned", "straight", "oracle"))
+        result = evaluate("pretrained", f"{tmp}/eval", config, overwrite=True)
+    s = result.summary["success"]
+    cells = ", ".join(f"{m} {100 * (s[m]['overall']['success_rate'] or 0):.0f} %" for m in config.methods)
+    print(f"shipped model, {pairs} unseen pairs per world (seed 101): success {cells}")
 
 
 if __name__ == "__main__":

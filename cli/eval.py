@@ -11,7 +11,7 @@ from mapkit.cli.main import library_call, main
 
 @main.command("eval")
 @click.option("--model", "run_dir", type=click.Path(path_type=Path), default=None,
-              help="Run directory with model.pt (needed by every method but straight and oracle).")
+              help="Run directory with model.pt, or \"pretrained\" for the model shipped with mapkit (needed by every method but straight and oracle).")
 @click.option("--world", "world", default="all", show_default=True, help="forest, office, garage, all, or a comma list.")
 @click.option("--pairs", type=int, default=60, show_default=True, help="Start-goal pairs per world.")
 @click.option("--seed", type=int, default=0, show_default=True,
@@ -25,10 +25,12 @@ from mapkit.cli.main import library_call, main
 @click.option("--horizon", type=float, default=6.0, show_default=True, help="Local goal distance, metres.")
 @click.option("--min-distance", type=float, default=8.0, show_default=True, help="Start-goal distance, metres.")
 @click.option("--ignore-eta", is_flag=True, help="Execute plans even when eta >= 0.5.")
+@click.option("--on-reject", type=click.Choice(["continue", "brake"]), default="continue", show_default=True,
+              help="A rejected plan (eta >= 0.5) in flight: keep flying the previous plan, or brake to rest and look around.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int,
-             replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, overwrite: bool) -> None:
+             replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: str, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, LoopConfig, evaluate
 
@@ -36,7 +38,8 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
     names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
     config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
                         workers=workers,
-                        loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta))
+                        loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
+                                        on_reject=on_reject))
     result = evaluate(run_dir, output, config, overwrite=overwrite)
     s, lat = result.summary["success"], result.summary["latency"]
     cols = [*config.worlds, "overall"]

@@ -43,6 +43,7 @@ def main(verbose: int) -> None:
 
 
 # Command modules register themselves on `main` when imported.
+from mapkit.cli import dataset as _dataset  # noqa: E402,F401
 from mapkit.cli import eval as _eval  # noqa: E402,F401
 from mapkit.cli import export as _export  # noqa: E402,F401
 from mapkit.cli import ingest as _ingest  # noqa: E402,F401

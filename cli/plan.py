@@ -11,7 +11,7 @@ from mapkit.cli.main import library_call, main
 
 
 @main.command("plan")
-@click.option("--model", "run_dir", required=True, type=click.Path(path_type=Path), help="Run directory with model.pt.")
+@click.option("--model", "run_dir", required=True, type=click.Path(path_type=Path), help="Run directory with model.pt, or \"pretrained\" for the shipped model.")
 @click.option("-w", "--workspace", required=True, type=click.Path(path_type=Path), help="Workspace with frames.zarr.")
 @click.option("--frame", "frame_index", type=int, required=True, help="Index of the frame in frames.zarr.")
 @click.option("--goal", type=float, nargs=3, required=True, metavar="X Y Z", help="Goal, metres.")
@@ -37,7 +37,8 @@ def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float
         g = T_bw[:3, :3] @ g + T_bw[:3, 3]
     velocity = body_velocities(store.stamp_ns, store.T_world_body)[frame_index]
     planner = Planner.load(run_dir, device=device)
-    result = planner.plan(np.asarray(store.depth[frame_index]), g, velocity_body=velocity)
+    result = planner.plan(np.asarray(store.depth[frame_index]), g, velocity_body=velocity, K=store.K,
+                          T_body_camera=invert_transform(T_wb) @ store.T_world_camera[frame_index])
     out = output or workspace / "plans"
     paths = write_plan_outputs(result, T_wb, int(store.stamp_ns[frame_index]), out,
                                world_frame=str(store.attrs.get("world_frame", "world")), stem=f"plan_{frame_index:06d}")

@@ -25,8 +25,15 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
 
 
 @main.command("train")
-@click.option("-w", "--workspace", "workspaces", multiple=True, required=True, type=click.Path(path_type=Path),
+@click.option("-w", "--workspace", "workspaces", multiple=True, type=click.Path(path_type=Path),
               help="Workspace with tuples.zarr and map.zarr; repeat to train on several.")
+@click.option("--dataset", "dataset_root", type=click.Path(path_type=Path), default=None,
+              help="A `mapkit dataset` directory: train on its worlds (added to any -w).")
+@click.option("--val-worlds", type=int, default=None,
+              help="With --dataset: hold out the last N worlds whole for validation (default: an eighth, at least 1).")
+@click.option("--val-workspace", "val_workspaces", multiple=True, type=click.Path(path_type=Path),
+              help="Held-out workspace for validation (repeatable); without one, each store's own split validates.")
+@click.option("--grad-clip", type=float, default=None, help="Override the gradient-norm clip.")
 @click.option("--preset", default="cpu", show_default=True, type=click.Choice(["cpu", "paper"]), help="Named configuration.")
 @click.option("--name", default=None, help="Run name (default: the preset's name).")
 @click.option("--runs-dir", type=click.Path(path_type=Path), default=None, help="Where runs go (default: first WS/runs).")
@@ -44,7 +51,8 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @click.option("--resume", is_flag=True, help="Continue the run after its last completed epoch.")
 @click.option("--overwrite", is_flag=True, help="Restart an existing run from scratch.")
 @library_call
-def train_cmd(workspaces: tuple[Path, ...], preset: str, name: str | None, runs_dir: Path | None, epochs: int | None,
+def train_cmd(workspaces: tuple[Path, ...], dataset_root: Path | None, val_worlds: int | None,
+              val_workspaces: tuple[Path, ...], grad_clip: float | None, preset: str, name: str | None, runs_dir: Path | None, epochs: int | None,
               batch_size: int | None, lr: float | None, device: str, seed: int, max_steps: int | None,
               val_batches: int | None, weight_decay: float | None, corridor: float | None, planner_items: tuple[str, ...], loss_items: tuple[str, ...], resume: bool,
               overwrite: bool) -> None:
@@ -58,18 +66,40 @@ def train_cmd(workspaces: tuple[Path, ...], preset: str, name: str | None, runs_
     overrides: dict[str, Any] = {"name": name or preset, "device": device, "seed": seed, "max_steps": max_steps,
                                  "val_batches": val_batches}
     overrides["corridor"] = corridor
-    for key, value in (("epochs", epochs), ("batch_size", batch_size), ("lr", lr), ("weight_decay", weight_decay)):
+    for key, value in (("epochs", epochs), ("batch_size", batch_size), ("lr", lr), ("weight_decay", weight_decay),
+                       ("grad_clip", grad_clip)):
         if value is not None:
             overrides[key] = value
     overrides["planner"] = _pairs(planner_items, "--planner")
     overrides["loss"] = _pairs(loss_items, "--loss")
     config = make_preset(preset, **overrides)
-    s = train(list(workspaces), config, runs_dir=runs_dir, resume=resume, overwrite=overwrite, progress=True)
+    train_ws, val_ws = list(workspaces), list(val_workspaces)
+    if dataset_root is not None:
+        from mapkit.dataset import dataset_workspaces, split_worlds
+
+        n_val = val_worlds if val_worlds is not None else max(1, len(dataset_workspaces(dataset_root)) // 8)
+        more_train, more_val = split_worlds(dataset_root, n_val)
+        train_ws, val_ws = more_train + train_ws, val_ws + more_val
+    elif val_worlds is not None:
+        raise click.UsageError("--val-worlds needs --dataset")
+    if not train_ws:
+        raise click.UsageError("pass -w WS (repeatable) or --dataset ROOT")
+    if runs_dir is None and dataset_root is not None:
+        runs_dir = dataset_root / "runs"
+    s = train(train_ws, config, runs_dir=runs_dir, resume=resume, overwrite=overwrite, progress=True,
+              val_workspaces=val_ws)
+    if s.blocked_goals == 0:
+        click.echo("warning: no training goal is blocked in its map (0 of the samples): the planner cannot learn to "
+                   "steer around obstacles; re-export with hidden goals (mapkit export --goal-mix 0.2 0.4 0.4)", err=True)
     if s.last:
         v, b = s.last["val"], s.baseline
         click.echo(
             f"run {s.run_dir}: {s.epochs_done} epochs, {s.steps} steps, {s.seconds:.0f} s ({s.samples_per_second:.1f} samples/s); "
-            f"val obstacle {v['obstacle']:.4f} collision {v['collision_rate']:.3f}"
+            f"{s.threads} torch thread(s); model.pt from epoch {s.best_epoch}; "
+            f"val obstacle {v['obstacle']:.4f} collision {v['collision_rate']:.3f}, blocked goals: reach "
+            f"{v.get('blocked_reach', 0):.3f} collision {v.get('blocked_collision', 0):.3f}"
             + (f" (untrained {b['val']['obstacle']:.4f} / {b['val']['collision_rate']:.3f}, straight "
-               f"{b['straight']['obstacle']:.4f} / {b['straight']['collision_rate']:.3f})" if b else "")
+               f"{b['straight']['obstacle']:.4f} / {b['straight']['collision_rate']:.3f}, straight on blocked goals: reach "
+               f"{b['straight'].get('blocked_reach', 0):.3f} collision {b['straight'].get('blocked_collision', 0):.3f})"
+               if b else "")
         )

@@ -14,7 +14,7 @@ from mapkit.cli.main import library_call, main
 @click.option("-w", "--workspace", type=click.Path(path_type=Path), default=None,
               help="Workspace (frames.zarr, cloud.ply, map.zarr; whatever it holds is shown).")
 @click.option("--model", "run_dir", type=click.Path(path_type=Path), default=None,
-              help="Run directory with model.pt: click a goal to plan from the selected frame.")
+              help="Run directory with model.pt (or \"pretrained\"): click a goal to plan from the selected frame.")
 @click.option("--eval", "eval_dir", type=click.Path(path_type=Path), default=None,
               help="Output folder of `mapkit eval`: executed paths per method in the simulated worlds.")
 @click.option("--host", default="127.0.0.1", show_default=True,

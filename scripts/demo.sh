@@ -25,11 +25,11 @@ for flight in "${flights[@]}"; do
   echo "== mapkit export -w $WS/$name"
   $MAPKIT export -w "$WS/$name" --overwrite
 done
-echo "== mapkit train (cpu preset; a few steps here, drop --max-steps for the full ~9 minute run)"
+echo "== mapkit train (cpu preset, a few steps on the sample flights; the shipped planner trains on mapkit dataset worlds: mapkit/planning/pretrained/REPRODUCE.md)"
 $MAPKIT train -w "$WS/forest" -w "$WS/garage" -w "$WS/office" --preset cpu --name demo --max-steps 40 --overwrite
-echo "== mapkit eval (closed loop in an unseen office world; the paper's protocol is --world all --pairs 60)"
-$MAPKIT eval --model "$WS/forest/runs/demo" --world office --pairs 3 --seed 0 \
+echo "== mapkit eval of the planner shipped with mapkit (closed loop in unseen worlds; the paper's protocol is --world all --pairs 60)"
+$MAPKIT eval --model pretrained --world all --pairs 2 --seed 0 \
   --methods learned,iplanner-style,straight,oracle -o "$WS/eval" --overwrite
-echo "demo: workspaces in $WS/ (frames.zarr, cloud.ply, mesh.ply, map.zarr, slices.png, tuples.zarr, runs/demo), eval report in $WS/eval/report.md"
+echo "demo: workspaces in $WS/ (frames.zarr, cloud.ply, mesh.ply, map.zarr, slices.png, tuples.zarr, runs/demo), eval report of the shipped planner in $WS/eval/report.md"
 echo "demo: look at it in the browser (point cloud, ESDF slices, the flight, live plans, corridors, eval paths):"
-echo "  $MAPKIT view -w $WS/forest --model $WS/forest/runs/demo --eval $WS/eval"
+echo "  $MAPKIT view -w $WS/forest --model pretrained --eval $WS/eval"

@@ -13,7 +13,7 @@ from click.testing import CliRunner
 
 from mapkit.cli.main import main
 from mapkit.esdf import EsdfConfig, build_esdf
-from mapkit.export import FUTURE, RANDOM, ExportConfig, ExportError, export_tuples, split_segments
+from mapkit.export import FUTURE, HIDDEN, RANDOM, ExportConfig, ExportError, export_tuples, split_segments
 from mapkit.fusion import FuseConfig, fuse
 from mapkit.sim import SimConfig, World, simulate
 
@@ -43,7 +43,7 @@ def test_goals_split_and_store(workspace: tuple[Path, World]) -> None:
     d = world.signed_distance(world_goals.reshape(-1, 3))
     assert d.min() > 0.3 - 0.2
     kinds = root["goal_kind"][:]
-    assert set(np.unique(kinds)) <= {FUTURE, RANDOM} and (kinds == FUTURE).any() and (kinds == RANDOM).any()
+    assert set(np.unique(kinds)) <= {FUTURE, RANDOM, HIDDEN} and (kinds == FUTURE).any() and (kinds == RANDOM).any()
     # Random goals lie in the camera's field of view.
     T_wc = root["T_world_camera"][:]
     K = np.asarray(root.attrs["K"])

@@ -373,3 +373,105 @@ def test_torchvision_key_mapping():
     bad["layer1.0.conv2.weight"] = torch.zeros(64, 64, 5, 5)
     with pytest.raises(PlannerError, match="layer1.0.conv2.weight"):
         load_torchvision_state_dict(ResNet18(), bad)
+
+
+# ------------------------------------------------------------------------- several candidate paths
+def test_anchors_detour_both_ways_and_end_at_the_goal():
+    cfg = planner_preset("cpu", num_candidates=6)
+    net = PlannerNet(cfg).eval()
+    goal = torch.tensor([[6.0, 0.0, 0.0], [0.0, 3.0, 0.5]])
+    anchors = net.anchor_paths(goal)
+    assert anchors.shape == (2, 6, cfg.num_keypoints, 3)
+    torch.testing.assert_close(anchors[:, :, -1], goal[:, None].expand(2, 6, 3), atol=1e-6, rtol=0)
+    mid = anchors[0, :, cfg.num_keypoints // 2]
+    # Straight, a climb, then left/right pairs mirrored about the goal line (y for a goal along x).
+    assert float(mid[0, 1].abs()) < 1e-6 and float(mid[1, 2]) > 0.5
+    torch.testing.assert_close(mid[2, 1], -mid[3, 1])
+    assert float(mid[4, 1]) > float(mid[2, 1]) > 0.5
+    # For a goal along +y the lateral direction is x (left of +y is -x).
+    assert float(anchors[1, 2, 2, 0]) < -0.1
+    # The untrained net's candidates lie on their anchors (centimetres).
+    depth, _ = _inputs(2, cfg)
+    with torch.no_grad():
+        out = net(net.preprocess(depth), goal)
+    assert out.candidates.shape == (2, 6, cfg.num_keypoints, 3) and out.scores.shape == (2, 6)
+    assert float((out.candidates - anchors).norm(dim=-1).max()) < 0.1
+    assert torch.equal(out.keypoints, out.candidates[torch.arange(2), out.chosen])
+
+
+def test_candidate_loss_with_one_path_is_the_paper_loss(box_map):
+    torch.manual_seed(1)
+    net = PlannerNet(planner_preset("cpu"))
+    depth, goal = _inputs(4, net.config)
+    T = torch.eye(4).expand(4, 4, 4).clone()
+    v = torch.tensor([[1.0, 0.0, 0.0]]).expand(4, 3)
+    out = net(net.preprocess(depth), goal)
+    from mapkit.planner import candidate_loss
+
+    cfg = LossConfig(obstacle_softness=0.3)
+    total, terms = candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=box_map, start_velocity=v, config=cfg)
+    p = net.trajectory(out.keypoints, start_velocity=v)
+    ref, ref_terms = planner_loss(p, goal=goal, T_world_body=T, esdf_map=box_map, eta_logit=out.eta_logit, config=cfg)
+    torch.testing.assert_close(total, ref)
+    for key in ("obstacle", "goal", "smoothness", "escape", "time", "collision_rate"):
+        torch.testing.assert_close(terms[key], ref_terms[key], msg=key)
+
+
+def test_winner_takes_all_keeps_the_detour_that_wins(box_map):
+    """A pillar right on the line: the straight candidate collides, a detour does not; the loss
+    trains the score towards a free detour and the chosen path clears the pillar after training."""
+    torch.manual_seed(0)
+    from mapkit.planner import candidate_loss
+
+    net = PlannerNet(planner_preset("cpu", num_candidates=4, input_size=(32, 48), encoder_width=0.125))
+    depth = torch.full((4, 48, 64), 5.0)
+    goal = torch.tensor([[8.0, 0.0, 0.0]]).expand(4, 3)
+    T = torch.eye(4).expand(4, 4, 4).clone()
+    cfg = LossConfig(obstacle_softness=0.3)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    for _ in range(60):
+        out = net(net.preprocess(depth), goal)
+        loss, terms = candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=box_map, config=cfg)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert float(terms["winner_collision_rate"]) == 0.0
+    assert float(terms["collision_rate"]) == 0.0  # the chosen path clears it too (left or right: a tie)
+    assert int(out.chosen[0]) != 0  # not the straight anchor
+
+
+def test_depth_margins_against_a_wall_in_front():
+    """Depth 4 m everywhere (a wall facing the camera): path points before it are in view with a
+    positive margin, points behind it negative, points behind the camera out of view; a pole beside
+    the path counts only when within the robot's disc."""
+    from mapkit.planner import CameraInput, depth_margins, preprocess_depth
+    from mapkit.sim import CameraModel, camera_extrinsics
+
+    cam = CameraModel(width=160, height=120)
+    T_bl, T_lo = camera_extrinsics()
+    T_bc = torch.from_numpy(T_bl @ T_lo)
+    calib = CameraInput.from_calibration(torch.from_numpy(cam.K), 160, 120, T_bc)
+    depth = torch.full((1, 120, 160), 4.0)  # a wall 4 m in front of the camera
+    x = preprocess_depth(depth, input_size=(96, 160), max_depth=10.0)
+    K = 5
+    straight = torch.linspace(1.2, 6.0, K)[:, None] * torch.tensor([1.0, 0.0, 0.0])
+    behind = torch.linspace(-1.0, -5.0, K)[:, None] * torch.tensor([1.0, 0.0, 0.0])
+    cand = torch.stack([straight, behind])[None]  # (1, 2, K, 3)
+    f = depth_margins(cand, x, calib, max_depth=10.0).reshape(1, 2, -1, 2)
+    xs = torch.cat([torch.zeros(1), straight[:, 0]])
+    pts_x = torch.stack([xs[i] + (xs[i + 1] - xs[i]) * j / 3 for i in range(K) for j in (1, 2, 3)])
+    in_view, margin = f[0, 0, :, 0], f[0, 0, :, 1]
+    assert bool(in_view.all())
+    z_camera = pts_x - float(T_bc[0, 3])  # the camera sits 8 cm ahead of the body origin
+    np.testing.assert_allclose(margin.numpy(), ((4.0 - z_camera) / 2).clamp(-1, 1).numpy(), atol=0.03)
+    assert not bool(f[0, 1, :, 0].any()) and not bool(f[0, 1, :, 1].any())
+    # A pole 0.25 m beside the path at 2 m: seen by the point at 2 m, not by a point 1 m further aside.
+    depth = torch.full((1, 120, 160), 9.0)
+    u_pole = int(round(cam.K[0, 2] - cam.K[0, 0] * 0.25 / 2.0))  # 0.25 m to the left at 2 m depth
+    depth[:, :, u_pole - 1 : u_pole + 2] = 2.0
+    x = preprocess_depth(depth, input_size=(96, 160), max_depth=10.0)
+    near = torch.tensor([[[1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [3.0, 0.0, 0.0], [4.0, 0.0, 0.0], [5.0, 0.0, 0.0]]])
+    far_aside = near + torch.tensor([0.0, -1.0, 0.0])
+    f = depth_margins(torch.stack([near, far_aside], dim=1), x, calib, max_depth=10.0).reshape(1, 2, -1, 2)
+    at_2m = 5  # the sixth point (2 m along the path, last of the second segment)
+    assert float(f[0, 0, at_2m, 1]) < 0.05 and float(f[0, 1, at_2m, 1]) > 1.0 - 1e-6

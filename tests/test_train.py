@@ -79,19 +79,22 @@ def test_cli_bad_inputs(workspace: Path, tmp_path: Path) -> None:
 
 def test_gradients_reach_every_parameter_group(workspace: Path) -> None:
     from mapkit.esdf import EsdfMap
-    from mapkit.planner import LossConfig, PlannerConfig, PlannerNet, planner_loss
+    from mapkit.planner import LossConfig, PlannerConfig, PlannerNet, candidate_loss
     from mapkit.train import TupleSamples, TupleStore
 
     torch.manual_seed(0)
-    samples = TupleSamples([TupleStore.open(workspace)], "train")
+    samples = TupleSamples([TupleStore.open(workspace)], "train", goals_together=True)
     k, part = next(samples.batches(4, shuffle=False))
     batch = samples.load(k, part, torch.device("cpu"))
-    net = PlannerNet(PlannerConfig.from_dict(TINY))
-    plan = net.plan(batch["depth"], batch["goal"], start_velocity=batch["velocity"])
-    loss, _ = planner_loss(plan, goal=batch["goal"], T_world_body=batch["T_world_body"],
-                           esdf_map=EsdfMap.open(workspace / "map.zarr"), config=LossConfig())
+    assert batch["depth"].shape[0] < len(part)  # goals of one image share its encoder pass
+    net = PlannerNet(PlannerConfig.from_dict({**TINY, "num_candidates": 4}))
+    out = net(net.preprocess(batch["depth"]), batch["goal"], batch["image_index"])
+    loss, _ = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"],
+                             esdf_map=EsdfMap.open(workspace / "map.zarr"), start_velocity=batch["velocity"],
+                             config=LossConfig())
     loss.backward()
-    groups = {"encoder": net.encoder, "goal": net.goal_embed, "keypoints": net.keypoint_mlp, "eta": net.eta_mlp, "tan": net.tan}
+    groups = {"encoder": net.encoder, "goal": net.goal_embed, "keypoints": net.keypoint_mlp, "judge": net.judge_mlp,
+              "tan": net.tan}
     for name, module in groups.items():
         grads = [p.grad for p in module.parameters() if p.grad is not None]
         assert grads and any(float(g.abs().sum()) > 0 for g in grads), name
@@ -141,3 +144,39 @@ def test_plan_from_a_recorded_frame(workspace: Path, tmp_path: Path) -> None:
     result = runner.invoke(main, ["plan", "--model", str(tmp_path / "p"), "-w", str(workspace), "--frame", "99999",
                                   "--goal", "4", "0", "0"])
     assert result.exit_code == 1 and "--frame 99999" in result.output
+
+
+def test_held_out_worlds_validate_and_select_the_model(workspace: Path, tmp_path: Path) -> None:
+    import shutil
+
+    from mapkit.train import TrainDataError
+
+    held_out = tmp_path / "held_out_world"
+    shutil.copytree(workspace, held_out, ignore=shutil.ignore_patterns("runs"))
+    s = train([workspace], tiny("held", epochs=2, max_steps=None), runs_dir=tmp_path, progress=False,
+              val_workspaces=[held_out])
+    lines = [json.loads(x) for x in (tmp_path / "held" / "metrics.jsonl").read_text().splitlines()]
+    for key in ("blocked_collision", "blocked_reach", "blocked_count", "active_units"):
+        assert key in lines[-1]["val"], key
+    assert "blocked_reach" in lines[0]["straight"]
+    assert s.best_epoch in (1, 2) and lines[-1]["best_epoch"] == s.best_epoch
+    model = torch.load(tmp_path / "held" / "model.pt", map_location="cpu", weights_only=True)
+    assert model["epoch"] == s.best_epoch
+    cfg = json.loads((tmp_path / "held" / "config.json").read_text())
+    assert cfg["val_workspaces"] == [str(held_out.resolve())]
+    assert cfg["camera"]["width"] == 64 and ["forest", 4] in cfg["training_worlds"]
+    assert s.threads == torch.get_num_threads() >= 1
+    with pytest.raises(TrainDataError, match="both a training and a validation workspace"):
+        train([workspace], tiny("both"), runs_dir=tmp_path, progress=False, val_workspaces=[workspace])
+
+
+def test_set_threads_follows_the_cpu_affinity() -> None:
+    from mapkit.dataset import available_cpus
+    from mapkit.train import set_threads
+
+    before = torch.get_num_threads()
+    try:
+        assert set_threads() == available_cpus() == torch.get_num_threads()
+        assert set_threads(world_size=64) == 1 == torch.get_num_threads()
+    finally:
+        torch.set_num_threads(before)

@@ -238,10 +238,20 @@ class ViewerApp:
         with contextlib.redirect_stdout(io.StringIO()):
             server.stop()
 
+    def _T_body_camera(self, i: int) -> np.ndarray:
+        """(4, 4) optical camera → body at frame i (what the planner needs to check its paths)."""
+        from mapkit.geometry import invert_transform
+
+        fr = self.frames
+        return invert_transform(fr.T_world_body[i]) @ fr.T_world_camera[i]
+
     # ---------------------------------------------------------------------------------- loading
     def _load_planner(self, run: Path) -> None:
         import json
 
+        from mapkit.planning import resolve_model
+
+        run = resolve_model(run)
         if not run.exists():
             raise ViewerError(f"--model {str(run)!r} does not exist; pass a run directory (WS/runs/NAME) with model.pt")
         from mapkit.planning import Planner
@@ -271,7 +281,8 @@ class ViewerApp:
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
-                    self.planner.plan(blank, np.array([5.0, 0.0, 0.0]), corridor=corridor)
+                    self.planner.plan(blank, np.array([5.0, 0.0, 0.0]), corridor=corridor, K=self.frames.K,
+                                      T_body_camera=self._T_body_camera(0))
             except MapkitError as exc:
                 self.notes.append(f"model cannot plan: {exc}")
                 self.planner = None
@@ -681,7 +692,8 @@ class ViewerApp:
         depth = self._depth(i)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", TrajoptWarning)
-            result = self.planner.plan(depth, goal_b, velocity_body=self._velocity_body[i], corridor=corridor)
+            result = self.planner.plan(depth, goal_b, velocity_body=self._velocity_body[i], corridor=corridor,
+                                       K=self.frames.K, T_body_camera=self._T_body_camera(i))
         infeasible = any(issubclass(w.category, TrajoptWarning) for w in caught)
         traj_w = viz.transform_points(T_wb, result.samples_body)
         kp_w = viz.transform_points(T_wb, result.keypoints)

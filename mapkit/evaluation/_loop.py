@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Protocol
+from typing import Callable, Literal, Protocol
 
 import numpy as np
 from scipy.linalg import expm
@@ -54,6 +54,10 @@ class LoopConfig:
     respect_eta: bool = True
     """Do not execute plans with collision probability η >= 0.5 (keep flying the previous one;
     when hovering, turn 60° to look elsewhere)."""
+    on_reject: Literal["continue", "brake"] = "continue"
+    """What the vehicle does with a rejected plan (η >= 0.5) while it still flies: "continue" keeps
+    flying the previous plan; "brake" replaces it with one minimum-snap segment to rest straight
+    ahead (about 1.5 m/s² on average), then hovers and turns to look elsewhere as above."""
     look_turn_deg: float = 60.0
     """Degrees the vehicle turns when hovering and a plan is rejected."""
     final_approach: float = 1.0
@@ -207,6 +211,7 @@ def run_episode(
     if min_dist < config.robot_radius:
         outcome, coll_point, coll_time = "collision", start.tolist(), 0.0
     planned_once = False
+    braking = False
     while outcome == "timeout" and t < t_limit - 1e-9:
         if method.replans or not planned_once:
             planned_once = True
@@ -230,7 +235,14 @@ def run_episode(
                 rejected += 1
                 if t >= ref.t_end - 1e-9:
                     look += math.radians(config.look_turn_deg)
+                elif config.on_reject == "brake" and not braking:
+                    braking = True
+                    ref = _brake(obs).pieces
+                    jumps = _jumps(ref)
+                    E = ref.state(t) - x
+                    E[np.abs(E) < _JUMP_TOL] = 0.0
             else:
+                braking = False
                 ref = mp.pieces
                 jumps = _jumps(ref)
                 look = 0.0
@@ -318,6 +330,26 @@ def _final_approach(obs: Observation, config: LoopConfig) -> MethodPlan:
 
     return MethodPlan(pieces=pieces_from_body(traj.coeffs[0].numpy(), np.array([T]), obs.T_world_body, obs.t),
                       latency_ms=1e3 * (time.perf_counter() - t0))
+
+
+def _brake(obs: Observation, deceleration: float = 1.5) -> MethodPlan:
+    """One minimum-snap segment from the vehicle's state to rest along its velocity: over
+    T = max(0.5, 2 v / a) seconds to v T / 2 metres ahead (the distance of a constant deceleration a)."""
+    import torch
+
+    from mapkit.evaluation._pieces import pieces_from_body
+    from mapkit.trajopt import min_snap
+
+    R = obs.T_world_body[:3, :3]
+    start = obs.state_world[1:4] @ R  # body-frame velocity, acceleration, jerk
+    speed = float(np.linalg.norm(start[0]))
+    T = max(0.5, 2.0 * speed / deceleration)
+    stop = 0.5 * T * start[0]
+    wp = torch.from_numpy(np.stack([np.zeros(3), stop]))[None]
+    with torch.no_grad():
+        traj = min_snap(wp, torch.tensor([[T]], dtype=torch.float64), start=torch.from_numpy(start)[None])
+    return MethodPlan(pieces=pieces_from_body(traj.coeffs[0].numpy(), np.array([T]), obs.T_world_body, obs.t),
+                      latency_ms=0.0)
 
 
 def _jumps(ref: Pieces) -> list[tuple[float, np.ndarray]]:

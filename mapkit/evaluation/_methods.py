@@ -24,6 +24,7 @@ from scipy.interpolate import CubicSpline
 
 from mapkit.evaluation._loop import MethodPlan, Observation
 from mapkit.evaluation._pieces import Pieces, pieces_from_body
+from mapkit.planner import CameraInput
 from mapkit.planner._model import PlannerNet
 from mapkit.sim import World
 from mapkit.sim.search import FreeSpaceGraph
@@ -80,8 +81,10 @@ class LearnedMethod:
     needs_depth = True
     replans = True
 
-    def __init__(self, name: str, net: PlannerNet, *, allocation: str = "tan", spline: bool = False) -> None:
+    def __init__(self, name: str, net: PlannerNet, *, allocation: str = "tan", spline: bool = False,
+                 camera: CameraInput | None = None) -> None:
         self.name = name
+        self.camera = camera
         self.net = net.eval()
         self.allocation = allocation
         self.spline = spline
@@ -92,7 +95,7 @@ class LearnedMethod:
             d = torch.from_numpy(np.asarray(obs.depth, dtype=np.float32)[None])
             x = self.net.preprocess(d)
             g = torch.from_numpy(np.asarray(obs.local_goal_body, dtype=np.float32)[None])
-            out = self.net(x, g)
+            out = self.net(x, g, camera=self.camera)
         return out.keypoints[0].double().numpy(), float(out.eta[0])
 
     def plan(self, obs: Observation) -> MethodPlan:
@@ -218,15 +221,16 @@ def _split_long(poly: np.ndarray, max_len: float) -> np.ndarray:
 
 
 def make_methods(names: list[str], net: PlannerNet | None, world: World, graph: FreeSpaceGraph | None, *,
-                 oracle_corridor: float = 0.1, robot_radius: float = 0.3) -> list:
-    """Instantiate the named methods (``net`` needed by the learned ones, ``graph`` by the oracle)."""
+                 oracle_corridor: float = 0.1, robot_radius: float = 0.3, camera: CameraInput | None = None) -> list:
+    """Instantiate the named methods (``net`` needed by the learned ones, ``graph`` by the oracle,
+    ``camera`` by models that check their paths against the depth image)."""
     cfg = net.config if net is not None else None
     out = []
     for name in names:
         if name in LEARNED_ALLOCATIONS:
-            out.append(LearnedMethod(name, net, allocation=LEARNED_ALLOCATIONS[name]))
+            out.append(LearnedMethod(name, net, allocation=LEARNED_ALLOCATIONS[name], camera=camera))
         elif name == "iplanner-style":
-            out.append(LearnedMethod(name, net, spline=True))
+            out.append(LearnedMethod(name, net, spline=True, camera=camera))
         elif name == "straight":
             kw = {} if cfg is None else dict(cruise_speed=cfg.cruise_speed, min_total_time=cfg.min_total_time,
                                              max_total_time=cfg.max_total_time)

@@ -117,44 +117,32 @@ def _run_config(run_dir: Path) -> dict:
 
 
 def _training_camera(run_cfg: dict) -> CameraSpec | None:
-    """The camera of the first readable training workspace's frames.zarr."""
-    from mapkit.geometry import invert_transform
-    from mapkit.ingest import open_frames_store
+    """The camera recorded in the run's config (``camera``), else that of the first readable training
+    workspace's frames.zarr."""
+    from mapkit.errors import MapkitError
+    from mapkit.train import workspace_camera
 
+    saved = run_cfg.get("camera")
+    if isinstance(saved, dict):
+        try:
+            return CameraSpec(**saved)
+        except TypeError:  # another version's fields: read the workspaces instead
+            pass
     for ws in run_cfg.get("workspaces", []):
         try:
-            store = open_frames_store(ws)
-            T_bc = invert_transform(store.T_world_body[0]) @ store.T_world_camera[0]
-            return CameraSpec(width=int(store.width), height=int(store.height), K=np.asarray(store.K).tolist(),
-                              T_body_camera=T_bc.tolist(), source=f"{ws}/frames.zarr")
-        except Exception:  # a moved or deleted workspace: try the next one
+            return CameraSpec(**workspace_camera(ws))
+        except (MapkitError, OSError):  # a moved or deleted workspace: try the next one
             continue
     return None
 
 
 def _training_worlds(run_cfg: dict) -> set[tuple[str, int]]:
-    """(kind, seed) of simulated worlds behind the training workspaces (their .world.json files)."""
-    from mapkit.ingest import open_frames_store
-    from mapkit.sim.simulate import ground_truth_paths
+    """(kind, seed) of simulated worlds the run trained or validated on: recorded in its config, and
+    found through its workspaces' recordings."""
+    from mapkit.train import simulated_worlds
 
-    out: set[tuple[str, int]] = set()
-    for ws in run_cfg.get("workspaces", []):
-        try:
-            sources = open_frames_store(ws).attrs.get("sources", [])
-        except Exception:
-            continue
-        for src in sources:
-            p = Path(src.get("path", ""))
-            for fmt in ("mcap", "ros2"):
-                wj = ground_truth_paths(p, fmt)[0]
-                if wj.exists():
-                    try:
-                        d = json.loads(wj.read_text())
-                        out.add((str(d["kind"]), int(d["seed"])))
-                    except (OSError, ValueError, KeyError):
-                        pass
-                    break
-    return out
+    out: set[tuple[str, int]] = {(str(k), int(s)) for k, s in run_cfg.get("training_worlds", [])}
+    return out | simulated_worlds([*run_cfg.get("workspaces", []), *run_cfg.get("val_workspaces", [])])
 
 
 def _default_camera() -> CameraSpec:
@@ -200,8 +188,12 @@ def _world_bundle(kind: str) -> dict:
         v = (np.arange(camera.height) - K[1, 2]) / K[1, 1]
         uu, vv = np.meshgrid(u, v, indexing="xy")
         rays = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], axis=1)
+        from mapkit.planner import CameraInput
+
+        calibration = CameraInput.from_calibration(K, cam["width"], cam["height"], np.asarray(cam["T_body_camera"]))
         methods = make_methods(list(_STATE["methods"]), _STATE["net"], world, graph,
-                               oracle_corridor=_STATE["oracle_corridor"], robot_radius=_STATE["loop"]["robot_radius"])
+                               oracle_corridor=_STATE["oracle_corridor"], robot_radius=_STATE["loop"]["robot_radius"],
+                               camera=calibration)
         cache[kind] = dict(world=world, graph=graph, camera=camera, rays=rays, methods=methods)
     return cache[kind]
 
@@ -327,7 +319,7 @@ def evaluate(
     from tqdm import tqdm
 
     from mapkit.evaluation._report import write_report
-    from mapkit.planning import Planner
+    from mapkit.planning import Planner, resolve_model
     from mapkit.sim import make_world
     from mapkit.sim.search import FreeSpaceGraph
 
@@ -343,7 +335,7 @@ def evaluate(
         raise EvalError(f"methods {need_model} need a trained model: pass --model RUN")
     trained_worlds: set[tuple[str, int]] = set()
     if model is not None:
-        run_dir = Path(model)
+        run_dir = resolve_model(model)
         planner = Planner.load(run_dir)  # a missing or foreign model.pt is a one-line error here
         net = planner.net
         run_cfg = _run_config(run_dir)
@@ -380,7 +372,7 @@ def evaluate(
         pairs[kind] = sample_pairs(graph, config.pairs, seed=config.seed, min_distance=config.min_distance)
 
     payload = {
-        "model": None if model is None or not need_model else str(model), "seed": config.seed,
+        "model": None if model is None or not need_model else str(resolve_model(model)), "seed": config.seed,
         "pair_clearance": config.pair_clearance, "camera": dataclasses.asdict(camera),
         "methods": list(config.methods), "oracle_corridor": config.oracle_corridor,
         "loop": dataclasses.asdict(config.loop),

@@ -1,6 +1,9 @@
 """Training tuples: frames.zarr + map.zarr → tuples.zarr (depth, poses, velocities, goals, split)."""
 
 from mapkit.export._tuples import (
+    GOAL_KIND_NAMES,
+    HIDDEN,
+    blocked_lines,
     FUTURE,
     RANDOM,
     TUPLES,
@@ -14,6 +17,9 @@ from mapkit.export._tuples import (
 )
 
 __all__ = [
+    "GOAL_KIND_NAMES",
+    "HIDDEN",
+    "blocked_lines",
     "FUTURE",
     "RANDOM",
     "TUPLES",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +17,9 @@ from mapkit.geometry import invert_transform
 from mapkit.workspace import FRAMES, atomic_output, check_writable
 
 TUPLES = "tuples.zarr"
-FUTURE, RANDOM = 0, 1  # goal_kind values
+FUTURE, RANDOM, HIDDEN = 0, 1, 2  # goal_kind values: future pose, visible free space, hidden behind obstacles
+GOAL_KIND_NAMES = {FUTURE: "future_pose", RANDOM: "visible_free", HIDDEN: "hidden"}
+_DISTANCE_BINS = (0.0, 2.0, 4.0, 6.0, 8.0, 10.0, float("inf"))
 
 
 class ExportError(MapkitError):
@@ -29,9 +31,21 @@ class ExportConfig:
     """Options of `mapkit export` (each has a CLI option of the same name)."""
 
     goals_per_frame: int = 5
-    """Goals stored per frame (half future poses, half random free-space goals when possible)."""
+    """Goals stored per frame, split by ``goal_mix``."""
+    goal_mix: tuple[float, float, float] = (0.2, 0.4, 0.4)
+    """Shares of (future poses, visible free-space goals, hidden goals). Hidden goals lie in observed
+    free space whose straight line from the body is blocked in the map (what evaluation asks for);
+    a frame with too few of them gets visible goals instead (counted in the summary)."""
     goal_range: tuple[float, float] = (2.0, 8.0)
-    """Metres from the camera within which random goals are drawn, inside its field of view."""
+    """Metres from the camera within which visible and hidden goals are drawn."""
+    hidden_bearing_deg: float = 75.0
+    """Hidden goals lie within this horizontal angle of the body's forward axis (beyond the camera's
+    field of view, as a goal seen over the shoulder after a detour)."""
+    hidden_height: float = 1.0
+    """Metres: hidden goals lie within this height of the body."""
+    blocked_distance: float = 0.3
+    """A goal is blocked when the map's distance along its straight line drops below this (metres;
+    the robot radius)."""
     future_horizon: tuple[float, float] = (1.0, 5.0)
     """Seconds ahead along the flight from which future-pose goals are taken (iPlanner style)."""
     clearance: float = 0.3
@@ -48,18 +62,27 @@ class ExportConfig:
 
     def validate(self) -> None:
         lo, hi = self.goal_range
-        if not (0 < lo < hi):
+        if not (np.isfinite(hi) and 0 < lo < hi):
             raise ExportError(f"--goal-range {lo} {hi}: need 0 < min < max metres")
         a, b = self.future_horizon
-        if not (0 < a <= b):
+        if not (np.isfinite(b) and 0 < a <= b):
             raise ExportError(f"--future-horizon {a} {b}: need 0 < min <= max seconds")
+        mix = tuple(float(v) for v in self.goal_mix)
+        if len(mix) != 3 or not all(np.isfinite(v) and v >= 0 for v in mix) or sum(mix) <= 0:
+            raise ExportError(f"--goal-mix {self.goal_mix}: need three shares >= 0 (future visible hidden) with a positive sum")
+        if not (0 < self.hidden_bearing_deg <= 180):
+            raise ExportError(f"--hidden-bearing {self.hidden_bearing_deg} must be in (0, 180] degrees")
+        for name in ("hidden_height", "blocked_distance"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ExportError(f"--{name.replace('_', '-')} {v} must be a positive number of metres")
         if self.goals_per_frame < 1:
             raise ExportError(f"--goals-per-frame {self.goals_per_frame} must be at least 1")
         if not (0 <= self.val_fraction < 1):
             raise ExportError(f"--val-fraction {self.val_fraction} must be in [0, 1)")
         if not self.segment_seconds > 0:
             raise ExportError(f"--segment-seconds {self.segment_seconds} must be positive")
-        if self.clearance < 0:
+        if not (np.isfinite(self.clearance) and self.clearance >= 0):
             raise ExportError(f"--clearance {self.clearance} must be >= 0 metres")
         if self.stride < 1:
             raise ExportError(f"--stride {self.stride} must be at least 1")
@@ -75,6 +98,23 @@ class ExportSummary:
     future_goals: int
     dropped_frames: int
     seconds: float
+    kind_counts: dict[str, int] = field(default_factory=dict)
+    """Goals per kind (future_pose, visible_free, hidden)."""
+    blocked_fraction: float = 0.0
+    """Share of goals whose straight line is blocked in the map."""
+    distance_histogram: dict[str, int] = field(default_factory=dict)
+    """Goal distances from the body, metres, binned ("0-2", "2-4", ...)."""
+
+    def mix_dict(self) -> dict:
+        """The goal mix as plain data (kinds, blocked share, distance histogram)."""
+        return {"kinds": self.kind_counts, "blocked_fraction": self.blocked_fraction,
+                "distance_histogram": self.distance_histogram}
+
+    def mix_text(self) -> str:
+        """One line: kinds, blocked share and distances."""
+        kinds = ", ".join(f"{v} {k}" for k, v in self.kind_counts.items())
+        hist = " ".join(f"{k}:{v}" for k, v in self.distance_histogram.items())
+        return f"goals {kinds}; {100 * self.blocked_fraction:.0f} % blocked; distance m {hist}"
 
 
 def map_digest(map_path: Path) -> str:
@@ -114,34 +154,57 @@ def split_segments(stamps_ns: NDArray[np.int64], source_index: NDArray[np.int32]
     return np.isin(seg_id, val).astype(np.uint8)
 
 
-def _sample_goals(
-    i: int, *, frames_T_wb: NDArray[np.float64], stamps_s: NDArray[np.float64], source_index: NDArray[np.int32],
-    T_world_camera: NDArray[np.float64], depth: NDArray[np.float32], K: NDArray[np.float64],
-    esdf: "object", config: ExportConfig, rng: np.random.Generator,
-) -> tuple[list[NDArray[np.float64]], list[int], list[float]]:
-    """Up to goals_per_frame world-frame goals for frame i: future poses first, then random ones."""
+def blocked_lines(start: NDArray[np.float64], goals: NDArray[np.float64], esdf: "object", *, threshold: float,
+                  step: float = 0.1) -> NDArray[np.bool_]:
+    """(N,) True where the straight segment ``start`` (3,) → goal (N, 3) passes closer than
+    ``threshold`` metres to an obstacle of the map (sampled every ``step`` metres; outside the map
+    counts as free)."""
+    goals = np.atleast_2d(goals)
+    if not len(goals):
+        return np.zeros(0, dtype=bool)
+    n = max(2, int(np.ceil(np.linalg.norm(goals - start, axis=1).max() / step)) + 1)
+    frac = np.linspace(0.0, 1.0, n)
+    pts = start[None, None] + frac[None, :, None] * (goals - start)[:, None]
+    d, _ = esdf.query(pts.reshape(-1, 3), outside="nan")  # type: ignore[attr-defined]
+    d = np.where(np.isfinite(d), d, np.inf).reshape(len(goals), n)
+    return d.min(axis=1) < threshold
+
+
+def _goal_counts(config: ExportConfig) -> tuple[int, int, int]:
+    """(future, visible, hidden) goals per frame from the mix (rounded; visible takes the rest)."""
+    mix = np.asarray(config.goal_mix, dtype=np.float64)
+    mix = mix / mix.sum()
     want = config.goals_per_frame
-    goals: list[NDArray[np.float64]] = []
-    kinds: list[int] = []
-    clear: list[float] = []
-    # Future poses on the same flight, 1-5 s ahead.
+    future = int(round(want * mix[0]))
+    hidden = min(want - future, int(round(want * mix[2])))
+    return future, want - future - hidden, hidden
+
+
+def _future_goals(i: int, count: int, *, frames_T_wb: NDArray[np.float64], stamps_s: NDArray[np.float64],
+                  source_index: NDArray[np.int32], esdf: "object", config: ExportConfig,
+                  rng: np.random.Generator) -> list[tuple[NDArray[np.float64], float]]:
+    """Up to ``count`` future poses of the same flight, ``future_horizon`` seconds ahead, with clearance."""
     dt = stamps_s - stamps_s[i]
-    future = np.flatnonzero((dt >= config.future_horizon[0]) & (dt <= config.future_horizon[1]) & (source_index == source_index[i]))
-    if len(future):
-        pick = rng.choice(future, size=min(len(future), (want + 1) // 2), replace=False)
-        pts = frames_T_wb[pick, :3, 3]
-        d, _ = esdf.query(pts, outside="nan")  # type: ignore[attr-defined]
-        for p, di in zip(pts, d):
-            if np.isfinite(di) and di >= config.clearance:
-                goals.append(p)
-                kinds.append(FUTURE)
-                clear.append(float(di))
-    # Random goals in the camera's field of view, in observed free space with clearance.
+    lo, hi = config.future_horizon
+    future = np.flatnonzero((dt >= lo) & (dt <= hi) & (source_index == source_index[i]))
+    if not len(future) or count <= 0:
+        return []
+    pts = frames_T_wb[rng.choice(future, size=min(len(future), count), replace=False), :3, 3]
+    d, _ = esdf.query(pts, outside="nan")  # type: ignore[attr-defined]
+    return [(p, float(di)) for p, di in zip(pts, d) if np.isfinite(di) and di >= config.clearance]
+
+
+def _visible_goals(count: int, *, T_world_camera: NDArray[np.float64], depth: NDArray[np.float32],
+                   K: NDArray[np.float64], esdf: "object", config: ExportConfig,
+                   rng: np.random.Generator) -> list[tuple[NDArray[np.float64], float]]:
+    """Up to ``count`` goals in the camera's view, in front of the measured depth along their pixel's
+    ray, in observed free space with clearance."""
     H, W = depth.shape
-    need = want - len(goals)
-    tries = 0
-    while need > 0 and tries < 8:
-        tries += 1
+    out: list[tuple[NDArray[np.float64], float]] = []
+    for _ in range(8):
+        need = count - len(out)
+        if need <= 0:
+            break
         n = 16 * need
         u = rng.uniform(0, W - 1, n)
         v = rng.uniform(0, H - 1, n)
@@ -149,18 +212,59 @@ def _sample_goals(
         ray = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(n)], axis=1)
         ray /= np.linalg.norm(ray, axis=1, keepdims=True)
         z = r * ray[:, 2]
-        # In front of what the camera saw along that pixel (unknown beyond the surface).
         measured = depth[np.rint(v).astype(int), np.rint(u).astype(int)]
         front = ~np.isfinite(measured) | (z < measured - config.clearance)
         pts = (T_world_camera[:3, :3] @ (ray * r[:, None]).T).T + T_world_camera[:3, 3]
         d, _ = esdf.query(pts, outside="nan")  # type: ignore[attr-defined]
-        observed = esdf.observed_at(pts)  # type: ignore[attr-defined]
-        ok = front & np.isfinite(d) & (d >= config.clearance) & observed
-        for p, di in zip(pts[ok][:need], d[ok][:need]):
-            goals.append(p)
-            kinds.append(RANDOM)
-            clear.append(float(di))
-        need = want - len(goals)
+        ok = front & np.isfinite(d) & (d >= config.clearance) & esdf.observed_at(pts)  # type: ignore[attr-defined]
+        out.extend((p, float(di)) for p, di in zip(pts[ok][:need], d[ok][:need]))
+    return out
+
+
+def _hidden_goals(count: int, *, T_world_body: NDArray[np.float64], esdf: "object", config: ExportConfig,
+                  rng: np.random.Generator) -> list[tuple[NDArray[np.float64], float]]:
+    """Up to ``count`` goals in observed free space (with clearance) within ``hidden_bearing_deg`` of
+    the body's heading, whose straight line from the body is blocked in the map."""
+    p0 = T_world_body[:3, 3]
+    yaw = float(np.arctan2(T_world_body[1, 0], T_world_body[0, 0]))
+    half = np.deg2rad(config.hidden_bearing_deg)
+    out: list[tuple[NDArray[np.float64], float]] = []
+    for _ in range(6):
+        need = count - len(out)
+        if need <= 0:
+            break
+        n = 24 * need
+        bearing = yaw + rng.uniform(-half, half, n)
+        r = rng.uniform(config.goal_range[0], config.goal_range[1], n)
+        dz = rng.uniform(-config.hidden_height, config.hidden_height, n)
+        pts = p0 + np.stack([r * np.cos(bearing), r * np.sin(bearing), dz], axis=1)
+        d, _ = esdf.query(pts, outside="nan")  # type: ignore[attr-defined]
+        ok = np.isfinite(d) & (d >= config.clearance) & esdf.observed_at(pts)  # type: ignore[attr-defined]
+        pts, d = pts[ok], d[ok]
+        hit = blocked_lines(p0, pts, esdf, threshold=config.blocked_distance)
+        out.extend((p, float(di)) for p, di in zip(pts[hit][:need], d[hit][:need]))
+    return out
+
+
+def _sample_goals(
+    i: int, *, frames_T_wb: NDArray[np.float64], stamps_s: NDArray[np.float64], source_index: NDArray[np.int32],
+    T_world_camera: NDArray[np.float64], depth: NDArray[np.float32], K: NDArray[np.float64],
+    esdf: "object", config: ExportConfig, rng: np.random.Generator,
+) -> tuple[list[NDArray[np.float64]], list[int], list[float]]:
+    """Up to goals_per_frame world-frame goals for frame i in the configured mix; kinds short of
+    candidates are made up with visible free-space goals."""
+    n_future, n_visible, n_hidden = _goal_counts(config)
+    picked: list[tuple[int, list[tuple[NDArray[np.float64], float]]]] = []
+    future = _future_goals(i, n_future, frames_T_wb=frames_T_wb, stamps_s=stamps_s, source_index=source_index,
+                           esdf=esdf, config=config, rng=rng)
+    hidden = _hidden_goals(n_hidden, T_world_body=frames_T_wb[i], esdf=esdf, config=config, rng=rng)
+    n_visible = config.goals_per_frame - len(future) - len(hidden)
+    visible = _visible_goals(n_visible, T_world_camera=T_world_camera, depth=depth, K=K, esdf=esdf, config=config,
+                             rng=rng)
+    picked = [(FUTURE, future), (RANDOM, visible), (HIDDEN, hidden)]
+    goals = [p for _, items in picked for p, _ in items]
+    kinds = [k for k, items in picked for _ in items]
+    clear = [c for _, items in picked for _, c in items]
     return goals, kinds, clear
 
 
@@ -206,6 +310,7 @@ def export_tuples(workspace: str | Path, config: ExportConfig | None = None, *, 
     goals_body: list[NDArray[np.float32]] = []
     kinds_all: list[NDArray[np.uint8]] = []
     clear_all: list[NDArray[np.float32]] = []
+    blocked_all: list[NDArray[np.uint8]] = []
     for i in tqdm(indices, desc="goals", unit="frame", disable=not progress):
         depth = np.asarray(store.depth[int(i)])
         goals, kinds, clear = _sample_goals(
@@ -219,6 +324,8 @@ def export_tuples(workspace: str | Path, config: ExportConfig | None = None, *, 
         goals_body.append((pts @ T_body_world[:3, :3].T + T_body_world[:3, 3]).astype(np.float32))
         kinds_all.append(np.asarray(kinds, dtype=np.uint8))
         clear_all.append(np.asarray(clear, dtype=np.float32))
+        blocked_all.append(blocked_lines(store.T_world_body[i, :3, 3], pts, esdf,
+                                         threshold=config.blocked_distance).astype(np.uint8))
         keep.append(int(i))
     if not keep:
         frac = float(np.asarray(esdf.map.observed[:]).mean())
@@ -255,6 +362,7 @@ def export_tuples(workspace: str | Path, config: ExportConfig | None = None, *, 
         small("goals_body", np.stack(goals_body), ["tuple", "goal", "xyz"])
         small("goal_kind", np.stack(kinds_all), ["tuple", "goal"])
         small("goal_clearance", np.stack(clear_all), ["tuple", "goal"])
+        small("goal_blocked", np.stack(blocked_all), ["tuple", "goal"])
         small("split", split, ["tuple"])
         root.attrs.update({
             "mapkit_version": __version__,
@@ -266,17 +374,22 @@ def export_tuples(workspace: str | Path, config: ExportConfig | None = None, *, 
             "body_frame": store.attrs.get("body_frame"),
             "map": {"path": str((ws / MAP).resolve()), "sha256": digest, "voxel_size": esdf.map.voxel_size},
             "frames": str((ws / FRAMES).resolve()),
-            "goal_kinds": {"future_pose": FUTURE, "random_free": RANDOM},
+            "goal_kinds": {name: code for code, name in GOAL_KIND_NAMES.items()},
             "split_values": {"train": 0, "val": 1},
             "parameters": json.loads(json.dumps(asdict(config))),
             "units": {"goals_body": "m (body frame FLU)", "velocity_body": "m/s (body frame)", "depth": "m"},
         })
     kinds = np.stack(kinds_all)
+    distance = np.linalg.norm(np.stack(goals_body), axis=-1)
+    counts, _ = np.histogram(distance, bins=_DISTANCE_BINS)
+    labels = [f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">{lo:g}" for lo, hi in zip(_DISTANCE_BINS[:-1], _DISTANCE_BINS[1:])]
     return ExportSummary(
         target, len(sel), int((split == 0).sum()), int((split == 1).sum()), int(kinds.size),
         int((kinds == FUTURE).sum()), len(indices) - len(sel), time.perf_counter() - t0,
+        kind_counts={name: int((kinds == code).sum()) for code, name in GOAL_KIND_NAMES.items()},
+        blocked_fraction=float(np.stack(blocked_all).mean()),
+        distance_histogram={k: int(v) for k, v in zip(labels, counts)},
     )
-
 
 class _ObservedMap:
     """EsdfMap plus nearest-voxel lookups of the observed mask (goals must lie in seen space)."""

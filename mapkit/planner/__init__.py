@@ -22,6 +22,7 @@ Loss: :func:`planner_loss` = γ1 U_O (:func:`obstacle_cost` on the ESDF) + γ2 U
 (torch.Size([1, 5, 3]), torch.Size([1]), 5)
 """
 
+from mapkit.planner._depthcheck import CameraInput, depth_margins
 from mapkit.planner._errors import PlannerError
 from mapkit.planner._loss import (
     LossConfig,
@@ -31,6 +32,7 @@ from mapkit.planner._loss import (
     goal_cost,
     obstacle_cost,
     obstacle_penalty,
+    candidate_loss,
     planner_loss,
     sample_trajectory,
     smoothness_cost,
@@ -52,6 +54,8 @@ from mapkit.planner._model import (
 from mapkit.planner._resnet import ResNet18, load_torchvision_state_dict, torchvision_resnet18_keys
 
 __all__ = [
+    "CameraInput",
+    "depth_margins",
     "PLANNER_PRESETS",
     "LossConfig",
     "Plan",
@@ -69,6 +73,7 @@ __all__ = [
     "obstacle_cost",
     "obstacle_penalty",
     "plan",
+    "candidate_loss",
     "planner_loss",
     "planner_preset",
     "preprocess_depth",

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from mapkit.planner._errors import PlannerError
-from mapkit.planner._model import Plan
+from mapkit.planner._model import Plan, PlannerNet, PlannerOutput
 from mapkit.trajopt import Trajectory, allocate_times
 
 if TYPE_CHECKING:  # the ESDF stage is only needed at call time (duck-typed query_torch)
@@ -42,6 +42,16 @@ class LossConfig:
     gamma_time: float = 10.0
     """γ5, weight of the time cost U_T (:func:`time_cost`: MSE of shares, which are ~1/K, so the raw
     term is small)."""
+    gamma_score: float = 1.0
+    """Weight of the candidate score's cross-entropy against the candidate with the lowest path cost
+    (only with several candidates)."""
+    score_temperature: float = 0.0
+    """Metres of path cost: the score learns the soft-min distribution softmax(−cost / T) over the
+    candidates instead of the single best (0: the best only). Two free detours that cost nearly the
+    same are then both right answers instead of a coin flip between targets."""
+    candidate_spread: float = 0.05
+    """α: every candidate's path cost enters with weight α (the winner's with 1 + α), so candidates
+    that never win still move towards sensible paths instead of dying (only with several)."""
     robot_radius: float = 0.3
     """Metres. The obstacle cost acts on the clearance d − robot_radius."""
     obstacle_softness: float = 1.0
@@ -87,6 +97,8 @@ class LossConfig:
             raise PlannerError(f"samples_per_second must be > 0, got {self.samples_per_second}")
         if self.smoothness_on not in ("keypoints", "samples"):
             raise PlannerError(f"smoothness_on must be 'keypoints' or 'samples', got {self.smoothness_on!r}")
+        if not (math.isfinite(self.score_temperature) and self.score_temperature >= 0):
+            raise PlannerError(f"score_temperature must be >= 0 metres, got {self.score_temperature}")
         if self.min_samples < 2:
             raise PlannerError(f"min_samples must be >= 2, got {self.min_samples}")
 
@@ -322,5 +334,81 @@ def planner_loss(
         "time": u_t.detach().mean(),
         "collision_rate": collided.to(total.dtype).mean(),
         "total": total.detach(),
+    }
+    return total, terms
+
+
+# ------------------------------------------------------------------------------ several candidates
+def candidate_loss(
+    net: PlannerNet,
+    out: PlannerOutput,
+    *,
+    goal: torch.Tensor,
+    T_world_body: torch.Tensor,
+    esdf_map: "EsdfMap",
+    start_velocity: torch.Tensor | None = None,
+    corridor: float | None = None,
+    config: LossConfig | None = None,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The upper-level loss over every candidate path of ``out`` (B, M, K, 3), winner-takes-all.
+
+    Each candidate's path cost is γ1 U_O + γ2 U_G + γ3 U_S; a sample's loss is its best candidate's
+    cost plus α × the mean over candidates (``candidate_spread``), γ4 × the mean escape BCE of every
+    candidate's η against its own collision label, γ_score × the cross-entropy of the scores against
+    the best candidate, and γ5 U_T of the best candidate's time split. With M = 1 this is exactly
+    :func:`planner_loss`. Scores and η carry no gradient into the paths.
+
+    Returns (total, terms): batch means of the unweighted terms of the CHOSEN candidate (the one
+    deployed: "obstacle", "goal", "smoothness", "collision_rate"), plus "escape", "time", "score"
+    (cross-entropy), "winner_collision_rate" (the best candidate's), "score_accuracy" (chosen = best)
+    and "total"; "collided_chosen" (B,) bool per sample.
+    """
+    cfg = config or LossConfig()
+    cand = out.candidates if out.candidates is not None else out.keypoints[:, None]
+    logits = out.candidate_eta_logits if out.candidate_eta_logits is not None else out.eta_logit[:, None]
+    B, M, K, _ = cand.shape
+    goal = torch.as_tensor(goal, dtype=cand.dtype, device=cand.device)
+    rep = lambda t: None if t is None else torch.as_tensor(t).repeat_interleave(M, dim=0)  # noqa: E731
+    plan = net.trajectory(cand.reshape(B * M, K, 3), start_velocity=rep(start_velocity), corridor=corridor)
+    pts_body = sample_trajectory(plan.trajectory, samples_per_second=cfg.samples_per_second, min_samples=cfg.min_samples)
+    pts_world = body_to_world(pts_body, rep(T_world_body))
+    goal_m = rep(goal)
+    u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius, softness=cfg.obstacle_softness,
+                        reduction=cfg.obstacle_reduction).reshape(B, M)
+    u_g = goal_cost(plan.waypoints[:, -1], goal_m).reshape(B, M)
+    smooth_pts = plan.waypoints if cfg.smoothness_on == "keypoints" else pts_body
+    u_s = smoothness_cost(smooth_pts, torch.zeros_like(goal_m), goal_m).reshape(B, M)
+    collided = collision_labels(pts_world, esdf_map, threshold=cfg.collision_threshold,
+                                raw=cfg.label_from_raw).reshape(B, M)
+    path = cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s
+    rows = torch.arange(B, device=cand.device)
+    winner = path.detach().argmin(dim=1)
+    per = path[rows, winner]
+    if M > 1:
+        per = per + cfg.candidate_spread * path.mean(dim=1)
+    u_e = F.binary_cross_entropy_with_logits(logits, collided.to(logits.dtype), reduction="none").mean(dim=1)
+    if out.scores is None or M == 1:
+        u_score = torch.zeros_like(per)
+    elif cfg.score_temperature > 0:
+        target = torch.softmax(-path.detach() / cfg.score_temperature, dim=1)
+        u_score = F.cross_entropy(out.scores, target, reduction="none")
+    else:
+        u_score = F.cross_entropy(out.scores, winner, reduction="none")
+    wp = plan.waypoints.reshape(B, M, K + 1, 3)[rows, winner]
+    shares = plan.shares.reshape(B, M, K)[rows, winner]
+    target = time_targets(wp, total_time=plan.total_time.reshape(B, M)[rows, winner],
+                          start=plan.start.reshape(B, M, 3, 3)[rows, winner], max_iters=cfg.time_target_iters,
+                          rel_tol=cfg.time_target_tol)
+    u_t = time_cost(shares, target)
+    per = per + cfg.gamma_escape * u_e + cfg.gamma_time * u_t + cfg.gamma_score * u_score
+    total = per.mean()
+    chosen = out.chosen if out.chosen is not None else torch.zeros(B, dtype=torch.long, device=cand.device)
+    coll_chosen = collided[rows, chosen]
+    f = lambda t: t.detach().to(total.dtype).mean()  # noqa: E731
+    terms = {
+        "obstacle": f(u_o[rows, chosen]), "goal": f(u_g[rows, chosen]), "smoothness": f(u_s[rows, chosen]),
+        "escape": f(u_e), "time": f(u_t), "score": f(u_score), "collision_rate": f(coll_chosen),
+        "winner_collision_rate": f(collided[rows, winner]), "score_accuracy": f(chosen == winner),
+        "total": total.detach(), "collided_chosen": coll_chosen, "goal_chosen": u_g[rows, chosen].detach(),
     }
     return total, terms

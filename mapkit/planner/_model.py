@@ -4,12 +4,15 @@ through those key-points (Time Allocation Net + differentiable minimum snap)."""
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from mapkit.planner._depthcheck import FEATURES_PER_POINT, POINTS_PER_SEGMENT, CameraInput, depth_margins
 from mapkit.planner._errors import PlannerError
 from mapkit.planner._resnet import ResNet18
 from mapkit.trajopt import TimeAllocationNet, TimeAllocationNetConfig, Trajectory, min_snap
@@ -43,9 +46,26 @@ class PlannerConfig:
     """Hidden widths of the three-layer key-point MLP (flattened features → h1 → h2 → 3K)."""
     eta_hidden: tuple[int, int] = (64, 32)
     """Hidden widths of the parallel three-layer η MLP (flattened features → h1 → h2 → 1)."""
+    num_candidates: int = 1
+    """M, candidate key-point paths predicted side by side, each starting from its own detour anchor
+    (``candidate_anchors``), with a learned score that picks one. 1 = a single regressed path (the
+    paper). With one path, an obstacle right on the straight line makes left and right detours
+    equally good and their average flies straight into it; M > 1 trained winner-takes-all keeps both."""
+    candidate_anchors: tuple[tuple[float, float], ...] = ()
+    """(lateral, vertical) peak offsets in metres of each candidate's anchor detour, at a 6 m goal
+    (scaled with the goal distance, zero at the start and at the goal); () = the default set for
+    ``num_candidates``."""
     keypoint_init_scale: float = 0.01
     """Scale applied to the default init of the key-point MLP's last layer (bias zero), so the
     untrained net predicts offsets of millimetres-to-centimetres around the straight line."""
+    depth_check: bool = False
+    """With several candidates: the judge also reads each candidate checked against the depth image
+    (:func:`mapkit.planner.depth_margins`: is each path point in view, and in front of or behind the
+    measured surface), which needs the camera's calibration at every call (``camera=``)."""
+    head_activation: Literal["relu", "leaky_relu"] = "relu"
+    """Activation between the layers of the key-point, η and score MLPs. "leaky_relu" (slope 0.1)
+    cannot die: with ReLU, training on 47 worlds left 5 % of the key-point MLP's units active after
+    one epoch and the paths stopped moving (the paper uses ReLU)."""
     tan_hidden: tuple[int, ...] = (64, 64)
     """Hidden widths of the Time Allocation Net MLP."""
     cruise_speed: float = 2.0
@@ -72,6 +92,15 @@ class PlannerConfig:
             raise PlannerError(
                 f"need 0 < min_total_time <= max_total_time, got {self.min_total_time} and {self.max_total_time}"
             )
+        if self.num_candidates < 1:
+            raise PlannerError(f"num_candidates must be >= 1, got {self.num_candidates}")
+        self.candidate_anchors = tuple((float(a), float(b)) for a, b in self.candidate_anchors)
+        if self.candidate_anchors and len(self.candidate_anchors) != self.num_candidates:
+            raise PlannerError(
+                f"candidate_anchors has {len(self.candidate_anchors)} entries but num_candidates is {self.num_candidates}"
+            )
+        if self.head_activation not in ("relu", "leaky_relu"):
+            raise PlannerError(f"head_activation must be 'relu' or 'leaky_relu', got {self.head_activation!r}")
         if len(self.conv_channels) != 2 or len(self.mlp_hidden) != 2 or len(self.eta_hidden) != 2:
             raise PlannerError("conv_channels, mlp_hidden and eta_hidden must each have two entries")
 
@@ -89,6 +118,26 @@ class PlannerConfig:
         kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items()}
         return cls(**kw)
 
+    def anchors(self) -> tuple[tuple[float, float], ...]:
+        """The (lateral, vertical) anchor peaks in effect, one per candidate."""
+        if self.candidate_anchors:
+            return self.candidate_anchors
+        return default_anchors(self.num_candidates)
+
+
+def default_anchors(m: int) -> tuple[tuple[float, float], ...]:
+    """M anchors: straight first, then left/right detours of growing width, one climb for M >= 6."""
+    out: list[tuple[float, float]] = [(0.0, 0.0)]
+    if m >= 6:
+        out.append((0.0, 0.8))
+    width = 1.2
+    while len(out) < m:
+        out.append((width, 0.0))
+        if len(out) < m:
+            out.append((-width, 0.0))
+        width += 1.2
+    return tuple(out[:m])
+
 
 PLANNER_PRESETS: dict[str, dict] = {
     "paper": dict(
@@ -99,9 +148,14 @@ PLANNER_PRESETS: dict[str, dict] = {
         input_size=(96, 160), encoder_width=0.25, goal_embed_dim=16, conv_channels=(64, 32),
         pooled_size=(3, 5), mlp_hidden=(256, 128), eta_hidden=(64, 32), tan_hidden=(64, 64),
     ),
+    "cpu-multi": dict(
+        input_size=(96, 160), encoder_width=0.25, goal_embed_dim=16, conv_channels=(64, 32),
+        pooled_size=(3, 5), mlp_hidden=(256, 128), eta_hidden=(64, 32), tan_hidden=(64, 64), num_candidates=6,
+    ),
 }
-"""Named presets: "paper" (ResNet-18 at full width on 360×640 depth, as in the paper) and "cpu"
-(quarter-width encoder on 96×160 for training and tests on a laptop CPU)."""
+"""Named presets: "paper" (ResNet-18 at full width on 360×640 depth, as in the paper), "cpu"
+(quarter-width encoder on 96×160 for training and tests on a laptop CPU) and "cpu-multi" (the same
+with six scored candidate paths)."""
 
 
 def planner_preset(name: str, **overrides) -> PlannerConfig:
@@ -172,6 +226,14 @@ class PlannerOutput:
     """(B,) collision probability in (0, 1); execute the plan only when eta < 0.5."""
     eta_logit: torch.Tensor
     """(B,) the logit of ``eta`` (for numerically exact BCE)."""
+    candidates: torch.Tensor | None = None
+    """(B, M, K, 3) every candidate path (M = ``num_candidates``); ``keypoints`` is the chosen one."""
+    candidate_eta_logits: torch.Tensor | None = None
+    """(B, M) collision logits of each candidate."""
+    scores: torch.Tensor | None = None
+    """(B, M) score logits; the chosen candidate is their argmax (None when M = 1)."""
+    chosen: torch.Tensor | None = None
+    """(B,) int64 index of the chosen candidate."""
 
 
 @dataclass
@@ -210,12 +272,12 @@ def total_time_heuristic(
 
 
 # ----------------------------------------------------------------------------------- network
-def _mlp(dims: list[int]) -> nn.Sequential:
+def _mlp(dims: list[int], activation: str = "relu") -> nn.Sequential:
     layers: list[nn.Module] = []
     for i in range(len(dims) - 1):
         layers.append(nn.Linear(dims[i], dims[i + 1]))
         if i < len(dims) - 2:
-            layers.append(nn.ReLU(inplace=True))
+            layers.append(nn.ReLU(inplace=True) if activation == "relu" else nn.LeakyReLU(0.1, inplace=True))
     return nn.Sequential(*layers)
 
 
@@ -230,7 +292,8 @@ class PlannerNet(nn.Module):
           concatenated → (B, C + E, h/32, w/32).
         - ``head_conv``: two 3×3 conv layers (ReLU) → adaptive average pool to ``pooled_size`` →
           flattened features F.
-        - ``keypoint_mlp``: three linear layers (ReLU between) F → 3K offsets; ``eta_mlp``: a parallel
+        - ``keypoint_mlp``: three linear layers (ReLU between) F → 3K offsets (3KM with M candidates,
+          each judged by ``judge_mlp``: features + its key-points + goal → score, η); ``eta_mlp``: a parallel
           three-layer MLP F → 1 logit, η = sigmoid(logit).
         - ``tan``: :class:`mapkit.trajopt.TimeAllocationNet` over the waypoints.
 
@@ -259,8 +322,17 @@ class PlannerNet(nn.Module):
             nn.AdaptiveAvgPool2d(tuple(c.pooled_size)),
         )
         flat = c.conv_channels[1] * c.pooled_size[0] * c.pooled_size[1]
-        self.keypoint_mlp = _mlp([flat, *c.mlp_hidden, 3 * K])
-        self.eta_mlp = _mlp([flat, *c.eta_hidden, 1])
+        M = c.num_candidates
+        act = c.head_activation
+        self.keypoint_mlp = _mlp([flat, *c.mlp_hidden, 3 * K * M], act)
+        # One path: η from the features (the paper). Several: one judge shared by every candidate
+        # reads the features with that candidate's key-points and the goal and gives its score and
+        # η, so what it learns about one path's geometry serves all (a head with M outputs learned
+        # each slot on its own: after an epoch on 47 worlds its η was still at chance).
+        self.eta_mlp = _mlp([flat, *c.eta_hidden, M], act) if M == 1 else None
+        checks = K * POINTS_PER_SEGMENT * FEATURES_PER_POINT if c.depth_check else 0
+        self.judge_mlp = _mlp([flat + 3 * K + 3 + checks, *c.eta_hidden, 2], act) if M > 1 else None
+        self.register_buffer("anchor_peaks", torch.tensor(c.anchors(), dtype=torch.float32), persistent=False)
         with torch.no_grad():
             last = self.keypoint_mlp[-1]
             last.weight.mul_(c.keypoint_init_scale)
@@ -278,12 +350,39 @@ class PlannerNet(nn.Module):
         frac = torch.arange(1, K + 1, dtype=goal.dtype, device=goal.device) / K
         return frac.reshape(1, K, 1) * goal.unsqueeze(1)
 
-    def forward(self, x: torch.Tensor, goal: torch.Tensor) -> PlannerOutput:
+    def anchor_paths(self, goal: torch.Tensor) -> torch.Tensor:
+        """(B, M, K, 3): each candidate's anchor, the straight line bent by its detour.
+
+        The detour is peak × sin(π i / K) (zero at the goal) along the horizontal normal of the goal
+        direction (lateral, left positive) and up (vertical), scaled by |goal| / 6 m within [0.3, 1.5]."""
+        K = self.config.num_keypoints
+        line = self.straight_line(goal)  # (B, K, 3)
+        frac = torch.arange(1, K + 1, dtype=goal.dtype, device=goal.device) / K
+        bump = torch.sin(math.pi * frac)  # (K,)
+        up = torch.zeros_like(goal)
+        up[:, 2] = 1.0
+        left = torch.cross(up, goal, dim=-1)
+        norm = left.norm(dim=-1, keepdim=True)
+        fallback = torch.zeros_like(goal)
+        fallback[:, 1] = 1.0
+        left = torch.where(norm > 1e-6, left / norm.clamp_min(1e-6), fallback)
+        scale = (goal.norm(dim=-1) / 6.0).clamp(0.3, 1.5)  # (B,)
+        peaks = self.anchor_peaks.to(goal.dtype)  # (M, 2)
+        offset = peaks[None, :, 0, None] * left[:, None] + peaks[None, :, 1, None] * up[:, None]  # (B, M, 3)
+        offset = offset * scale[:, None, None]
+        return line[:, None] + bump[None, None, :, None] * offset[:, :, None, :]
+
+    def forward(self, x: torch.Tensor, goal: torch.Tensor, image_index: torch.Tensor | None = None,
+                camera: CameraInput | None = None) -> PlannerOutput:
         """Predict key-points and η.
 
         Args:
-            x: (B, 2, h, w) preprocessed depth (:meth:`preprocess`), h, w = ``config.input_size``.
+            x: (B, 2, h, w) preprocessed depth (:meth:`preprocess`), h, w = ``config.input_size``; or
+                (U, 2, h, w) distinct images with ``image_index``.
             goal: (B, 3) goal in the body frame (FLU), metres.
+            image_index: (B,) int64, the image of x each goal is planned from (None: x[i] for goal i).
+                Several goals per image run the encoder once per image (training's batches).
+            camera: calibration per goal (B) or one for all; required when ``config.depth_check``.
 
         Returns:
             :class:`PlannerOutput` with keypoints (B, K, 3), eta (B,), eta_logit (B,).
@@ -294,17 +393,46 @@ class PlannerNet(nn.Module):
                 f"x must be preprocessed depth (B, 2, {c.input_size[0]}, {c.input_size[1]}), got "
                 f"{tuple(x.shape)}; pass raw depth through PlannerNet.preprocess first"
             )
-        if goal.shape != (x.shape[0], 3):
-            raise PlannerError(f"goal must have shape (B={x.shape[0]}, 3) in the body frame, got {tuple(goal.shape)}")
+        B = x.shape[0] if image_index is None else image_index.shape[0]
+        if c.depth_check and c.num_candidates > 1 and camera is None:
+            raise PlannerError("this model checks its paths against the depth image: pass the camera's calibration "
+                               "(camera=CameraInput.from_calibration(K, width, height, T_body_camera))")
+        if goal.shape != (B, 3):
+            raise PlannerError(f"goal must have shape (B={B}, 3) in the body frame, got {tuple(goal.shape)}")
         goal = goal.to(x.dtype)
         feat = self.encoder(x)
+        if image_index is not None:
+            feat = feat[image_index]
         B, _, fh, fw = feat.shape
         g = self.goal_embed(goal / c.max_depth)
         feat = torch.cat([feat, g.reshape(B, -1, 1, 1).expand(B, g.shape[1], fh, fw)], dim=1)
         flat = self.head_conv(feat).flatten(1)
-        offsets = self.keypoint_mlp(flat).reshape(B, c.num_keypoints, 3)
-        logit = self.eta_mlp(flat).squeeze(-1)
-        return PlannerOutput(keypoints=self.straight_line(goal) + offsets, eta=torch.sigmoid(logit), eta_logit=logit)
+        M, K = c.num_candidates, c.num_keypoints
+        offsets = self.keypoint_mlp(flat).reshape(B, M, K, 3)
+        candidates = self.anchor_paths(goal) + offsets
+        if self.judge_mlp is None:
+            logits = self.eta_mlp(flat).reshape(B, M)
+            scores = None
+            chosen = torch.zeros(B, dtype=torch.long, device=x.device)
+        else:
+            parts = [flat[:, None].expand(B, M, flat.shape[1]), candidates.detach().flatten(2) / c.max_depth,
+                     (goal / c.max_depth)[:, None].expand(B, M, 3)]
+            if c.depth_check:
+                x_goal = x if image_index is None else x[image_index]
+                cam = camera.expand(B).to(x.device)
+                parts.append(depth_margins(candidates.detach(), x_goal, cam, max_depth=c.max_depth).to(x.dtype))
+            per = torch.cat(parts, dim=2)
+            judged = self.judge_mlp(per)  # (B, M, 2)
+            scores, logits = judged[..., 0], judged[..., 1]
+            # The best-scored candidate among those the collision head expects to be free (η < 0.5);
+            # the best-scored of all when it expects every one to collide (then η gates the plan).
+            free = logits < 0
+            masked = torch.where(free, scores, torch.full_like(scores, -torch.inf))
+            chosen = torch.where(free.any(dim=1), masked.argmax(dim=1), scores.argmax(dim=1))
+        rows = torch.arange(B, device=x.device)
+        logit = logits[rows, chosen]
+        return PlannerOutput(keypoints=candidates[rows, chosen], eta=torch.sigmoid(logit), eta_logit=logit,
+                             candidates=candidates, candidate_eta_logits=logits, scores=scores, chosen=chosen)
 
     def trajectory(
         self,
@@ -374,6 +502,7 @@ class PlannerNet(nn.Module):
         start_velocity: torch.Tensor | None = None,
         start_acceleration: torch.Tensor | None = None,
         corridor: float | None = None,
+        camera: CameraInput | None = None,
     ) -> Plan:
         """Depth image(s) in metres + goal → :class:`Plan` (preprocess, forward, trajectory).
 
@@ -389,7 +518,7 @@ class PlannerNet(nn.Module):
         goal = torch.as_tensor(goal, dtype=x.dtype, device=x.device)
         if goal.ndim == 1:
             goal = goal.unsqueeze(0)
-        out = self(x, goal)
+        out = self(x, goal, camera=camera)
         p = self.trajectory(out.keypoints, start_velocity=start_velocity, start_acceleration=start_acceleration,
                             corridor=corridor)
         p.eta, p.eta_logit = out.eta, out.eta_logit

@@ -50,13 +50,24 @@ class Planner:
         self.net = net.eval().to(device)
         self.device = device
 
+    @property
+    def needs_camera(self) -> bool:
+        """True when the model needs the camera's calibration to plan (``depth_check``)."""
+        c = self.net.config
+        return bool(c.depth_check and c.num_candidates > 1)
+
     @classmethod
     def load(cls, run_dir: str | Path, *, device: str = "cpu") -> "Planner":
-        """Load runs/NAME/model.pt (state dict + planner config; nothing pickled but tensors)."""
+        """Load runs/NAME/model.pt (state dict + planner config; nothing pickled but tensors);
+        ``run_dir="pretrained"`` loads the model shipped with mapkit."""
         from mapkit.planner import PlannerConfig, PlannerNet
+        from mapkit.planning._pretrained import PRETRAINED, resolve_model
 
-        path = Path(run_dir) / "model.pt"
+        path = resolve_model(run_dir) / "model.pt"
         if not path.exists():
+            if str(run_dir) == PRETRAINED:
+                raise PlanningError(f"this mapkit installation lacks the shipped model ({path}); reinstall mapkit "
+                                    "or pass --model RUN_DIR of a model you trained")
             raise PlanningError(f"{run_dir} has no model.pt; train one with `mapkit train` (or check the run path)")
         if device.startswith("cuda") and not torch.cuda.is_available():
             raise PlanningError(f"--device {device}: torch sees no CUDA device; use --device cpu")
@@ -69,12 +80,16 @@ class Planner:
         return cls(net, torch.device(device))
 
     def plan(self, depth: np.ndarray, goal_body: np.ndarray, *, velocity_body: np.ndarray | None = None,
-             rate_hz: float = 50.0, corridor: float | None = None) -> PlanResult:
+             rate_hz: float = 50.0, corridor: float | None = None, K: np.ndarray | None = None,
+             T_body_camera: np.ndarray | None = None) -> PlanResult:
         """Depth (H, W) metres (NaN invalid) + goal (3,) body frame [+ velocity (3,)] → PlanResult.
 
         `corridor`: half-width (m) of the flight corridor around each key-point segment (body
         axes); the min-snap trajectory is then a QP bounded by it instead of passing through the
-        interior key-points (see :func:`mapkit.trajopt.min_snap`). None: through the key-points."""
+        interior key-points (see :func:`mapkit.trajopt.min_snap`). None: through the key-points.
+
+        `K` (3, 3) and `T_body_camera` (4, 4) (optical camera → body): the depth camera's
+        calibration, needed by models that check their candidate paths against the depth image."""
         goal = np.asarray(goal_body, dtype=np.float32).reshape(3)
         if not np.all(np.isfinite(goal)):
             raise PlanningError(f"goal {goal.tolist()} is not finite")
@@ -82,8 +97,18 @@ class Planner:
         d = torch.from_numpy(np.asarray(depth, dtype=np.float32)[None]).to(self.device)
         with torch.inference_mode():
             t0 = time.perf_counter()
+            camera = None
+            if K is not None and T_body_camera is not None:
+                from mapkit.planner import CameraInput
+
+                h, w = np.asarray(depth).shape[-2:]
+                camera = CameraInput.from_calibration(np.asarray(K), int(w), int(h), np.asarray(T_body_camera))
+            elif self.needs_camera:
+                raise PlanningError("this model checks its paths against the depth image: pass the camera's K and "
+                                    "T_body_camera")
             p = self.net.plan(d, torch.from_numpy(goal[None]).to(self.device),
-                              start_velocity=torch.from_numpy(vel[None]).to(self.device), corridor=corridor)
+                              start_velocity=torch.from_numpy(vel[None]).to(self.device), corridor=corridor,
+                              camera=None if camera is None else camera.to(self.device))
             if self.device.type == "cuda":
                 torch.cuda.synchronize()
             latency = 1e3 * (time.perf_counter() - t0)

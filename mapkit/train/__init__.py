@@ -2,7 +2,8 @@
 
 from mapkit.train._config import PRESETS, TrainConfig, TrainConfigError, preset
 from mapkit.train._data import TrainDataError, TupleSamples, TupleStore
-from mapkit.train._loop import TrainSummary, evaluate, train
+from mapkit.train._loop import TrainSummary, evaluate, set_threads, train
+from mapkit.train._provenance import simulated_worlds, workspace_camera
 
 __all__ = [
     "PRESETS",
@@ -14,5 +15,8 @@ __all__ = [
     "TupleStore",
     "evaluate",
     "preset",
+    "set_threads",
+    "simulated_worlds",
     "train",
+    "workspace_camera",
 ]

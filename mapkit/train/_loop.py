@@ -17,8 +17,12 @@ from torch import nn
 from mapkit._version import __version__
 from mapkit.train._config import TrainConfig, TrainConfigError
 from mapkit.train._data import TrainDataError, TupleSamples, TupleStore
+from mapkit.train._provenance import simulated_worlds, workspace_camera
 
-METRIC_KEYS = ("total", "obstacle", "goal", "smoothness", "escape", "time", "collision_rate")
+METRIC_KEYS = ("total", "obstacle", "goal", "smoothness", "escape", "time", "score", "collision_rate",
+               "winner_collision_rate", "score_accuracy")
+REACH_DISTANCE = 1.0
+"""Metres: a validation plan "reaches" its goal when its end lies this close and it does not collide."""
 
 
 @dataclass
@@ -30,18 +34,34 @@ class TrainSummary:
     samples_per_second: float
     last: dict[str, Any] = field(default_factory=dict)
     baseline: dict[str, Any] = field(default_factory=dict)
+    best_epoch: int | None = None
+    """Epoch whose weights model.pt holds (best held-out blocked-goal reach), None before any."""
+    blocked_goals: int | None = None
+    """Training samples with a blocked goal (None: the stores do not record it)."""
+    threads: int = 1
+    """torch threads used."""
 
 
 class _Step(nn.Module):
-    """net.plan behind a forward(), so DistributedDataParallel sees (and syncs) the whole step."""
+    """The network's forward behind one module, so DistributedDataParallel sees (and syncs) it."""
 
-    def __init__(self, net: nn.Module, corridor: float | None = None) -> None:
+    def __init__(self, net: nn.Module) -> None:
         super().__init__()
         self.net = net
-        self.corridor = corridor
 
-    def forward(self, depth: torch.Tensor, goal: torch.Tensor, velocity: torch.Tensor) -> Any:
-        return self.net.plan(depth, goal, start_velocity=velocity, corridor=self.corridor)
+    def forward(self, depth: torch.Tensor, goal: torch.Tensor, image_index: torch.Tensor, camera: Any) -> Any:
+        return self.net(self.net.preprocess(depth), goal, image_index, camera)
+
+
+def set_threads(world_size: int = 1) -> int:
+    """One torch thread per CPU core this process may use (its affinity), shared among the local
+    DDP processes. Without it torch may start more threads than cores on a shared machine, and a
+    batch took 10-20x longer there."""
+    from mapkit.dataset import available_cpus
+
+    n = max(1, available_cpus() // max(1, world_size))
+    torch.set_num_threads(n)
+    return n
 
 
 def _device(name: str) -> torch.device:
@@ -82,32 +102,74 @@ def _distributed() -> tuple[int, int]:
     return dist.get_rank(), dist.get_world_size()
 
 
+def _active_fraction(net: nn.Module) -> tuple[list[Any], dict[int, torch.Tensor]]:
+    """Hooks recording, per hidden ReLU of the key-point MLP, which units were ever positive."""
+    seen: dict[int, torch.Tensor] = {}
+    hooks = []
+    relus = [m for m in net.keypoint_mlp if isinstance(m, (nn.ReLU, nn.LeakyReLU))]
+    for i, relu in enumerate(relus):
+        def hook(_m: nn.Module, _inp: Any, out: torch.Tensor, i: int = i) -> None:
+            alive = (out > 0).any(dim=0)
+            seen[i] = alive if i not in seen else seen[i] | alive
+        hooks.append(relu.register_forward_hook(hook))
+    return hooks, seen
+
+
+def _straight_output(net: nn.Module, goal: torch.Tensor) -> Any:
+    from mapkit.planner import PlannerOutput
+
+    line = net.straight_line(goal)
+    zero = torch.zeros(goal.shape[0], dtype=goal.dtype, device=goal.device)
+    return PlannerOutput(keypoints=line, eta=zero + 0.5, eta_logit=zero)
+
+
 def evaluate(net: nn.Module, samples: TupleSamples, maps: list[Any], loss_config: Any, device: torch.device, *,
              straight: bool = False, max_batches: int | None = None, batch_size: int = 16,
              corridor: float | None = None) -> dict[str, float]:
-    """Mean loss terms over a split; with straight=True for key-points on the start–goal line."""
-    from mapkit.planner import planner_loss
+    """Mean loss terms over a split (the chosen candidate's), with straight=True for key-points on
+    the start–goal line; plus, over samples whose goal is blocked in the map, "blocked_collision"
+    (plans that collide), "blocked_reach" (plans that end within REACH_DISTANCE of the goal without
+    colliding) and "blocked_count", and "active_units" (smallest fraction of the key-point MLP's
+    hidden units active on some sample)."""
+    from mapkit.planner import candidate_loss
 
     totals = {k: 0.0 for k in METRIC_KEYS}
     n = 0
+    blocked_n, blocked_coll, blocked_reach = 0, 0.0, 0.0
     net.eval()
-    with torch.no_grad():
-        for b, (k, part) in enumerate(samples.batches(batch_size, shuffle=False)):
-            if max_batches is not None and b >= max_batches:
-                break
-            batch = samples.load(k, part, device)
-            x = net.preprocess(batch["depth"])
-            out = net(x, batch["goal"])
-            keypoints = net.straight_line(batch["goal"]) if straight else out.keypoints
-            plan = net.trajectory(keypoints, start_velocity=batch["velocity"], corridor=corridor)
-            _, terms = planner_loss(plan, goal=batch["goal"], T_world_body=batch["T_world_body"], esdf_map=maps[k],
-                                    eta=out.eta, eta_logit=out.eta_logit, config=loss_config)
-            m = len(part)
-            for key in METRIC_KEYS:
-                totals[key] += float(terms[key]) * m
-            n += m
+    hooks, seen = _active_fraction(net)
+    try:
+        with torch.no_grad():
+            for b, (k, part) in enumerate(samples.batches(batch_size, shuffle=False)):
+                if max_batches is not None and b >= max_batches:
+                    break
+                batch = samples.load(k, part, device)
+                out = net(net.preprocess(batch["depth"]), batch["goal"], batch["image_index"], batch["camera"])
+                if straight:
+                    out = _straight_output(net, batch["goal"])
+                _, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"],
+                                          esdf_map=maps[k], start_velocity=batch["velocity"], corridor=corridor,
+                                          config=loss_config)
+                m = len(part)
+                for key in METRIC_KEYS:
+                    totals[key] += float(terms[key]) * m
+                n += m
+                blk = batch["blocked"]
+                coll = terms["collided_chosen"]
+                reach = (~coll) & (terms["goal_chosen"] < REACH_DISTANCE)
+                blocked_n += int(blk.sum())
+                blocked_coll += float(coll[blk].sum())
+                blocked_reach += float(reach[blk].sum())
+    finally:
+        for h in hooks:
+            h.remove()
     net.train()
-    return {k: v / max(n, 1) for k, v in totals.items()}
+    result = {k: v / max(n, 1) for k, v in totals.items()}
+    result.update(blocked_count=float(blocked_n), blocked_collision=blocked_coll / max(blocked_n, 1),
+                  blocked_reach=blocked_reach / max(blocked_n, 1))
+    if not straight and seen:
+        result["active_units"] = min(float(v.float().mean()) for v in seen.values())
+    return result
 
 
 def _curves(metrics: list[dict[str, Any]], path: Path) -> None:
@@ -129,11 +191,15 @@ def _curves(metrics: list[dict[str, Any]], path: Path) -> None:
     axes[0].legend(fontsize=8)
     base = next((m for m in metrics if m.get("epoch") == 0), None)
     vx = [m["epoch"] for m in metrics if "val" in m]
-    for key, style in (("obstacle", "-o"), ("collision_rate", "-s")):
-        axes[1].plot(vx, [m["val"][key] for m in metrics if "val" in m], style, label=f"val {key}")
-        if base and "straight" in base:
-            axes[1].axhline(base["straight"][key], linestyle="--", color="grey", linewidth=0.8)
-    axes[1].set_xlabel("epoch (0 = untrained; dashed: straight-line key-points)")
+    for key, style in (("collision_rate", "-s"), ("blocked_collision", "-o"), ("blocked_reach", "-^"),
+                       ("active_units", "-x")):
+        ys = [m["val"].get(key) for m in metrics if "val" in m]
+        if all(y is None for y in ys):
+            continue
+        line, = axes[1].plot(vx, [float("nan") if y is None else y for y in ys], style, label=f"val {key}")
+        if base and key in base.get("straight", {}):
+            axes[1].axhline(base["straight"][key], linestyle="--", color=line.get_color(), linewidth=0.8)
+    axes[1].set_xlabel("epoch (0 = untrained; dashed: straight-line key-points on the same goals)")
     axes[1].legend(fontsize=8)
     fig.tight_layout()
     tmp = path.with_name(f".{path.name}.partial-{os.getpid()}.png")
@@ -142,20 +208,59 @@ def _curves(metrics: list[dict[str, Any]], path: Path) -> None:
     os.replace(tmp, path)
 
 
-def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: str | Path | None = None,
-          resume: bool = False, overwrite: bool = False, progress: bool = True) -> TrainSummary:
-    """Train the planner on the tuples of `workspaces`; writes runs_dir/NAME (default: first WS/runs)."""
-    from tqdm import tqdm
-
+def _open_stores(workspaces: Sequence[str | Path]) -> tuple[list[TupleStore], list[Any]]:
+    """Tuple stores and their maps; a map changed since export is refused."""
     from mapkit.esdf import MAP, EsdfMap
     from mapkit.export import map_digest
-    from mapkit.planner import LossConfig, PlannerConfig, PlannerNet
+
+    stores = [TupleStore.open(ws) for ws in workspaces]
+    maps = []
+    for s in stores:
+        digest = map_digest(s.workspace / MAP) if (s.workspace / MAP).exists() else None
+        if digest != s.attrs["map"]["sha256"]:
+            raise TrainDataError(f"{s.workspace / MAP} changed since `mapkit export` (or is missing); re-run `mapkit export --overwrite`")
+        maps.append(EsdfMap.open(s.workspace / MAP))
+    return stores, maps
+
+
+def _camera_or_none(workspace: str | Path) -> dict[str, Any] | None:
+    """The first training workspace's camera (what evaluation renders), None when unreadable."""
+    from mapkit.errors import MapkitError
+
+    try:
+        return workspace_camera(workspace)
+    except (MapkitError, OSError):
+        return None
+
+
+def _selection_score(val: dict[str, float]) -> float:
+    """Higher is better: held-out blocked-goal reach when there are blocked goals, else −loss."""
+    return val["blocked_reach"] if val.get("blocked_count", 0) > 0 else -val["total"]
+
+
+def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: str | Path | None = None,
+          resume: bool = False, overwrite: bool = False, progress: bool = True,
+          val_workspaces: Sequence[str | Path] = ()) -> TrainSummary:
+    """Train the planner on the tuples of `workspaces`; writes runs_dir/NAME (default: first WS/runs).
+
+    With ``val_workspaces`` (held-out worlds) every tuple of ``workspaces`` trains and every tuple of
+    ``val_workspaces`` validates; otherwise each store's own train/val split is used. model.pt holds
+    the epoch with the best validation blocked-goal reach (see :func:`evaluate`); checkpoint.pt the
+    latest (for --resume)."""
+    from tqdm import tqdm
+
+    from mapkit.planner import LossConfig, PlannerConfig, PlannerNet, candidate_loss
 
     config.validate()
     if not workspaces:
         raise TrainDataError("no workspace given; pass -w WS (repeatable)")
+    overlap = {Path(w).resolve() for w in workspaces} & {Path(w).resolve() for w in val_workspaces}
+    if overlap:
+        raise TrainDataError(f"{sorted(map(str, overlap))[0]} is both a training and a validation workspace; "
+                             "hold out whole worlds")
     device = _device(config.device)
     rank, world = _distributed()
+    threads = set_threads(world) if device.type == "cpu" else torch.get_num_threads()
     run_dir = Path(runs_dir) if runs_dir else Path(workspaces[0]) / "runs"
     run_dir = run_dir / config.name
     checkpoint_path = run_dir / "checkpoint.pt"
@@ -178,21 +283,21 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
 
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
-    stores = [TupleStore.open(ws) for ws in workspaces]
-    maps = []
-    for s in stores:
-        digest = map_digest(s.workspace / MAP) if (s.workspace / MAP).exists() else None
-        if digest != s.attrs["map"]["sha256"]:
-            raise TrainDataError(f"{s.workspace / MAP} changed since `mapkit export` (or is missing); re-run `mapkit export --overwrite`")
-        maps.append(EsdfMap.open(s.workspace / MAP))
-    train_set, val_set = TupleSamples(stores, "train"), TupleSamples(stores, "val")
+    stores, maps = _open_stores(workspaces)
+    if val_workspaces:
+        val_stores, val_maps = _open_stores(val_workspaces)
+        train_set = TupleSamples(stores, "all", goals_together=config.goals_together)
+        val_set = TupleSamples(val_stores, "all")
+    else:
+        train_set = TupleSamples(stores, "train", goals_together=config.goals_together)
+        val_set, val_maps = TupleSamples(stores, "val"), maps
     if len(train_set) == 0:
         raise TrainDataError("no training samples: every tuple is in the validation split; lower --val-fraction at export")
 
     planner_cfg = PlannerConfig.from_dict(config.planner) if config.planner else PlannerConfig()
     loss_cfg = LossConfig(**config.loss)
     net = PlannerNet(planner_cfg).to(device)
-    step_module: nn.Module = _Step(net, config.corridor)
+    step_module: nn.Module = _Step(net)
     if world > 1:
         step_module = nn.parallel.DistributedDataParallel(step_module, device_ids=[device.index] if device.type == "cuda" else None)
     optimizer = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
@@ -201,6 +306,7 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
         optimizer.load_state_dict(state["optimizer"])
         torch.set_rng_state(state["rng_torch"])
         rng.bit_generator.state = state["rng_numpy"]
+    best_score, best_epoch = (state.get("best_score", -math.inf), state.get("best_epoch")) if state else (-math.inf, None)
 
     writer = None
     metrics: list[dict[str, Any]] = []
@@ -211,6 +317,10 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
                 (run_dir / stale).unlink(missing_ok=True)
         _atomic_text(json.dumps(config.to_dict() | {"planner_resolved": planner_cfg.to_dict(),
                                                     "workspaces": [str(Path(w).resolve()) for w in workspaces],
+                                                    "val_workspaces": [str(Path(w).resolve()) for w in val_workspaces],
+                                                    "camera": _camera_or_none(workspaces[0]),
+                                                    "training_worlds": sorted(map(list, simulated_worlds(
+                                                        [*workspaces, *val_workspaces]))),
                                                     "mapkit_version": __version__}, indent=2), run_dir / "config.json")
         if (run_dir / "metrics.jsonl").exists():
             metrics = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
@@ -229,9 +339,9 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     if rank == 0 and not resume:
         base = {
             "epoch": 0,
-            "val": evaluate(net, val_set, maps, loss_cfg, device, max_batches=config.val_batches, batch_size=config.batch_size,
+            "val": evaluate(net, val_set, val_maps, loss_cfg, device, max_batches=config.val_batches, batch_size=config.batch_size,
                             corridor=config.corridor),
-            "straight": evaluate(net, val_set, maps, loss_cfg, device, straight=True, max_batches=config.val_batches,
+            "straight": evaluate(net, val_set, val_maps, loss_cfg, device, straight=True, max_batches=config.val_batches,
                                  batch_size=config.batch_size, corridor=config.corridor),
         }
         log(base)
@@ -241,8 +351,6 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     train_seconds = 0.0
     samples_seen = 0
     epoch = start_epoch - 1
-    from mapkit.planner import planner_loss
-
     for epoch in range(start_epoch, config.epochs + 1):
         sums = {k: 0.0 for k in METRIC_KEYS}
         count = 0
@@ -252,13 +360,15 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
         t_steps = time.perf_counter()
         for k, part in bar:
             batch = train_set.load(k, part, device)
-            plan = step_module(batch["depth"], batch["goal"], batch["velocity"])
-            loss, terms = planner_loss(plan, goal=batch["goal"], T_world_body=batch["T_world_body"], esdf_map=maps[k],
-                                       config=loss_cfg)
+            out = step_module(batch["depth"], batch["goal"], batch["image_index"], batch["camera"])
+            loss, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"], esdf_map=maps[k],
+                                         start_velocity=batch["velocity"], corridor=config.corridor, config=loss_cfg)
             if not torch.isfinite(loss):
                 raise TrainConfigError(f"loss became {float(loss)} at step {step}; lower --lr (now {config.lr})")
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            if config.grad_clip is not None:
+                nn.utils.clip_grad_norm_(net.parameters(), config.grad_clip)
             optimizer.step()
             step += 1
             m = len(part)
@@ -277,19 +387,27 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
         steps_seconds = time.perf_counter() - t_steps
         train_seconds += steps_seconds
         if rank == 0:
-            val = evaluate(net, val_set, maps, loss_cfg, device, max_batches=config.val_batches, batch_size=config.batch_size,
+            val = evaluate(net, val_set, val_maps, loss_cfg, device, max_batches=config.val_batches, batch_size=config.batch_size,
                            corridor=config.corridor)
+            score = _selection_score(val)
+            improved = score > best_score
+            if improved:
+                best_score, best_epoch = score, epoch
             seconds = time.perf_counter() - t_epoch
             log({"epoch": epoch, "step": step, "train": {k: v / max(count, 1) for k, v in sums.items()}, "val": val,
-                 "seconds": seconds, "samples_per_second": count * world / steps_seconds})
+                 "seconds": seconds, "samples_per_second": count * world / steps_seconds, "best_epoch": best_epoch})
             if writer is not None:
                 for key, value in val.items():
                     writer.add_scalar(f"val/{key}", value, epoch)
             _atomic_save({"model": net.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch, "step": step,
-                          "config": config.to_dict(), "rng_torch": torch.get_rng_state(), "rng_numpy": rng.bit_generator.state},
+                          "config": config.to_dict(), "rng_torch": torch.get_rng_state(), "rng_numpy": rng.bit_generator.state,
+                          "best_score": best_score, "best_epoch": best_epoch},
                          checkpoint_path)
-            _atomic_save({"state_dict": net.state_dict(), "planner_config": planner_cfg.to_dict(),
-                          "loss_config": config.loss, "mapkit_version": __version__}, run_dir / "model.pt")
+            if improved:
+                _atomic_save({"state_dict": net.state_dict(), "planner_config": planner_cfg.to_dict(),
+                              "loss_config": config.loss, "mapkit_version": __version__, "epoch": epoch,
+                              "selection": {"blocked_reach": val["blocked_reach"], "total": val["total"]}},
+                             run_dir / "model.pt")
             _curves(metrics, run_dir / "training_curves.png")
         if config.max_steps is not None and step >= config.max_steps:
             break
@@ -298,4 +416,4 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     seconds = time.perf_counter() - t_start
     last = next((m for m in reversed(metrics) if "train" in m), {})
     rate = samples_seen * world / train_seconds if train_seconds > 0 else math.nan
-    return TrainSummary(run_dir, epoch, step, seconds, rate, last, baseline)
+    return TrainSummary(run_dir, epoch, step, seconds, rate, last, baseline, best_epoch, train_set.blocked_count(), threads)

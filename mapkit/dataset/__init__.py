@@ -1,0 +1,35 @@
+"""Training data at scale: many simulated worlds → normal workspaces (`mapkit dataset`)."""
+
+from mapkit.dataset._build import (
+    DONE,
+    MANIFEST,
+    CameraVariant,
+    DatasetConfig,
+    DatasetError,
+    DatasetSummary,
+    WorldSpec,
+    available_cpus,
+    build_dataset,
+    build_world,
+    dataset_workspaces,
+    split_worlds,
+    estimate,
+    world_specs,
+)
+
+__all__ = [
+    "DONE",
+    "MANIFEST",
+    "CameraVariant",
+    "DatasetConfig",
+    "DatasetError",
+    "DatasetSummary",
+    "WorldSpec",
+    "available_cpus",
+    "build_dataset",
+    "build_world",
+    "dataset_workspaces",
+    "split_worlds",
+    "estimate",
+    "world_specs",
+]

@@ -1,0 +1,101 @@
+"""Each candidate path checked against the depth image it was planned from.
+
+A path point in view is compared with the depth the camera measured around its pixel (the nearest
+depth within the image of the robot's disc there, so a point passing beside a surface closer than the
+robot's size still counts): a point in front of the measured surface lies in seen free space, one behind it is
+occluded (or inside the obstacle). These per-point margins are inputs of the candidate judge; they
+use only the network's own input and the camera's calibration, never the map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from mapkit.planner._errors import PlannerError
+
+POINTS_PER_SEGMENT = 3
+"""Samples per key-point segment (the origin itself is not checked)."""
+FEATURES_PER_POINT = 2
+"""in view (0/1), and the margin (measured − path depth) / 2 m clipped to [−1, 1] (0 out of view)."""
+
+
+@dataclass
+class CameraInput:
+    """The calibration the planner needs to look its paths up in the depth image (batched)."""
+
+    intrinsics: torch.Tensor
+    """(B, 4) fx / W, fy / H, (cx + 0.5) / W, (cy + 0.5) / H of the ORIGINAL image (W × H pixels, pixel
+    centres at integers): normalised so resizing the image changes nothing."""
+    T_camera_body: torch.Tensor
+    """(B, 4, 4) body (FLU) → optical camera frame."""
+
+    @classmethod
+    def from_calibration(cls, K: torch.Tensor, width: int, height: int, T_body_camera: torch.Tensor) -> "CameraInput":
+        """From K (B, 3, 3) or (3, 3) pixels, the image size and T_body_camera (B, 4, 4) or (4, 4)."""
+        K = torch.as_tensor(K, dtype=torch.float64)
+        T = torch.as_tensor(T_body_camera, dtype=torch.float64)
+        if K.shape[-2:] != (3, 3) or T.shape[-2:] != (4, 4):
+            raise PlannerError(f"K must be (3, 3) and T_body_camera (4, 4), got {tuple(K.shape)} and {tuple(T.shape)}")
+        K, T = K.reshape(-1, 3, 3), T.reshape(-1, 4, 4)
+        intr = torch.stack([K[:, 0, 0] / width, K[:, 1, 1] / height, (K[:, 0, 2] + 0.5) / width,
+                            (K[:, 1, 2] + 0.5) / height], dim=1)
+        return cls(intrinsics=intr.float(), T_camera_body=torch.linalg.inv(T).float())
+
+    def expand(self, batch: int) -> "CameraInput":
+        """The same camera for ``batch`` samples (a single calibration is broadcast)."""
+        if self.intrinsics.shape[0] == batch:
+            return self
+        if self.intrinsics.shape[0] != 1:
+            raise PlannerError(f"camera has {self.intrinsics.shape[0]} calibrations for a batch of {batch}")
+        return CameraInput(self.intrinsics.expand(batch, 4), self.T_camera_body.expand(batch, 4, 4))
+
+    def to(self, device: torch.device | str) -> "CameraInput":
+        return CameraInput(self.intrinsics.to(device), self.T_camera_body.to(device))
+
+
+def path_points(candidates: torch.Tensor) -> torch.Tensor:
+    """(B, M, K * POINTS_PER_SEGMENT, 3): points along origin → k1 → … → kK (end of each step)."""
+    B, M, K, _ = candidates.shape
+    wp = torch.cat([torch.zeros_like(candidates[:, :, :1]), candidates], dim=2)  # (B, M, K+1, 3)
+    frac = torch.arange(1, POINTS_PER_SEGMENT + 1, dtype=candidates.dtype, device=candidates.device) / POINTS_PER_SEGMENT
+    a, b = wp[:, :, :-1, None], wp[:, :, 1:, None]  # (B, M, K, 1, 3)
+    return (a + (b - a) * frac[:, None]).reshape(B, M, K * POINTS_PER_SEGMENT, 3)
+
+
+WINDOWS = (3, 7, 15, 31, 63)
+"""Square windows (input pixels) of the nearest-depth pyramid; each path point reads the one closest
+to the image size of the robot's disc at its depth."""
+
+
+def depth_margins(candidates: torch.Tensor, x: torch.Tensor, camera: CameraInput, *, max_depth: float,
+                  robot_radius: float = 0.35) -> torch.Tensor:
+    """(B, M, P · FEATURES_PER_POINT) features of every candidate (B, M, K, 3) body frame against the
+    preprocessed depth ``x`` (B, 2, h, w) (:func:`preprocess_depth`: depth / max_depth and the valid
+    mask). Each point reads the nearest measured depth within the image of a disc of ``robot_radius``
+    around it (from a pyramid of window sizes: at 1 m the disc spans tens of pixels, at 8 m a few).
+    Pixels without a return count as far (no surface seen there)."""
+    B, M, K, _ = candidates.shape
+    h, w = x.shape[-2:]
+    pts = path_points(candidates)  # (B, M, P, 3)
+    T = camera.T_camera_body.to(pts.dtype)
+    pc = pts @ T[:, None, :3, :3].transpose(-1, -2) + T[:, None, None, :3, 3]
+    z = pc[..., 2]
+    safe_z = z.clamp_min(1e-3)
+    intr = camera.intrinsics.to(pts.dtype)[:, None, None]
+    u = intr[..., 0] * pc[..., 0] / safe_z + intr[..., 2]
+    v = intr[..., 1] * pc[..., 1] / safe_z + intr[..., 3]
+    in_view = (z > 0.1) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
+    depth = torch.where(x[:, 1:2] > 0.5, x[:, :1], torch.ones_like(x[:, :1]))  # no return: far
+    pyramid = torch.cat([-F.max_pool2d(-depth, k, stride=1, padding=k // 2) for k in WINDOWS], dim=1)
+    grid = torch.stack([2 * u - 1, 2 * v - 1], dim=-1).reshape(B, M * pts.shape[2], 1, 2)
+    levels = F.grid_sample(pyramid, grid.to(pyramid.dtype), mode="bilinear", padding_mode="border",
+                           align_corners=False).reshape(B, len(WINDOWS), M, -1) * max_depth  # (B, L, M, P)
+    disc_px = 2 * robot_radius * intr[..., 0] * w / safe_z  # the disc's width in input pixels
+    sizes = torch.tensor(WINDOWS, dtype=pts.dtype, device=pts.device)
+    level = (disc_px[..., None].log() - sizes.log()).abs().argmin(dim=-1)  # (B, M, P)
+    measured = levels.gather(1, level[:, None].to(torch.long)).squeeze(1)
+    margin = torch.where(in_view, ((measured - z) / 2.0).clamp(-1.0, 1.0), torch.zeros_like(z))
+    return torch.stack([in_view.to(pts.dtype), margin], dim=-1).flatten(2)

@@ -1,0 +1,63 @@
+"""`mapkit dataset`: deterministic varied worlds, a resumable build into normal workspaces, world-level
+splits, and the estimate that refuses a dataset the disk cannot hold."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from mapkit.cli.main import main
+from mapkit.dataset import DONE, DatasetConfig, DatasetError, build_dataset, dataset_workspaces, split_worlds, world_specs
+from mapkit.export import ExportConfig
+
+
+def small(**kw: object) -> DatasetConfig:
+    base = dict(worlds=2, kinds=("forest", "office"), seed=500, duration=4.0, rate=3.0, workers=1,
+                export=ExportConfig(goals_per_frame=3, goal_mix=(0.0, 0.5, 0.5)))
+    return DatasetConfig(**{**base, **kw})  # type: ignore[arg-type]
+
+
+def test_world_specs_are_varied_and_deterministic() -> None:
+    config = DatasetConfig(worlds=12)
+    a, b = world_specs(config), world_specs(config)
+    assert a == b
+    assert [s.kind for s in a[:3]] == ["forest", "office", "garage"]
+    assert a[0].tilt_deg == 0.0 and (a[0].width, a[0].height) == (160, 120)  # evaluation renders world 0's camera
+    assert len({s.seed for s in a}) == 12 and len({s.tilt_deg for s in a}) > 6 and len({s.speed for s in a}) > 6
+    assert {s.noise for s in a} == {"none", "realsense"}
+    # Growing the dataset keeps the worlds already made.
+    assert world_specs(DatasetConfig(worlds=20))[:12] == a
+
+
+def test_build_resume_and_split(tmp_path: Path) -> None:
+    root = tmp_path / "ds"
+    s = build_dataset(root, small(), progress=False)
+    assert sorted(s.done) == [w.name for w in world_specs(small())] and not s.failed
+    for ws in dataset_workspaces(root):
+        for store in ("frames.zarr", "map.zarr", "tuples.zarr", DONE):
+            assert (ws / store).exists(), (ws, store)
+        item = json.loads((ws / DONE).read_text())
+        assert item["tuples"] > 0 and "hidden" in item["export"]["kinds"]
+        assert (ws / "recording" / "flight.world.json").exists()
+    again = build_dataset(root, small(), progress=False)
+    assert again.done == [] and len(again.skipped) == 2
+    train_ws, val_ws = split_worlds(root, 1)
+    assert not set(train_ws) & set(val_ws) and len(val_ws) == 1 and train_ws[0].name.startswith("000-")
+    with pytest.raises(DatasetError, match="--val-worlds 2"):
+        split_worlds(root, 2)
+
+
+def test_bad_requests_are_one_line_errors(tmp_path: Path) -> None:
+    with pytest.raises(DatasetError, match="GB free"):
+        build_dataset(tmp_path / "huge", DatasetConfig(worlds=200000), progress=False, dry_run=True)
+    with pytest.raises(DatasetError, match="--kinds"):
+        build_dataset(tmp_path / "k", small(kinds=("moon",)), progress=False)
+    with pytest.raises(DatasetError, match="--tilt-deg"):
+        build_dataset(tmp_path / "t", small(tilt_deg=(0.0, float("nan"))), progress=False)
+    result = CliRunner().invoke(main, ["dataset", "-o", str(tmp_path / "d"), "--worlds", "0"])
+    assert result.exit_code == 1 and "--worlds 0" in result.output and "Traceback" not in result.output
+    with pytest.raises(DatasetError, match="holds no dataset.json"):
+        dataset_workspaces(tmp_path)
