@@ -29,6 +29,16 @@ def synthetic_map():
     return EsdfMap(esdf=esdf, voxel_size=0.1, origin=np.array([-6.0, -6.0, -0.3]))
 
 
+def d435_camera(width: int, height: int):
+    """The simulator's D435-like camera calibration at ``width`` × ``height``, level."""
+    from mapkit.planner import CameraInput
+    from mapkit.sim import CameraModel, camera_extrinsics
+
+    cam = CameraModel(width=width, height=height)
+    T_bl, T_lo = camera_extrinsics()
+    return CameraInput.from_calibration(torch.from_numpy(cam.K), width, height, torch.from_numpy(T_bl @ T_lo))
+
+
 def throughput(preset_name: str, esdf_map, *, batch: int, steps: int, goals_per_image: int = 1) -> float:
     """Training samples/s of the preset's full step (network, every candidate's min-snap, loss,
     backward); ``goals_per_image`` > 1 shares each depth image among that many goals, as the cpu
@@ -47,10 +57,11 @@ def throughput(preset_name: str, esdf_map, *, batch: int, steps: int, goals_per_
     T[:, 2, 3] = 1.5
     vel = torch.zeros(batch, 3)
     loss_cfg = LossConfig(**cfg.loss)
+    camera = d435_camera(640, 480).expand(batch)
     times = []
     for i in range(steps + 1):
         t = time.perf_counter()
-        out = net(net.preprocess(depth), goal, index)
+        out = net(net.preprocess(depth), goal, index, camera, vel)
         loss, _ = candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=esdf_map, start_velocity=vel,
                                  config=loss_cfg)
         opt.zero_grad()
@@ -69,11 +80,12 @@ def latency(esdf_map) -> tuple[float, float]:
     depth = torch.rand(1, 480, 640) * 8 + 0.5
     goal = torch.tensor([[6.0, 0.5, 0.0]])
     vel = torch.zeros(1, 3)
+    camera = d435_camera(640, 480)
     times = []
     with torch.inference_mode():
         for i in range(60):
             t = time.perf_counter()
-            p = net.plan(depth, goal, start_velocity=vel)
+            p = net.plan(depth, goal, start_velocity=vel, camera=camera)
             p.trajectory.position(torch.tensor([0.5]))
             if i >= 10:
                 times.append(time.perf_counter() - t)

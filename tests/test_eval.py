@@ -265,3 +265,56 @@ def test_refuses_the_seed_of_a_training_world(tmp_path: Path):
     r = CliRunner().invoke(main, ["eval", "--model", str(tall), "--world", "garage", "--seed", "3", "--pairs", "1",
                                   "-o", str(tmp_path / "ev")])
     assert r.exit_code == 1 and "48x48" in r.output and "36x48" in r.output, r.output
+
+
+def test_a_candidate_model_flies_with_the_rendered_camera_and_its_recorded_provenance(tmp_path: Path):
+    """A model that checks its candidates against the depth image gets the loop camera's calibration;
+    a run whose workspaces are gone (the shipped model) still names its camera and training worlds."""
+    cfg = planner_preset("cpu", input_size=(48, 64), num_candidates=4, depth_check=True, velocity_input=True,
+                         head_activation="leaky_relu")
+    camera = {"width": 80, "height": 60, "K": [[48.4, 0.0, 39.5], [0.0, 48.4, 29.5], [0.0, 0.0, 1.0]],
+              "T_body_camera": [[0.0, 0.0, 1.0, 0.08], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.02],
+                                [0.0, 0.0, 0.0, 1.0]], "source": "recorded"}
+    run = save_model(tmp_path / "multi", cfg, workspaces=["/nonexistent/ws"], camera=camera,
+                     training_worlds=[["office", 5]])
+    config = EvalConfig(worlds=("office",), pairs=1, seed=3, methods=("learned",),
+                        loop=LoopConfig(on_reject="brake"))
+    evaluate(run, tmp_path / "ev", config, progress=False)
+    doc = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert doc["camera"]["width"] == 80 and doc["camera"]["source"] == "recorded"
+    assert doc["episodes"][0]["plans"] >= 1
+    r = CliRunner().invoke(main, ["eval", "--model", str(run), "--world", "office", "--seed", "5", "--pairs", "1",
+                                  "-o", str(tmp_path / "ev5")])
+    assert r.exit_code == 1 and "--seed 5 made the training world(s) office" in r.output, r.output
+
+
+def test_brake_on_reject_stops_instead_of_flying_on(tmp_path: Path):
+    """A method whose plans are always rejected after the first: with on_reject="brake" the vehicle
+    comes to rest short of a wall the first plan runs into; "continue" flies into it."""
+    from mapkit.sim import HalfSpace
+
+    world = World([HalfSpace((0.0, 0.0, 1.0), 0.0), Box((6.0, 0.0, 1.5), (0.1, 5.0, 1.5))],
+                  np.array([[-2.0, -5.0, 0.0], [12.0, 5.0, 3.0]]))
+
+    class Stubborn:
+        name, needs_depth, replans = "stubborn", False, True
+
+        def __init__(self) -> None:
+            self.calls = 0
+
+        def plan(self, obs: Observation) -> MethodPlan:
+            self.calls += 1
+            wp = torch.tensor([[[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]]], dtype=torch.float64)
+            R = obs.T_world_body[:3, :3]
+            with torch.no_grad():
+                traj = min_snap(wp, torch.tensor([[5.0]], dtype=torch.float64),
+                                start=torch.from_numpy(obs.state_world[1:4] @ R)[None])
+            pieces = pieces_from_body(traj.coeffs[0].numpy(), np.array([5.0]), obs.T_world_body, obs.t)
+            return MethodPlan(pieces=pieces, latency_ms=0.0, eta=0.0 if self.calls == 1 else 0.9)
+
+    start, goal = np.array([0.0, 0.0, 1.5]), np.array([10.0, 0.0, 1.5])
+    flown = run_episode(world, start, goal, Stubborn(), LoopConfig(on_reject="continue", timeout_min=8.0))
+    braked = run_episode(world, start, goal, Stubborn(), LoopConfig(on_reject="brake", timeout_min=8.0))
+    assert flown.outcome == "collision"
+    assert braked.outcome == "timeout" and braked.rejected_plans > 0
+    assert float(np.max(braked.samples[:, 1])) < 6.0 - 0.1 - 0.3

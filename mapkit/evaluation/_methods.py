@@ -95,7 +95,8 @@ class LearnedMethod:
             d = torch.from_numpy(np.asarray(obs.depth, dtype=np.float32)[None])
             x = self.net.preprocess(d)
             g = torch.from_numpy(np.asarray(obs.local_goal_body, dtype=np.float32)[None])
-            out = self.net(x, g, camera=self.camera)
+            v = torch.from_numpy(np.asarray(_start_body(obs)[0], dtype=np.float32)[None])
+            out = self.net(x, g, camera=self.camera, velocity=v)
         return out.keypoints[0].double().numpy(), float(out.eta[0])
 
     def plan(self, obs: Observation) -> MethodPlan:

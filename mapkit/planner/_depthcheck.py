@@ -70,13 +70,36 @@ WINDOWS = (3, 7, 15, 31, 63)
 to the image size of the robot's disc at its depth."""
 
 
+def nearest_depth_pyramid(x: torch.Tensor) -> torch.Tensor:
+    """(B, len(WINDOWS), h, w): the nearest depth / max_depth within each window around every pixel
+    of the preprocessed depth ``x`` (B, 2, h, w); pixels without a return count as far. Min-pooling is
+    separable (rows, then columns), each level pools the previous one, and windows wider than 16
+    pixels run on a half-resolution grid (within a pixel of the exact window): a few milliseconds for
+    a 96 × 160 image on one core instead of the 5 × k² comparisons per pixel of plain windows."""
+    level = torch.where(x[:, 1:2] > 0.5, x[:, :1], torch.ones_like(x[:, :1]))
+    h, w = level.shape[-2:]
+    levels, size, scale = [], 1, 1
+    for k in WINDOWS:  # each level pools the previous one: windows add up (size + step − 1 = k)
+        if k > 16 and scale == 1:  # wide windows on a half-resolution grid (a pixel of slack)
+            level, scale = -F.max_pool2d(-level, 2, stride=2, ceil_mode=True), 2
+            size = size // 2 + 1
+        step = max(1, (k // scale) - size + 1) | 1
+        rows = -F.max_pool2d(-level, (step, 1), stride=1, padding=(step // 2, 0))
+        level = -F.max_pool2d(-rows, (1, step), stride=1, padding=(0, step // 2))
+        size = size + step - 1
+        full = level if scale == 1 else level.repeat_interleave(2, dim=-2).repeat_interleave(2, dim=-1)[..., :h, :w]
+        levels.append(full)
+    return torch.cat(levels, dim=1)
+
+
 def depth_margins(candidates: torch.Tensor, x: torch.Tensor, camera: CameraInput, *, max_depth: float,
-                  robot_radius: float = 0.35) -> torch.Tensor:
+                  robot_radius: float = 0.35, pyramid: torch.Tensor | None = None) -> torch.Tensor:
     """(B, M, P · FEATURES_PER_POINT) features of every candidate (B, M, K, 3) body frame against the
     preprocessed depth ``x`` (B, 2, h, w) (:func:`preprocess_depth`: depth / max_depth and the valid
     mask). Each point reads the nearest measured depth within the image of a disc of ``robot_radius``
     around it (from a pyramid of window sizes: at 1 m the disc spans tens of pixels, at 8 m a few).
-    Pixels without a return count as far (no surface seen there)."""
+    Pixels without a return count as far (no surface seen there). ``pyramid``: the candidates' own
+    :func:`nearest_depth_pyramid` rows when already computed (several goals share an image)."""
     B, M, K, _ = candidates.shape
     h, w = x.shape[-2:]
     pts = path_points(candidates)  # (B, M, P, 3)
@@ -88,8 +111,7 @@ def depth_margins(candidates: torch.Tensor, x: torch.Tensor, camera: CameraInput
     u = intr[..., 0] * pc[..., 0] / safe_z + intr[..., 2]
     v = intr[..., 1] * pc[..., 1] / safe_z + intr[..., 3]
     in_view = (z > 0.1) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
-    depth = torch.where(x[:, 1:2] > 0.5, x[:, :1], torch.ones_like(x[:, :1]))  # no return: far
-    pyramid = torch.cat([-F.max_pool2d(-depth, k, stride=1, padding=k // 2) for k in WINDOWS], dim=1)
+    pyramid = nearest_depth_pyramid(x) if pyramid is None else pyramid
     grid = torch.stack([2 * u - 1, 2 * v - 1], dim=-1).reshape(B, M * pts.shape[2], 1, 2)
     levels = F.grid_sample(pyramid, grid.to(pyramid.dtype), mode="bilinear", padding_mode="border",
                            align_corners=False).reshape(B, len(WINDOWS), M, -1) * max_depth  # (B, L, M, P)

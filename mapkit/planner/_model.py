@@ -12,7 +12,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from mapkit.planner._depthcheck import FEATURES_PER_POINT, POINTS_PER_SEGMENT, CameraInput, depth_margins
+from mapkit.planner._depthcheck import (
+    FEATURES_PER_POINT,
+    POINTS_PER_SEGMENT,
+    CameraInput,
+    depth_margins,
+    nearest_depth_pyramid,
+)
 from mapkit.planner._errors import PlannerError
 from mapkit.planner._resnet import ResNet18
 from mapkit.trajopt import TimeAllocationNet, TimeAllocationNetConfig, Trajectory, min_snap
@@ -62,6 +68,10 @@ class PlannerConfig:
     """With several candidates: the judge also reads each candidate checked against the depth image
     (:func:`mapkit.planner.depth_margins`: is each path point in view, and in front of or behind the
     measured surface), which needs the camera's calibration at every call (``camera=``)."""
+    velocity_input: bool = False
+    """The key-point MLP and the judge also read the body's velocity (divided by ``cruise_speed``): a
+    path the vehicle is already flying at 2 m/s bends differently from one it starts at rest (the
+    trajectory starts from the current velocity). The paper's net does not; pass ``velocity=``."""
     head_activation: Literal["relu", "leaky_relu"] = "relu"
     """Activation between the layers of the key-point, η and score MLPs. "leaky_relu" (slope 0.1)
     cannot die: with ReLU, training on 47 worlds left 5 % of the key-point MLP's units active after
@@ -321,7 +331,7 @@ class PlannerNet(nn.Module):
             nn.ReLU(inplace=True),
             nn.AdaptiveAvgPool2d(tuple(c.pooled_size)),
         )
-        flat = c.conv_channels[1] * c.pooled_size[0] * c.pooled_size[1]
+        flat = c.conv_channels[1] * c.pooled_size[0] * c.pooled_size[1] + (3 if c.velocity_input else 0)
         M = c.num_candidates
         act = c.head_activation
         self.keypoint_mlp = _mlp([flat, *c.mlp_hidden, 3 * K * M], act)
@@ -373,7 +383,7 @@ class PlannerNet(nn.Module):
         return line[:, None] + bump[None, None, :, None] * offset[:, :, None, :]
 
     def forward(self, x: torch.Tensor, goal: torch.Tensor, image_index: torch.Tensor | None = None,
-                camera: CameraInput | None = None) -> PlannerOutput:
+                camera: CameraInput | None = None, velocity: torch.Tensor | None = None) -> PlannerOutput:
         """Predict key-points and η.
 
         Args:
@@ -383,6 +393,7 @@ class PlannerNet(nn.Module):
             image_index: (B,) int64, the image of x each goal is planned from (None: x[i] for goal i).
                 Several goals per image run the encoder once per image (training's batches).
             camera: calibration per goal (B) or one for all; required when ``config.depth_check``.
+            velocity: (B, 3) body-frame velocity, m/s (``config.velocity_input``; None = at rest).
 
         Returns:
             :class:`PlannerOutput` with keypoints (B, K, 3), eta (B,), eta_logit (B,).
@@ -407,6 +418,10 @@ class PlannerNet(nn.Module):
         g = self.goal_embed(goal / c.max_depth)
         feat = torch.cat([feat, g.reshape(B, -1, 1, 1).expand(B, g.shape[1], fh, fw)], dim=1)
         flat = self.head_conv(feat).flatten(1)
+        if c.velocity_input:
+            v = (torch.zeros_like(goal) if velocity is None
+                 else torch.as_tensor(velocity, dtype=goal.dtype, device=goal.device).reshape(-1, 3).expand(B, 3))
+            flat = torch.cat([flat, v / c.cruise_speed], dim=1)
         M, K = c.num_candidates, c.num_keypoints
         offsets = self.keypoint_mlp(flat).reshape(B, M, K, 3)
         candidates = self.anchor_paths(goal) + offsets
@@ -418,9 +433,12 @@ class PlannerNet(nn.Module):
             parts = [flat[:, None].expand(B, M, flat.shape[1]), candidates.detach().flatten(2) / c.max_depth,
                      (goal / c.max_depth)[:, None].expand(B, M, 3)]
             if c.depth_check:
-                x_goal = x if image_index is None else x[image_index]
+                pyramid = nearest_depth_pyramid(x)  # once per image, then shared by its goals
+                if image_index is not None:
+                    pyramid = pyramid[image_index]
                 cam = camera.expand(B).to(x.device)
-                parts.append(depth_margins(candidates.detach(), x_goal, cam, max_depth=c.max_depth).to(x.dtype))
+                parts.append(depth_margins(candidates.detach(), x, cam, max_depth=c.max_depth,
+                                           pyramid=pyramid).to(x.dtype))
             per = torch.cat(parts, dim=2)
             judged = self.judge_mlp(per)  # (B, M, 2)
             scores, logits = judged[..., 0], judged[..., 1]
@@ -518,7 +536,7 @@ class PlannerNet(nn.Module):
         goal = torch.as_tensor(goal, dtype=x.dtype, device=x.device)
         if goal.ndim == 1:
             goal = goal.unsqueeze(0)
-        out = self(x, goal, camera=camera)
+        out = self(x, goal, camera=camera, velocity=start_velocity)
         p = self.trajectory(out.keypoints, start_velocity=start_velocity, start_acceleration=start_acceleration,
                             corridor=corridor)
         p.eta, p.eta_logit = out.eta, out.eta_logit

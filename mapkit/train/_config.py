@@ -89,7 +89,7 @@ PRESETS: dict[str, TrainConfig] = {
     # heads and lr 5e-4 with gradient clipping (ReLU heads died on 47 worlds).
     "cpu": TrainConfig(preset="cpu", epochs=8, batch_size=16, lr=5e-4,
                        planner={"input_size": [96, 160], "encoder_width": 0.25, "num_candidates": 8,
-                                "head_activation": "leaky_relu", "depth_check": True},
+                                "head_activation": "leaky_relu", "depth_check": True, "velocity_input": True},
                        loss={"obstacle_softness": 0.3, "time_target_iters": 5, "score_temperature": 0.5},
                        goals_together=True),
 }

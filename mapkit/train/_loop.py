@@ -49,8 +49,9 @@ class _Step(nn.Module):
         super().__init__()
         self.net = net
 
-    def forward(self, depth: torch.Tensor, goal: torch.Tensor, image_index: torch.Tensor, camera: Any) -> Any:
-        return self.net(self.net.preprocess(depth), goal, image_index, camera)
+    def forward(self, depth: torch.Tensor, goal: torch.Tensor, image_index: torch.Tensor, camera: Any,
+                velocity: torch.Tensor) -> Any:
+        return self.net(self.net.preprocess(depth), goal, image_index, camera, velocity)
 
 
 def set_threads(world_size: int = 1) -> int:
@@ -144,7 +145,8 @@ def evaluate(net: nn.Module, samples: TupleSamples, maps: list[Any], loss_config
                 if max_batches is not None and b >= max_batches:
                     break
                 batch = samples.load(k, part, device)
-                out = net(net.preprocess(batch["depth"]), batch["goal"], batch["image_index"], batch["camera"])
+                out = net(net.preprocess(batch["depth"]), batch["goal"], batch["image_index"], batch["camera"],
+                          batch["velocity"])
                 if straight:
                     out = _straight_output(net, batch["goal"])
                 _, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"],
@@ -360,7 +362,7 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
         t_steps = time.perf_counter()
         for k, part in bar:
             batch = train_set.load(k, part, device)
-            out = step_module(batch["depth"], batch["goal"], batch["image_index"], batch["camera"])
+            out = step_module(batch["depth"], batch["goal"], batch["image_index"], batch["camera"], batch["velocity"])
             loss, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"], esdf_map=maps[k],
                                          start_velocity=batch["velocity"], corridor=config.corridor, config=loss_cfg)
             if not torch.isfinite(loss):
