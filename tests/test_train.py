@@ -67,6 +67,23 @@ def test_resume_continues_after_the_last_epoch(workspace: Path, tmp_path: Path) 
         train([workspace], tiny("r"), runs_dir=tmp_path, progress=False)
 
 
+def test_init_starts_from_another_models_weights(workspace: Path, tmp_path: Path) -> None:
+    train([workspace], tiny("a"), runs_dir=tmp_path, progress=False)
+    train([workspace], tiny("b", max_steps=1, lr=1e-12, seed=1, init=str(tmp_path / "a")), runs_dir=tmp_path,
+          progress=False)
+    a = torch.load(tmp_path / "a" / "model.pt", weights_only=True)["state_dict"]
+    b = torch.load(tmp_path / "b" / "model.pt", weights_only=True)["state_dict"]
+    weights = [k for k in a if k.endswith("weight") and "bn" not in k and a[k].ndim > 1]
+    assert weights and all(torch.allclose(a[k], b[k], atol=1e-6) for k in weights)
+    assert json.loads((tmp_path / "b" / "config.json").read_text())["init"] == str(tmp_path / "a")
+    with pytest.raises(TrainConfigError, match="input_size"):
+        train([workspace], preset("cpu", name="c", epochs=1, batch_size=4, max_steps=1, init=str(tmp_path / "a"),
+                                  planner={**TINY, "input_size": [48, 64]}), runs_dir=tmp_path, progress=False)
+    r = CliRunner().invoke(main, ["train", "-w", str(workspace), "--init", str(tmp_path / "nope"), "--max-steps", "1",
+                                  "--runs-dir", str(tmp_path / "runs")])
+    assert r.exit_code == 1 and "no model.pt" in r.output, r.output
+
+
 def test_cli_bad_inputs(workspace: Path, tmp_path: Path) -> None:
     runner = CliRunner()
     result = runner.invoke(main, ["train", "-w", str(tmp_path), "--runs-dir", str(tmp_path / "runs")])
@@ -156,8 +173,10 @@ def test_held_out_worlds_validate_and_select_the_model(workspace: Path, tmp_path
     s = train([workspace], tiny("held", epochs=2, max_steps=None), runs_dir=tmp_path, progress=False,
               val_workspaces=[held_out])
     lines = [json.loads(x) for x in (tmp_path / "held" / "metrics.jsonl").read_text().splitlines()]
-    for key in ("blocked_collision", "blocked_reach", "blocked_count", "active_units"):
+    for key in ("blocked_collision", "blocked_reach", "blocked_count", "active_units", "eta_catches",
+                "eta_false_rejects"):
         assert key in lines[-1]["val"], key
+        assert 0.0 <= lines[-1]["val"][key] <= 1.0 or key == "blocked_count"
     assert "blocked_reach" in lines[0]["straight"]
     assert s.best_epoch in (1, 2) and lines[-1]["best_epoch"] == s.best_epoch
     model = torch.load(tmp_path / "held" / "model.pt", map_location="cpu", weights_only=True)

@@ -135,6 +135,16 @@ class PlannerConfig:
         return default_anchors(self.num_candidates)
 
 
+def choose_candidate(scores: torch.Tensor, eta_logits: torch.Tensor, penalty: torch.Tensor | None = None) -> torch.Tensor:
+    """(B,) index of the best-scored candidate (scores (B, M) minus ``penalty`` (B, M) when given)
+    among those the collision head expects to be free (η < 0.5); the best of all when it expects
+    every one to collide (then η gates the plan)."""
+    value = scores if penalty is None else scores - penalty
+    free = eta_logits < 0
+    masked = torch.where(free, value, torch.full_like(value, -torch.inf))
+    return torch.where(free.any(dim=1), masked.argmax(dim=1), value.argmax(dim=1))
+
+
 def default_anchors(m: int) -> tuple[tuple[float, float], ...]:
     """M anchors: straight first, then left/right detours of growing width, one climb for M >= 6."""
     out: list[tuple[float, float]] = [(0.0, 0.0)]
@@ -442,11 +452,7 @@ class PlannerNet(nn.Module):
             per = torch.cat(parts, dim=2)
             judged = self.judge_mlp(per)  # (B, M, 2)
             scores, logits = judged[..., 0], judged[..., 1]
-            # The best-scored candidate among those the collision head expects to be free (η < 0.5);
-            # the best-scored of all when it expects every one to collide (then η gates the plan).
-            free = logits < 0
-            masked = torch.where(free, scores, torch.full_like(scores, -torch.inf))
-            chosen = torch.where(free.any(dim=1), masked.argmax(dim=1), scores.argmax(dim=1))
+            chosen = choose_candidate(scores, logits)
         rows = torch.arange(B, device=x.device)
         logit = logits[rows, chosen]
         return PlannerOutput(keypoints=candidates[rows, chosen], eta=torch.sigmoid(logit), eta_logit=logit,

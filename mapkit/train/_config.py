@@ -48,6 +48,10 @@ class TrainConfig:
     samples give large obstacle gradients that otherwise kill ReLU units at higher learning rates."""
     corridor: float | None = None
     """Flight-corridor half-width (m) for min_snap during training; None = through the key-points."""
+    init: str | None = None
+    """Start from the weights of this model (a run directory, its model.pt, or "pretrained" for the
+    planner shipped with mapkit) instead of random ones: fine-tuning on one's own flights or with a
+    changed loss. Its planner configuration must equal this run's."""
     planner: dict[str, Any] = field(default_factory=dict)
     """PlannerConfig fields (mapkit.planner)."""
     loss: dict[str, Any] = field(default_factory=dict)

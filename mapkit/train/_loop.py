@@ -130,13 +130,16 @@ def evaluate(net: nn.Module, samples: TupleSamples, maps: list[Any], loss_config
     """Mean loss terms over a split (the chosen candidate's), with straight=True for key-points on
     the start–goal line; plus, over samples whose goal is blocked in the map, "blocked_collision"
     (plans that collide), "blocked_reach" (plans that end within REACH_DISTANCE of the goal without
-    colliding) and "blocked_count", and "active_units" (smallest fraction of the key-point MLP's
-    hidden units active on some sample)."""
+    colliding) and "blocked_count", "active_units" (smallest fraction of the key-point MLP's
+    hidden units active on some sample), and how the η gate would act on the chosen plans:
+    "eta_catches" (share of colliding plans with η ≥ 0.5, i.e. rejected) and "eta_false_rejects"
+    (share of free plans rejected)."""
     from mapkit.planner import candidate_loss
 
     totals = {k: 0.0 for k in METRIC_KEYS}
     n = 0
     blocked_n, blocked_coll, blocked_reach = 0, 0.0, 0.0
+    gate = {"collided": 0.0, "caught": 0.0, "free": 0.0, "false_reject": 0.0}  # η ≥ 0.5 vs the map's label
     net.eval()
     hooks, seen = _active_fraction(net)
     try:
@@ -162,6 +165,12 @@ def evaluate(net: nn.Module, samples: TupleSamples, maps: list[Any], loss_config
                 blocked_n += int(blk.sum())
                 blocked_coll += float(coll[blk].sum())
                 blocked_reach += float(reach[blk].sum())
+                if not straight:
+                    rejected = out.eta >= 0.5
+                    gate["collided"] += float(coll.sum())
+                    gate["caught"] += float((rejected & coll).sum())
+                    gate["free"] += float((~coll).sum())
+                    gate["false_reject"] += float((rejected & ~coll).sum())
     finally:
         for h in hooks:
             h.remove()
@@ -169,6 +178,9 @@ def evaluate(net: nn.Module, samples: TupleSamples, maps: list[Any], loss_config
     result = {k: v / max(n, 1) for k, v in totals.items()}
     result.update(blocked_count=float(blocked_n), blocked_collision=blocked_coll / max(blocked_n, 1),
                   blocked_reach=blocked_reach / max(blocked_n, 1))
+    if not straight:
+        result.update(eta_catches=gate["caught"] / max(gate["collided"], 1.0),
+                      eta_false_rejects=gate["false_reject"] / max(gate["free"], 1.0))
     if not straight and seen:
         result["active_units"] = min(float(v.float().mean()) for v in seen.values())
     return result
@@ -233,6 +245,25 @@ def _camera_or_none(workspace: str | Path) -> dict[str, Any] | None:
         return workspace_camera(workspace)
     except (MapkitError, OSError):
         return None
+
+
+def _load_init(net: nn.Module, init: str) -> None:
+    """Weights of the model ``init`` (run directory, model.pt or "pretrained") into ``net``."""
+    from mapkit.planning import resolve_model
+
+    path = resolve_model(init)
+    path = path / "model.pt" if path.is_dir() else path
+    if not path.is_file():
+        raise TrainConfigError(f"--init {init}: no model.pt there; pass a run directory, its model.pt or 'pretrained'")
+    saved = torch.load(path, map_location="cpu", weights_only=True)
+    mine = net.config.to_dict()
+    theirs = saved.get("planner_config", {})
+    diff = sorted(k for k in mine if k in theirs and json.dumps(mine[k]) != json.dumps(theirs[k]))
+    if diff:
+        k = diff[0]
+        raise TrainConfigError(f"--init {init}: its planner has {k}={theirs[k]!r}, this run {mine[k]!r}; "
+                               f"train with the same --preset/--planner options")
+    net.load_state_dict(saved["state_dict"])
 
 
 def _selection_score(val: dict[str, float]) -> float:
@@ -303,6 +334,8 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     if world > 1:
         step_module = nn.parallel.DistributedDataParallel(step_module, device_ids=[device.index] if device.type == "cuda" else None)
     optimizer = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    if state is None and config.init:
+        _load_init(net, config.init)
     if state is not None:
         net.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
