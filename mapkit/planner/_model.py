@@ -135,14 +135,12 @@ class PlannerConfig:
         return default_anchors(self.num_candidates)
 
 
-def choose_candidate(scores: torch.Tensor, eta_logits: torch.Tensor, penalty: torch.Tensor | None = None) -> torch.Tensor:
-    """(B,) index of the best-scored candidate (scores (B, M) minus ``penalty`` (B, M) when given)
-    among those the collision head expects to be free (η < 0.5); the best of all when it expects
-    every one to collide (then η gates the plan)."""
-    value = scores if penalty is None else scores - penalty
+def choose_candidate(scores: torch.Tensor, eta_logits: torch.Tensor) -> torch.Tensor:
+    """(B,) index of the best-scored candidate (scores (B, M)) among those the collision head expects
+    to be free (η < 0.5); the best of all when it expects every one to collide (then η gates the plan)."""
     free = eta_logits < 0
-    masked = torch.where(free, value, torch.full_like(value, -torch.inf))
-    return torch.where(free.any(dim=1), masked.argmax(dim=1), value.argmax(dim=1))
+    masked = torch.where(free, scores, torch.full_like(scores, -torch.inf))
+    return torch.where(free.any(dim=1), masked.argmax(dim=1), scores.argmax(dim=1))
 
 
 def default_anchors(m: int) -> tuple[tuple[float, float], ...]:
