@@ -27,27 +27,42 @@ from mapkit.cli.main import library_call, main
 @click.option("--ignore-eta", is_flag=True, help="Execute plans even when eta >= 0.5.")
 @click.option("--on-reject", type=click.Choice(["continue", "brake"]), default="continue", show_default=True,
               help="A rejected plan (eta >= 0.5) in flight: keep flying the previous plan, or brake to rest and look around.")
+@click.option("--corridor", type=float, default=1.0, show_default=True,
+              help="Widest half-width (m) of the flight corridor learned plans may use around their key-points; 0 = through them.")
+@click.option("--corridor-check/--no-corridor-check", default=True, show_default=True,
+              help="Narrow the corridor (½, ¼, ⅒, then through the key-points) while the trajectory comes closer to "
+                   "seen surfaces in the depth image than the one through the key-points.")
+@click.option("--v-max", type=float, default=3.0, show_default=True, help="Per-axis speed limit of learned plans, m/s; 0 = none.")
+@click.option("--a-max", type=float, default=4.0, show_default=True, help="Per-axis acceleration limit of learned plans, m/s²; 0 = none.")
+@click.option("--plan-latency", type=float, default=0.02, show_default=True,
+              help="Seconds from the depth frame to the plan taking over (the vehicle flies on meanwhile).")
+@click.option("--final-approach", type=float, default=0.0, show_default=True,
+              help="Metres from the goal where one segment to rest at the goal replaces the planner's plans (0: never).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int,
-             replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: str, overwrite: bool) -> None:
+             replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: str, corridor: float,
+             corridor_check: bool, v_max: float, a_max: float, plan_latency: float, final_approach: float, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
-    from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, LoopConfig, evaluate
+    from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, Execution, LoopConfig, evaluate
 
     worlds = WORLD_ORDER if world.strip() == "all" else tuple(w.strip() for w in world.split(",") if w.strip())
     names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
     config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
                         workers=workers,
+                        execution=Execution(corridor=corridor or None, check_corridor=corridor_check, v_max=v_max or None,
+                                            a_max=a_max or None),
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
-                                        on_reject=on_reject))
+                                        on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach))
     result = evaluate(run_dir, output, config, overwrite=overwrite)
     s, lat = result.summary["success"], result.summary["latency"]
     cols = [*config.worlds, "overall"]
     click.echo(f"{'method':<18}" + "".join(f"{c:>10}" for c in cols) + f"{'effort':>12}{'latency':>11}")
     for m in config.methods:
-        eff = s[m]["overall"]["control_effort"]["mean"]
+        eff = s[m]["overall"]["control_effort"]["median"]
         ms = lat[m]["overall"]["mean_ms"]
         click.echo(f"{m:<18}" + "".join(f"{100 * (s[m][c]['success_rate'] or 0):>9.1f}%" for c in cols)
                    + (f"{eff:>12.4g}" if eff is not None else f"{'–':>12}") + (f"{ms:>9.2f}ms" if ms is not None else ""))
+    click.echo("effort: median ∫‖snap‖² dt (m²/s⁷) of the successful flights")
     click.echo(f"wrote {output}/results.json, latency.json, report.md, trajectories.npz and "
                f"{sum(p.suffix == '.png' for p in result.files)} PNGs")

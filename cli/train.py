@@ -50,6 +50,8 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @click.option("--loss", "loss_items", multiple=True, metavar="FIELD=VALUE", help="LossConfig field override (repeatable).")
 @click.option("--init", "init", default=None, metavar="MODEL",
               help="Start from this model's weights (run directory, model.pt or 'pretrained'): fine-tuning.")
+@click.option("--only", type=click.Choice(["all", "tan"]), default="all", show_default=True,
+              help="Train only the Time Allocation Net ('tan') on the key-points of the frozen --init model.")
 @click.option("--resume", is_flag=True, help="Continue the run after its last completed epoch.")
 @click.option("--overwrite", is_flag=True, help="Restart an existing run from scratch.")
 @library_call
@@ -57,7 +59,7 @@ def train_cmd(workspaces: tuple[Path, ...], dataset_root: Path | None, val_world
               val_workspaces: tuple[Path, ...], grad_clip: float | None, preset: str, name: str | None, runs_dir: Path | None, epochs: int | None,
               batch_size: int | None, lr: float | None, device: str, seed: int, max_steps: int | None,
               val_batches: int | None, weight_decay: float | None, corridor: float | None, planner_items: tuple[str, ...], loss_items: tuple[str, ...], init: str | None,
-              resume: bool, overwrite: bool) -> None:
+              only: str, resume: bool, overwrite: bool) -> None:
     """Train the self-supervised planner on WS/tuples.zarr (+ map.zarr) → runs/NAME.
 
     Multi-GPU / multi-node: torchrun --nproc-per-node N -m mapkit.cli train ...
@@ -69,6 +71,7 @@ def train_cmd(workspaces: tuple[Path, ...], dataset_root: Path | None, val_world
                                  "val_batches": val_batches}
     overrides["corridor"] = corridor
     overrides["init"] = init
+    overrides["only"] = only
     for key, value in (("epochs", epochs), ("batch_size", batch_size), ("lr", lr), ("weight_decay", weight_decay),
                        ("grad_clip", grad_clip)):
         if value is not None:

@@ -123,9 +123,76 @@ def test_effort_is_additive_over_replans_of_the_same_trajectory():
             return MethodPlan(pieces=_tail(whole, obs.t), latency_ms=0.0)
 
     goal = START + np.array([d + 5.0, 0.0, 0.0])
-    ep = run_episode(empty_world(), START, goal, Replanner(whole), LoopConfig(timeout_min=T, timeout_factor=0.1))
+    # No planning latency: the scripted tail ignores the state it is given (the first would start
+    # 20 ms into the curve while the vehicle still hovers).
+    ep = run_episode(empty_world(), START, goal, Replanner(whole),
+                     LoopConfig(timeout_min=T, timeout_factor=0.1, plan_latency=0.0))
     assert ep.plans == 8
     assert ep.control_effort == pytest.approx(100800.0 * d * d / T ** 7, rel=1e-9)
+
+
+def test_per_plan_effort_and_peaks_of_a_rest_to_rest_segment_are_analytic():
+    d, T = 6.0, 3.0
+    goal = START + np.array([d + 5.0, 0.0, 0.0])
+    ep = run_episode(empty_world(), START, goal, Scripted(rest_to_rest(d, T)), LoopConfig())
+    assert ep.plan_effort == pytest.approx(100800.0 * d * d / T ** 7, rel=1e-9)
+    # s(τ) = 35τ⁴ − 84τ⁵ + 70τ⁶ − 20τ⁷: peak speed 35/16 · d/T at τ = 1/2 (a control sample).
+    assert ep.peak_speed == pytest.approx(35.0 / 16.0 * d / T, rel=1e-9)
+    # Peak acceleration (84·10/(9·√... ) evaluated numerically from the same polynomial, sampled at 200 Hz.
+    tau = np.arange(0.0, T + 1e-9, 1.0 / 200.0) / T
+    acc = d / T ** 2 * (420 * tau ** 2 - 1680 * tau ** 3 + 2100 * tau ** 4 - 840 * tau ** 5)
+    assert ep.peak_acceleration == pytest.approx(np.abs(acc).max(), rel=1e-6)
+
+
+class Jittery:
+    """Replans every interval from the state it is given to a goal that moves (a net's jitter)."""
+
+    name = "jittery"
+    needs_depth = False
+    replans = True
+
+    def __init__(self) -> None:
+        self.rng = np.random.default_rng(0)
+        self.plans: list[Pieces] = []
+
+    def plan(self, obs: Observation) -> MethodPlan:
+        start = obs.start_body()
+        target = obs.local_goal_body + self.rng.normal(0.0, 0.5, 3) * [0.0, 1.0, 0.3]
+        wp = torch.from_numpy(np.stack([start[0], target]))[None]
+        traj = min_snap(wp, torch.tensor([[3.0]], dtype=torch.float64), start=torch.from_numpy(start[1:])[None])
+        pieces = pieces_from_body(traj.coeffs[0].numpy(), np.array([3.0]), obs.T_world_body, obs.t)
+        self.plans.append(pieces)
+        return MethodPlan(pieces=pieces, latency_ms=0.0)
+
+
+@pytest.mark.parametrize("latency", [0.0, 0.02, 0.1])
+def test_a_replanned_reference_is_C3_across_the_switch(latency: float):
+    method = Jittery()
+    loop = LoopConfig(plan_latency=latency, timeout_min=3.0, timeout_factor=0.1)
+    ep = run_episode(empty_world(), START, START + np.array([12.0, 0.0, 0.0]), method, loop)
+    assert ep.plans == 6 and ep.outcome == "timeout"
+    lag = np.ceil(latency * loop.control_rate - 1e-9) / loop.control_rate
+    for k, (old, new) in enumerate(zip(method.plans, method.plans[1:]), start=1):
+        assert new.t0 == pytest.approx(k * loop.replan_interval + lag)
+        # Position … jerk of the new plan at its start equal the old plan's there.
+        assert np.abs(old.state(new.t0) - new.state(new.t0)).max() < 1e-6
+    # The vehicle tracks a C³ reference exactly: it flies the planned positions.
+    last = method.plans[-1]
+    t_end = ep.samples[-1, 0]
+    assert np.abs(ep.samples[-1, 1:] - last.derivative(np.array([t_end]), 0)[0]).max() < 1e-6
+
+
+def test_splice_keeps_the_old_reference_until_the_new_one_starts():
+    rng = np.random.default_rng(1)
+    old = Pieces(t0=0.0, durations=np.array([0.4, 0.7]), coeffs=rng.normal(size=(2, 3, 8)))
+    new = Pieces(t0=0.52, durations=np.array([0.5]), coeffs=rng.normal(size=(1, 3, 8)))
+    both = old.splice(new, 0.25)
+    t = np.linspace(0.25, 0.5199, 40)
+    for q in range(5):
+        assert np.abs(both.derivative(t, q) - old.derivative(t, q)).max() < 1e-9
+    t = np.linspace(0.5201, 1.0, 40)
+    assert np.abs(both.derivative(t, 0) - new.derivative(t, 0)).max() < 1e-9
+    assert both.t0 == 0.25
 
 
 def _tail(p: Pieces, t: float) -> Pieces:
@@ -221,6 +288,10 @@ def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
     (["--methods", "learned,teleport"], "unknown method 'teleport'"),
     (["--world", "office", "--pairs", "3", "--min-distance", "200"], "could sample only 0 of 3"),
     (["--replan-interval", "0.01"], "whole number of depth frames"),
+    (["--corridor", "nan"], "--corridor must be a positive number"),
+    (["--v-max", "-1"], "--v-max must be a positive number"),
+    (["--plan-latency", "0.7"], "--plan-latency must be in"),
+    (["--final-approach", "inf"], "--final-approach must be >= 0"),
 ])
 def test_cli_bad_settings(tiny_run: Path, tmp_path: Path, args: list[str], message: str):
     r = CliRunner().invoke(main, ["eval", "--model", str(tiny_run), "-o", str(tmp_path / "ev"), *args])

@@ -148,7 +148,17 @@ def test_untrained_keypoints_near_straight_line_and_plan():
     assert torch.allclose(p.shares.sum(-1), torch.ones(4), atol=1e-5)
     assert torch.allclose(p.durations.sum(-1), p.total_time, atol=1e-4)
     L = (p.waypoints[:, 1:] - p.waypoints[:, :-1]).norm(dim=-1).sum(-1)
-    assert torch.allclose(p.total_time, (L / cfg.cruise_speed).clamp(cfg.min_total_time, cfg.max_total_time))
+    # The speed profile: from the speed along the first segment up to cruise at `accel`, then to rest.
+    first = p.waypoints[:, 1] / p.waypoints[:, 1].norm(dim=-1, keepdim=True)
+    v_along = (v0 * first).sum(-1).double()
+    L = L.double()
+    peak = torch.sqrt(cfg.accel * L + v_along ** 2 / 2)
+    up, down = (cfg.cruise_speed ** 2 - v_along ** 2) / (2 * cfg.accel), cfg.cruise_speed ** 2 / (2 * cfg.accel)
+    expected = torch.where(up + down <= L, (cfg.cruise_speed - v_along) / cfg.accel + cfg.cruise_speed / cfg.accel
+                           + (L - up - down) / cfg.cruise_speed, (2 * peak - v_along) / cfg.accel)
+    floor = max(cfg.min_total_time, K * cfg.min_segment_time)
+    assert torch.allclose(p.total_time.double(), expected.clamp(floor, cfg.max_total_time), rtol=1e-5)
+    assert (p.durations >= cfg.min_segment_time - 1e-5).all()
     tr = p.trajectory
     assert torch.allclose(tr.position(0.0)[:, 0], torch.zeros(4, 3), atol=1e-4)
     assert torch.allclose(tr.derivative(0.0, 1)[:, 0], v0, atol=1e-4)

@@ -35,7 +35,7 @@ def workspace(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def tiny(name: str, **kw: object):
     return preset("cpu", name=name, epochs=kw.pop("epochs", 1), batch_size=4, max_steps=kw.pop("max_steps", 2),
-                  val_batches=2, planner=TINY, **kw)
+                  val_batches=2, planner=kw.pop("planner", TINY), **kw)
 
 
 def test_smoke_run_writes_the_run_directory(workspace: Path, tmp_path: Path) -> None:
@@ -82,6 +82,23 @@ def test_init_starts_from_another_models_weights(workspace: Path, tmp_path: Path
     r = CliRunner().invoke(main, ["train", "-w", str(workspace), "--init", str(tmp_path / "nope"), "--max-steps", "1",
                                   "--runs-dir", str(tmp_path / "runs")])
     assert r.exit_code == 1 and "no model.pt" in r.output, r.output
+
+
+def test_only_tan_trains_the_time_allocation_and_nothing_else(workspace: Path, tmp_path: Path) -> None:
+    # The init model's TAN has no boundary inputs; the new one does (its weights start fresh).
+    train([workspace], tiny("base", planner={**TINY, "tan_boundary": False}), runs_dir=tmp_path, progress=False)
+    train([workspace], tiny("tan", max_steps=3, lr=1e-2, init=str(tmp_path / "base"), only="tan",
+                            planner={**TINY, "tan_boundary": True}), runs_dir=tmp_path, progress=False)
+    a = torch.load(tmp_path / "base" / "model.pt", weights_only=True)["state_dict"]
+    b = torch.load(tmp_path / "tan" / "model.pt", weights_only=True)["state_dict"]
+    rest = [k for k in a if not k.startswith("tan.")]
+    assert rest and all(torch.equal(a[k], b[k]) for k in rest)  # batch-norm statistics included
+    assert b["tan.mlp.0.weight"].shape[1] == a["tan.mlp.0.weight"].shape[1] + 7
+    with pytest.raises(TrainConfigError, match="--init"):
+        train([workspace], tiny("x", only="tan"), runs_dir=tmp_path, progress=False)
+    with pytest.raises(TrainConfigError, match="input_size"):  # only the TAN's options may differ
+        train([workspace], tiny("y", only="tan", init=str(tmp_path / "base"), planner={**TINY, "input_size": [48, 64]}),
+              runs_dir=tmp_path, progress=False)
 
 
 def test_cli_bad_inputs(workspace: Path, tmp_path: Path) -> None:

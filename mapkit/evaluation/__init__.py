@@ -13,7 +13,7 @@ piecewise polynomials with exact snap effort); :func:`sample_pairs`.
 """
 
 from mapkit.evaluation._loop import Episode, LoopConfig, MethodPlan, Observation, level_pose, run_episode
-from mapkit.evaluation._methods import METHODS, LearnedMethod, OracleMethod, StraightMethod, make_methods
+from mapkit.evaluation._methods import METHODS, Execution, LearnedMethod, OracleMethod, StraightMethod, make_methods
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
 from mapkit.evaluation._paths import load_paths
 from mapkit.evaluation._pieces import Pieces, hold, pieces_from_body
@@ -23,7 +23,7 @@ __all__ = [
     "METHODS", "WORLD_ORDER",
     "CameraSpec", "EvalConfig", "EvalError", "EvalResult", "evaluate", "summarise",
     "Episode", "LoopConfig", "MethodPlan", "Observation", "level_pose", "run_episode",
-    "LearnedMethod", "OracleMethod", "StraightMethod", "make_methods",
+    "Execution", "LearnedMethod", "OracleMethod", "StraightMethod", "make_methods",
     "Pair", "sample_pairs", "load_paths",
     "Pieces", "hold", "pieces_from_body",
 ]

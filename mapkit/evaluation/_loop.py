@@ -60,11 +60,16 @@ class LoopConfig:
     ahead (about 1.5 m/s² on average), then hovers and turns to look elsewhere as above."""
     look_turn_deg: float = 60.0
     """Degrees the vehicle turns when hovering and a plan is rejected."""
-    final_approach: float = 1.0
+    plan_latency: float = 0.02
+    """Seconds from the depth frame to the new plan taking over (rounded up to control steps; the
+    measured planning latency is about 9 ms): the vehicle flies the previous reference meanwhile,
+    and the plan starts from that reference's position … jerk at the takeover, so the flown
+    reference stays C³ across every replan."""
+    final_approach: float = 0.0
     """Metres: closer to the goal than this, a replanning method's plan is replaced by one
-    minimum-snap segment to rest at the goal (key-points spaced a few centimetres apart with
-    sub-second segments are a degenerate input for every key-point planner, and their snap would
-    dominate the effort of the whole flight). 0 disables it."""
+    minimum-snap segment to rest at the goal. 0 (the default) disables it: with every segment at
+    least ``min_segment_time`` long and the corridor, the planner's own plans to rest cost less (it
+    was needed while key-points crowded into a metre were pinned at sub-second intervals)."""
 
 
 @dataclass
@@ -72,11 +77,12 @@ class Observation:
     """What a method gets at a planning instant."""
 
     t: float
-    """Episode time, seconds."""
+    """Episode time the plan takes over (the depth frame is ``plan_latency`` older), seconds."""
     T_world_body: np.ndarray
-    """(4, 4) level body pose."""
+    """(4, 4) level body pose at the depth frame: the frame the network plans in."""
     state_world: np.ndarray
-    """(4, 3) position, velocity, acceleration, jerk of the vehicle, world frame."""
+    """(4, 3) position, velocity, acceleration, jerk the plan starts from at ``t`` (the reference's),
+    world frame."""
     goal_world: np.ndarray
     """(3,) the real goal."""
     local_goal_body: np.ndarray
@@ -86,6 +92,14 @@ class Observation:
     goal_clipped: bool = False
     """True when the real goal lies beyond the horizon: the plan should not stop at the local goal
     but pass it at cruise speed (a receding-horizon plan that ends at rest brakes every interval)."""
+
+    def start_body(self) -> np.ndarray:
+        """(4, 3) the start state in the body frame of the depth frame (position a few centimetres
+        ahead of the origin when the vehicle moves during the planning latency)."""
+        R, p = self.T_world_body[:3, :3], self.T_world_body[:3, 3]
+        out = self.state_world @ R
+        out[0] = R.T @ (self.state_world[0] - p)
+        return out
 
 
 @dataclass
@@ -100,6 +114,8 @@ class MethodPlan:
     """Predicted collision probability, for methods that have one."""
     keypoints_world: np.ndarray | None = None
     """(K, 3) the key-points the trajectory passes, world frame (for plots)."""
+    allocation_ms: float | None = None
+    """Wall-clock time of the time allocation alone (TAN vs gradient descent)."""
 
 
 class Method(Protocol):
@@ -134,6 +150,17 @@ class Episode:
     rejected_plans: int
     """Plans not executed because η >= 0.5."""
     latencies_ms: list[float] = field(default_factory=list)
+    allocation_ms: list[float] = field(default_factory=list)
+    """Time allocation latency of each plan, when the method reports it."""
+    plan_effort: float | None = None
+    """Mean over executed plans of each plan's whole ∫‖snap‖² dt (the paper's per-plan effort), m²/s⁷;
+    None for references of degree < 4 (a cubic spline's snap is impulsive at its knots)."""
+    peak_speed: float = 0.0
+    """Largest speed of the flown vehicle, m/s."""
+    peak_acceleration: float = 0.0
+    """Largest acceleration norm, m/s²."""
+    peak_jerk: float = 0.0
+    """Largest jerk norm, m/s³."""
     samples: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     """(N, 4) rows [t, x, y, z] of the executed path at ``control_rate``."""
 
@@ -164,6 +191,43 @@ class _Tracker:
         return self.phi_dt if abs(tau - self.dt) < 1e-12 else expm(self.A * tau)
 
 
+@dataclass
+class _Flight:
+    """What changes while an episode is flown."""
+
+    x: np.ndarray
+    """(4, 3) vehicle position … jerk."""
+    E: np.ndarray
+    """(4, 3) tracking error e = r − x and its derivatives."""
+    ref: Pieces
+    jumps: list[tuple[float, np.ndarray]]
+    t: float = 0.0
+    look: float = 0.0
+    braking: bool = False
+    plans: int = 0
+    rejected: int = 0
+    latencies: list[float] = field(default_factory=list)
+    allocations: list[float] = field(default_factory=list)
+    plan_efforts: list[float] = field(default_factory=list)
+    rows: list[np.ndarray] = field(default_factory=list)
+    path_length: float = 0.0
+    effort: float = 0.0
+    min_dist: float = math.inf
+    peaks: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    outcome: str = "timeout"
+    coll_point: list[float] | None = None
+    coll_time: float | None = None
+
+    def take(self, plan: Pieces) -> None:
+        """Fly ``plan`` from its start (the reference until then)."""
+        self.ref = self.ref.splice(plan, self.t)
+        self.jumps = _jumps(self.ref)
+        # e = r − x: zero for a plan from the reference's state; a plan that starts now somewhere
+        # else (a scripted reference) is a jump the tracker absorbs.
+        self.E = self.ref.state(self.t) - self.x
+        self.E[np.abs(self.E) < _JUMP_TOL] = 0.0
+
+
 def run_episode(
     world: World,
     start: np.ndarray,
@@ -190,122 +254,129 @@ def run_episode(
                          f"at {config.depth_rate} Hz")
     dt = 1.0 / config.control_rate
     steps = int(round(config.replan_interval / dt))
+    lag = dt * math.ceil(config.plan_latency / dt - 1e-9)
+    if not 0 <= lag < config.replan_interval:
+        raise ValueError(f"plan_latency {config.plan_latency} s must be in [0, replan_interval)")
     tracker = _Tracker(config.tracking_bandwidth, dt)
-    distance = float(np.linalg.norm(goal - start))
-    t_limit = max(config.timeout_min, config.timeout_factor * distance / config.cruise_speed)
-
-    x = np.zeros((4, 3))  # vehicle position, velocity, acceleration, jerk
+    t_limit = max(config.timeout_min, config.timeout_factor * float(np.linalg.norm(goal - start)) / config.cruise_speed)
+    x = np.zeros((4, 3))
     x[0] = start
-    E = np.zeros((4, 3))  # tracking error e = r − x and its derivatives
     ref = hold(start, 0.0)
-    jumps = _jumps(ref)
-    t = 0.0
-    look = 0.0
-    plans = rejected = 0
-    latencies: list[float] = []
-    rows = [np.array([0.0, *start])]
-    path_length = 0.0
-    effort = 0.0
-    min_dist = float(world.signed_distance(start[None])[0])
-    outcome, coll_point, coll_time = "timeout", None, None
-    if min_dist < config.robot_radius:
-        outcome, coll_point, coll_time = "collision", start.tolist(), 0.0
+    f = _Flight(x=x, E=np.zeros((4, 3)), ref=ref, jumps=_jumps(ref), rows=[np.array([0.0, *start])],
+                min_dist=float(world.signed_distance(start[None])[0]))
+    if f.min_dist < config.robot_radius:
+        f.outcome, f.coll_point, f.coll_time = "collision", start.tolist(), 0.0
     planned_once = False
-    braking = False
-    while outcome == "timeout" and t < t_limit - 1e-9:
+    while f.outcome == "timeout" and f.t < t_limit - 1e-9:
         if method.replans or not planned_once:
             planned_once = True
-            v_h = float(np.hypot(x[1, 0], x[1, 1]))
-            to_goal = goal - x[0]
-            yaw = math.atan2(x[1, 1], x[1, 0]) if v_h > 0.5 else math.atan2(to_goal[1], to_goal[0]) + look
-            T_wb = level_pose(x[0], yaw)
-            g_body = T_wb[:3, :3].T @ to_goal
-            n = float(np.linalg.norm(g_body))
-            local = g_body * min(1.0, config.horizon / n) if n > 0 else g_body
-            depth = render(T_wb) if method.needs_depth else None
-            obs = Observation(t=t, T_world_body=T_wb, state_world=x.copy(), goal_world=goal,
-                              local_goal_body=local, depth=depth, goal_clipped=n > config.horizon)
-            if method.replans and float(np.linalg.norm(to_goal)) < config.final_approach:
-                mp = _final_approach(obs, config)
-            else:
-                mp = method.plan(obs)
-            plans += 1
-            latencies.append(mp.latency_ms)
-            if config.respect_eta and mp.eta is not None and mp.eta >= 0.5:
-                rejected += 1
-                if t >= ref.t_end - 1e-9:
-                    look += math.radians(config.look_turn_deg)
-                elif config.on_reject == "brake" and not braking:
-                    braking = True
-                    ref = _brake(obs).pieces
-                    jumps = _jumps(ref)
-                    E = ref.state(t) - x
-                    E[np.abs(E) < _JUMP_TOL] = 0.0
-            else:
-                braking = False
-                ref = mp.pieces
-                jumps = _jumps(ref)
-                look = 0.0
-                E = ref.state(t) - x  # e = r − x: a plan from the vehicle's state gives zero error
-                E[np.abs(E) < _JUMP_TOL] = 0.0
-        elif t >= ref.t_end and not E.any():
-            t = t_limit  # an open-loop method at rest short of the goal never gets there
+            _replan(f, world, goal, method, config, render, lag if method.replans else 0.0)
+        elif f.t >= f.ref.t_end and not f.E.any():
+            f.t = t_limit  # an open-loop method at rest short of the goal never gets there
             break
-        # Fly one interval on the control grid.
-        tg = t + dt * np.arange(1, steps + 1)
-        r = np.stack([ref.derivative(tg, q) for q in range(5)])  # (5, N, 3)
-        ev = [(tk, jk) for tk, jk in jumps if t < tk <= tg[-1] + 1e-12]
-        if E.any() or ev:
-            Es = np.empty((steps, 4, 3))
-            cur, tau0 = E, t
-            for i, ti in enumerate(tg):
-                for tk, jk in ev:
-                    if tau0 < tk <= ti:
-                        cur = tracker.phi(tk - tau0) @ cur + jk
-                        tau0 = tk
-                cur = tracker.phi(ti - tau0) @ cur
-                tau0 = ti
-                Es[i] = cur
-            Ek = np.einsum("k,nka->na", tracker.k, Es)  # x⁽⁴⁾ − r⁽⁴⁾
-        else:
-            Es = None
-        pos = r[0] - (Es[:, 0] if Es is not None else 0.0)
-        d = world.signed_distance(pos)
-        hit = np.flatnonzero(d < config.robot_radius)
-        near = np.flatnonzero(np.linalg.norm(pos - goal, axis=1) <= config.goal_radius)
-        stop = steps
-        if len(hit) and (not len(near) or hit[0] <= near[0]):
-            stop = int(hit[0]) + 1
-            outcome, coll_point, coll_time = "collision", pos[hit[0]].tolist(), float(tg[hit[0]])
-        elif len(near):
-            stop = int(near[0]) + 1
-            outcome = "success"
-        over = np.flatnonzero(tg >= t_limit - 1e-9)
-        if outcome == "timeout" and len(over):
-            stop = int(over[0]) + 1
-        t_end = float(tg[stop - 1])
-        effort += ref.snap_effort(t, t_end)
-        if Es is not None:
-            cross = 2.0 * (r[4][:stop] * Ek[:stop]).sum(-1) + (Ek[:stop] ** 2).sum(-1)
-            # The error's snap at t (start of the interval) completes the trapezoid.
-            e0 = np.einsum("k,ka->a", tracker.k, E)
-            r0 = ref.derivative(np.array([t]), 4)[0]
-            f0 = float(2.0 * r0 @ e0 + e0 @ e0)
-            effort += float(np.trapezoid(np.concatenate([[f0], cross]), np.concatenate([[t], tg[:stop]])))
-        prev = rows[-1][1:]
-        seg = np.concatenate([prev[None], pos[:stop]])
-        path_length += float(np.linalg.norm(np.diff(seg, axis=0), axis=1).sum())
-        min_dist = min(min_dist, float(d[:stop].min()))
-        rows.extend(np.column_stack([tg[:stop], pos[:stop]]))
-        # Vehicle state at the end of the flown part.
-        x = r[:4, stop - 1] - (Es[stop - 1] if Es is not None else 0.0)
-        E = Es[stop - 1] if Es is not None else np.zeros((4, 3))
-        t = t_end
+        _fly(f, world, goal, config, tracker, steps, t_limit)
+    executed = f.plans - f.rejected
     return Episode(
-        outcome=outcome, time_s=float(min(t, t_limit)), path_length=path_length, control_effort=effort,
-        min_distance=min_dist, collision_point=coll_point, collision_time=coll_time, plans=plans,
-        rejected_plans=rejected, latencies_ms=latencies, samples=np.array(rows),
+        outcome=f.outcome, time_s=float(min(f.t, t_limit)), path_length=f.path_length, control_effort=f.effort,
+        min_distance=f.min_dist, collision_point=f.coll_point, collision_time=f.coll_time, plans=f.plans,
+        rejected_plans=f.rejected, latencies_ms=f.latencies, allocation_ms=f.allocations,
+        plan_effort=float(np.mean(f.plan_efforts)) if executed and f.plan_efforts else None,
+        peak_speed=float(f.peaks[0]), peak_acceleration=float(f.peaks[1]), peak_jerk=float(f.peaks[2]),
+        samples=np.array(f.rows),
     )
+
+
+def _replan(f: _Flight, world: World, goal: np.ndarray, method: Method, config: LoopConfig,
+            render: Callable[[np.ndarray], np.ndarray] | None, lag: float) -> None:
+    """Observe at ``f.t``, plan from the reference's state at ``f.t + lag``, and take the plan (or
+    react to its rejection)."""
+    v_h = float(np.hypot(f.x[1, 0], f.x[1, 1]))
+    to_goal = goal - f.x[0]
+    yaw = math.atan2(f.x[1, 1], f.x[1, 0]) if v_h > 0.5 else math.atan2(to_goal[1], to_goal[0]) + f.look
+    T_wb = level_pose(f.x[0], yaw)
+    g_body = T_wb[:3, :3].T @ to_goal
+    n = float(np.linalg.norm(g_body))
+    local = g_body * min(1.0, config.horizon / n) if n > 0 else g_body
+    depth = render(T_wb) if method.needs_depth else None
+    t_take = f.t + lag
+    obs = Observation(t=t_take, T_world_body=T_wb, state_world=f.ref.state(t_take), goal_world=goal,
+                      local_goal_body=local, depth=depth, goal_clipped=n > config.horizon)
+    if method.replans and float(np.linalg.norm(to_goal)) < config.final_approach:
+        mp = _final_approach(obs, config)
+    else:
+        mp = method.plan(obs)
+    f.plans += 1
+    f.latencies.append(mp.latency_ms)
+    if mp.allocation_ms is not None:
+        f.allocations.append(mp.allocation_ms)
+    if config.respect_eta and mp.eta is not None and mp.eta >= 0.5:
+        f.rejected += 1
+        if f.t >= f.ref.t_end - 1e-9:
+            f.look += math.radians(config.look_turn_deg)
+        elif config.on_reject == "brake" and not f.braking:
+            f.braking = True
+            f.take(_brake(obs).pieces)
+        return
+    f.braking = False
+    f.look = 0.0
+    if mp.pieces.degree >= 4:  # a cubic spline's snap is zero between knots and impulsive at them
+        f.plan_efforts.append(mp.pieces.snap_effort(mp.pieces.t0, mp.pieces.t_end))
+    f.take(mp.pieces)
+
+
+def _fly(f: _Flight, world: World, goal: np.ndarray, config: LoopConfig, tracker: _Tracker, steps: int,
+         t_limit: float) -> None:
+    """Fly one replanning interval on the control grid: track the reference, judge collisions and
+    the goal, add up effort, path length and the peaks of speed, acceleration and jerk."""
+    t, dt = f.t, tracker.dt
+    tg = t + dt * np.arange(1, steps + 1)
+    r = np.stack([f.ref.derivative(tg, q) for q in range(5)])  # (5, N, 3)
+    ev = [(tk, jk) for tk, jk in f.jumps if t < tk <= tg[-1] + 1e-12]
+    Es = None
+    if f.E.any() or ev:
+        Es = np.empty((steps, 4, 3))
+        cur, tau0 = f.E, t
+        for i, ti in enumerate(tg):
+            for tk, jk in ev:
+                if tau0 < tk <= ti:
+                    cur = tracker.phi(tk - tau0) @ cur + jk
+                    tau0 = tk
+            cur = tracker.phi(ti - tau0) @ cur
+            tau0 = ti
+            Es[i] = cur
+    states = r[:4].transpose(1, 0, 2) - (Es if Es is not None else 0.0)  # (N, 4, 3) vehicle
+    pos = states[:, 0]
+    d = world.signed_distance(pos)
+    hit = np.flatnonzero(d < config.robot_radius)
+    near = np.flatnonzero(np.linalg.norm(pos - goal, axis=1) <= config.goal_radius)
+    stop = steps
+    if len(hit) and (not len(near) or hit[0] <= near[0]):
+        stop = int(hit[0]) + 1
+        f.outcome, f.coll_point, f.coll_time = "collision", pos[hit[0]].tolist(), float(tg[hit[0]])
+    elif len(near):
+        stop = int(near[0]) + 1
+        f.outcome = "success"
+    over = np.flatnonzero(tg >= t_limit - 1e-9)
+    if f.outcome == "timeout" and len(over):
+        stop = int(over[0]) + 1
+    t_end = float(tg[stop - 1])
+    f.effort += f.ref.snap_effort(t, t_end)
+    if Es is not None:
+        Ek = np.einsum("k,nka->na", tracker.k, Es)  # x⁽⁴⁾ − r⁽⁴⁾
+        cross = 2.0 * (r[4][:stop] * Ek[:stop]).sum(-1) + (Ek[:stop] ** 2).sum(-1)
+        # The error's snap at t (start of the interval) completes the trapezoid.
+        e0 = np.einsum("k,ka->a", tracker.k, f.E)
+        r0 = f.ref.derivative(np.array([t]), 4)[0]
+        f0 = float(2.0 * r0 @ e0 + e0 @ e0)
+        f.effort += float(np.trapezoid(np.concatenate([[f0], cross]), np.concatenate([[t], tg[:stop]])))
+    seg = np.concatenate([f.rows[-1][1:][None], pos[:stop]])
+    f.path_length += float(np.linalg.norm(np.diff(seg, axis=0), axis=1).sum())
+    f.min_dist = min(f.min_dist, float(d[:stop].min()))
+    f.peaks = np.maximum(f.peaks, np.linalg.norm(states[:stop, 1:4], axis=-1).max(axis=0))
+    f.rows.extend(np.column_stack([tg[:stop], pos[:stop]]))
+    f.x = states[stop - 1]
+    f.E = Es[stop - 1] if Es is not None else np.zeros((4, 3))
+    f.t = t_end
 
 
 def _final_approach(obs: Observation, config: LoopConfig) -> MethodPlan:
@@ -320,12 +391,12 @@ def _final_approach(obs: Observation, config: LoopConfig) -> MethodPlan:
     t0 = time.perf_counter()
     R, p = obs.T_world_body[:3, :3], obs.T_world_body[:3, 3]
     goal = R.T @ (obs.goal_world - p)
-    speed = max(0.5 * float(np.linalg.norm(obs.state_world[1])), 0.25 * config.cruise_speed)
-    T = max(float(np.linalg.norm(goal)) / speed, 0.2)
-    wp = torch.from_numpy(np.stack([np.zeros(3), goal]))[None]
+    start = obs.start_body()
+    speed = max(0.5 * float(np.linalg.norm(start[1])), 0.25 * config.cruise_speed)
+    T = max(float(np.linalg.norm(goal - start[0])) / speed, 0.2)
+    wp = torch.from_numpy(np.stack([start[0], goal]))[None]
     with torch.no_grad():
-        traj = min_snap(wp, torch.tensor([[T]], dtype=torch.float64),
-                        start=torch.from_numpy(obs.state_world[1:4] @ R)[None])
+        traj = min_snap(wp, torch.tensor([[T]], dtype=torch.float64), start=torch.from_numpy(start[1:])[None])
     from mapkit.evaluation._pieces import pieces_from_body
 
     return MethodPlan(pieces=pieces_from_body(traj.coeffs[0].numpy(), np.array([T]), obs.T_world_body, obs.t),
@@ -340,12 +411,12 @@ def _brake(obs: Observation, deceleration: float = 1.5) -> MethodPlan:
     from mapkit.evaluation._pieces import pieces_from_body
     from mapkit.trajopt import min_snap
 
-    R = obs.T_world_body[:3, :3]
-    start = obs.state_world[1:4] @ R  # body-frame velocity, acceleration, jerk
+    state = obs.start_body()
+    start = state[1:]  # body-frame velocity, acceleration, jerk
     speed = float(np.linalg.norm(start[0]))
     T = max(0.5, 2.0 * speed / deceleration)
-    stop = 0.5 * T * start[0]
-    wp = torch.from_numpy(np.stack([np.zeros(3), stop]))[None]
+    stop = state[0] + 0.5 * T * start[0]
+    wp = torch.from_numpy(np.stack([state[0], stop]))[None]
     with torch.no_grad():
         traj = min_snap(wp, torch.tensor([[T]], dtype=torch.float64), start=torch.from_numpy(start)[None])
     return MethodPlan(pieces=pieces_from_body(traj.coeffs[0].numpy(), np.array([T]), obs.T_world_body, obs.t),

@@ -1,15 +1,20 @@
 """The methods `mapkit eval` compares, all flying the same closed loop.
 
-- ``learned``: the trained planner as deployed — key-points and η from the network, the Time
-  Allocation Net's split of the total time, minimum snap from the vehicle's state (to rest at the
-  goal; through the local goal at cruise speed while the goal lies beyond the horizon).
-- ``learned+uniform`` / ``learned+poly5`` / ``learned+gradient``: the same key-points and total time,
-  other time allocations (Table III of the paper).
+- ``learned``: the trained planner as deployed — key-points and η from the network; the total time
+  from the speed profile (:func:`mapkit.planner.total_time`), every segment at least
+  ``min_segment_time`` and the Time Allocation Net's split of the rest; corridor-bounded minimum
+  snap with speed and acceleration limits (:class:`Execution`) from the reference's state at the
+  takeover (to rest at the goal; through the local goal at cruise speed while the goal lies
+  beyond the horizon).
+- ``learned+uniform`` / ``learned+poly5`` / ``learned+gradient``: the same key-points, total time and
+  execution, other splits (Table III of the paper; ``gradient`` is the TAN's supervision,
+  Mellinger & Kumar descent under the same boundary conditions).
 - ``iplanner-style``: the same network outputs, iPlanner's way: a cubic spline through the key-points
   timed by arc length at the cruise speed (no dynamics, no time allocation), clamped to the vehicle's
   velocity at the start and to the same end velocity as the others.
-- ``straight``: no perception; one minimum-snap segment from the vehicle's state to the local goal (the optimum through any points of the straight line; pinning interior points at fixed
-  times only adds snap).
+- ``straight``: no perception; one minimum-snap segment from the vehicle's state to the local goal,
+  timed by the same speed profile (the optimum through any points of the straight line; pinning
+  interior points at fixed times only adds snap).
 - ``oracle``: search on the exact world (Dijkstra on a clearance grid + shortcuts) and one
   corridor-constrained minimum-snap trajectory to the goal; an upper reference, planned once.
 """
@@ -17,6 +22,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -24,54 +30,101 @@ from scipy.interpolate import CubicSpline
 
 from mapkit.evaluation._loop import MethodPlan, Observation
 from mapkit.evaluation._pieces import Pieces, pieces_from_body
-from mapkit.planner import CameraInput
+from mapkit.planner import Allocation, CameraInput, PlannerConfig, plan_timing
 from mapkit.planner._model import PlannerNet
 from mapkit.sim import World
 from mapkit.sim.search import FreeSpaceGraph
 from mapkit.trajopt import allocate_times, min_snap
 
-LEARNED_ALLOCATIONS = {"learned": "tan", "learned+uniform": "uniform", "learned+poly5": "poly5",
-                       "learned+gradient": "gradient"}
+LEARNED_ALLOCATIONS: dict[str, Allocation] = {"learned": "tan", "learned+uniform": "uniform",
+                                              "learned+poly5": "poly5", "learned+gradient": "gradient"}
 METHODS = ("learned", "learned+uniform", "learned+poly5", "learned+gradient", "iplanner-style", "straight", "oracle")
 """Every method name, in report order."""
-_MIN_SEGMENT_S = 0.4
 NEEDS_MODEL = frozenset({*LEARNED_ALLOCATIONS, "iplanner-style"})
 
 
-def _start_body(obs: Observation) -> np.ndarray:
-    """(3, 3) velocity, acceleration, jerk of the vehicle in the body frame."""
-    R = obs.T_world_body[:3, :3]
-    return obs.state_world[1:4] @ R
+@dataclass(frozen=True)
+class Execution:
+    """How a replanning method turns its timed key-points into the reference it flies."""
+
+    corridor: float | None = 1.0
+    """Widest half-width (m) of the flight corridor around the key-point segments: the trajectory may
+    leave the interior key-points by up to this (per world axis) instead of passing through them,
+    which absorbs the key-points' jitter from one plan to the next (most of a flight's effort).
+    None: through the key-points."""
+    check_corridor: bool = True
+    """Check each corridor trajectory against the depth image it was planned from and halve the
+    width (1, ½, ¼, ⅒ of ``corridor``, then through the key-points) while it has more points in view
+    closer than the robot's size to a seen surface (or behind one) than the trajectory through the
+    key-points: a wide corridor cuts the corners the key-points went around. Needs the camera."""
+    v_max: float | None = 3.0
+    """Per-axis speed limit, m/s (None: none)."""
+    a_max: float | None = 4.0
+    """Per-axis acceleration limit, m/s² (None: none)."""
 
 
-def _total_time(waypoints: np.ndarray, obs: Observation, *, cruise_speed: float, min_total_time: float,
-                max_total_time: float) -> float:
-    """Seconds for the whole plan. Beyond the horizon the planner's own rule (path length / cruise
-    speed). On the approach (rest at the goal) the average speed is half the current speed, kept
-    within [cruise / 2, cruise], and each segment gets at least 0.4 s on average: a plan asking for the cruise average while it must stop makes
-    the vehicle speed up every interval (only the start of each plan is flown) and brake hard at
-    the end."""
-    length = float(np.linalg.norm(np.diff(waypoints, axis=0), axis=1).sum())
-    if obs.goal_clipped:
-        return float(np.clip(length / cruise_speed, min_total_time, max_total_time))
-    v0 = float(np.linalg.norm(obs.state_world[1]))
-    speed = float(np.clip(0.5 * v0, 0.5 * cruise_speed, cruise_speed))
-    # Close to the goal the key-points crowd together; at least 0.4 s per segment keeps their
-    # pinned passing times from demanding snap that grows like 1 / T⁷.
-    floor = max(min_total_time, _MIN_SEGMENT_S * (len(waypoints) - 1))
-    return float(np.clip(length / speed, floor, max_total_time))
+def _tensors(wp: np.ndarray, start: np.ndarray, end_speed: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    return (torch.from_numpy(wp)[None], torch.from_numpy(np.ascontiguousarray(start[1:]))[None],
+            torch.tensor([end_speed], dtype=torch.float64))
 
 
-def _end_body(obs: Observation, waypoints: np.ndarray, speed: float) -> np.ndarray:
-    """(3, 3) end velocity, acceleration, jerk: rest at the real goal; beyond the horizon, cruise
-    speed along the last segment (the next plan takes over long before the end)."""
-    end = np.zeros((3, 3))
-    if obs.goal_clipped:
-        last = waypoints[-1] - waypoints[-2]
-        n = float(np.linalg.norm(last))
-        if n > 1e-6:
-            end[0] = speed * last / n
-    return end
+def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, how: Execution,
+             corridor: float | None):
+    """Minimum snap in ``corridor`` (None: through the key-points) within the limits of ``how``. The
+    limits rarely bind, so they join the QP only when the trajectory without them breaks one (on a
+    dense grid); a QP without a solution falls back to the corridor alone, then to the key-points."""
+    with torch.no_grad():
+        kw = {} if corridor is None else {"corridor": corridor}
+        traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", **kw)
+        if not bool(traj.solved.all()):
+            return min_snap(wp, T, start=start, end=end)
+        over_v = how.v_max is not None and float(traj.max_velocity(per_axis=True, samples_per_segment=256).max()) > how.v_max
+        over_a = how.a_max is not None and float(traj.max_acceleration(per_axis=True, samples_per_segment=256).max()) > how.a_max
+        if not (over_v or over_a):
+            return traj
+        limited = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", limits_everywhere=True,
+                           v_max=how.v_max, a_max=how.a_max, **kw)
+        return limited if bool(limited.solved.all()) else traj
+
+
+def _samples(traj, count: int = 24) -> torch.Tensor:
+    """(1, 1, count, 3) positions evenly spread in time over the trajectory (its start excluded)."""
+    total = float(traj.durations.sum())
+    t = torch.linspace(total / count, total, count, dtype=torch.float64)
+    return traj.position(t).reshape(1, 1, count, 3)
+
+
+class _Checker:
+    """Counts a trajectory's points that come closer to a seen surface than the robot's size."""
+
+    def __init__(self, x: torch.Tensor, camera: CameraInput, max_depth: float, pyramid: torch.Tensor | None) -> None:
+        from mapkit.planner._depthcheck import nearest_depth_pyramid
+
+        self.x, self.camera, self.max_depth = x, camera, max_depth
+        self.pyramid = nearest_depth_pyramid(x) if pyramid is None else pyramid
+
+    def __call__(self, traj) -> int:
+        from mapkit.planner import seen_conflicts
+
+        pts = _samples(traj).to(self.x.dtype)
+        return int(seen_conflicts(pts, self.x, self.camera, max_depth=self.max_depth, pyramid=self.pyramid)[0, 0])
+
+
+def _execute(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, how: Execution,
+             check: "_Checker | None" = None):
+    """The reference a plan flies: the widest corridor of ``how`` that ``check`` does not find
+    closer to what the camera sees than the trajectory through the key-points."""
+    if how.corridor is None:
+        return _limited(wp, T, start, end, how, None)
+    if check is None or not how.check_corridor:
+        return _limited(wp, T, start, end, how, how.corridor)
+    with torch.no_grad():
+        allowed = check(min_snap(wp, T, start=start, end=end))
+    for scale in (1.0, 0.5, 0.25, 0.1):
+        traj = _limited(wp, T, start, end, how, how.corridor * scale)
+        if check(traj) <= allowed:
+            return traj
+    return _limited(wp, T, start, end, how, None)
 
 
 class LearnedMethod:
@@ -81,56 +134,50 @@ class LearnedMethod:
     needs_depth = True
     replans = True
 
-    def __init__(self, name: str, net: PlannerNet, *, allocation: str = "tan", spline: bool = False,
-                 camera: CameraInput | None = None) -> None:
+    def __init__(self, name: str, net: PlannerNet, *, allocation: Allocation = "tan", spline: bool = False,
+                 camera: CameraInput | None = None, execution: Execution = Execution()) -> None:
         self.name = name
         self.camera = camera
         self.net = net.eval()
         self.allocation = allocation
         self.spline = spline
         self.config = net.config
+        self.execution = execution
 
-    def _keypoints(self, obs: Observation) -> tuple[np.ndarray, float]:
+    def _keypoints(self, obs: Observation, start: np.ndarray) -> tuple[np.ndarray, float, torch.Tensor, torch.Tensor | None]:
         with torch.inference_mode():
             d = torch.from_numpy(np.asarray(obs.depth, dtype=np.float32)[None])
             x = self.net.preprocess(d)
             g = torch.from_numpy(np.asarray(obs.local_goal_body, dtype=np.float32)[None])
-            v = torch.from_numpy(np.asarray(_start_body(obs)[0], dtype=np.float32)[None])
+            v = torch.from_numpy(np.asarray(start[1], dtype=np.float32)[None])
             out = self.net(x, g, camera=self.camera, velocity=v)
-        return out.keypoints[0].double().numpy(), float(out.eta[0])
+        return out.keypoints[0].double().numpy(), float(out.eta[0]), x, out.pyramid
 
     def plan(self, obs: Observation) -> MethodPlan:
         t0 = time.perf_counter()
-        kp, eta = self._keypoints(obs)
-        wp = np.concatenate([np.zeros((1, 3)), kp])
-        start = _start_body(obs)
-        c = self.config
-        end = _end_body(obs, wp, c.cruise_speed)
-        total_s = _total_time(wp, obs, cruise_speed=c.cruise_speed, min_total_time=c.min_total_time,
-                              max_total_time=c.max_total_time)
+        start = obs.start_body()
+        kp, eta, x, pyramid = self._keypoints(obs, start)
+        wp = np.concatenate([start[:1], kp])
+        wpt, st, es = _tensors(wp, start, self.config.cruise_speed if obs.goal_clipped else 0.0)
+        t_alloc = time.perf_counter()
+        with torch.inference_mode():
+            timing = plan_timing(wpt, st, es, self.config, allocation=self.allocation, tan=self.net.tan)
+        allocation_ms = 1e3 * (time.perf_counter() - t_alloc)
         if self.spline:
-            coeffs, durations = _clamped_spline(wp, start[0], end[0], total_s)
+            coeffs, durations = _clamped_spline(wp, start[1], timing.end[0, 0].numpy(), float(timing.total[0]))
         else:
-            wpt = torch.from_numpy(wp)[None]
-            en = torch.from_numpy(end)[None]
-            total = torch.tensor([total_s], dtype=torch.float64)
-            st = torch.from_numpy(start)[None]
-            if self.allocation == "tan":
+            check = None
+            if self.camera is not None and self.execution.check_corridor:
                 with torch.inference_mode():
-                    shares = self.net.tan.shares(wpt.to(next(self.net.tan.parameters()).dtype)).double()
-                shares = shares.clamp_min(1e-4)
-                T = shares / shares.sum(-1, keepdim=True) * total[:, None]
-            elif self.allocation == "gradient":
-                T = allocate_times(wpt, "gradient", total_time=total, start=st, end=en, max_iters=30)
-            else:
-                T = allocate_times(wpt, self.allocation, total_time=total)
-            with torch.no_grad():
-                traj = min_snap(wpt, T.reshape(1, -1), start=st, end=en)
-            coeffs, durations = traj.coeffs[0].numpy(), T[0].numpy()
+                    check = _Checker(x, self.camera, self.config.max_depth, pyramid)
+            with torch.inference_mode():
+                traj = _execute(wpt, timing.durations, st, timing.end, self.execution, check)
+            coeffs, durations = traj.coeffs[0].numpy(), timing.durations[0].numpy()
         latency = 1e3 * (time.perf_counter() - t0)
         pieces = pieces_from_body(coeffs, durations, obs.T_world_body, obs.t)
         kp_world = kp @ obs.T_world_body[:3, :3].T + obs.T_world_body[:3, 3]
-        return MethodPlan(pieces=pieces, latency_ms=latency, eta=eta, keypoints_world=kp_world)
+        return MethodPlan(pieces=pieces, latency_ms=latency, eta=eta, keypoints_world=kp_world,
+                          allocation_ms=None if self.spline else allocation_ms)
 
 
 def _clamped_spline(wp: np.ndarray, v0: np.ndarray, v1: np.ndarray, total: float) -> tuple[np.ndarray, np.ndarray]:
@@ -151,29 +198,27 @@ def _clamped_spline(wp: np.ndarray, v0: np.ndarray, v1: np.ndarray, total: float
 
 
 class StraightMethod:
-    """One minimum-snap segment from the vehicle's state to the local goal; no camera."""
+    """One minimum-snap segment from the vehicle's state to the local goal, timed by the planner's
+    speed profile; no camera."""
 
     name = "straight"
     needs_depth = False
     replans = True
 
-    def __init__(self, *, num_keypoints: int = 1, cruise_speed: float = 2.0, min_total_time: float = 1.0,
-                 max_total_time: float = 15.0) -> None:
-        self.K = num_keypoints
-        self.rule = dict(cruise_speed=cruise_speed, min_total_time=min_total_time, max_total_time=max_total_time)
+    def __init__(self, config: PlannerConfig | None = None) -> None:
+        self.config = config or PlannerConfig()
 
     def plan(self, obs: Observation) -> MethodPlan:
         t0 = time.perf_counter()
-        frac = np.arange(0, self.K + 1)[:, None] / self.K
-        wp = torch.from_numpy(frac * obs.local_goal_body[None])[None]
-        total = _total_time(wp[0].numpy(), obs, **self.rule)
-        T = torch.full((1, self.K), total / self.K, dtype=torch.float64)
-        end = torch.from_numpy(_end_body(obs, wp[0].numpy(), self.rule["cruise_speed"]))[None]
+        start = obs.start_body()
+        wp = np.stack([start[0], obs.local_goal_body])
+        wpt, st, es = _tensors(wp, start, self.config.cruise_speed if obs.goal_clipped else 0.0)
+        timing = plan_timing(wpt, st, es, self.config, allocation="uniform")
         with torch.no_grad():
-            traj = min_snap(wp, T, start=torch.from_numpy(_start_body(obs))[None], end=end)
+            traj = min_snap(wpt, timing.durations, start=st, end=timing.end)
         latency = 1e3 * (time.perf_counter() - t0)
-        return MethodPlan(pieces=pieces_from_body(traj.coeffs[0].numpy(), T[0].numpy(), obs.T_world_body, obs.t),
-                          latency_ms=latency)
+        return MethodPlan(pieces=pieces_from_body(traj.coeffs[0].numpy(), timing.durations[0].numpy(),
+                                                  obs.T_world_body, obs.t), latency_ms=latency)
 
 
 class OracleMethod:
@@ -222,20 +267,21 @@ def _split_long(poly: np.ndarray, max_len: float) -> np.ndarray:
 
 
 def make_methods(names: list[str], net: PlannerNet | None, world: World, graph: FreeSpaceGraph | None, *,
-                 oracle_corridor: float = 0.1, robot_radius: float = 0.3, camera: CameraInput | None = None) -> list:
+                 oracle_corridor: float = 0.1, robot_radius: float = 0.3, camera: CameraInput | None = None,
+                 execution: Execution = Execution()) -> list:
     """Instantiate the named methods (``net`` needed by the learned ones, ``graph`` by the oracle,
-    ``camera`` by models that check their paths against the depth image)."""
+    ``camera`` by models that check their paths against the depth image; ``execution`` how the
+    learned allocations fly their key-points)."""
     cfg = net.config if net is not None else None
     out = []
     for name in names:
         if name in LEARNED_ALLOCATIONS:
-            out.append(LearnedMethod(name, net, allocation=LEARNED_ALLOCATIONS[name], camera=camera))
+            out.append(LearnedMethod(name, net, allocation=LEARNED_ALLOCATIONS[name], camera=camera,
+                                     execution=execution))
         elif name == "iplanner-style":
             out.append(LearnedMethod(name, net, spline=True, camera=camera))
         elif name == "straight":
-            kw = {} if cfg is None else dict(cruise_speed=cfg.cruise_speed, min_total_time=cfg.min_total_time,
-                                             max_total_time=cfg.max_total_time)
-            out.append(StraightMethod(**kw))
+            out.append(StraightMethod(cfg))
         elif name == "oracle":
             out.append(OracleMethod(graph, corridor=oracle_corridor, v_max=cfg.cruise_speed if cfg is not None else 2.0,
                                     clearance=robot_radius + 0.05))

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from math import factorial
+from math import comb, factorial
 
 import numpy as np
 
@@ -94,6 +94,32 @@ class Pieces:
         after[-1, 0] = before[-1, 0]
         return self.knots[1:], before, after
 
+    def splice(self, other: "Pieces", t_from: float) -> "Pieces":
+        """This reference from ``t_from`` (cut inside its segment; the past dropped) until
+        ``other.t0``, then ``other``. A reference that has ended holds its end position until then.
+        ``other`` planned from this reference's state at its ``t0`` makes the result C³ there."""
+        t_switch = other.t0
+        n = max(self.coeffs.shape[-1], other.coeffs.shape[-1])
+        pad = lambda c: np.concatenate([c, np.zeros((*c.shape[:2], n - c.shape[-1]))], axis=-1)  # noqa: E731
+        durations, coeffs = [], []
+        a = min(t_from, t_switch)
+        for i, T in enumerate(self.durations):
+            lo, hi = max(a, self.knots[i]), min(t_switch, self.knots[i + 1])
+            if hi - lo <= 1e-12:
+                continue
+            durations.append(hi - lo)
+            coeffs.append(_reparametrise(pad(self.coeffs[i:i + 1])[0], (lo - self.knots[i]) / T, (hi - self.knots[i]) / T))
+        held_from = max(a, self.t_end)
+        if t_switch - held_from > 1e-12:
+            c = np.zeros((3, n))
+            c[:, 0] = self.derivative(np.array([self.t_end]), 0)[0]
+            durations.append(t_switch - held_from)
+            coeffs.append(c)
+        if not durations:
+            return other
+        return Pieces(t0=a, durations=np.concatenate([durations, other.durations]),
+                      coeffs=np.concatenate([np.stack(coeffs), pad(other.coeffs)]))
+
     def snap_effort(self, ta: float, tb: float) -> float:
         """Exact ``∫_ta^tb ‖d⁴p/dt⁴‖² dt`` (m²/s⁷) for segments of degree <= 7 (Gauss–Legendre)."""
         if self.degree < 4 or tb <= ta:
@@ -107,6 +133,19 @@ class Pieces:
             snap = self.derivative(np.minimum(t, np.nextafter(self.knots[i + 1], -np.inf)), 4)
             total += (b - a) * float((_GL_W * (snap ** 2).sum(-1)).sum())
         return total
+
+
+def _reparametrise(coeffs: np.ndarray, s0: float, s1: float) -> np.ndarray:
+    """(3, n) coefficients of the same polynomial on s in [s0, s1], renormalised to u in [0, 1]
+    (s = s0 + (s1 − s0) u)."""
+    n = coeffs.shape[-1]
+    h = s1 - s0
+    out = np.zeros_like(coeffs)
+    # (s0 + h u)^k = sum_j C(k, j) s0^(k−j) h^j u^j
+    for k in range(n):
+        for j in range(k + 1):
+            out[:, j] += coeffs[:, k] * comb(k, j) * s0 ** (k - j) * h ** j
+    return out
 
 
 def pieces_from_body(coeffs_body: np.ndarray, durations: np.ndarray, T_world_body: np.ndarray, t0: float) -> Pieces:

@@ -39,21 +39,27 @@ def _effort(s: dict) -> str:
     return f"{s['mean']:.4g} ± {s['std']:.3g}"
 
 
+def _median(s: dict, fmt: str = "{:.4g}") -> str:
+    return "–" if s.get("median") is None else fmt.format(s["median"])
+
+
 def _lat(lat: dict) -> str:
     return "–" if lat.get("mean_ms") is None else f"{lat['mean_ms']:.2f} ± {lat['std_ms']:.2f}"
 
 
-def write_report(out: Path, doc: dict, latency: dict, worlds: dict[str, World]) -> list[Path]:
-    """Write report.md, paths_<world>.png per world and effort_latency.png into ``out``."""
+def write_report(out: Path, doc: dict, latency: dict, worlds: dict[str, World], allocation: dict | None = None) -> list[Path]:
+    """Write report.md, paths_<world>.png per world, effort_latency.png and speed_profiles.png into
+    ``out``; ``allocation``: the time allocation's own latency per method (Table III)."""
     files = []
     for kind, world in worlds.items():
         files.append(_paths_figure(out / f"paths_{kind}.png", doc, kind, world))
     files.append(_bars_figure(out / "effort_latency.png", doc, latency))
-    files.append(_markdown(out / "report.md", doc, latency, [f.name for f in files]))
+    files.append(_speed_figure(out / "speed_profiles.png", doc))
+    files.append(_markdown(out / "report.md", doc, latency, [f.name for f in files], allocation or {}))
     return files
 
 
-def _markdown(path: Path, doc: dict, latency: dict, figures: list[str]) -> Path:
+def _markdown(path: Path, doc: dict, latency: dict, figures: list[str], allocation: dict) -> Path:
     s, methods = doc["summary"], doc["methods"]
     worlds = list(doc["worlds"])
     cfg, loop = doc["config"], doc["config"]["loop"]
@@ -72,9 +78,11 @@ def _markdown(path: Path, doc: dict, latency: dict, figures: list[str]) -> Path:
         f"of the goal, collision when the body centre comes closer than {loop['robot_radius']} m to the world "
         f"(exact distance, {loop['control_rate']:g} Hz samples), time limit max({loop['timeout_min']:g} s, "
         f"{loop['timeout_factor']:g} × distance / {loop['cruise_speed']:g} m/s). Plans with η ≥ 0.5 are "
-        f"{'not executed' if loop['respect_eta'] else 'executed anyway'}. Control effort is ∫‖snap‖² dt (m²/s⁷) of the "
-        f"executed trajectory (reference tracked by a 4th-order loop with poles at −{loop['tracking_bandwidth']:g} rad/s), "
-        f"over successful flights. Latency: wall clock, one CPU thread ({doc['versions']['torch']}).",
+        f"{'not executed' if loop['respect_eta'] else 'executed anyway'}. Executed effort is ∫‖snap‖² dt (m²/s⁷) of the "
+        f"flown trajectory (reference tracked by a 4th-order loop with poles at −{loop['tracking_bandwidth']:g} rad/s); "
+        f"per-plan effort is each executed plan's own whole ∫‖snap‖² dt (the paper's quantity), averaged over a "
+        f"flight; both over successful flights. Peaks are the flown vehicle's largest speed, acceleration and jerk. "
+        f"Latency: wall clock, one CPU thread ({doc['versions']['torch']}).",
         "",
         "## Table I — success rate (%)",
         "",
@@ -89,29 +97,36 @@ def _markdown(path: Path, doc: dict, latency: dict, figures: list[str]) -> Path:
     L += ["", "Paper (its own worlds, 60 pairs each; office / garage / forest / overall): " + "; ".join(
         f"{k} {' / '.join(f'{v:g}' for v in vals)}" for k, vals in PAPER_SUCCESS.items()) + ".", "",
         "## Table II — control effort and planning latency", "",
-        "| method | control effort m²/s⁷ (successful) | latency ms | path length / straight | min distance m (mean, min) |",
-        "|---|---|---|---|---|"]
+        "| method | executed effort m²/s⁷: median (mean ± std) | per-plan effort, median | peak speed / acc. / jerk, "
+        "median | latency ms | path length / straight | min distance m (mean, min) |",
+        "|---|---|---|---|---|---|---|"]
     for m in methods:
         o = s[m]["overall"]
         md = o["min_distance"]
         mind = "–" if md.get("mean") is None else f"{md['mean']:.2f}, {md['min']:.2f}"
-        L.append(f"| {m} | {_effort(o['control_effort'])} | {_lat(latency[m]['overall'])} | "
+        peaks = " / ".join(_median(o.get(k, {}), "{:.2f}") for k in ("peak_speed", "peak_acceleration", "peak_jerk"))
+        L.append(f"| {m} | {_median(o['control_effort'])} ({_effort(o['control_effort'])}) | "
+                 f"{_median(o.get('plan_effort', {}))} | {peaks} | {_lat(latency[m]['overall'])} | "
                  f"{_pm(o['path_length_ratio'])} | {mind} |")
     L += ["", "Paper: " + "; ".join(f"{k} {e} m²/s⁷, {t} ms" for k, (e, t) in PAPER_EFFORT_LATENCY.items()) + ".", ""]
     for other, paper in (("iplanner-style", "paper: 30.9 % lower than iPlanner"),
-                         ("learned+gradient", "paper: TAN 21.16 vs gradient descent 26.99")):
+                         ("learned+gradient", "paper: TAN 21.16 vs gradient descent 26.99"),
+                         ("oracle", "target: at most 2×")):
         if "learned" in methods and other in methods:
             L += [_effort_comparison(doc, "learned", other, paper), ""]
     ta = [m for m in ("learned+uniform", "learned+poly5", "learned+gradient", "learned") if m in methods]
     if ta:
-        L += ["## Table III — time allocation (same key-points and total time)", "",
-              "| allocation | control effort m²/s⁷ | latency ms | success % | paper effort / latency |",
-              "|---|---|---|---|---|"]
+        L += ["## Table III — time allocation (same key-points, total time and execution)", "",
+              "| allocation | executed effort, median | per-plan effort, median | allocation ms, median | "
+              "planning ms | success % | paper effort / latency |",
+              "|---|---|---|---|---|---|---|"]
         for m in ta:
             name = "TAN" if m == "learned" else m.split("+")[1]
             pe, pl = PAPER_TIME_ALLOCATION[name]
             o = s[m]["overall"]
-            L.append(f"| {name} | {_effort(o['control_effort'])} | {_lat(latency[m]['overall'])} | "
+            alloc = allocation.get(m, {}).get("overall", {}).get("median_ms")
+            L.append(f"| {name} | {_median(o['control_effort'])} | {_median(o.get('plan_effort', {}))} | "
+                     f"{'–' if alloc is None else f'{alloc:.3g}'} | {_lat(latency[m]['overall'])} | "
                      f"{_pct(o['success_rate'])} | {pe} / {pl} |")
         L.append("")
     L += ["## Per world", "", "| method | world | success % | collision % | timeout % | effort m²/s⁷ | latency ms |",
@@ -130,7 +145,7 @@ def _markdown(path: Path, doc: dict, latency: dict, figures: list[str]) -> Path:
 def _effort_comparison(doc: dict, a: str, b: str, paper: str) -> str:
     """Effort of a vs b over all their successful flights and over the pairs both reached."""
     s = doc["summary"]
-    ea, eb = s[a]["overall"]["control_effort"]["mean"], s[b]["overall"]["control_effort"]["mean"]
+    ea, eb = s[a]["overall"]["control_effort"].get("median"), s[b]["overall"]["control_effort"].get("median")
     if ea is None or not eb:
         return f"Effort {a} vs {b}: no comparison (one of them reached no goal; {paper})."
     ok = {}
@@ -140,12 +155,14 @@ def _effort_comparison(doc: dict, a: str, b: str, paper: str) -> str:
     both = [v for v in ok.values() if len(v) == 2]
 
     def rel(x: float, y: float) -> str:
-        return f"{100 * abs(1 - x / y):.1f} % {'lower' if x < y else 'higher'}"
+        if x / y >= 2:
+            return f"{x / y:.3g}×"
+        return f"{x / y:.3g}× ({100 * abs(1 - x / y):.1f} % {'lower' if x < y else 'higher'})"
 
-    text = f"Effort {a} vs {b}: {rel(ea, eb)} over each one's successful flights"
+    text = f"Executed effort {a} vs {b}, medians: {rel(ea, eb)} over each one's successful flights"
     if both:
-        ma = float(np.mean([v[a] for v in both]))
-        mb = float(np.mean([v[b] for v in both]))
+        ma = float(np.median([v[a] for v in both]))
+        mb = float(np.median([v[b] for v in both]))
         text += f"; {rel(ma, mb)} on the {len(both)} pairs both reached ({ma:.4g} vs {mb:.4g} m²/s⁷)"
     return text + f" ({paper})."
 
@@ -226,6 +243,42 @@ def _paths_figure(path: Path, doc: dict, kind: str, world: World) -> Path:
     return path
 
 
+def _speed_figure(path: Path, doc: dict, flights: int = 3) -> Path:
+    """Speed over time of the first few pairs every method reached (from the 20 Hz paths)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mapkit.evaluation._paths import load_paths
+
+    paths = load_paths(path.parent)
+    methods = doc["methods"]
+    reached: dict[tuple[str, int], set[str]] = {}
+    for e in doc["episodes"]:
+        if e["outcome"] == "success":
+            reached.setdefault((e["world"], e["pair"]), set()).add(e["method"])
+    keys = [k for k, v in reached.items() if v >= set(methods)] or sorted(reached, key=lambda k: -len(reached[k]))
+    keys = keys[:flights]
+    fig, axes = plt.subplots(1, max(1, len(keys)), figsize=(5 * max(1, len(keys)), 3.2), squeeze=False)
+    for ax, (world, pair) in zip(axes[0], keys):
+        for m in methods:
+            p = paths.get(f"{world}/{pair:03d}/{m}")
+            if p is None or len(p) < 3 or m not in reached[(world, pair)]:
+                continue
+            v = np.linalg.norm(np.diff(p[:, 1:], axis=0), axis=1) / np.diff(p[:, 0]).clip(1e-9)
+            ax.plot(0.5 * (p[1:, 0] + p[:-1, 0]), v, color=METHOD_COLOURS.get(m), lw=1.0, label=m)
+        ax.set_title(f"{world} pair {pair}", fontsize=9)
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("speed (m/s)")
+    if axes[0, 0].lines:
+        axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def _bars_figure(path: Path, doc: dict, latency: dict) -> Path:
     import matplotlib
 
@@ -241,16 +294,15 @@ def _bars_figure(path: Path, doc: dict, latency: dict) -> Path:
     for i, m in enumerate(methods):
         col = METHOD_COLOURS.get(m, None)
         succ = [100 * (s[m][g]["success_rate"] or 0) for g in groups]
-        eff = [s[m][g]["control_effort"]["mean"] or np.nan for g in groups]
-        eff_sd = [s[m][g]["control_effort"]["std"] or 0 for g in groups]
+        eff = [s[m][g]["control_effort"].get("median") or np.nan for g in groups]
         lat = [latency[m][g]["mean_ms"] or np.nan for g in groups]
         lat_sd = [latency[m][g]["std_ms"] or 0 for g in groups]
         off = x + (i - (len(methods) - 1) / 2) * width
         axes[0].bar(off, succ, width, color=col, label=m)
-        axes[1].bar(off, eff, width, yerr=eff_sd, color=col, capsize=2)
+        axes[1].bar(off, eff, width, color=col)
         axes[2].bar(off, lat, width, yerr=lat_sd, color=col, capsize=2)
     axes[0].set_ylabel("success rate (%)")
-    axes[1].set_ylabel("control effort ∫‖snap‖² (m²/s⁷), successful flights")
+    axes[1].set_ylabel("executed effort ∫‖snap‖² (m²/s⁷), median of successful flights")
     axes[1].set_yscale("log")
     axes[2].set_ylabel("planning latency (ms)")
     axes[2].set_yscale("log")

@@ -19,7 +19,7 @@ import numpy as np
 
 from mapkit._version import __version__
 from mapkit.evaluation._loop import LoopConfig, run_episode
-from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, make_methods
+from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, Execution, make_methods
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
 from mapkit.workspace import atomic_output, check_writable
 
@@ -49,6 +49,8 @@ class EvalConfig:
     """Metres from starts and goals to the nearest obstacle; also the oracle's search clearance."""
     oracle_corridor: float = 0.1
     """Half-width (m) of the oracle's flight corridor around its search path."""
+    execution: Execution = field(default_factory=Execution)
+    """How the learned allocations fly their key-points (corridor, speed and acceleration limits)."""
     workers: int = 1
     """Processes; pairs run in parallel. Results do not depend on it (one torch thread per process)."""
     loop: LoopConfig = field(default_factory=LoopConfig)
@@ -68,6 +70,18 @@ class EvalConfig:
             raise EvalError(f"--workers must be >= 1, got {self.workers}")
         if not self.min_distance > 0:
             raise EvalError(f"--min-distance must be > 0 metres, got {self.min_distance}")
+        ex, loop = self.execution, self.loop
+        frames = loop.replan_interval * loop.depth_rate
+        if not (math.isfinite(frames) and frames >= 1 - 1e-9 and abs(frames - round(frames)) < 1e-6):
+            raise EvalError(f"--replan-interval {loop.replan_interval} s is not a whole number of depth frames at "
+                            f"{loop.depth_rate:g} Hz; use a multiple of {1 / loop.depth_rate:.4g} s")
+        for option, value in (("--corridor", ex.corridor), ("--v-max", ex.v_max), ("--a-max", ex.a_max)):
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise EvalError(f"{option} must be a positive number (0 turns it off), got {value}")
+        if not (math.isfinite(loop.plan_latency) and 0 <= loop.plan_latency < loop.replan_interval):
+            raise EvalError(f"--plan-latency must be in [0, replan interval {loop.replan_interval} s), got {loop.plan_latency}")
+        if not (math.isfinite(loop.final_approach) and loop.final_approach >= 0):
+            raise EvalError(f"--final-approach must be >= 0 metres (0 turns it off), got {loop.final_approach}")
         lc = self.loop
         frames = lc.replan_interval * lc.depth_rate
         if not lc.replan_interval > 0 or abs(frames - round(frames)) > 1e-6:
@@ -193,7 +207,7 @@ def _world_bundle(kind: str) -> dict:
         calibration = CameraInput.from_calibration(K, cam["width"], cam["height"], np.asarray(cam["T_body_camera"]))
         methods = make_methods(list(_STATE["methods"]), _STATE["net"], world, graph,
                                oracle_corridor=_STATE["oracle_corridor"], robot_radius=_STATE["loop"]["robot_radius"],
-                               camera=calibration)
+                               camera=calibration, execution=Execution(**_STATE["execution"]))
         cache[kind] = dict(world=world, graph=graph, camera=camera, rays=rays, methods=methods)
     return cache[kind]
 
@@ -227,7 +241,9 @@ def _run_pair(kind: str, pair: dict) -> list[dict]:
             "min_distance": ep.min_distance if math.isfinite(ep.min_distance) else None,
             "collision_point": ep.collision_point,
             "collision_time": ep.collision_time, "plans": ep.plans, "rejected_plans": ep.rejected_plans,
-            "_latencies_ms": ep.latencies_ms, "_path": path.astype(np.float32),
+            "plan_effort": ep.plan_effort, "peak_speed": ep.peak_speed, "peak_acceleration": ep.peak_acceleration,
+            "peak_jerk": ep.peak_jerk, "_latencies_ms": ep.latencies_ms, "_allocation_ms": ep.allocation_ms,
+            "_path": path.astype(np.float32),
         })
     return out
 
@@ -240,9 +256,9 @@ def _call(args: tuple[str, dict]) -> tuple[str, int, list[dict]]:
 # -------------------------------------------------------------------------------- summaries
 def _stats(values: list[float]) -> dict[str, float | None]:
     if not values:
-        return {"mean": None, "std": None}
+        return {"mean": None, "std": None, "median": None}
     a = np.asarray(values, dtype=np.float64)
-    return {"mean": float(a.mean()), "std": float(a.std())}
+    return {"mean": float(a.mean()), "std": float(a.std()), "median": float(np.median(a))}
 
 
 def summarise(episodes: list[dict], worlds: list[str], methods: list[str]) -> dict:
@@ -263,6 +279,10 @@ def summarise(episodes: list[dict], worlds: list[str], methods: list[str]) -> di
                 "collision_rate": sum(e["outcome"] == "collision" for e in eps) / n if n else None,
                 "timeout_rate": sum(e["outcome"] == "timeout" for e in eps) / n if n else None,
                 "control_effort": _stats([e["control_effort"] for e in ok]),
+                "plan_effort": _stats([e["plan_effort"] for e in ok if e.get("plan_effort") is not None]),
+                "peak_speed": _stats([e["peak_speed"] for e in ok if "peak_speed" in e]),
+                "peak_acceleration": _stats([e["peak_acceleration"] for e in ok if "peak_acceleration" in e]),
+                "peak_jerk": _stats([e["peak_jerk"] for e in ok if "peak_jerk" in e]),
                 "path_length_ratio": _stats([e["path_length_ratio"] for e in ok]),
                 "min_distance": {**_stats(dists), "min": float(min(dists)) if dists else None},
                 "hidden_goal_episodes": len(hidden),
@@ -375,7 +395,7 @@ def evaluate(
         "model": None if model is None or not need_model else str(resolve_model(model)), "seed": config.seed,
         "pair_clearance": config.pair_clearance, "camera": dataclasses.asdict(camera),
         "methods": list(config.methods), "oracle_corridor": config.oracle_corridor,
-        "loop": dataclasses.asdict(config.loop),
+        "execution": dataclasses.asdict(config.execution), "loop": dataclasses.asdict(config.loop),
     }
     tasks = [(k, p.to_dict()) for k in config.worlds for p in pairs[k]]
     results: dict[tuple[str, int], list[dict]] = {}
@@ -405,15 +425,18 @@ def evaluate(
 
     episodes: list[dict] = []
     latencies: dict[tuple[str, str], list[float]] = {}
+    allocations: dict[tuple[str, str], list[float]] = {}
     paths: dict[str, np.ndarray] = {}
     for kind in config.worlds:
         for p in pairs[kind]:
             for rec in results[(kind, p.index)]:
                 latencies.setdefault((kind, rec["method"]), []).extend(rec.pop("_latencies_ms"))
+                allocations.setdefault((kind, rec["method"]), []).extend(rec.pop("_allocation_ms"))
                 paths[f"{kind}/{p.index:03d}/{rec['method']}"] = rec.pop("_path")
                 episodes.append(rec)
     summary = summarise(episodes, list(config.worlds), list(config.methods))
     lat = latency_summary(latencies, list(config.worlds), list(config.methods))
+    alloc = latency_summary(allocations, list(config.worlds), list(config.methods))
     doc = {
         "format": FORMAT,
         "versions": _versions(),
@@ -436,9 +459,9 @@ def evaluate(
         (tmp / "results.json").write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
         (tmp / "latency.json").write_text(json.dumps(
             {"format": FORMAT, "device": platform.processor() or platform.machine(), "torch_threads": 1,
-             "workers": config.workers, "latency": lat}, indent=1) + "\n")
+             "workers": config.workers, "latency": lat, "allocation": alloc}, indent=1) + "\n")
         np.savez_compressed(tmp / "trajectories.npz", **paths)
-        write_report(tmp, doc, lat, worlds)
+        write_report(tmp, doc, lat, worlds, alloc)
     files = sorted(p for p in out_dir.rglob("*") if p.is_file())
-    return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat}, files=files)
+    return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat, "allocation": alloc}, files=files)
 

@@ -22,7 +22,7 @@ Loss: :func:`planner_loss` = γ1 U_O (:func:`obstacle_cost` on the ESDF) + γ2 U
 (torch.Size([1, 5, 3]), torch.Size([1]), 5)
 """
 
-from mapkit.planner._depthcheck import CameraInput, depth_margins
+from mapkit.planner._depthcheck import CameraInput, depth_margins, seen_conflicts
 from mapkit.planner._errors import PlannerError
 from mapkit.planner._loss import (
     LossConfig,
@@ -37,6 +37,7 @@ from mapkit.planner._loss import (
     sample_trajectory,
     smoothness_cost,
     time_cost,
+    time_allocation_loss,
     time_targets,
 )
 from mapkit.planner._model import (
@@ -49,13 +50,15 @@ from mapkit.planner._model import (
     plan,
     planner_preset,
     preprocess_depth,
-    total_time_heuristic,
 )
+from mapkit.planner._timing import Allocation, Timing, plan_timing, total_time
 from mapkit.planner._resnet import ResNet18, load_torchvision_state_dict, torchvision_resnet18_keys
 
 __all__ = [
+    "Allocation",
     "CameraInput",
     "depth_margins",
+    "seen_conflicts",
     "PLANNER_PRESETS",
     "LossConfig",
     "Plan",
@@ -80,7 +83,10 @@ __all__ = [
     "sample_trajectory",
     "smoothness_cost",
     "time_cost",
+    "time_allocation_loss",
     "time_targets",
     "torchvision_resnet18_keys",
-    "total_time_heuristic",
+    "total_time",
+    "plan_timing",
+    "Timing",
 ]

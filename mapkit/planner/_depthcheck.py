@@ -121,3 +121,14 @@ def depth_margins(candidates: torch.Tensor, x: torch.Tensor, camera: CameraInput
     measured = levels.gather(1, level[:, None].to(torch.long)).squeeze(1)
     margin = torch.where(in_view, ((measured - z) / 2.0).clamp(-1.0, 1.0), torch.zeros_like(z))
     return torch.stack([in_view.to(pts.dtype), margin], dim=-1).flatten(2)
+
+
+def seen_conflicts(paths: torch.Tensor, x: torch.Tensor, camera: CameraInput, *, max_depth: float,
+                   robot_radius: float = 0.35, pyramid: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, M) how many points along each path (B, M, P, 3) body frame (points in order, the origin
+    first implied) lie in view with a measured surface nearer than themselves within the image of the
+    robot's disc: points that pass closer than the robot's size to something the camera sees, or
+    behind it (see :func:`depth_margins`)."""
+    f = depth_margins(paths, x, camera, max_depth=max_depth, robot_radius=robot_radius, pyramid=pyramid)
+    f = f.reshape(*f.shape[:2], -1, FEATURES_PER_POINT)
+    return ((f[..., 0] > 0.5) & (f[..., 1] < 0)).sum(-1)

@@ -237,18 +237,33 @@ def time_targets(
     *,
     total_time: torch.Tensor,
     start: torch.Tensor | None = None,
+    end: torch.Tensor | None = None,
+    min_segment: float = 0.0,
     max_iters: int = 10,
     rel_tol: float = 1e-3,
 ) -> torch.Tensor:
     """U_T target shares (B, M): the Mellinger & Kumar gradient-descent allocation
-    (``allocate_times(method="gradient")``, fixed total ``total_time`` (B,), start derivatives
-    ``start`` (B, 3, 3)) for the same waypoints (B, M+1, 3), divided by the total. Batched, float64
-    inside, no gradient."""
+    (``allocate_times(method="gradient")``, fixed total ``total_time`` (B,), start and end derivatives
+    ``start`` / ``end`` (B, 3, 3), every segment >= ``min_segment`` seconds) for the same waypoints
+    (B, M+1, 3), as the split of the time above the minima (what the TAN predicts, see
+    :func:`mapkit.planner.plan_timing`). Batched, float64 inside, no gradient."""
+    from mapkit.planner._timing import shares_from_durations
+
     w = waypoints.detach().to(torch.float64)
     tot = torch.as_tensor(total_time).detach().to(torch.float64)
     st = None if start is None else start.detach().to(torch.float64)
-    T = allocate_times(w, "gradient", total_time=tot, start=st, max_iters=max_iters, rel_tol=rel_tol)
-    return (T / T.sum(-1, keepdim=True)).to(waypoints.dtype)
+    en = None if end is None else end.detach().to(torch.float64)
+    T = allocate_times(w, "gradient", total_time=tot, start=st, end=en, max_iters=max_iters, rel_tol=rel_tol,
+                       min_duration=min_segment if min_segment > 0 else None)
+    return shares_from_durations(T, min_segment).to(waypoints.dtype)
+
+
+def _plan_end(plan: Plan) -> torch.Tensor:
+    """(B, 3, 3) end derivatives the plan's trajectory was built with."""
+    from mapkit.planner._timing import end_state
+
+    speed = plan.end_speed if plan.end_speed is not None else torch.zeros_like(plan.total_time)
+    return end_state(plan.waypoints, speed)
 
 
 def time_cost(shares: torch.Tensor, target_shares: torch.Tensor) -> torch.Tensor:
@@ -317,8 +332,8 @@ def planner_loss(
     u_e = escape_cost(eta, collided, logit=eta_logit)
     if target_shares is None:
         target_shares = time_targets(
-            plan.waypoints, total_time=plan.total_time, start=plan.start,
-            max_iters=cfg.time_target_iters, rel_tol=cfg.time_target_tol,
+            plan.waypoints, total_time=plan.total_time, start=plan.start, end=_plan_end(plan),
+            min_segment=plan.min_segment, max_iters=cfg.time_target_iters, rel_tol=cfg.time_target_tol,
         )
     u_t = time_cost(plan.shares, target_shares)
     per = (
@@ -347,6 +362,7 @@ def candidate_loss(
     T_world_body: torch.Tensor,
     esdf_map: "EsdfMap",
     start_velocity: torch.Tensor | None = None,
+    end_speed: torch.Tensor | None = None,
     corridor: float | None = None,
     config: LossConfig | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -369,7 +385,8 @@ def candidate_loss(
     B, M, K, _ = cand.shape
     goal = torch.as_tensor(goal, dtype=cand.dtype, device=cand.device)
     rep = lambda t: None if t is None else torch.as_tensor(t).repeat_interleave(M, dim=0)  # noqa: E731
-    plan = net.trajectory(cand.reshape(B * M, K, 3), start_velocity=rep(start_velocity), corridor=corridor)
+    plan = net.trajectory(cand.reshape(B * M, K, 3), start_velocity=rep(start_velocity), end_speed=rep(end_speed),
+                          corridor=corridor)
     pts_body = sample_trajectory(plan.trajectory, samples_per_second=cfg.samples_per_second, min_samples=cfg.min_samples)
     pts_world = body_to_world(pts_body, rep(T_world_body))
     goal_m = rep(goal)
@@ -397,7 +414,9 @@ def candidate_loss(
     wp = plan.waypoints.reshape(B, M, K + 1, 3)[rows, winner]
     shares = plan.shares.reshape(B, M, K)[rows, winner]
     target = time_targets(wp, total_time=plan.total_time.reshape(B, M)[rows, winner],
-                          start=plan.start.reshape(B, M, 3, 3)[rows, winner], max_iters=cfg.time_target_iters,
+                          start=plan.start.reshape(B, M, 3, 3)[rows, winner],
+                          end=_plan_end(plan).reshape(B, M, 3, 3)[rows, winner],
+                          min_segment=plan.min_segment, max_iters=cfg.time_target_iters,
                           rel_tol=cfg.time_target_tol)
     u_t = time_cost(shares, target)
     per = per + cfg.gamma_escape * u_e + cfg.gamma_time * u_t + cfg.gamma_score * u_score
@@ -412,3 +431,35 @@ def candidate_loss(
         "total": total.detach(), "collided_chosen": coll_chosen, "goal_chosen": u_g[rows, chosen].detach(),
     }
     return total, terms
+
+
+def time_allocation_loss(
+    net: PlannerNet,
+    keypoints: torch.Tensor,
+    *,
+    start_velocity: torch.Tensor | None = None,
+    end_speed: torch.Tensor | None = None,
+    config: LossConfig | None = None,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """γ5 U_T alone for the deployed key-points (B, K, 3): what trains the TAN when nothing else
+    learns (``mapkit train --only tan``). The paths' costs are not computed (they do not depend on
+    the TAN), so a step costs a forward pass and the gradient-descent targets. Returns (total,
+    terms) with "time" and "total"."""
+    from mapkit.planner._timing import plan_timing
+
+    cfg = config or LossConfig()
+    B = keypoints.shape[0]
+    kp = keypoints.detach()
+    start = torch.zeros(B, 3, 3, dtype=kp.dtype, device=kp.device)
+    if start_velocity is not None:
+        start[:, 0] = torch.as_tensor(start_velocity, dtype=kp.dtype, device=kp.device)
+    speed = torch.zeros(B, dtype=kp.dtype, device=kp.device) if end_speed is None else \
+        torch.as_tensor(end_speed, dtype=kp.dtype, device=kp.device)
+    wp = torch.cat([torch.zeros_like(kp[:, :1]), kp], dim=1)
+    timing = plan_timing(wp, start, speed, net.config, tan=net.tan)
+    target = time_targets(wp, total_time=timing.total, start=start, end=timing.end,
+                          min_segment=net.config.min_segment_time, max_iters=cfg.time_target_iters,
+                          rel_tol=cfg.time_target_tol)
+    u_t = time_cost(timing.shares, target)
+    total = cfg.gamma_time * u_t.mean()
+    return total, {"time": u_t.detach().mean(), "total": total.detach()}

@@ -6,7 +6,7 @@ import dataclasses
 import json
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 from mapkit.errors import MapkitError
 
@@ -52,6 +52,11 @@ class TrainConfig:
     """Start from the weights of this model (a run directory, its model.pt, or "pretrained" for the
     planner shipped with mapkit) instead of random ones: fine-tuning on one's own flights or with a
     changed loss. Its planner configuration must equal this run's."""
+    only: Literal["all", "tan"] = "all"
+    """Which weights train. "tan": only the Time Allocation Net, on the key-points of the frozen
+    ``init`` model (the TAN learns from U_T alone, so this is the joint training's TAN part without
+    changing the paths); its TAN options (``tan_boundary``, ``tan_hidden``, timing rule) may differ
+    from the init model's. The best epoch is then chosen by the held-out U_T."""
     planner: dict[str, Any] = field(default_factory=dict)
     """PlannerConfig fields (mapkit.planner)."""
     loss: dict[str, Any] = field(default_factory=dict)
@@ -79,6 +84,10 @@ class TrainConfig:
             raise TrainConfigError(f"--grad-clip {self.grad_clip} must be a positive number")
         if self.corridor is not None and not self.corridor > 0:
             raise TrainConfigError(f"--corridor {self.corridor} must be a positive half-width in metres")
+        if self.only not in ("all", "tan"):
+            raise TrainConfigError(f"--only {self.only!r}: expected all or tan")
+        if self.only == "tan" and not self.init:
+            raise TrainConfigError("--only tan trains the TAN on the key-points of another model: pass --init MODEL")
         if self.max_steps is not None and self.max_steps < 1:
             raise TrainConfigError(f"--max-steps {self.max_steps} must be at least 1")
 

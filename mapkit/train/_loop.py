@@ -116,6 +116,18 @@ def _active_fraction(net: nn.Module) -> tuple[list[Any], dict[int, torch.Tensor]
     return hooks, seen
 
 
+def _end_speeds(planner: Any, count: int, rng: np.random.Generator | None, device: torch.device) -> torch.Tensor:
+    """(count,) end speeds of the training plans. In flight, plans end at rest (the goal is near) or
+    pass their end at cruise speed (it lies beyond the horizon): a TAN that reads the end condition
+    (``tan_boundary``) learns both, half each (random in training, alternating in validation). The
+    paper's TAN cannot tell them apart and keeps rest-to-rest targets: its split (long first and last
+    segments) flew with half the effort of one fitted to the boundary conditions (README)."""
+    if not planner.tan_boundary:
+        return torch.zeros(count, dtype=torch.float64, device=device)
+    cruise = (rng.random(count) < 0.5) if rng is not None else (np.arange(count) % 2 == 1)
+    return torch.from_numpy(cruise * planner.cruise_speed).to(device)
+
+
 def _straight_output(net: nn.Module, goal: torch.Tensor) -> Any:
     from mapkit.planner import PlannerOutput
 
@@ -152,10 +164,11 @@ def evaluate(net: nn.Module, samples: TupleSamples, maps: list[Any], loss_config
                           batch["velocity"])
                 if straight:
                     out = _straight_output(net, batch["goal"])
-                _, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"],
-                                          esdf_map=maps[k], start_velocity=batch["velocity"], corridor=corridor,
-                                          config=loss_config)
                 m = len(part)
+                end_speed = _end_speeds(net.config, m, None, device)
+                _, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"],
+                                          esdf_map=maps[k], start_velocity=batch["velocity"], end_speed=end_speed,
+                                          corridor=corridor, config=loss_config)
                 for key in METRIC_KEYS:
                     totals[key] += float(terms[key]) * m
                 n += m
@@ -247,8 +260,13 @@ def _camera_or_none(workspace: str | Path) -> dict[str, Any] | None:
         return None
 
 
-def _load_init(net: nn.Module, init: str) -> None:
-    """Weights of the model ``init`` (run directory, model.pt or "pretrained") into ``net``."""
+_TAN_FIELDS = frozenset({"tan_boundary", "tan_hidden", "accel", "min_segment_time", "min_total_time", "max_total_time"})
+"""PlannerConfig fields that only change the time allocation (may differ from --init's with --only tan)."""
+
+
+def _load_init(net: nn.Module, init: str, *, tan_fresh: bool = False) -> None:
+    """Weights of the model ``init`` (run directory, model.pt or "pretrained") into ``net``; with
+    ``tan_fresh`` its TAN options may differ and the TAN keeps its new initial weights."""
     from mapkit.planning import resolve_model
 
     path = resolve_model(init)
@@ -258,16 +276,24 @@ def _load_init(net: nn.Module, init: str) -> None:
     saved = torch.load(path, map_location="cpu", weights_only=True)
     mine = net.config.to_dict()
     theirs = saved.get("planner_config", {})
-    diff = sorted(k for k in mine if k in theirs and json.dumps(mine[k]) != json.dumps(theirs[k]))
+    diff = sorted(k for k in mine if k in theirs and json.dumps(mine[k]) != json.dumps(theirs[k])
+                  and not (tan_fresh and k in _TAN_FIELDS))
     if diff:
         k = diff[0]
         raise TrainConfigError(f"--init {init}: its planner has {k}={theirs[k]!r}, this run {mine[k]!r}; "
                                f"train with the same --preset/--planner options")
-    net.load_state_dict(saved["state_dict"])
+    state = saved["state_dict"]
+    if tan_fresh:
+        state = {k: v for k, v in state.items() if not k.startswith("tan.")} | {
+            k: v for k, v in net.state_dict().items() if k.startswith("tan.")}
+    net.load_state_dict(state)
 
 
-def _selection_score(val: dict[str, float]) -> float:
-    """Higher is better: held-out blocked-goal reach when there are blocked goals, else −loss."""
+def _selection_score(val: dict[str, float], only: str = "all") -> float:
+    """Higher is better: held-out blocked-goal reach when there are blocked goals, else −loss; −U_T
+    when only the TAN trains (the paths do not change)."""
+    if only == "tan":
+        return -val["time"]
     return val["blocked_reach"] if val.get("blocked_count", 0) > 0 else -val["total"]
 
 
@@ -282,7 +308,7 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     latest (for --resume)."""
     from tqdm import tqdm
 
-    from mapkit.planner import LossConfig, PlannerConfig, PlannerNet, candidate_loss
+    from mapkit.planner import LossConfig, PlannerConfig, PlannerNet, candidate_loss, time_allocation_loss
 
     config.validate()
     if not workspaces:
@@ -333,9 +359,13 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     step_module: nn.Module = _Step(net)
     if world > 1:
         step_module = nn.parallel.DistributedDataParallel(step_module, device_ids=[device.index] if device.type == "cuda" else None)
-    optimizer = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    if config.only == "tan":
+        for name, param in net.named_parameters():
+            param.requires_grad_(name.startswith("tan."))
+    optimizer = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=config.lr,
+                                 weight_decay=config.weight_decay)
     if state is None and config.init:
-        _load_init(net, config.init)
+        _load_init(net, config.init, tan_fresh=config.only == "tan")
     if state is not None:
         net.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
@@ -387,6 +417,9 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     samples_seen = 0
     epoch = start_epoch - 1
     for epoch in range(start_epoch, config.epochs + 1):
+        # A frozen encoder stays in eval mode: batch norm would otherwise move its running statistics
+        # (and so the key-points) even without gradients. The TAN has no such layers.
+        net.train(config.only == "all")
         sums = {k: 0.0 for k in METRIC_KEYS}
         count = 0
         t_epoch = time.perf_counter()
@@ -395,9 +428,17 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
         t_steps = time.perf_counter()
         for k, part in bar:
             batch = train_set.load(k, part, device)
-            out = step_module(batch["depth"], batch["goal"], batch["image_index"], batch["camera"], batch["velocity"])
-            loss, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"], esdf_map=maps[k],
-                                         start_velocity=batch["velocity"], corridor=config.corridor, config=loss_cfg)
+            with torch.set_grad_enabled(config.only == "all"):
+                out = step_module(batch["depth"], batch["goal"], batch["image_index"], batch["camera"], batch["velocity"])
+            end_speed = _end_speeds(planner_cfg, len(part), rng, device)
+            if config.only == "tan":
+                loss, terms = time_allocation_loss(net, out.keypoints, start_velocity=batch["velocity"],
+                                                   end_speed=end_speed, config=loss_cfg)
+                terms = {key: terms.get(key, torch.tensor(0.0)) for key in METRIC_KEYS}  # paths are not costed
+            else:
+                loss, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"],
+                                             esdf_map=maps[k], start_velocity=batch["velocity"], end_speed=end_speed,
+                                             corridor=config.corridor, config=loss_cfg)
             if not torch.isfinite(loss):
                 raise TrainConfigError(f"loss became {float(loss)} at step {step}; lower --lr (now {config.lr})")
             optimizer.zero_grad(set_to_none=True)
@@ -424,7 +465,7 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
         if rank == 0:
             val = evaluate(net, val_set, val_maps, loss_cfg, device, max_batches=config.val_batches, batch_size=config.batch_size,
                            corridor=config.corridor)
-            score = _selection_score(val)
+            score = _selection_score(val, config.only)
             improved = score > best_score
             if improved:
                 best_score, best_epoch = score, epoch

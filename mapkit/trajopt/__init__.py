@@ -32,6 +32,7 @@ from mapkit.trajopt._timealloc import (
     TimeAllocationNet,
     TimeAllocationNetConfig,
     allocate_times,
+    profile_time,
     snap_cost_of_times,
 )
 from mapkit.trajopt._trajectory import Feasibility, Trajectory, TrajectorySamples
@@ -49,5 +50,6 @@ __all__ = [
     "TrajoptWarning",
     "allocate_times",
     "min_snap",
+    "profile_time",
     "snap_cost_of_times",
 ]

@@ -281,6 +281,27 @@ def _independent(C: np.ndarray, act: np.ndarray) -> np.ndarray:
     return np.sort(act[piv[:rank]])
 
 
+def _tighten_limits(X, ok, status, info, w, T, start_t, end_t, corr, corridor_samples, vm, am, solver):
+    """Re-solve with limits scaled down by the excess found on a dense grid, until the solution
+    keeps ``vm``/``am`` between the QP's samples too (a few rounds; the excess shrinks fast)."""
+    vm0, am0 = vm, am
+    for _ in range(4):
+        traj = Trajectory(coefficients(X, T, 4), T)
+        scale = torch.ones(w.shape[0], dtype=_WORK, device=w.device)
+        for limit, limit0, order in ((vm, vm0, 1), (am, am0, 2)):
+            if limit is None:
+                continue
+            peak = traj._dense(order, 256).detach().abs().amax(dim=(1, 2, 3))
+            scale = torch.minimum(scale, torch.where(peak > limit0 * (1 + 1e-9), limit0 / peak, torch.ones_like(peak)))
+        if bool((scale >= 1).all()):
+            break
+        vm = None if vm is None else vm * torch.where(scale < 1, 0.995 * scale, torch.ones_like(scale))
+        am = None if am is None else am * torch.where(scale < 1, 0.995 * scale, torch.ones_like(scale))
+        X, ok, status, info = _solve_position_qp(w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples,
+                                                 v_max=vm, a_max=am, solver=solver)
+    return X, ok, status, info
+
+
 def _yaw(yaw: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
     """Minimum yaw-acceleration cubic spline through unwrapped yaw key-points, rest at both ends."""
     B, M1 = yaw.shape
@@ -307,6 +328,7 @@ def min_snap(
     yaw: torch.Tensor | None = None,
     solver: str = _qp.DEFAULT_SOLVER,
     on_infeasible: Literal["warn", "raise", "ignore"] = "warn",
+    limits_everywhere: bool = False,
 ) -> Trajectory:
     """Minimum-snap piecewise 7th-order polynomial trajectory through key-points, differentiable
     with respect to the key-points, the segment durations and the boundary derivatives.
@@ -335,6 +357,9 @@ def min_snap(
             ``integral (d^2 psi/dt^2)^2`` cubic yaw spline (continuous to the 1st derivative, zero
             yaw rate at both ends). Consecutive angles are unwrapped.
         solver: QP backend for the inequality path, one of ``mapkit.trajopt.SOLVERS``.
+        limits_everywhere: make ``v_max``/``a_max`` hold between the samples too: the solution is
+            checked on a dense grid (256 points per segment) and, where it exceeds a limit, solved
+            again with that limit tightened by the excess (at most 4 times).
         on_infeasible: what to do when some elements of a constrained problem cannot be solved:
             "warn" (default; a :class:`TrajoptWarning`), "raise" (:class:`TrajoptError`) or
             "ignore". Either way ``Trajectory.solved`` is False for them and they hold the
@@ -407,6 +432,9 @@ def min_snap(
             w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples,
             v_max=vm, a_max=am, solver=solver,
         )
+        if limits_everywhere and (vm is not None or am is not None):
+            X, ok, status, info = _tighten_limits(X, ok, status, info, w, T, start_t, end_t, corr, corridor_samples,
+                                                  vm, am, solver)
         if not ok.all():
             failed = np.nonzero(~ok)[0]
             messages = tuple(f"batch element {int(b)}: {status[b]}" for b in failed)

@@ -72,6 +72,30 @@ def _poly5_inverse(y: torch.Tensor) -> torch.Tensor:
     return tau - (val - y) / slope.clamp_min(1e-12)
 
 
+def profile_time(length: torch.Tensor, v_start: torch.Tensor, v_end: torch.Tensor, *, cruise_speed: float,
+                 accel: float) -> torch.Tensor:
+    """Seconds (B,) to cover ``length`` (B,) metres of path starting at ``v_start`` (B,) m/s and
+    arriving at ``v_end`` (B,) m/s: change speed at ``accel`` m/s² towards ``cruise_speed``, cruise,
+    then change to the end speed (a trapezoid in speed; triangular when the path is too short to
+    reach the cruise speed, constant acceleration when it is too short even for that).
+
+    Start speeds above the cruise speed count as the cruise speed; end speeds are clipped to
+    [0, cruise_speed].
+    """
+    if not (cruise_speed > 0 and accel > 0):
+        raise TrajoptError(f"cruise_speed and accel must be > 0, got {cruise_speed} and {accel}")
+    L = torch.as_tensor(length, dtype=_WORK).clamp_min(0.0)
+    v0 = torch.as_tensor(v_start, dtype=_WORK).clamp(0.0, cruise_speed)
+    ve = torch.as_tensor(v_end, dtype=_WORK).clamp(0.0, cruise_speed)
+    vc, a = float(cruise_speed), float(accel)
+    d_up, d_down = (vc ** 2 - v0 ** 2) / (2 * a), (vc ** 2 - ve ** 2) / (2 * a)
+    trapezoid = (vc - v0) / a + (vc - ve) / a + (L - d_up - d_down) / vc
+    peak = torch.sqrt(a * L + 0.5 * (v0 ** 2 + ve ** 2))
+    triangle = (peak - v0) / a + (peak - ve) / a
+    ramp = 2.0 * L / (v0 + ve).clamp_min(1e-9)
+    return torch.where(d_up + d_down <= L, trapezoid, torch.where(peak >= torch.maximum(v0, ve), triangle, ramp))
+
+
 def _min_duration(total: torch.Tensor, M: int) -> torch.Tensor:
     # 2 % of the mean segment: shorter segments are never the optimum between separated key-points,
     # and the cost's float64 evaluation loses its digits below ~1 % (it can even turn negative).
@@ -130,6 +154,7 @@ def _gradient_allocation(
     max_iters: int,
     rel_tol: float,
     solve_options: dict | None,
+    min_duration: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Projected gradient descent with Armijo backtracking, batched over problems (float64)."""
     B, M = T0.shape
@@ -140,6 +165,8 @@ def _gradient_allocation(
     else:
         T = T0.clone()
     t_min = _min_duration(T.sum(-1), M).unsqueeze(-1).expand(B, M)
+    if min_duration is not None:
+        t_min = torch.maximum(t_min, min_duration.reshape(-1, 1).expand(B, M))
 
     def cost(Tc: torch.Tensor, need_grad: bool):
         if solve_options:
@@ -178,6 +205,8 @@ def _gradient_allocation(
         return torch.clamp(y - theta, min=0.0) + t_min
 
     with torch.no_grad():
+        if min_duration is not None:
+            T = project(T)  # the start must respect the floor too
         f, g = cost(T, True)
         if not bool(torch.isfinite(f).all()):
             raise TrajoptError(
@@ -232,6 +261,7 @@ def allocate_times(
     rel_tol: float = 1e-6,
     solve_options: dict | None = None,
     net: "TimeAllocationNet | None" = None,
+    min_duration: float | torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Segment durations (B, M) — or (M,) for unbatched (M+1, 3) waypoints — in seconds.
 
@@ -246,7 +276,8 @@ def allocate_times(
         ``gradient``: Mellinger & Kumar: minimise the snap cost J(T) + ``k_T`` * sum(T) (when
             ``k_T`` is given) or J(T) with sum(T) fixed (``total_time``, default the sum of the
             start); projected gradient descent with Armijo backtracking from ``initial``
-            (default trapezoid), every duration kept >= 0.02 * total / M. ``solve_options``
+            (default trapezoid), every duration kept >= 0.02 * total / M and >= ``min_duration``
+            seconds (scalar or (B,); needs a fixed total of at least M × it). ``solve_options``
             (``corridor``, ``v_max``, ``a_max``, ...) are passed to :func:`min_snap`, making J the
             constrained optimum; a failed solve counts as infinite cost. Not differentiable.
         ``net``: the :class:`TimeAllocationNet` ``net`` (required) predicts the shares of
@@ -304,9 +335,18 @@ def allocate_times(
             T0 = torch.broadcast_to(T0 if T0.ndim == 2 else T0.unsqueeze(0), (B, M)).clone()
             if bool((T0 <= 0).any()):
                 raise TrajoptError("initial durations must all be > 0 seconds")
+        floor = None
+        if min_duration is not None:
+            if k_T is not None:
+                raise TrajoptError("min_duration needs a fixed total (total_time), not k_T")
+            floor = torch.broadcast_to(torch.as_tensor(min_duration, dtype=_WORK).to(w.device).reshape(-1), (B,))
+            total_now = tot if tot is not None else T0.sum(-1)
+            if bool((floor * M > total_now * (1 + 1e-9)).any()):
+                raise TrajoptError(f"min_duration {min_duration} s × {M} segments exceeds the total time")
+            tot = total_now
         T = _gradient_allocation(
             w64.detach(), T0.detach(), k_T=k_T, total=tot, start=start, end=end,
-            max_iters=max_iters, rel_tol=rel_tol, solve_options=solve_options,
+            max_iters=max_iters, rel_tol=rel_tol, solve_options=solve_options, min_duration=floor,
         )
     return (T if batched else T[0]).to(out_dtype)
 
@@ -323,6 +363,10 @@ class TimeAllocationNetConfig:
     """m/s; with ``a_max`` gives the default total time (poly5 rule) when none is passed."""
     a_max: float = 2.0
     """m/s², see ``v_max``."""
+    boundary_inputs: bool = False
+    """The net also reads the boundary conditions: start velocity (÷ ``v_max``) and acceleration
+    (÷ ``a_max``), and the end speed (÷ ``v_max``; 0 = rest at the last key-point). The best split
+    of a plan that starts at cruise speed and passes its end is not that of a rest-to-rest plan."""
     extra: dict = field(default_factory=dict)
     """Free-form notes stored with the config (ignored by the module)."""
 
@@ -332,7 +376,8 @@ class TimeAllocationNet(nn.Module):
     the total time (softmax), so durations are always positive and sum to the total.
 
     Input features per element: the M segment vectors (metres) and their lengths, divided by the
-    path length (scale-free), plus the log of the path length.
+    path length (scale-free), plus the log of the path length; with ``boundary_inputs`` also the
+    start velocity and acceleration and the end speed (see the config).
     """
 
     def __init__(self, config: TimeAllocationNetConfig | None = None) -> None:
@@ -341,7 +386,7 @@ class TimeAllocationNet(nn.Module):
         M = self.config.num_segments
         if M < 1:
             raise TrajoptError(f"num_segments must be >= 1, got {M}")
-        dims = [4 * M + 1, *self.config.hidden, M]
+        dims = [4 * M + 1 + (7 if self.config.boundary_inputs else 0), *self.config.hidden, M]
         layers: list[nn.Module] = []
         for i in range(len(dims) - 1):
             layers.append(nn.Linear(dims[i], dims[i + 1]))
@@ -349,8 +394,11 @@ class TimeAllocationNet(nn.Module):
                 layers.append(nn.ReLU())
         self.mlp = nn.Sequential(*layers)
 
-    def shares(self, waypoints: torch.Tensor) -> torch.Tensor:
-        """(B, M) softmax shares of the total time for waypoints (B, M+1, 3)."""
+    def shares(self, waypoints: torch.Tensor, *, start: torch.Tensor | None = None,
+               end_speed: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, M) softmax shares of the total time for waypoints (B, M+1, 3); a net with
+        ``boundary_inputs`` also takes ``start`` (B, 3, 3) velocity/acceleration/jerk rows (default
+        rest) and ``end_speed`` (B,) m/s (default 0, rest)."""
         M = self.config.num_segments
         if waypoints.ndim != 3 or waypoints.shape[1] != M + 1 or waypoints.shape[2] != 3:
             raise TrajoptError(
@@ -360,10 +408,14 @@ class TimeAllocationNet(nn.Module):
         seg = waypoints[:, 1:] - waypoints[:, :-1]
         lengths = seg.norm(dim=-1)
         L = lengths.sum(-1, keepdim=True).clamp_min(1e-6)
-        feats = torch.cat(
-            [(seg / L.unsqueeze(-1)).flatten(1), lengths / L, torch.log(L)], dim=-1
-        )
-        return torch.softmax(self.mlp(feats), dim=-1)
+        parts = [(seg / L.unsqueeze(-1)).flatten(1), lengths / L, torch.log(L)]
+        if self.config.boundary_inputs:
+            B = waypoints.shape[0]
+            st = torch.zeros(B, 3, 3, dtype=waypoints.dtype, device=waypoints.device) if start is None else start
+            es = torch.zeros(B, dtype=waypoints.dtype, device=waypoints.device) if end_speed is None else end_speed
+            parts += [st[:, 0].to(waypoints.dtype) / self.config.v_max, st[:, 1].to(waypoints.dtype) / self.config.a_max,
+                      es.to(waypoints.dtype).reshape(B, 1) / self.config.v_max]
+        return torch.softmax(self.mlp(torch.cat(parts, dim=-1)), dim=-1)
 
     def forward(self, waypoints: torch.Tensor, total_time: torch.Tensor | None = None) -> torch.Tensor:
         """Durations (B, M) for waypoints (B, M+1, 3); ``total_time`` (B,) seconds, default the
