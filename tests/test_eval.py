@@ -182,6 +182,57 @@ def test_a_replanned_reference_is_C3_across_the_switch(latency: float):
     assert np.abs(ep.samples[-1, 1:] - last.derivative(np.array([t_end]), 0)[0]).max() < 1e-6
 
 
+class Doubtful(Jittery):
+    """Every plan has η = 0.9; ``override`` says whether the method asks to fly it anyway."""
+
+    def __init__(self, override: bool) -> None:
+        super().__init__()
+        self.override = override
+
+    def plan(self, obs: Observation) -> MethodPlan:
+        mp = super().plan(obs)
+        assert obs.reference is not None  # the loop shows the method what it flies now
+        return MethodPlan(pieces=mp.pieces, latency_ms=0.0, eta=0.9, overrides_eta=self.override)
+
+
+def test_a_method_may_fly_a_doubtful_plan_when_its_own_check_finds_the_old_one_no_safer():
+    loop = LoopConfig(timeout_min=2.0, timeout_factor=0.1)
+    goal = START + np.array([12.0, 0.0, 0.0])
+    vetoed = run_episode(empty_world(), START, goal, Doubtful(override=False), loop)
+    assert vetoed.rejected_plans == vetoed.plans and vetoed.path_length == 0.0
+    flown = run_episode(empty_world(), START, goal, Doubtful(override=True), loop)
+    assert flown.rejected_plans == 0 and flown.path_length > 0.5
+
+
+def test_the_depth_check_prefers_the_path_away_from_a_seen_wall():
+    from mapkit.evaluation._methods import _Checker, _reference_no_safer
+    from mapkit.planner import CameraInput, preprocess_depth
+
+    w, h = 160, 96
+    K = np.array([[80.0, 0.0, w / 2 - 0.5], [0.0, 80.0, h / 2 - 0.5], [0.0, 0.0, 1.0]])
+    T_body_camera = np.eye(4)
+    T_body_camera[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]  # optical → FLU
+    depth = np.full((h, w), 9.0, dtype=np.float32)
+    depth[:, : w // 2] = 2.0  # a wall 2 m ahead on the left (+y), open space on the right
+    x = preprocess_depth(torch.from_numpy(depth)[None], input_size=(h, w), max_depth=10.0)
+    check = _Checker(x, CameraInput.from_calibration(K, w, h, T_body_camera), 10.0, None)
+
+    def line(y: float):
+        wp = torch.tensor([[[0.0, 0.0, 0.0], [4.0, y, 0.0]]], dtype=torch.float64)
+        return min_snap(wp, torch.tensor([[3.0]], dtype=torch.float64))
+
+    left, right = line(1.0), line(-1.0)
+    assert check(left) > 0 and check(right) == 0
+
+    def obs(flying) -> Observation:
+        pieces = pieces_from_body(flying.coeffs[0].numpy(), np.array([3.0]), np.eye(4), 0.0)
+        return Observation(t=0.0, T_world_body=np.eye(4), state_world=np.zeros((4, 3)), goal_world=np.zeros(3),
+                           local_goal_body=np.zeros(3), depth=None, reference=pieces)
+
+    assert _reference_no_safer(obs(left), right, check)  # flying into the wall: take the doubtful plan
+    assert not _reference_no_safer(obs(right), left, check)  # flying clear: keep it
+
+
 def test_splice_keeps_the_old_reference_until_the_new_one_starts():
     rng = np.random.default_rng(1)
     old = Pieces(t0=0.0, durations=np.array([0.4, 0.7]), coeffs=rng.normal(size=(2, 3, 8)))

@@ -53,7 +53,8 @@ class LoopConfig:
     """ω, rad/s: all four poles of the tracking error at −ω."""
     respect_eta: bool = True
     """Do not execute plans with collision probability η >= 0.5 (keep flying the previous one;
-    when hovering, turn 60° to look elsewhere)."""
+    when hovering, turn 60° to look elsewhere), unless the method overrides the veto
+    (:attr:`MethodPlan.overrides_eta`: its own check found the previous reference no safer)."""
     on_reject: Literal["continue", "brake"] = "continue"
     """What the vehicle does with a rejected plan (η >= 0.5) while it still flies: "continue" keeps
     flying the previous plan; "brake" replaces it with one minimum-snap segment to rest straight
@@ -92,6 +93,8 @@ class Observation:
     goal_clipped: bool = False
     """True when the real goal lies beyond the horizon: the plan should not stop at the local goal
     but pass it at cruise speed (a receding-horizon plan that ends at rest brakes every interval)."""
+    reference: Pieces | None = None
+    """The reference being flown (what a rejected plan leaves the vehicle on)."""
 
     def start_body(self) -> np.ndarray:
         """(4, 3) the start state in the body frame of the depth frame (position a few centimetres
@@ -116,6 +119,9 @@ class MethodPlan:
     """(K, 3) the key-points the trajectory passes, world frame (for plots)."""
     allocation_ms: float | None = None
     """Wall-clock time of the time allocation alone (TAN vs gradient descent)."""
+    overrides_eta: bool = False
+    """The method asks to fly this plan although η >= 0.5: its own check found the reference being
+    flown no safer (a rejected plan leaves the vehicle on it)."""
 
 
 class Method(Protocol):
@@ -300,7 +306,7 @@ def _replan(f: _Flight, world: World, goal: np.ndarray, method: Method, config: 
     depth = render(T_wb) if method.needs_depth else None
     t_take = f.t + lag
     obs = Observation(t=t_take, T_world_body=T_wb, state_world=f.ref.state(t_take), goal_world=goal,
-                      local_goal_body=local, depth=depth, goal_clipped=n > config.horizon)
+                      local_goal_body=local, depth=depth, goal_clipped=n > config.horizon, reference=f.ref)
     if method.replans and float(np.linalg.norm(to_goal)) < config.final_approach:
         mp = _final_approach(obs, config)
     else:
@@ -309,7 +315,7 @@ def _replan(f: _Flight, world: World, goal: np.ndarray, method: Method, config: 
     f.latencies.append(mp.latency_ms)
     if mp.allocation_ms is not None:
         f.allocations.append(mp.allocation_ms)
-    if config.respect_eta and mp.eta is not None and mp.eta >= 0.5:
+    if config.respect_eta and mp.eta is not None and mp.eta >= 0.5 and not mp.overrides_eta:
         f.rejected += 1
         if f.t >= f.ref.t_end - 1e-9:
             f.look += math.radians(config.look_turn_deg)

@@ -5,7 +5,9 @@
   ``min_segment_time`` and the Time Allocation Net's split of the rest; corridor-bounded minimum
   snap with speed and acceleration limits (:class:`Execution`) from the reference's state at the
   takeover (to rest at the goal; through the local goal at cruise speed while the goal lies
-  beyond the horizon).
+  beyond the horizon). A plan with η ≥ 0.5 is flown anyway when the reference being flown has at
+  least as many points near seen surfaces in the current depth image (the veto would keep the
+  vehicle on a path the camera shows no safer).
 - ``learned+uniform`` / ``learned+poly5`` / ``learned+gradient``: the same key-points, total time and
   execution, other splits (Table III of the paper; ``gradient`` is the TAN's supervision,
   Mellinger & Kumar descent under the same boundary conditions).
@@ -104,10 +106,14 @@ class _Checker:
         self.pyramid = nearest_depth_pyramid(x) if pyramid is None else pyramid
 
     def __call__(self, traj) -> int:
+        return self.points(_samples(traj))
+
+    def points(self, pts: torch.Tensor) -> int:
+        """Conflicts of points (1, 1, P, 3) in the body frame of the depth image."""
         from mapkit.planner import seen_conflicts
 
-        pts = _samples(traj).to(self.x.dtype)
-        return int(seen_conflicts(pts, self.x, self.camera, max_depth=self.max_depth, pyramid=self.pyramid)[0, 0])
+        return int(seen_conflicts(pts.to(self.x.dtype), self.x, self.camera, max_depth=self.max_depth,
+                                  pyramid=self.pyramid)[0, 0])
 
 
 def _execute(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, how: Execution,
@@ -125,6 +131,17 @@ def _execute(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
         if check(traj) <= allowed:
             return traj
     return _limited(wp, T, start, end, how, None)
+
+
+def _reference_no_safer(obs: Observation, plan, check: "_Checker") -> bool:
+    """True when the reference being flown, over as long as the new plan from the takeover, has at
+    least as many points closer to seen surfaces than the robot's size as the plan itself."""
+    total = float(plan.durations.sum())
+    t = obs.t + np.linspace(total / 24, total, 24)
+    world = obs.reference.derivative(t, 0)
+    R, p = obs.T_world_body[:3, :3], obs.T_world_body[:3, 3]
+    body = torch.from_numpy((world - p) @ R).reshape(1, 1, 24, 3)
+    return check.points(body) >= check(plan)
 
 
 class LearnedMethod:
@@ -157,6 +174,7 @@ class LearnedMethod:
         t0 = time.perf_counter()
         start = obs.start_body()
         kp, eta, x, pyramid = self._keypoints(obs, start)
+        overrides = False
         wp = np.concatenate([start[:1], kp])
         wpt, st, es = _tensors(wp, start, self.config.cruise_speed if obs.goal_clipped else 0.0)
         t_alloc = time.perf_counter()
@@ -173,11 +191,13 @@ class LearnedMethod:
             with torch.inference_mode():
                 traj = _execute(wpt, timing.durations, st, timing.end, self.execution, check)
             coeffs, durations = traj.coeffs[0].numpy(), timing.durations[0].numpy()
+            if eta >= 0.5 and check is not None and obs.reference is not None:
+                overrides = _reference_no_safer(obs, traj, check)
         latency = 1e3 * (time.perf_counter() - t0)
         pieces = pieces_from_body(coeffs, durations, obs.T_world_body, obs.t)
         kp_world = kp @ obs.T_world_body[:3, :3].T + obs.T_world_body[:3, 3]
         return MethodPlan(pieces=pieces, latency_ms=latency, eta=eta, keypoints_world=kp_world,
-                          allocation_ms=None if self.spline else allocation_ms)
+                          allocation_ms=None if self.spline else allocation_ms, overrides_eta=overrides)
 
 
 def _clamped_spline(wp: np.ndarray, v0: np.ndarray, v1: np.ndarray, total: float) -> tuple[np.ndarray, np.ndarray]:
