@@ -343,6 +343,8 @@ def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
     (["--v-max", "-1"], "--v-max must be a positive number"),
     (["--plan-latency", "0.7"], "--plan-latency must be in"),
     (["--final-approach", "inf"], "--final-approach must be >= 0"),
+    (["--horizon", "-3"], "--horizon must be > 0"),
+    (["--min-distance", "nan"], "--min-distance must be > 0"),
 ])
 def test_cli_bad_settings(tiny_run: Path, tmp_path: Path, args: list[str], message: str):
     r = CliRunner().invoke(main, ["eval", "--model", str(tiny_run), "-o", str(tmp_path / "ev"), *args])

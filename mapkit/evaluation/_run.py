@@ -68,9 +68,11 @@ class EvalConfig:
             raise EvalError(f"--pairs must be >= 1, got {self.pairs}")
         if self.workers < 1:
             raise EvalError(f"--workers must be >= 1, got {self.workers}")
-        if not self.min_distance > 0:
+        if not (math.isfinite(self.min_distance) and self.min_distance > 0):
             raise EvalError(f"--min-distance must be > 0 metres, got {self.min_distance}")
         ex, loop = self.execution, self.loop
+        if not (math.isfinite(loop.horizon) and loop.horizon > 0):
+            raise EvalError(f"--horizon must be > 0 metres (the local goal's distance), got {loop.horizon}")
         frames = loop.replan_interval * loop.depth_rate
         if not (math.isfinite(frames) and frames >= 1 - 1e-9 and abs(frames - round(frames)) < 1e-6):
             raise EvalError(f"--replan-interval {loop.replan_interval} s is not a whole number of depth frames at "
