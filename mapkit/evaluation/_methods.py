@@ -66,6 +66,7 @@ class Execution:
 
 
 def _tensors(wp: np.ndarray, start: np.ndarray, end_speed: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Batch-of-one tensors: waypoints (1, K+1, 3), start derivatives (1, 3, 3), end speed (1,)."""
     return (torch.from_numpy(wp)[None], torch.from_numpy(np.ascontiguousarray(start[1:]))[None],
             torch.tensor([end_speed], dtype=torch.float64))
 
@@ -74,7 +75,8 @@ def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
              corridor: float | None):
     """Minimum snap in ``corridor`` (None: through the key-points) within the limits of ``how``. The
     limits rarely bind, so they join the QP only when the trajectory without them breaks one (on a
-    dense grid); a QP without a solution falls back to the corridor alone, then to the key-points."""
+    dense grid). An infeasible QP never leaves the plan without a reference: with the limits it falls
+    back to the corridor alone, with the corridor to the trajectory through the key-points."""
     with torch.no_grad():
         kw = {} if corridor is None else {"corridor": corridor}
         traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", **kw)
