@@ -126,9 +126,15 @@ def _execute(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
         return _limited(wp, T, start, end, how, None)
     if check is None or not how.check_corridor:
         return _limited(wp, T, start, end, how, how.corridor)
+    widest = _limited(wp, T, start, end, how, how.corridor)
+    conflicts = check(widest)
+    if conflicts == 0:  # the usual case, decided without the reference trajectory
+        return widest
     with torch.no_grad():
         allowed = check(min_snap(wp, T, start=start, end=end))
-    for scale in (1.0, 0.5, 0.25, 0.1):
+    if conflicts <= allowed:
+        return widest
+    for scale in (0.5, 0.25, 0.1):
         traj = _limited(wp, T, start, end, how, how.corridor * scale)
         if check(traj) <= allowed:
             return traj
