@@ -34,6 +34,9 @@ from mapkit.cli.main import library_call, main
                    "seen surfaces in the depth image than the one through the key-points.")
 @click.option("--v-max", type=float, default=3.0, show_default=True, help="Per-axis speed limit of learned plans, m/s; 0 = none.")
 @click.option("--a-max", type=float, default=4.0, show_default=True, help="Per-axis acceleration limit of learned plans, m/s²; 0 = none.")
+@click.option("--memory", type=float, default=8.0, show_default=True,
+              help="Seconds of depth images the learned planner remembers: paths that come near a remembered surface "
+                   "are replaced by a clear candidate, or a detour toward open space, or braking; 0 = off.")
 @click.option("--plan-latency", type=float, default=0.02, show_default=True,
               help="Seconds from the depth frame to the plan taking over (the vehicle flies on meanwhile).")
 @click.option("--final-approach", type=float, default=0.0, show_default=True,
@@ -42,7 +45,7 @@ from mapkit.cli.main import library_call, main
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: str, corridor: float,
-             corridor_check: bool, v_max: float, a_max: float, plan_latency: float, final_approach: float, overwrite: bool) -> None:
+             corridor_check: bool, v_max: float, a_max: float, memory: float, plan_latency: float, final_approach: float, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, Execution, LoopConfig, evaluate
 
@@ -51,7 +54,7 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
     config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
                         workers=workers,
                         execution=Execution(corridor=corridor or None, check_corridor=corridor_check, v_max=v_max or None,
-                                            a_max=a_max or None),
+                                            a_max=a_max or None, memory=memory or None),
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
                                         on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach))
     result = evaluate(run_dir, output, config, overwrite=overwrite)

@@ -341,6 +341,7 @@ def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
     (["--replan-interval", "0.01"], "whole number of depth frames"),
     (["--corridor", "nan"], "--corridor must be a positive number"),
     (["--v-max", "-1"], "--v-max must be a positive number"),
+    (["--memory", "nan"], "--memory must be a positive number"),
     (["--plan-latency", "0.7"], "--plan-latency must be in"),
     (["--final-approach", "inf"], "--final-approach must be >= 0"),
     (["--horizon", "-3"], "--horizon must be > 0"),
@@ -442,3 +443,83 @@ def test_brake_on_reject_stops_instead_of_flying_on(tmp_path: Path):
     assert flown.outcome == "collision"
     assert braked.outcome == "timeout" and braked.rejected_plans > 0
     assert float(np.max(braked.samples[:, 1])) < 6.0 - 0.1 - 0.3
+
+
+def test_a_blocked_plan_brakes_whatever_eta_says():
+    """A method that finds no way ahead after its first plan: the vehicle comes to rest short of the
+    wall the first plan runs into, although η never vetoes and the loop would fly on."""
+    from mapkit.sim import HalfSpace
+
+    world = World([HalfSpace((0.0, 0.0, 1.0), 0.0), Box((6.0, 0.0, 1.5), (0.1, 5.0, 1.5))],
+                  np.array([[-2.0, -5.0, 0.0], [12.0, 5.0, 3.0]]))
+
+    class Walled:
+        name, needs_depth, replans = "walled", False, True
+
+        def __init__(self) -> None:
+            self.calls = 0
+
+        def plan(self, obs: Observation) -> MethodPlan:
+            self.calls += 1
+            wp = torch.tensor([[[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]]], dtype=torch.float64)
+            with torch.no_grad():
+                traj = min_snap(wp, torch.tensor([[5.0]], dtype=torch.float64),
+                                start=torch.from_numpy(obs.state_world[1:4] @ obs.T_world_body[:3, :3])[None])
+            pieces = pieces_from_body(traj.coeffs[0].numpy(), np.array([5.0]), obs.T_world_body, obs.t)
+            return MethodPlan(pieces=pieces, latency_ms=0.0, eta=0.0, blocked=self.calls > 1)
+
+    start, goal = np.array([0.0, 0.0, 1.5]), np.array([10.0, 0.0, 1.5])
+    stopped = run_episode(world, start, goal, Walled(), LoopConfig(timeout_min=8.0))
+    assert stopped.outcome == "timeout" and stopped.rejected_plans == stopped.plans - 1
+    assert float(np.max(stopped.samples[:, 1])) < 6.0 - 0.1 - 0.3
+
+
+def _forward_camera(w: int = 160, h: int = 96):
+    from mapkit.planner import CameraInput
+
+    K = np.array([[80.0, 0.0, w / 2 - 0.5], [0.0, 80.0, h / 2 - 0.5], [0.0, 0.0, 1.0]])
+    T_body_camera = np.eye(4)
+    T_body_camera[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]  # optical → FLU
+    return CameraInput.from_calibration(K, w, h, T_body_camera)
+
+
+def test_memory_keeps_a_wall_after_it_leaves_the_view_and_forgets_it_later():
+    from mapkit.evaluation._methods import ROBOT_CLEARANCE, _Memory
+
+    w, h = 160, 96
+    depth = np.zeros((h, w), dtype=np.float32)  # no return
+    depth[:, : w // 2] = 2.0  # a wall 2 m ahead on the left (+y)
+    T0 = np.eye(4)
+    memory = _Memory(_forward_camera(w, h), seconds=4.0)
+
+    def observe(t: float, T: np.ndarray, image: np.ndarray) -> None:
+        memory.add(Observation(t=t, T_world_body=T, state_world=np.zeros((4, 3)), goal_world=np.array([9.0, 0.0, 0.0]),
+                               local_goal_body=np.zeros(3), depth=image))
+
+    observe(0.0, T0, depth)
+    seen = memory.frames[0][1].data
+    assert np.allclose(seen[:, 0], 2.0) and (seen[:, 1] > 0).all()  # on the plane x = 2, left half
+    turned = np.eye(4)  # 90° to the right, nothing in view
+    turned[:3, :3] = [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    observe(1.0, turned, np.zeros((h, w), dtype=np.float32))
+    # body frame of the turned vehicle: +y (its left) is world +x; the wall is 2 m to its left
+    near = torch.tensor([[[0.0, 2.0 - 0.5 * ROBOT_CLEARANCE, 0.0]], [[0.0, 2.0 - 2.0 * ROBOT_CLEARANCE, 0.0]]])
+    assert memory.conflicts(near, turned).tolist() == [1, 0]
+    observe(6.0, turned, np.zeros((h, w), dtype=np.float32))  # 6 s later: forgotten
+    assert memory.conflicts(near, turned).tolist() == [0, 0]
+
+
+def test_open_direction_points_through_the_doorway_and_none_when_walled_in():
+    from mapkit.evaluation._methods import open_direction
+
+    w, h = 160, 96
+    camera = _forward_camera(w, h)
+    depth = np.full((h, w), 2.0, dtype=np.float32)
+    depth[:, 120:140] = 9.0  # an opening right of centre
+    body = open_direction(depth, camera, np.array([6.0, 0.0, 0.0]), max_depth=10.0)
+    assert body is not None and body[1] < 0 and body[2] == 0.0
+    bearing = np.degrees(np.arctan2(-body[1], body[0]))
+    column = np.degrees(np.arctan((np.array([120.0, 140.0]) - (w / 2 - 0.5)) / 80.0))
+    assert column[0] - 0.5 <= bearing <= column[1] + 0.5
+    assert abs(np.linalg.norm(body) - 5.0) < 1e-9  # capped reach
+    assert open_direction(np.full((h, w), 2.0, dtype=np.float32), camera, np.array([6.0, 0.0, 0.0]), max_depth=10.0) is None

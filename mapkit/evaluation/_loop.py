@@ -122,6 +122,9 @@ class MethodPlan:
     overrides_eta: bool = False
     """The method asks to fly this plan although η >= 0.5: its own check found the reference being
     flown no safer (a rejected plan leaves the vehicle on it)."""
+    blocked: bool = False
+    """The method found no way ahead it can fly (every path it could take runs into what the camera
+    sees): the loop brakes to rest and then turns to look elsewhere, whatever η says."""
 
 
 class Method(Protocol):
@@ -315,11 +318,12 @@ def _replan(f: _Flight, world: World, goal: np.ndarray, method: Method, config: 
     f.latencies.append(mp.latency_ms)
     if mp.allocation_ms is not None:
         f.allocations.append(mp.allocation_ms)
-    if config.respect_eta and mp.eta is not None and mp.eta >= 0.5 and not mp.overrides_eta:
+    vetoed = config.respect_eta and mp.eta is not None and mp.eta >= 0.5 and not mp.overrides_eta
+    if vetoed or mp.blocked:
         f.rejected += 1
         if f.t >= f.ref.t_end - 1e-9:
             f.look += math.radians(config.look_turn_deg)
-        elif config.on_reject == "brake" and not f.braking:
+        elif (mp.blocked or config.on_reject == "brake") and not f.braking:
             f.braking = True
             f.take(_brake(obs).pieces)
         return

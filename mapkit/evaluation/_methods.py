@@ -7,7 +7,9 @@
   takeover (to rest at the goal; through the local goal at cruise speed while the goal lies
   beyond the horizon). A plan with η ≥ 0.5 is flown anyway when the reference being flown has at
   least as many points near seen surfaces in the current depth image (the veto would keep the
-  vehicle on a path the camera shows no safer).
+  vehicle on a path the camera shows no safer). The depth images of the last seconds are remembered
+  as world points: a plan that comes near one of them soon is replaced by the best-scored candidate
+  that keeps clear, or by a plan toward the most open direction in view, or the vehicle brakes.
 - ``learned+uniform`` / ``learned+poly5`` / ``learned+gradient``: the same key-points, total time and
   execution, other splits (Table III of the paper; ``gradient`` is the TAN's supervision,
   Mellinger & Kumar descent under the same boundary conditions).
@@ -23,26 +25,31 @@
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from scipy.interpolate import CubicSpline
+from scipy.spatial import cKDTree
 
 from mapkit.evaluation._loop import MethodPlan, Observation
 from mapkit.evaluation._pieces import Pieces, pieces_from_body
-from mapkit.planner import Allocation, CameraInput, PlannerConfig, plan_timing
-from mapkit.planner._model import PlannerNet
+from mapkit.planner import Allocation, CameraInput, PlannerConfig, Timing, plan_timing
+from mapkit.planner._model import PlannerNet, PlannerOutput
 from mapkit.sim import World
 from mapkit.sim.search import FreeSpaceGraph
-from mapkit.trajopt import allocate_times, min_snap
+from mapkit.trajopt import Trajectory, allocate_times, min_snap
 
 LEARNED_ALLOCATIONS: dict[str, Allocation] = {"learned": "tan", "learned+uniform": "uniform",
                                               "learned+poly5": "poly5", "learned+gradient": "gradient"}
 METHODS = ("learned", "learned+uniform", "learned+poly5", "learned+gradient", "iplanner-style", "straight", "oracle")
 """Every method name, in report order."""
 NEEDS_MODEL = frozenset({*LEARNED_ALLOCATIONS, "iplanner-style"})
+ROBOT_CLEARANCE = 0.35
+"""Metres a plan's first ``Execution.blocked_within`` seconds must keep from every remembered surface
+(the robot's radius, 0.3 m, and a margin for tracking error)."""
 
 
 @dataclass(frozen=True)
@@ -63,6 +70,18 @@ class Execution:
     """Per-axis speed limit, m/s (None: none)."""
     a_max: float | None = 4.0
     """Per-axis acceleration limit, m/s² (None: none)."""
+    memory: float | None = 8.0
+    """Seconds of depth images remembered (as world-frame points) during a flight. A plan whose first
+    ``blocked_within`` seconds come closer than the robot's size to a remembered surface is replaced
+    by the best-scored candidate that keeps clear; when none does, the vehicle brakes to rest and
+    turns to look elsewhere (:attr:`MethodPlan.blocked`). None: fly the network's choice."""
+    subgoal_time: float = 3.0
+    """Seconds a blocked plan's way out is kept: with ``memory``, when nothing leads on toward the goal,
+    the network plans toward the most open direction of the depth image (:func:`open_direction`)
+    instead, until it gets within a metre of that point or this time passes."""
+    blocked_within: float = 1.5
+    """Seconds of each candidate that must be clear for the way ahead to count as open: about the
+    time to brake from cruise speed plus one replanning interval."""
 
 
 def _tensors(wp: np.ndarray, start: np.ndarray, end_speed: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -91,11 +110,14 @@ def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
         return limited if bool(limited.solved.all()) else traj
 
 
-def _samples(traj, count: int = 24) -> torch.Tensor:
-    """(1, 1, count, 3) positions evenly spread in time over the trajectory (its start excluded)."""
-    total = float(traj.durations.sum())
-    t = torch.linspace(total / count, total, count, dtype=torch.float64)
-    return traj.position(t).reshape(1, 1, count, 3)
+def _samples(traj, count: int = 24, within: float | None = None) -> torch.Tensor:
+    """(1, B, count, 3) positions of each of the B trajectories, evenly spread in time over the
+    whole trajectory or its first ``within`` seconds (the start excluded)."""
+    total = traj.durations.sum(-1).reshape(-1, 1)
+    if within is not None:
+        total = total.clamp(max=within)
+    t = total * torch.linspace(1.0 / count, 1.0, count, dtype=torch.float64)
+    return traj.position(t).reshape(1, -1, count, 3)
 
 
 class _Checker:
@@ -112,14 +134,18 @@ class _Checker:
 
     def points(self, pts: torch.Tensor) -> int:
         """Conflicts of points (1, 1, P, 3) in the body frame of the depth image."""
+        return int(self.paths(pts)[0])
+
+    def paths(self, pts: torch.Tensor) -> torch.Tensor:
+        """(M,) conflicts of each of M paths of points (1, M, P, 3) in the body frame."""
         from mapkit.planner import seen_conflicts
 
-        return int(seen_conflicts(pts.to(self.x.dtype), self.x, self.camera, max_depth=self.max_depth,
-                                  pyramid=self.pyramid)[0, 0])
+        return seen_conflicts(pts.to(self.x.dtype), self.x, self.camera, max_depth=self.max_depth,
+                              pyramid=self.pyramid)[0]
 
 
 def _execute(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, how: Execution,
-             check: "_Checker | None" = None):
+             check: "_Checker | None" = None) -> Trajectory:
     """The reference a plan flies: the widest corridor of ``how`` that ``check`` does not find
     closer to what the camera sees than the trajectory through the key-points."""
     if how.corridor is None:
@@ -141,6 +167,78 @@ def _execute(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
     return _limited(wp, T, start, end, how, None)
 
 
+def open_direction(depth: np.ndarray, camera: CameraInput, goal_body: np.ndarray, max_depth: float,
+                   min_free: float = 2.5) -> np.ndarray | None:
+    """A point (3,) in the body frame toward the image column with the most free depth in the
+    middle fifth of the rows (a doorway, the open end of a corridor), up to 5 m and 1 m short of what
+    is seen there; columns toward ``goal_body`` win ties (one metre of free depth per radian off the
+    goal's bearing). None when no column is free for ``min_free`` metres. Columns without a return
+    count as free to ``max_depth``."""
+    depth = np.asarray(depth, dtype=np.float64)
+    H, W = depth.shape
+    band = depth[int(0.4 * H):int(0.6 * H) + 1]
+    free = np.where(np.isfinite(band) & (band > 0), band, max_depth).min(axis=0)
+    fx, _, cx, _ = (float(v) for v in camera.intrinsics[0])
+    bearing = -np.arctan(((np.arange(W) + 0.5) / W - cx) / fx)  # image x grows to the body's right (−y)
+    goal_bearing = math.atan2(float(goal_body[1]), float(goal_body[0]))
+    score = np.where(free >= min_free, np.minimum(free, 6.0) - np.abs(bearing - goal_bearing), -np.inf)
+    j = int(np.argmax(score))
+    if not np.isfinite(score[j]):
+        return None
+    reach = min(free[j] - 1.0, 5.0)
+    return np.array([reach * math.cos(bearing[j]), reach * math.sin(bearing[j]), 0.0])
+
+
+def _pick(timing: Timing, m: int) -> Timing:
+    """Row ``m`` of a batched timing, as a batch of one."""
+    return Timing(*(None if v is None else v[m:m + 1] for v in (timing.durations, timing.shares, timing.total, timing.end)))
+
+
+class _Memory:
+    """Surfaces the camera saw during the last ``seconds`` of one flight, in the world frame: a path
+    bending toward the goal leaves the image's field of view (a wall beside the vehicle) long before
+    it reaches what was seen there. One k-d tree per depth image (every second pixel), built once
+    when the image arrives: about a millisecond each, against tens for re-merging the frames."""
+
+    stride = 2
+
+    def __init__(self, camera: CameraInput, seconds: float) -> None:
+        self.seconds = seconds
+        self.ray = tuple(float(v) for v in camera.intrinsics[0])
+        self.T_body_camera = np.linalg.inv(camera.T_camera_body[0].double().numpy())
+        self.frames: list[tuple[float, cKDTree]] = []
+        self.goal: np.ndarray | None = None
+
+    def add(self, obs: Observation) -> None:
+        """Remember the observation's depth image (a new goal starts a new flight)."""
+        if self.goal is None or not np.array_equal(self.goal, obs.goal_world):
+            self.goal, self.frames = np.array(obs.goal_world, dtype=np.float64), []
+        full = np.asarray(obs.depth, dtype=np.float64)
+        H, W = full.shape
+        depth = full[::self.stride, ::self.stride]
+        fx, fy, cx, cy = self.ray
+        v, u = np.nonzero(np.isfinite(depth) & (depth > 0))
+        z = depth[v, u]
+        x = ((u * self.stride + 0.5) / W - cx) / fx * z
+        y = ((v * self.stride + 0.5) / H - cy) / fy * z
+        T = obs.T_world_body @ self.T_body_camera
+        world = np.stack([x, y, z], axis=1) @ T[:3, :3].T + T[:3, 3]
+        self.frames = [(t, tree) for t, tree in self.frames if obs.t - t <= self.seconds]
+        if len(world):
+            self.frames.append((obs.t, cKDTree(world, balanced_tree=False, compact_nodes=False)))
+
+    def conflicts(self, paths_body: torch.Tensor, T_world_body: np.ndarray) -> np.ndarray:
+        """(M,) points of each path (M, P, 3) in the body frame of ``T_world_body`` closer than
+        :data:`ROBOT_CLEARANCE` to a remembered surface."""
+        pts = paths_body.double().numpy() @ T_world_body[:3, :3].T + T_world_body[:3, 3]
+        flat = pts.reshape(-1, 3)
+        near = np.zeros(len(flat), dtype=bool)
+        for _, tree in self.frames:
+            d, _ = tree.query(flat, distance_upper_bound=ROBOT_CLEARANCE)
+            near |= np.isfinite(d)
+        return near.reshape(pts.shape[:2]).sum(axis=1)
+
+
 def _reference_no_safer(obs: Observation, plan, check: "_Checker") -> bool:
     """True when the reference being flown, over as long as the new plan from the takeover, has at
     least as many points closer to seen surfaces than the robot's size as the plan itself."""
@@ -150,6 +248,21 @@ def _reference_no_safer(obs: Observation, plan, check: "_Checker") -> bool:
     R, p = obs.T_world_body[:3, :3], obs.T_world_body[:3, 3]
     body = torch.from_numpy((world - p) @ R).reshape(1, 1, 24, 3)
     return check.points(body) >= check(plan)
+
+
+@dataclass
+class _Attempt:
+    """One network pass toward a goal, timed and (unless a spline) executed."""
+
+    kp: np.ndarray
+    eta: float
+    timing: Timing
+    allocation_ms: float
+    traj: Trajectory | None = None
+    check: _Checker | None = None
+    blocked: bool = False
+    out: PlannerOutput | None = None
+    end_speed: float = 0.0
 
 
 class LearnedMethod:
@@ -168,44 +281,103 @@ class LearnedMethod:
         self.spline = spline
         self.config = net.config
         self.execution = execution
+        self._subgoal: tuple[np.ndarray, np.ndarray, float] | None = None  # (goal, world point, until)
+        self._memory = (None if execution.memory is None or camera is None or spline
+                        else _Memory(camera, execution.memory))
 
-    def _keypoints(self, obs: Observation, start: np.ndarray) -> tuple[np.ndarray, float, torch.Tensor, torch.Tensor | None]:
+    def _keypoints(self, obs: Observation, start: np.ndarray, goal: np.ndarray):
         with torch.inference_mode():
             d = torch.from_numpy(np.asarray(obs.depth, dtype=np.float32)[None])
             x = self.net.preprocess(d)
-            g = torch.from_numpy(np.asarray(obs.local_goal_body, dtype=np.float32)[None])
+            g = torch.from_numpy(np.asarray(goal, dtype=np.float32)[None])
             v = torch.from_numpy(np.asarray(start[1], dtype=np.float32)[None])
-            out = self.net(x, g, camera=self.camera, velocity=v)
-        return out.keypoints[0].double().numpy(), float(out.eta[0]), x, out.pyramid
+            return x, self.net(x, g, camera=self.camera, velocity=v)
+
+    def _attempt(self, obs: Observation, start: np.ndarray, goal: np.ndarray, end_speed: float) -> _Attempt:
+        """Key-points to ``goal`` (body frame), timed and executed; judged blocked when asked."""
+        x, out = self._keypoints(obs, start, goal)
+        kp = out.keypoints[0].double().numpy()
+        wp = np.concatenate([start[:1], kp])
+        wpt, st, es = _tensors(wp, start, end_speed)
+        t_alloc = time.perf_counter()
+        with torch.inference_mode():
+            timing = plan_timing(wpt, st, es, self.config, allocation=self.allocation, tan=self.net.tan)
+        attempt = _Attempt(kp, float(out.eta[0]), timing, 1e3 * (time.perf_counter() - t_alloc))
+        if self.spline:
+            return attempt
+        if self.camera is not None and self.execution.check_corridor:
+            attempt.check = _Checker(x, self.camera, self.config.max_depth, out.pyramid)
+        with torch.inference_mode():
+            attempt.traj = _execute(wpt, timing.durations, st, timing.end, self.execution, attempt.check)
+        attempt.out, attempt.end_speed = out, end_speed
+        return attempt
+
+    def _remembered(self, obs: Observation, start: np.ndarray, attempt: _Attempt, add: bool = True) -> _Attempt:
+        """The plan checked against every surface seen in the last ``memory`` seconds: the network's
+        choice when its first ``blocked_within`` seconds keep clear of them, else the best-scored
+        candidate that does, else ``blocked``."""
+        memory, how = self._memory, self.execution
+        if add:
+            memory.add(obs)
+        T = obs.T_world_body
+        if attempt.traj is None or memory.conflicts(_samples(attempt.traj, within=how.blocked_within)[0], T)[0] == 0:
+            return attempt
+        out = attempt.out
+        M = out.candidates.shape[1]
+        wp = torch.cat([torch.from_numpy(start[:1]).expand(M, 1, 3), out.candidates[0].double()], dim=1)
+        st = torch.from_numpy(np.ascontiguousarray(start[1:]))[None].expand(M, 3, 3)
+        es = torch.full((M,), attempt.end_speed, dtype=torch.float64)
+        with torch.inference_mode():
+            timing = plan_timing(wp, st, es, self.config, allocation=self.allocation, tan=self.net.tan)
+            paths = min_snap(wp, timing.durations, start=st, end=timing.end)
+        clear = memory.conflicts(_samples(paths, within=how.blocked_within)[0], T) == 0
+        if not clear.any():
+            attempt.blocked = True
+            return attempt
+        scores = out.scores[0].numpy() if out.scores is not None else np.zeros(M)
+        m = int(np.argmax(np.where(clear, scores, -np.inf)))
+        with torch.inference_mode():
+            traj = _execute(wp[m:m + 1], timing.durations[m:m + 1], st[:1], timing.end[m:m + 1], how, attempt.check)
+        eta = float(torch.sigmoid(out.candidate_eta_logits[0, m]))
+        return _Attempt(out.candidates[0, m].double().numpy(), eta, _pick(timing, m), attempt.allocation_ms,
+                        traj, attempt.check, False, out, attempt.end_speed)
 
     def plan(self, obs: Observation) -> MethodPlan:
         t0 = time.perf_counter()
         start = obs.start_body()
-        kp, eta, x, pyramid = self._keypoints(obs, start)
-        overrides = False
-        wp = np.concatenate([start[:1], kp])
-        wpt, st, es = _tensors(wp, start, self.config.cruise_speed if obs.goal_clipped else 0.0)
-        t_alloc = time.perf_counter()
-        with torch.inference_mode():
-            timing = plan_timing(wpt, st, es, self.config, allocation=self.allocation, tan=self.net.tan)
-        allocation_ms = 1e3 * (time.perf_counter() - t_alloc)
-        if self.spline:
-            coeffs, durations = _clamped_spline(wp, start[1], timing.end[0, 0].numpy(), float(timing.total[0]))
+        sub = self._subgoal
+        if sub is not None and (not np.array_equal(sub[0], obs.goal_world) or obs.t > sub[2]
+                                or np.linalg.norm(sub[1] - obs.T_world_body[:3, 3]) < 1.0):
+            sub = self._subgoal = None
+        if sub is None:
+            attempt = self._attempt(obs, start, np.asarray(obs.local_goal_body, dtype=np.float64),
+                                    self.config.cruise_speed if obs.goal_clipped else 0.0)
         else:
-            check = None
-            if self.camera is not None and self.execution.check_corridor:
-                with torch.inference_mode():
-                    check = _Checker(x, self.camera, self.config.max_depth, pyramid)
+            attempt = self._attempt(obs, start, obs.T_world_body[:3, :3].T @ (sub[1] - obs.T_world_body[:3, 3]), 0.0)
+        if self._memory is not None:
+            attempt = self._remembered(obs, start, attempt)
+            if attempt.blocked and sub is None and self.camera is not None:
+                body = open_direction(np.asarray(obs.depth), self.camera, obs.local_goal_body, self.config.max_depth)
+                if body is not None:
+                    point = obs.T_world_body[:3, :3] @ body + obs.T_world_body[:3, 3]
+                    self._subgoal = (np.array(obs.goal_world), point, obs.t + self.execution.subgoal_time)
+                    attempt = self._remembered(obs, start, self._attempt(obs, start, body, 0.0), add=False)
+        if self.spline:
+            timing = attempt.timing
+            coeffs, durations = _clamped_spline(np.concatenate([start[:1], attempt.kp]), start[1],
+                                                timing.end[0, 0].numpy(), float(timing.total[0]))
+        else:
+            coeffs, durations = attempt.traj.coeffs[0].numpy(), attempt.timing.durations[0].numpy()
+        overrides = False
+        if attempt.eta >= 0.5 and attempt.check is not None and obs.reference is not None:
             with torch.inference_mode():
-                traj = _execute(wpt, timing.durations, st, timing.end, self.execution, check)
-            coeffs, durations = traj.coeffs[0].numpy(), timing.durations[0].numpy()
-            if eta >= 0.5 and check is not None and obs.reference is not None:
-                overrides = _reference_no_safer(obs, traj, check)
+                overrides = _reference_no_safer(obs, attempt.traj, attempt.check)
         latency = 1e3 * (time.perf_counter() - t0)
         pieces = pieces_from_body(coeffs, durations, obs.T_world_body, obs.t)
-        kp_world = kp @ obs.T_world_body[:3, :3].T + obs.T_world_body[:3, 3]
-        return MethodPlan(pieces=pieces, latency_ms=latency, eta=eta, keypoints_world=kp_world,
-                          allocation_ms=None if self.spline else allocation_ms, overrides_eta=overrides)
+        kp_world = attempt.kp @ obs.T_world_body[:3, :3].T + obs.T_world_body[:3, 3]
+        return MethodPlan(pieces=pieces, latency_ms=latency, eta=attempt.eta, keypoints_world=kp_world,
+                          allocation_ms=None if self.spline else attempt.allocation_ms, overrides_eta=overrides,
+                          blocked=attempt.blocked)
 
 
 def _clamped_spline(wp: np.ndarray, v0: np.ndarray, v1: np.ndarray, total: float) -> tuple[np.ndarray, np.ndarray]:

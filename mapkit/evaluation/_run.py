@@ -77,9 +77,13 @@ class EvalConfig:
         if not (math.isfinite(frames) and frames >= 1 - 1e-9 and abs(frames - round(frames)) < 1e-6):
             raise EvalError(f"--replan-interval {loop.replan_interval} s is not a whole number of depth frames at "
                             f"{loop.depth_rate:g} Hz; use a multiple of {1 / loop.depth_rate:.4g} s")
-        for option, value in (("--corridor", ex.corridor), ("--v-max", ex.v_max), ("--a-max", ex.a_max)):
+        for option, value in (("--corridor", ex.corridor), ("--v-max", ex.v_max), ("--a-max", ex.a_max),
+                              ("--memory", ex.memory)):
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise EvalError(f"{option} must be a positive number (0 turns it off), got {value}")
+        for name, value in (("blocked_within", ex.blocked_within), ("subgoal_time", ex.subgoal_time)):
+            if not (math.isfinite(value) and value > 0):
+                raise EvalError(f"Execution.{name} must be a positive number of seconds, got {value}")
         if not (math.isfinite(loop.plan_latency) and 0 <= loop.plan_latency < loop.replan_interval):
             raise EvalError(f"--plan-latency must be in [0, replan interval {loop.replan_interval} s), got {loop.plan_latency}")
         if not (math.isfinite(loop.final_approach) and loop.final_approach >= 0):
