@@ -47,6 +47,8 @@ LEARNED_ALLOCATIONS: dict[str, Allocation] = {"learned": "tan", "learned+uniform
 METHODS = ("learned", "learned+uniform", "learned+poly5", "learned+gradient", "iplanner-style", "straight", "oracle")
 """Every method name, in report order."""
 NEEDS_MODEL = frozenset({*LEARNED_ALLOCATIONS, "iplanner-style"})
+ROBOT_RADIUS = 0.3
+"""Metres: the evaluation's collision radius (:attr:`LoopConfig.robot_radius`)."""
 ROBOT_CLEARANCE = 0.35
 """Metres a plan's first ``Execution.blocked_within`` seconds must keep from every remembered surface
 (the robot's radius, 0.3 m, and a margin for tracking error)."""
@@ -233,12 +235,16 @@ class _Memory:
 
     def conflicts(self, paths_body: torch.Tensor, T_world_body: np.ndarray) -> np.ndarray:
         """(M,) points of each path (M, P, 3) in the body frame of ``T_world_body`` closer than
-        :data:`ROBOT_CLEARANCE` to a remembered surface."""
+        :data:`ROBOT_CLEARANCE` to a remembered surface, or closer than the vehicle is now when it is
+        nearer than that already (after braking beside a wall every way out starts near it)."""
         pts = paths_body.double().numpy() @ T_world_body[:3, :3].T + T_world_body[:3, 3]
         flat = pts.reshape(-1, 3)
+        now = min((tree.query(T_world_body[:3, 3], distance_upper_bound=ROBOT_CLEARANCE)[0] for _, tree in self.frames),
+                  default=np.inf)
+        radius = min(ROBOT_CLEARANCE, max(now - 0.02, ROBOT_RADIUS))
         near = np.zeros(len(flat), dtype=bool)
         for _, tree in self.frames:
-            d, _ = tree.query(flat, distance_upper_bound=ROBOT_CLEARANCE)
+            d, _ = tree.query(flat, distance_upper_bound=radius)
             near |= np.isfinite(d)
         return near.reshape(pts.shape[:2]).sum(axis=1)
 
