@@ -523,3 +523,30 @@ def test_open_direction_points_through_the_doorway_and_none_when_walled_in():
     assert column[0] - 0.5 <= bearing <= column[1] + 0.5
     assert abs(np.linalg.norm(body) - 5.0) < 1e-9  # capped reach
     assert open_direction(np.full((h, w), 2.0, dtype=np.float32), camera, np.array([6.0, 0.0, 0.0]), max_depth=10.0) is None
+
+
+def test_a_learned_method_carries_nothing_from_one_flight_to_the_next():
+    """The same flight twice with one method instance (as a worker flies pair after pair): identical
+    episodes, so the depth memory and the way-out subgoal start empty every flight."""
+    from mapkit.evaluation._methods import LearnedMethod
+    from mapkit.planner import CameraInput
+    from mapkit.sim import CameraModel, render_depth
+
+    torch.manual_seed(0)
+    cfg = planner_preset("cpu", input_size=(48, 64), num_candidates=4, depth_check=True, velocity_input=True,
+                         head_activation="leaky_relu")
+    K = np.array([[48.4, 0.0, 39.5], [0.0, 48.4, 29.5], [0.0, 0.0, 1.0]])
+    T_bc = np.array([[0.0, 0.0, 1.0, 0.08], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.02], [0.0, 0.0, 0.0, 1.0]])
+    method = LearnedMethod("learned", PlannerNet(cfg), camera=CameraInput.from_calibration(K, 80, 60, T_bc))
+    world = wall_world(x=6.0)
+    camera = CameraModel(width=80, height=60, fx=48.4, fy=48.4)
+
+    def render(T_world_body: np.ndarray) -> np.ndarray:
+        return render_depth(world, T_world_body @ T_bc, camera)
+
+    loop = LoopConfig(timeout_min=6.0, timeout_factor=0.1)
+    first = run_episode(world, START, GOAL, method, loop, render=render)
+    assert method._memory is not None and method._memory.frames  # it remembered the wall
+    second = run_episode(world, START, GOAL, method, loop, render=render)
+    assert first.plans > 1 and first.outcome == second.outcome and first.plans == second.plans
+    assert np.array_equal(first.samples, second.samples)

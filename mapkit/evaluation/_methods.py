@@ -213,12 +213,13 @@ class _Memory:
         self.ray = tuple(float(v) for v in camera.intrinsics[0])
         self.T_body_camera = np.linalg.inv(camera.T_camera_body[0].double().numpy())
         self.frames: list[tuple[float, cKDTree]] = []
-        self.goal: np.ndarray | None = None
+
+    def forget(self) -> None:
+        """A new flight starts with nothing remembered."""
+        self.frames = []
 
     def add(self, obs: Observation) -> None:
-        """Remember the observation's depth image (a new goal starts a new flight)."""
-        if self.goal is None or not np.array_equal(self.goal, obs.goal_world):
-            self.goal, self.frames = np.array(obs.goal_world, dtype=np.float64), []
+        """Remember the observation's depth image."""
         full = np.asarray(obs.depth, dtype=np.float64)
         H, W = full.shape
         depth = full[::self.stride, ::self.stride]
@@ -292,6 +293,7 @@ class LearnedMethod:
         self.config = net.config
         self.execution = execution
         self._subgoal: tuple[np.ndarray, np.ndarray, float] | None = None  # (goal, world point, until)
+        self._flight: tuple[np.ndarray, float] | None = None  # (goal, time) of the last plan
         self._memory = (None if execution.memory is None or camera is None or spline
                         else _Memory(camera, execution.memory))
 
@@ -355,6 +357,11 @@ class LearnedMethod:
     def plan(self, obs: Observation) -> MethodPlan:
         t0 = time.perf_counter()
         start = obs.start_body()
+        if self._flight is None or obs.t <= self._flight[1] or not np.array_equal(self._flight[0], obs.goal_world):
+            self._subgoal = None  # a new flight: nothing from the last one carries over
+            if self._memory is not None:
+                self._memory.forget()
+        self._flight = (np.array(obs.goal_world), obs.t)
         sub = self._subgoal
         if sub is not None and (not np.array_equal(sub[0], obs.goal_world) or obs.t > sub[2]
                                 or np.linalg.norm(sub[1] - obs.T_world_body[:3, 3]) < 1.0):
