@@ -14,7 +14,8 @@ from mapkit.errors import MapkitError
 
 
 def library_call(func: Callable[..., Any]) -> Callable[..., Any]:
-    """Run a command body; a MapkitError becomes ``error: <message>`` on stderr and exit 1."""
+    """Run a command body; a MapkitError, or an OSError from the file system (no space, no permission,
+    not a directory, read-only), becomes ``error: <message>`` on stderr and exit 1."""
 
     @functools.wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -22,6 +23,10 @@ def library_call(func: Callable[..., Any]) -> Callable[..., Any]:
             return func(*args, **kwargs)
         except MapkitError as exc:
             click.echo(f"error: {exc}", err=True)
+            sys.exit(1)
+        except OSError as exc:
+            where = f": {exc.filename}" if exc.filename else ""
+            click.echo(f"error: {exc.strerror or exc}{where}", err=True)
             sys.exit(1)
         except KeyboardInterrupt:
             click.echo("interrupted", err=True)

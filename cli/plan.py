@@ -26,7 +26,10 @@ def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float
     from mapkit.geometry import invert_transform
     from mapkit.ingest import open_frames_store
     from mapkit.planning import Planner, PlanningError, write_plan_outputs
+    from mapkit.planning._planner import check_output_folder
 
+    out = output or workspace / "plans"
+    check_output_folder(out)
     store = open_frames_store(workspace)
     if not 0 <= frame_index < len(store):
         raise PlanningError(f"--frame {frame_index}: frames.zarr has frames 0..{len(store) - 1}")
@@ -39,7 +42,6 @@ def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float
     planner = Planner.load(run_dir, device=device)
     result = planner.plan(np.asarray(store.depth[frame_index]), g, velocity_body=velocity, K=store.K,
                           T_body_camera=invert_transform(T_wb) @ store.T_world_camera[frame_index])
-    out = output or workspace / "plans"
     paths = write_plan_outputs(result, T_wb, int(store.stamp_ns[frame_index]), out,
                                world_frame=str(store.attrs.get("world_frame", "world")), stem=f"plan_{frame_index:06d}")
     verdict = "execute" if result.execute else "do NOT execute (eta >= 0.5)"

@@ -178,6 +178,28 @@ def test_plan_from_a_recorded_frame(workspace: Path, tmp_path: Path) -> None:
     result = runner.invoke(main, ["plan", "--model", str(tmp_path / "p"), "-w", str(workspace), "--frame", "99999",
                                   "--goal", "4", "0", "0"])
     assert result.exit_code == 1 and "--frame 99999" in result.output
+    a_file = tmp_path / "plan.json"
+    a_file.write_text("keep me")
+    for target in (a_file, a_file / "sub"):
+        result = runner.invoke(main, ["plan", "--model", str(tmp_path / "p"), "-w", str(workspace), "--frame", "3",
+                                      "--goal", "4", "0", "0", "-o", str(target)])
+        assert result.exit_code == 1 and "-o takes a folder" in result.output and "Traceback" not in result.output
+    assert a_file.read_text() == "keep me"
+
+
+def test_a_file_system_error_is_one_line_naming_the_path(tmp_path: Path) -> None:
+    import click
+
+    from mapkit.cli.main import library_call
+
+    @click.command()
+    @library_call
+    def denied() -> None:
+        raise PermissionError(13, "Permission denied", str(tmp_path / "locked"))
+
+    result = CliRunner().invoke(denied, [])
+    assert result.exit_code == 1
+    assert result.output.strip() == f"error: Permission denied: {tmp_path / 'locked'}"
 
 
 def test_held_out_worlds_validate_and_select_the_model(workspace: Path, tmp_path: Path) -> None:

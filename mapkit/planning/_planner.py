@@ -122,11 +122,20 @@ class Planner:
         )
 
 
+def check_output_folder(out_dir: Path) -> None:
+    """Raise :class:`PlanningError` when ``out_dir`` (or a parent) is an existing file."""
+    for path in (out_dir, *out_dir.parents):
+        if path.exists() and not path.is_dir():
+            raise PlanningError(f"-o {out_dir}: {path} is a file; -o takes a folder (the plan is written as "
+                                "plan_NNNNNN.json, .tum and .mcap inside it)")
+
+
 def write_plan_outputs(result: PlanResult, T_world_body: np.ndarray, stamp_ns: int, out_dir: Path, *,
                        world_frame: str = "world", stem: str = "plan") -> list[Path]:
     """plan.json, plan.tum (t x y z qx qy qz qw, world frame) and plan.mcap (nav_msgs/Path)."""
     from mapkit.sim.record import BagRecorder
 
+    check_output_folder(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     R, p0 = T_world_body[:3, :3], T_world_body[:3, 3]
     world = result.samples_body @ R.T + p0
