@@ -238,3 +238,19 @@ def test_set_threads_follows_the_cpu_affinity() -> None:
         assert set_threads(world_size=64) == 1 == torch.get_num_threads()
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("planner, loss, message", [
+    ({"input_size": 0}, {}, "--planner input_size=0: expected a list of 2 (an integer, an integer)"),
+    ({"head_activation": "tanh"}, {}, 'expected one of "relu", "leaky_relu"'),
+    ({"num_candidates": 2.5}, {}, "--planner num_candidates=2.5: expected an integer"),
+    ({}, {"robot_radius": "abc"}, '--loss robot_radius="abc": expected a number'),
+    ({}, {"no_such_field": 1}, "LossConfig has no field 'no_such_field'"),
+])
+def test_nested_options_are_type_checked(planner: dict, loss: dict, message: str) -> None:
+    config = preset("cpu", planner=planner, loss=loss)
+    with pytest.raises(TrainConfigError) as info:
+        config.validate()
+    assert message in str(info.value)
+    preset("cpu", planner={"input_size": [48, 64], "candidate_anchors": [[1.0, 0], [-1, 0.5]]},
+           loss={"robot_radius": 0.35}).validate()  # lists stand for tuples, integers for floats

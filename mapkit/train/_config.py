@@ -90,6 +90,11 @@ class TrainConfig:
             raise TrainConfigError("--only tan trains the TAN on the key-points of another model: pass --init MODEL")
         if self.max_steps is not None and self.max_steps < 1:
             raise TrainConfigError(f"--max-steps {self.max_steps} must be at least 1")
+        from mapkit._fields import check_fields
+        from mapkit.planner import LossConfig, PlannerConfig
+
+        check_fields(self.planner, PlannerConfig, "--planner", TrainConfigError)
+        check_fields(self.loss, LossConfig, "--loss", TrainConfigError)
 
 
 PRESETS: dict[str, TrainConfig] = {
