@@ -75,8 +75,9 @@ class Execution:
     memory: float | None = 8.0
     """Seconds of depth images remembered (as world-frame points) during a flight. A plan whose first
     ``blocked_within`` seconds come closer than the robot's size to a remembered surface is replaced
-    by the best-scored candidate that keeps clear; when none does, the vehicle brakes to rest and
-    turns to look elsewhere (:attr:`MethodPlan.blocked`). None: fly the network's choice."""
+    by the best-scored candidate that keeps clear; when none does, by a plan toward open space (see
+    ``subgoal_time``); when that is blocked too, the vehicle brakes to rest and turns to look elsewhere
+    (:attr:`MethodPlan.blocked`). None: fly the network's choice."""
     subgoal_time: float = 1.0
     """Seconds a blocked plan's way out is kept: with ``memory``, when nothing leads on toward the goal,
     the network plans toward the most open direction of the depth image (:func:`open_direction`)
@@ -292,7 +293,7 @@ class LearnedMethod:
         self.spline = spline
         self.config = net.config
         self.execution = execution
-        self._subgoal: tuple[np.ndarray, np.ndarray, float] | None = None  # (goal, world point, until)
+        self._subgoal: tuple[np.ndarray, float] | None = None  # (world point, until)
         self._flight: tuple[np.ndarray, float] | None = None  # (goal, time) of the last plan
         self._memory = (None if execution.memory is None or camera is None or spline
                         else _Memory(camera, execution.memory))
@@ -324,13 +325,11 @@ class LearnedMethod:
         attempt.out, attempt.end_speed = out, end_speed
         return attempt
 
-    def _remembered(self, obs: Observation, start: np.ndarray, attempt: _Attempt, add: bool = True) -> _Attempt:
+    def _remembered(self, obs: Observation, start: np.ndarray, attempt: _Attempt) -> _Attempt:
         """The plan checked against every surface seen in the last ``memory`` seconds: the network's
         choice when its first ``blocked_within`` seconds keep clear of them, else the best-scored
         candidate that does, else ``blocked``."""
         memory, how = self._memory, self.execution
-        if add:
-            memory.add(obs)
         T = obs.T_world_body
         if attempt.traj is None or memory.conflicts(_samples(attempt.traj, within=how.blocked_within)[0], T)[0] == 0:
             return attempt
@@ -354,31 +353,38 @@ class LearnedMethod:
         return _Attempt(out.candidates[0, m].double().numpy(), eta, _pick(timing, m), attempt.allocation_ms,
                         traj, attempt.check, False, out, attempt.end_speed)
 
-    def plan(self, obs: Observation) -> MethodPlan:
-        t0 = time.perf_counter()
-        start = obs.start_body()
+    def _subgoal_in_force(self, obs: Observation) -> np.ndarray | None:
+        """The way-out point (world) still being flown to, if any; a new flight (a new goal, or time
+        starting over) first clears the memory and the subgoal of the last one."""
         if self._flight is None or obs.t <= self._flight[1] or not np.array_equal(self._flight[0], obs.goal_world):
-            self._subgoal = None  # a new flight: nothing from the last one carries over
+            self._subgoal = None
             if self._memory is not None:
                 self._memory.forget()
         self._flight = (np.array(obs.goal_world), obs.t)
-        sub = self._subgoal
-        if sub is not None and (not np.array_equal(sub[0], obs.goal_world) or obs.t > sub[2]
-                                or np.linalg.norm(sub[1] - obs.T_world_body[:3, 3]) < 1.0):
-            sub = self._subgoal = None
+        if self._subgoal is not None:
+            point, until = self._subgoal
+            if obs.t > until or np.linalg.norm(point - obs.T_world_body[:3, 3]) < 1.0:
+                self._subgoal = None
+        return None if self._subgoal is None else self._subgoal[0]
+
+    def plan(self, obs: Observation) -> MethodPlan:
+        t0 = time.perf_counter()
+        start = obs.start_body()
+        sub = self._subgoal_in_force(obs)
         if sub is None:
             attempt = self._attempt(obs, start, np.asarray(obs.local_goal_body, dtype=np.float64),
                                     self.config.cruise_speed if obs.goal_clipped else 0.0)
         else:
-            attempt = self._attempt(obs, start, obs.T_world_body[:3, :3].T @ (sub[1] - obs.T_world_body[:3, 3]), 0.0)
+            attempt = self._attempt(obs, start, obs.T_world_body[:3, :3].T @ (sub - obs.T_world_body[:3, 3]), 0.0)
         if self._memory is not None:
+            self._memory.add(obs)
             attempt = self._remembered(obs, start, attempt)
             if attempt.blocked and sub is None and self.camera is not None:
                 body = open_direction(np.asarray(obs.depth), self.camera, obs.local_goal_body, self.config.max_depth)
                 if body is not None:
                     point = obs.T_world_body[:3, :3] @ body + obs.T_world_body[:3, 3]
-                    self._subgoal = (np.array(obs.goal_world), point, obs.t + self.execution.subgoal_time)
-                    attempt = self._remembered(obs, start, self._attempt(obs, start, body, 0.0), add=False)
+                    self._subgoal = (point, obs.t + self.execution.subgoal_time)
+                    attempt = self._remembered(obs, start, self._attempt(obs, start, body, 0.0))
         if self.spline:
             timing = attempt.timing
             coeffs, durations = _clamped_spline(np.concatenate([start[:1], attempt.kp]), start[1],
