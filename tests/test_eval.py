@@ -550,3 +550,27 @@ def test_a_learned_method_carries_nothing_from_one_flight_to_the_next():
     second = run_episode(world, START, GOAL, method, loop, render=render)
     assert first.plans > 1 and first.outcome == second.outcome and first.plans == second.plans
     assert np.array_equal(first.samples, second.samples)
+
+
+def test_a_blocked_vehicle_brakes_beside_a_remembered_wall_not_into_it():
+    """Flying at 2 m/s toward a wall 1.2 m ahead (seen, remembered), the brake turns away from it; the
+    loop's brake goes to v² / a metres along the direction the method gives."""
+    from mapkit.evaluation._loop import _brake
+    from mapkit.evaluation._methods import _Memory
+
+    w, h = 160, 96
+    memory = _Memory(_forward_camera(w, h), seconds=4.0)
+    depth = np.zeros((h, w), dtype=np.float32)
+    depth[:, : w // 2 + 10] = 1.2  # a wall 1.2 m ahead, from the left edge to just right of the centre
+    memory.add(Observation(t=0.0, T_world_body=np.eye(4), state_world=np.zeros((4, 3)), goal_world=np.zeros(3),
+                           local_goal_body=np.zeros(3), depth=depth))
+    state = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    direction = memory.clearest(np.eye(4), state)
+    assert direction is not None and direction[1] < 0 and abs(np.linalg.norm(direction) - 1) < 1e-12  # to the right
+    assert memory.clearest(np.eye(4), np.array([[0.0, 0, 0], [0.1, 0, 0], [0, 0, 0], [0, 0, 0]])) is None  # hovering
+    obs = Observation(t=0.0, T_world_body=np.eye(4), state_world=state, goal_world=np.zeros(3),
+                      local_goal_body=np.zeros(3), depth=None)
+    stop = _brake(obs, 3.0, direction).pieces
+    end = stop.derivative(np.array([stop.t_end]), 0)[0]
+    assert np.allclose(end, 2.0 ** 2 / 3.0 * direction, atol=1e-9)
+    assert np.allclose(stop.derivative(np.array([stop.t_end]), 1)[0], 0.0, atol=1e-9)

@@ -126,6 +126,9 @@ class MethodPlan:
     overrides_eta: bool = False
     """The method asks to fly this plan although η >= 0.5: its own check found the reference being
     flown no safer (a rejected plan leaves the vehicle on it)."""
+    brake_direction: np.ndarray | None = None
+    """(3,) unit vector, body frame at the observation: where a blocked method brakes to (None: along
+    the velocity)."""
     blocked: bool = False
     """The method found no way ahead it can fly (every path it could take runs into what the camera
     sees): the loop brakes to rest and then turns to look elsewhere, whatever η says."""
@@ -329,7 +332,7 @@ def _replan(f: _Flight, world: World, goal: np.ndarray, method: Method, config: 
             f.look += math.radians(config.look_turn_deg)
         elif (mp.blocked or config.on_reject == "brake") and not f.braking:
             f.braking = True
-            f.take(_brake(obs, config.brake_deceleration).pieces)
+            f.take(_brake(obs, config.brake_deceleration, mp.brake_direction).pieces)
         return
     f.braking = False
     f.look = 0.0
@@ -417,7 +420,7 @@ def _final_approach(obs: Observation, config: LoopConfig) -> MethodPlan:
                       latency_ms=1e3 * (time.perf_counter() - t0))
 
 
-def _brake(obs: Observation, deceleration: float) -> MethodPlan:
+def _brake(obs: Observation, deceleration: float, direction: np.ndarray | None = None) -> MethodPlan:
     """One minimum-snap segment from the vehicle's state to rest along its velocity: over
     T = max(0.5, 2 v / a) seconds to v T / 2 = v² / a metres ahead (half of ``deceleration`` on average;
     the smooth profile peaks near it)."""
@@ -430,7 +433,7 @@ def _brake(obs: Observation, deceleration: float) -> MethodPlan:
     start = state[1:]  # body-frame velocity, acceleration, jerk
     speed = float(np.linalg.norm(start[0]))
     T = max(0.5, 2.0 * speed / deceleration)
-    stop = state[0] + 0.5 * T * start[0]
+    stop = state[0] + 0.5 * T * (start[0] if direction is None else speed * direction)
     wp = torch.from_numpy(np.stack([state[0], stop]))[None]
     with torch.no_grad():
         traj = min_snap(wp, torch.tensor([[T]], dtype=torch.float64), start=torch.from_numpy(start)[None])

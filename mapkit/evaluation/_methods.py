@@ -77,7 +77,8 @@ class Execution:
     ``blocked_within`` seconds come closer than the robot's size to a remembered surface is replaced
     by the best-scored candidate that keeps clear; when none does, by a plan toward open space (see
     ``subgoal_time``); when that is blocked too, the vehicle brakes to rest and turns to look elsewhere
-    (:attr:`MethodPlan.blocked`). None: fly the network's choice."""
+    (:attr:`MethodPlan.blocked`), turned by up to 60° when that keeps the brake clear of remembered
+    surfaces. None: fly the network's choice."""
     subgoal_time: float = 1.0
     """Seconds a blocked plan's way out is kept: with ``memory``, when nothing leads on toward the goal,
     the network plans toward the most open direction of the depth image (:func:`open_direction`)
@@ -234,6 +235,25 @@ class _Memory:
         self.frames = [(t, tree) for t, tree in self.frames if obs.t - t <= self.seconds]
         if len(world):
             self.frames.append((obs.t, cKDTree(world, balanced_tree=False, compact_nodes=False)))
+
+    def clearest(self, T_world_body: np.ndarray, start: np.ndarray, deceleration: float = 3.0) -> np.ndarray | None:
+        """Body-frame unit vector closest to the velocity (turned by up to 60°, level) along which a
+        brake to rest (v² / ``deceleration`` metres: the loop's default brake) keeps clear of
+        remembered surfaces; None when straight on is clear or no direction is. Braking straight on
+        took blocked office flights into the wall they had just seen."""
+        v = start[1]
+        speed = float(np.linalg.norm(v[:2]))
+        if speed < 0.3:
+            return None
+        reach = float(np.linalg.norm(v)) ** 2 / deceleration + 0.3
+        heading = math.atan2(v[1], v[0])
+        steps = np.linspace(0.2, 1.0, 8)[None, :, None] * reach
+        for turn in (0.0, 20.0, -20.0, 40.0, -40.0, 60.0, -60.0):
+            a = heading + math.radians(turn)
+            d = np.array([math.cos(a), math.sin(a), 0.0])
+            if self.conflicts(torch.from_numpy(d[None, None, :] * steps), T_world_body)[0] == 0:
+                return None if turn == 0.0 else d
+        return None
 
     def conflicts(self, paths_body: torch.Tensor, T_world_body: np.ndarray) -> np.ndarray:
         """(M,) points of each path (M, P, 3) in the body frame of ``T_world_body`` closer than
@@ -398,9 +418,12 @@ class LearnedMethod:
         latency = 1e3 * (time.perf_counter() - t0)
         pieces = pieces_from_body(coeffs, durations, obs.T_world_body, obs.t)
         kp_world = attempt.kp @ obs.T_world_body[:3, :3].T + obs.T_world_body[:3, 3]
+        brake = None
+        if attempt.blocked and self._memory is not None:
+            brake = self._memory.clearest(obs.T_world_body, start)
         return MethodPlan(pieces=pieces, latency_ms=latency, eta=attempt.eta, keypoints_world=kp_world,
                           allocation_ms=None if self.spline else attempt.allocation_ms, overrides_eta=overrides,
-                          blocked=attempt.blocked)
+                          blocked=attempt.blocked, brake_direction=brake)
 
 
 def _clamped_spline(wp: np.ndarray, v0: np.ndarray, v1: np.ndarray, total: float) -> tuple[np.ndarray, np.ndarray]:
