@@ -6,21 +6,21 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli.main import library_call, main
+from mapkit.cli.main import COUNT, INDEX, NONNEGATIVE, POSITIVE, library_call, main
 
 
 @main.command("dataset")
 @click.option("-o", "--output", "root", required=True, type=click.Path(path_type=Path),
               help="Directory of the dataset: one workspace per world plus dataset.json.")
-@click.option("--worlds", type=int, default=24, show_default=True, help="Number of worlds (one flight each).")
+@click.option("--worlds", type=COUNT, default=24, show_default=True, help="Number of worlds (one flight each).")
 @click.option("--kinds", default="forest,office,garage", show_default=True, help="World kinds, used in turn.")
-@click.option("--seed", type=int, default=1000, show_default=True, help="World i gets simulator seed SEED+i.")
-@click.option("--duration", type=float, default=40.0, show_default=True, help="Seconds of flight per world.")
-@click.option("--rate", type=float, default=5.0, show_default=True, help="Depth frames per second.")
-@click.option("--goals-per-frame", type=int, default=5, show_default=True, help="Goals per exported frame.")
-@click.option("--goal-mix", type=float, nargs=3, default=(0.2, 0.4, 0.4), show_default=True,
+@click.option("--seed", type=INDEX, default=1000, show_default=True, help="World i gets simulator seed SEED+i.")
+@click.option("--duration", type=POSITIVE, default=40.0, show_default=True, help="Seconds of flight per world.")
+@click.option("--rate", type=POSITIVE, default=5.0, show_default=True, help="Depth frames per second.")
+@click.option("--goals-per-frame", type=COUNT, default=5, show_default=True, help="Goals per exported frame.")
+@click.option("--goal-mix", type=NONNEGATIVE, nargs=3, default=(0.2, 0.4, 0.4), show_default=True,
               help="Shares of FUTURE VISIBLE HIDDEN goals.")
-@click.option("--workers", type=int, default=0, show_default=True, help="Worlds at once (0 = one per CPU core).")
+@click.option("--workers", type=INDEX, default=0, show_default=True, help="Worlds at once (0 = one per CPU core).")
 @click.option("--dry-run", is_flag=True, help="Print the size/time estimate and the world list, generate nothing.")
 @library_call
 def dataset_cmd(root: Path, worlds: int, kinds: str, seed: int, duration: float, rate: float, goals_per_frame: int,

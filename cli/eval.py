@@ -6,40 +6,40 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli.main import library_call, main
+from mapkit.cli.main import COUNT, FINITE, INDEX, library_call, main
 
 
 @main.command("eval")
 @click.option("--model", "run_dir", type=click.Path(path_type=Path), default=None,
               help="Run directory with model.pt, or \"pretrained\" for the model shipped with mapkit (needed by every method but straight and oracle).")
 @click.option("--world", "world", default="all", show_default=True, help="forest, office, garage, all, or a comma list.")
-@click.option("--pairs", type=int, default=60, show_default=True, help="Start-goal pairs per world.")
-@click.option("--seed", type=int, default=0, show_default=True,
+@click.option("--pairs", type=COUNT, default=60, show_default=True, help="Start-goal pairs per world.")
+@click.option("--seed", type=INDEX, default=0, show_default=True,
               help="Seed of the evaluation worlds and pairs (must not be a training world's seed).")
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @click.option("--methods", default="all", show_default=True,
               help="Comma list of: learned, learned+uniform, learned+poly5, learned+gradient, iplanner-style, "
                    "straight, oracle.")
-@click.option("--workers", type=int, default=1, show_default=True, help="Processes running pairs in parallel.")
-@click.option("--replan-interval", type=float, default=0.5, show_default=True, help="Seconds between plans.")
-@click.option("--horizon", type=float, default=6.0, show_default=True, help="Local goal distance, metres.")
-@click.option("--min-distance", type=float, default=8.0, show_default=True, help="Start-goal distance, metres.")
+@click.option("--workers", type=COUNT, default=1, show_default=True, help="Processes running pairs in parallel.")
+@click.option("--replan-interval", type=FINITE, default=0.5, show_default=True, help="Seconds between plans.")
+@click.option("--horizon", type=FINITE, default=6.0, show_default=True, help="Local goal distance, metres.")
+@click.option("--min-distance", type=FINITE, default=8.0, show_default=True, help="Start-goal distance, metres.")
 @click.option("--ignore-eta", is_flag=True, help="Execute plans even when eta >= 0.5.")
 @click.option("--on-reject", type=click.Choice(["continue", "brake"]), default="continue", show_default=True,
               help="A rejected plan (eta >= 0.5) in flight: keep flying the previous plan, or brake to rest and look around.")
-@click.option("--corridor", type=float, default=1.0, show_default=True,
+@click.option("--corridor", type=FINITE, default=1.0, show_default=True,
               help="Widest half-width (m) of the flight corridor learned plans may use around their key-points; 0 = through them.")
 @click.option("--corridor-check/--no-corridor-check", default=True, show_default=True,
               help="Narrow the corridor (½, ¼, ⅒, then through the key-points) while the trajectory comes closer to "
                    "seen surfaces in the depth image than the one through the key-points.")
-@click.option("--v-max", type=float, default=3.0, show_default=True, help="Per-axis speed limit of learned plans, m/s; 0 = none.")
-@click.option("--a-max", type=float, default=4.0, show_default=True, help="Per-axis acceleration limit of learned plans, m/s²; 0 = none.")
-@click.option("--memory", type=float, default=8.0, show_default=True,
+@click.option("--v-max", type=FINITE, default=3.0, show_default=True, help="Per-axis speed limit of learned plans, m/s; 0 = none.")
+@click.option("--a-max", type=FINITE, default=4.0, show_default=True, help="Per-axis acceleration limit of learned plans, m/s²; 0 = none.")
+@click.option("--memory", type=FINITE, default=8.0, show_default=True,
               help="Seconds of depth images the learned planner remembers: paths that come near a remembered surface "
                    "are replaced by a clear candidate, or a detour toward open space, or braking; 0 = off.")
-@click.option("--plan-latency", type=float, default=0.02, show_default=True,
+@click.option("--plan-latency", type=FINITE, default=0.02, show_default=True,
               help="Seconds from the depth frame to the plan taking over (the vehicle flies on meanwhile).")
-@click.option("--final-approach", type=float, default=0.0, show_default=True,
+@click.option("--final-approach", type=FINITE, default=0.0, show_default=True,
               help="Metres from the goal where one segment to rest at the goal replaces the planner's plans (0: never).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call

@@ -6,22 +6,22 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli.main import library_call, main
+from mapkit.cli.main import COUNT, INDEX, NONNEGATIVE, POSITIVE, library_call, main, workspace_option
 
 
 @main.command("export")
-@click.option("-w", "--workspace", required=True, type=click.Path(path_type=Path), help="Workspace with frames.zarr and map.zarr.")
-@click.option("--goals-per-frame", type=int, default=5, show_default=True, help="Goals per frame, split by --goal-mix.")
-@click.option("--goal-mix", type=float, nargs=3, default=(0.2, 0.4, 0.4), show_default=True,
+@workspace_option("Workspace with frames.zarr and map.zarr.")
+@click.option("--goals-per-frame", type=COUNT, default=5, show_default=True, help="Goals per frame, split by --goal-mix.")
+@click.option("--goal-mix", type=NONNEGATIVE, nargs=3, default=(0.2, 0.4, 0.4), show_default=True,
               help="Shares of FUTURE (poses the flight reached) VISIBLE (free space in view) HIDDEN (straight line blocked in the map) goals.")
-@click.option("--goal-range", type=float, nargs=2, default=(2.0, 8.0), show_default=True, help="MIN MAX metres of visible and hidden goals.")
-@click.option("--hidden-bearing", type=float, default=75.0, show_default=True, help="Degrees off the heading within which hidden goals lie.")
-@click.option("--future-horizon", type=float, nargs=2, default=(1.0, 5.0), show_default=True, help="MIN MAX seconds ahead for future-pose goals.")
-@click.option("--clearance", type=float, default=0.3, show_default=True, help="Metres every goal keeps from obstacles.")
-@click.option("--val-fraction", type=float, default=0.2, show_default=True, help="Share of contiguous segments for validation.")
-@click.option("--segment-seconds", type=float, default=2.0, show_default=True, help="Length of the segments the split assigns whole.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of goal sampling and split.")
-@click.option("--stride", type=int, default=1, show_default=True, help="Export every N-th frame.")
+@click.option("--goal-range", type=POSITIVE, nargs=2, default=(2.0, 8.0), show_default=True, help="MIN MAX metres of visible and hidden goals.")
+@click.option("--hidden-bearing", type=POSITIVE, default=75.0, show_default=True, help="Degrees off the heading within which hidden goals lie.")
+@click.option("--future-horizon", type=NONNEGATIVE, nargs=2, default=(1.0, 5.0), show_default=True, help="MIN MAX seconds ahead for future-pose goals.")
+@click.option("--clearance", type=NONNEGATIVE, default=0.3, show_default=True, help="Metres every goal keeps from obstacles.")
+@click.option("--val-fraction", type=NONNEGATIVE, default=0.2, show_default=True, help="Share of contiguous segments for validation.")
+@click.option("--segment-seconds", type=POSITIVE, default=2.0, show_default=True, help="Length of the segments the split assigns whole.")
+@click.option("--seed", type=INDEX, default=0, show_default=True, help="Seed of goal sampling and split.")
+@click.option("--stride", type=COUNT, default=1, show_default=True, help="Export every N-th frame.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing tuples.zarr.")
 @library_call
 def export_cmd(workspace: Path, goals_per_frame: int, goal_mix: tuple[float, float, float], goal_range: tuple[float, float],

@@ -7,7 +7,7 @@ from typing import Any, Callable
 
 import click
 
-from mapkit.cli.main import library_call, main
+from mapkit.cli.main import COUNT, POSITIVE, library_call, main, workspace_option
 from mapkit.ingest import IngestConfig, IngestError, ingest, inspect_recordings
 from mapkit.ingest._decode import parse_extrinsic, parse_intrinsics
 
@@ -25,9 +25,9 @@ def ingest_options(func: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--body-frame", help="Body frame (default: Odometry child frame / start of the static chain)."),
         click.option("--intrinsics", metavar="FX,FY,CX,CY", help="Camera intrinsics when the recording has no CameraInfo."),
         click.option("--extrinsic", metavar="X,Y,Z,QX,QY,QZ,QW", help="T_body_camera (optical), overriding tf_static; or 'identity'."),
-        click.option("--max-pose-gap", type=float, default=0.1, show_default=True, help="Seconds; drop frames inside longer pose gaps."),
-        click.option("--stride", type=int, default=1, show_default=True, help="Keep every N-th depth message."),
-        click.option("--max-frames", type=int, default=None, help="Stop after this many frames."),
+        click.option("--max-pose-gap", type=POSITIVE, default=0.1, show_default=True, help="Seconds; drop frames inside longer pose gaps."),
+        click.option("--stride", type=COUNT, default=1, show_default=True, help="Keep every N-th depth message."),
+        click.option("--max-frames", type=COUNT, default=None, help="Stop after this many frames."),
         click.option("--drop-nonmonotonic", is_flag=True, help="Drop messages whose stamp goes backwards instead of failing."),
     ]
     for option in reversed(options):
@@ -91,7 +91,7 @@ def info(recordings: tuple[Path, ...], **kw: Any) -> None:
 
 @main.command("ingest")
 @RECORDINGS
-@click.option("-w", "--workspace", required=True, type=click.Path(path_type=Path), help="Workspace directory.")
+@workspace_option("Workspace directory.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing frames.zarr.")
 @ingest_options
 @library_call

@@ -2,15 +2,23 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import logging
+import math
 import sys
+from pathlib import Path
 from typing import Any, Callable
 
 import click
 
 from mapkit import __version__
 from mapkit.errors import MapkitError
+
+
+_OUTPUTS = ("output", "out", "workspace")
+"""Command arguments naming where a command writes: an OSError without a file name (a full disk
+seen by a C library) names that place instead."""
 
 
 def library_call(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -22,11 +30,13 @@ def library_call(func: Callable[..., Any]) -> Callable[..., Any]:
         try:
             return func(*args, **kwargs)
         except MapkitError as exc:
-            click.echo(f"error: {exc}", err=True)
+            click.echo("error: " + " ".join(str(exc).split()), err=True)  # one line, whatever a library said
             sys.exit(1)
         except OSError as exc:
-            where = f": {exc.filename}" if exc.filename else ""
-            click.echo(f"error: {exc.strerror or exc}{where}", err=True)
+            path = exc.filename or next((kwargs[k] for k in _OUTPUTS if kwargs.get(k)), None)
+            where = f": {path}" if path else ""
+            fix = "; free space there or write elsewhere" if exc.errno == errno.ENOSPC else ""
+            click.echo(f"error: {exc.strerror or exc}{where}{fix}", err=True)
             sys.exit(1)
         except KeyboardInterrupt:
             click.echo("interrupted", err=True)
@@ -35,7 +45,80 @@ def library_call(func: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+class Number(click.ParamType):
+    """A finite number within bounds, for every numeric option: NaN, ±inf and out-of-range values are
+    usage errors naming the option, before any work starts."""
+
+    def __init__(self, low: float | None = None, high: float | None = None, *, low_open: bool = False,
+                 high_open: bool = False, integer: bool = False) -> None:
+        self.low, self.high, self.low_open, self.high_open, self.integer = low, high, low_open, high_open, integer
+        self.name = "integer" if integer else "number"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            number: float = value
+        else:
+            try:
+                number = int(value) if self.integer else float(value)
+            except ValueError:
+                self.fail(f"{value!r} is not {'an integer' if self.integer else 'a number'}", param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value} is not a finite number", param, ctx)
+        if self.low is not None and (number <= self.low if self.low_open else number < self.low):
+            self.fail(f"{value} must be {'>' if self.low_open else '>='} {self.low}", param, ctx)
+        if self.high is not None and (number >= self.high if self.high_open else number > self.high):
+            self.fail(f"{value} must be {'<' if self.high_open else '<='} {self.high}", param, ctx)
+        return number
+
+
+FINITE = Number()
+"""Any finite number."""
+POSITIVE = Number(0.0, low_open=True)
+"""A finite number > 0."""
+NONNEGATIVE = Number(0.0)
+"""A finite number >= 0."""
+COUNT = Number(1, integer=True)
+"""An integer >= 1."""
+INDEX = Number(0, integer=True)
+"""An integer >= 0."""
+
+
+def workspace_option(help: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """``-w/--workspace``, by default the current directory (as git works in the one it is run in), so
+    ``mapkit fuse flight.mcap`` then ``mapkit esdf --voxel 0.1`` work in sequence; the default is
+    announced on stderr."""
+
+    def resolve(ctx: click.Context, param: click.Parameter, value: Path | None) -> Path:
+        if value is not None:
+            return value
+        click.echo(f"workspace: {Path.cwd()} (the current directory; -w chooses another)", err=True)
+        return Path(".")
+
+    return click.option("-w", "--workspace", type=click.Path(path_type=Path), default=None, callback=resolve,
+                        help=f"{help} Default: the current directory.")
+
+
+class _Group(click.Group):
+    """Usage errors (unknown option, bad value) as one line, like every other error: ``error:
+    <command>: <what> (see mapkit <command> --help)``, exit 2."""
+
+    def main(self, *args: Any, **kwargs: Any) -> Any:
+        kwargs["standalone_mode"] = False
+        try:
+            return super().main(*args, **kwargs)
+        except click.UsageError as exc:
+            where = exc.ctx.command_path if exc.ctx is not None else "mapkit"
+            click.echo(f"error: {where}: {exc.format_message()} (see {where} --help)", err=True)
+            sys.exit(exc.exit_code)
+        except click.ClickException as exc:
+            click.echo(f"error: {exc.format_message()}", err=True)
+            sys.exit(exc.exit_code)
+        except click.exceptions.Abort:
+            click.echo("interrupted", err=True)
+            sys.exit(130)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(__version__, "--version", prog_name="mapkit")
 @click.option("-v", "--verbose", count=True, help="More log output (-vv for debug).")
 def main(verbose: int) -> None:

@@ -8,20 +8,20 @@ from typing import Any
 import click
 
 from mapkit.cli.ingest import build_config, ingest_options
-from mapkit.cli.main import library_call, main
+from mapkit.cli.main import COUNT, FINITE, NONNEGATIVE, POSITIVE, library_call, main, workspace_option
 
-WORKSPACE = click.option("-w", "--workspace", required=True, type=click.Path(path_type=Path), help="Workspace directory.")
+WORKSPACE = workspace_option("Workspace directory.")
 OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
 
 
 @main.command()
 @click.argument("recordings", nargs=-1, type=click.Path(path_type=Path))
 @WORKSPACE
-@click.option("--voxel", type=float, default=0.05, show_default=True, help="TSDF voxel size (m).")
-@click.option("--trunc", type=float, default=4.0, show_default=True, help="TSDF truncation (voxels).")
-@click.option("--max-depth", type=float, default=8.0, show_default=True, help="Ignore depth beyond this (m).")
+@click.option("--voxel", type=FINITE, default=0.05, show_default=True, help="TSDF voxel size (m).")
+@click.option("--trunc", type=POSITIVE, default=4.0, show_default=True, help="TSDF truncation (voxels).")
+@click.option("--max-depth", type=POSITIVE, default=8.0, show_default=True, help="Ignore depth beyond this (m).")
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda:N.")
-@click.option("--frame-stride", "frame_stride", type=int, default=1, show_default=True, help="Integrate every N-th frame.")
+@click.option("--frame-stride", "frame_stride", type=COUNT, default=1, show_default=True, help="Integrate every N-th frame.")
 @click.option("--mesh", is_flag=True, help="Also write WS/mesh.ply (marching cubes).")
 @OVERWRITE
 @ingest_options
@@ -50,14 +50,14 @@ def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float, trunc: flo
 
 @main.command()
 @WORKSPACE
-@click.option("--voxel", type=float, default=0.1, show_default=True, help="ESDF voxel size (m).")
-@click.option("--padding", type=float, default=1.0, show_default=True, help="Metres around the fused map.")
-@click.option("--sigma", type=float, default=0.1, show_default=True, help="Gaussian smoothing (m); 0 = none.")
+@click.option("--voxel", type=FINITE, default=0.1, show_default=True, help="ESDF voxel size (m).")
+@click.option("--padding", type=NONNEGATIVE, default=1.0, show_default=True, help="Metres around the fused map.")
+@click.option("--sigma", type=NONNEGATIVE, default=0.1, show_default=True, help="Gaussian smoothing (m); 0 = none.")
 @click.option("--unknown", type=click.Choice(["free", "occupied"]), default="free", show_default=True,
               help="Unobserved space: free (as the paper; enclosed unseen pockets stay solid) or occupied (conservative).")
-@click.option("--solid-depth", type=float, default=0.5, show_default=True,
+@click.option("--solid-depth", type=NONNEGATIVE, default=0.5, show_default=True,
               help="With --unknown free: unseen space this far (m) behind measured surfaces is solid.")
-@click.option("--max-dist", type=float, default=None, help="Clamp |distance| to this (m).")
+@click.option("--max-dist", type=POSITIVE, default=None, help="Clamp |distance| to this (m).")
 @click.option("--backend", type=click.Choice(["edt", "scipy"]), default="edt", show_default=True, help="Exact EDT implementation.")
 @OVERWRITE
 @library_call

@@ -7,14 +7,14 @@ from pathlib import Path
 import click
 import numpy as np
 
-from mapkit.cli.main import library_call, main
+from mapkit.cli.main import FINITE, INDEX, library_call, main, workspace_option
 
 
 @main.command("plan")
 @click.option("--model", "run_dir", required=True, type=click.Path(path_type=Path), help="Run directory with model.pt, or \"pretrained\" for the shipped model.")
-@click.option("-w", "--workspace", required=True, type=click.Path(path_type=Path), help="Workspace with frames.zarr.")
-@click.option("--frame", "frame_index", type=int, required=True, help="Index of the frame in frames.zarr.")
-@click.option("--goal", type=float, nargs=3, required=True, metavar="X Y Z", help="Goal, metres.")
+@workspace_option("Workspace with frames.zarr.")
+@click.option("--frame", "frame_index", type=INDEX, required=True, help="Index of the frame in frames.zarr.")
+@click.option("--goal", type=FINITE, nargs=3, required=True, metavar="X Y Z", help="Goal, metres.")
 @click.option("--goal-frame", type=click.Choice(["body", "world"]), default="body", show_default=True, help="Frame of --goal.")
 @click.option("-o", "--output", type=click.Path(path_type=Path), default=None, help="Output folder (default: WS/plans).")
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda.")
@@ -26,7 +26,7 @@ def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float
     from mapkit.geometry import invert_transform
     from mapkit.ingest import open_frames_store
     from mapkit.planning import Planner, PlanningError, write_plan_outputs
-    from mapkit.planning._planner import check_output_folder
+    from mapkit.planning._planner import LOCAL_GOAL_RANGE, check_output_folder
 
     out = output or workspace / "plans"
     check_output_folder(out)
@@ -38,12 +38,16 @@ def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float
     if goal_frame == "world":
         T_bw = invert_transform(T_wb)
         g = T_bw[:3, :3] @ g + T_bw[:3, 3]
-    velocity = body_velocities(store.stamp_ns, store.T_world_body)[frame_index]
+    velocity = body_velocities(store.stamp_ns, store.T_world_body, store.source_index)[frame_index]
     planner = Planner.load(run_dir, device=device)
     result = planner.plan(np.asarray(store.depth[frame_index]), g, velocity_body=velocity, K=store.K,
                           T_body_camera=invert_transform(T_wb) @ store.T_world_camera[frame_index])
     paths = write_plan_outputs(result, T_wb, int(store.stamp_ns[frame_index]), out,
                                world_frame=str(store.attrs.get("world_frame", "world")), stem=f"plan_{frame_index:06d}")
+    if result.goal_clipped:
+        click.echo(f"goal {np.linalg.norm(g):.4g} m away is beyond the planner's {LOCAL_GOAL_RANGE:g} m range: planned to "
+                   f"the point {LOCAL_GOAL_RANGE:g} m along the way (body {np.round(result.goal_body, 3).tolist()}); "
+                   "replan from a later frame to go on")
     verdict = "execute" if result.execute else "do NOT execute (eta >= 0.5)"
     click.echo(
         f"eta {result.eta:.3f} → {verdict}; segment times {np.round(result.durations.astype(float), 2).tolist()} s "

@@ -6,30 +6,30 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli.main import library_call, main
+from mapkit.cli.main import COUNT, INDEX, NONNEGATIVE, POSITIVE, Number, library_call, main
 
 
 @main.command()
 @click.option("--world", "world", type=click.Choice(["forest", "office", "garage"]), default="forest",
               show_default=True, help="Procedural world to fly through.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed for world, flight and noise.")
+@click.option("--seed", type=INDEX, default=0, show_default=True, help="Seed for world, flight and noise.")
 @click.option("-o", "--output", "out", type=click.Path(path_type=Path), required=True,
               help="Output path; suffix optional (mcap → OUT.mcap, ros2 → OUT/, ros1 → OUT.bag).")
 @click.option("--format", "fmt", type=click.Choice(["mcap", "ros2", "ros1"]), default="mcap", show_default=True,
               help="mcap: bare .mcap (ROS2 CDR, zstd); ros2: rosbag2 dir (sqlite3); ros1: .bag.")
-@click.option("--duration", type=float, default=10.0, show_default=True, help="Seconds of recording.")
-@click.option("--rate", type=float, default=30.0, show_default=True, help="Depth frame rate, Hz (odometry at 4x).")
-@click.option("--width", type=int, default=640, show_default=True, help="Depth image width, pixels.")
-@click.option("--height", type=int, default=480, show_default=True, help="Depth image height, pixels.")
+@click.option("--duration", type=POSITIVE, default=10.0, show_default=True, help="Seconds of recording.")
+@click.option("--rate", type=POSITIVE, default=30.0, show_default=True, help="Depth frame rate, Hz (odometry at 4x).")
+@click.option("--width", type=Number(integer=True), default=640, show_default=True, help="Depth image width, pixels.")
+@click.option("--height", type=Number(integer=True), default=480, show_default=True, help="Depth image height, pixels.")
 @click.option("--noise", type=click.Choice(["none", "realsense"]), default="none", show_default=True,
               help="none: exact depth; realsense: sigma=0.0015 z^2 m, holes and edge dropouts.")
 @click.option("--depth-encoding", type=click.Choice(["16UC1", "32FC1", "compressedDepth"]), default="16UC1",
               show_default=True, help="16UC1 mm / 32FC1 m Image, or compressedDepth PNG on .../compressedDepth.")
 @click.option("--size", type=(float, float, float), default=None, metavar="X Y Z",
               help="World extent in metres (default per world: forest 40 40 10, office 20 14 3, garage 30 20 2.6).")
-@click.option("--density", type=float, default=None,
+@click.option("--density", type=NONNEGATIVE, default=None,
               help="Obstacle density: forest trees/m² (0.06), office items/m² (0.05), garage bay fill (0.6).")
-@click.option("--speed", type=float, default=1.5, show_default=True, help="Cruise speed, m/s (1..3).")
+@click.option("--speed", type=POSITIVE, default=1.5, show_default=True, help="Cruise speed, m/s (1..3).")
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs (only once the new ones are complete).")
 @library_call
 def simulate(world: str, seed: int, out: Path, fmt: str, duration: float, rate: float, width: int, height: int,

@@ -8,7 +8,7 @@ from typing import Any
 
 import click
 
-from mapkit.cli.main import library_call, main
+from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, library_call, main
 
 
 def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
@@ -29,23 +29,23 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
               help="Workspace with tuples.zarr and map.zarr; repeat to train on several.")
 @click.option("--dataset", "dataset_root", type=click.Path(path_type=Path), default=None,
               help="A `mapkit dataset` directory: train on its worlds (added to any -w).")
-@click.option("--val-worlds", type=int, default=None,
+@click.option("--val-worlds", type=INDEX, default=None,
               help="With --dataset: hold out the last N worlds whole for validation (default: an eighth, at least 1).")
 @click.option("--val-workspace", "val_workspaces", multiple=True, type=click.Path(path_type=Path),
               help="Held-out workspace for validation (repeatable); without one, each store's own split validates.")
-@click.option("--grad-clip", type=float, default=None, help="Override the gradient-norm clip.")
+@click.option("--grad-clip", type=POSITIVE, default=None, help="Override the gradient-norm clip.")
 @click.option("--preset", default="cpu", show_default=True, type=click.Choice(["cpu", "paper"]), help="Named configuration.")
 @click.option("--name", default=None, help="Run name (default: the preset's name).")
 @click.option("--runs-dir", type=click.Path(path_type=Path), default=None, help="Where runs go (default: first WS/runs).")
-@click.option("--epochs", type=int, default=None, help="Override the preset's epochs.")
-@click.option("--batch-size", type=int, default=None, help="Override the preset's batch size.")
-@click.option("--lr", type=float, default=None, help="Override the preset's Adam learning rate.")
+@click.option("--epochs", type=COUNT, default=None, help="Override the preset's epochs.")
+@click.option("--batch-size", type=COUNT, default=None, help="Override the preset's batch size.")
+@click.option("--lr", type=FINITE, default=None, help="Override the preset's Adam learning rate.")
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed (CPU runs are reproducible).")
-@click.option("--max-steps", type=int, default=None, help="Stop after this many optimiser steps.")
-@click.option("--weight-decay", type=float, default=None, help="Override the Adam weight decay.")
-@click.option("--corridor", type=float, default=None, help="Flight-corridor half-width (m) for min_snap during training.")
-@click.option("--val-batches", type=int, default=None, help="Limit validation batches.")
+@click.option("--seed", type=INDEX, default=0, show_default=True, help="Seed (CPU runs are reproducible).")
+@click.option("--max-steps", type=COUNT, default=None, help="Stop after this many optimiser steps.")
+@click.option("--weight-decay", type=NONNEGATIVE, default=None, help="Override the Adam weight decay.")
+@click.option("--corridor", type=POSITIVE, default=None, help="Flight-corridor half-width (m) for min_snap during training.")
+@click.option("--val-batches", type=COUNT, default=None, help="Limit validation batches.")
 @click.option("--planner", "planner_items", multiple=True, metavar="FIELD=VALUE", help="PlannerConfig field override (repeatable).")
 @click.option("--loss", "loss_items", multiple=True, metavar="FIELD=VALUE", help="LossConfig field override (repeatable).")
 @click.option("--init", "init", default=None, metavar="MODEL",

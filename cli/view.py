@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli.main import library_call, main
+from mapkit.cli.main import FINITE, INDEX, library_call, main
 
 
 @main.command("view")
@@ -22,8 +22,8 @@ from mapkit.cli.main import library_call, main
 @click.option("--port", type=click.IntRange(0, 65535), default=8080, show_default=True, help="TCP port; 0 picks a free one.")
 @click.option("--max-points", type=click.IntRange(min=1), default=2_000_000, show_default=True,
               help="Point-cloud points sent to the browser at most (voxel-grid downsampled).")
-@click.option("--frame", "frame_index", type=int, default=None, help="Frame selected at start (default: the middle).")
-@click.option("--goal", type=float, nargs=3, default=None, metavar="X Y Z", help="World goal planned to at start (with --model).")
+@click.option("--frame", "frame_index", type=INDEX, default=None, help="Frame selected at start (default: the middle).")
+@click.option("--goal", type=FINITE, nargs=3, default=None, metavar="X Y Z", help="World goal planned to at start (with --model).")
 @click.option("--corridor", type=click.FloatRange(min=0.0), default=None,
               help="Corridor half-width (m) for live plans; 0 = through the key-points. Default: the run's, else 0.3.")
 @click.option("--slice", "slice_spec", type=(click.Choice(["x", "y", "z"]), float), default=None, metavar="AXIS M",

@@ -19,8 +19,9 @@ def run(*args: str) -> tuple[int, str]:
     return result.exit_code, result.output
 
 
-def assert_one_line_error(code: int, out: str, *needles: str) -> None:
-    assert code == 1, out
+def assert_one_line_error(code: int, out: str, *needles: str, usage: bool = False) -> None:
+    """One ``error:`` line naming ``needles``; exit 2 for a usage error click catches, else 1."""
+    assert code == (2 if usage else 1), out
     errors = [line for line in out.splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and "Traceback" not in out, out
     for needle in needles:
@@ -163,13 +164,53 @@ def test_zero_sized_image(tmp_path: Path) -> None:
     _ws_untouched(tmp_path / "ws")
 
 
-@pytest.mark.parametrize("option,value,needle", [
-    ("--stride", "0", "--stride"),
-    ("--max-pose-gap", "-1", "--max-pose-gap"),
-    ("--extrinsic", "1,2,3", "--extrinsic"),
-    ("--pose-topic", "/nope", "no such topic"),
+@pytest.mark.parametrize("option,value,needle,usage", [
+    ("--stride", "0", "--stride", True),
+    ("--max-pose-gap", "-1", "--max-pose-gap", True),
+    ("--extrinsic", "1,2,3", "--extrinsic", False),
+    ("--pose-topic", "/nope", "no such topic", False),
 ])
-def test_bad_options(tmp_path: Path, option: str, value: str, needle: str) -> None:
+def test_bad_options(tmp_path: Path, option: str, value: str, needle: str, usage: bool) -> None:
     rec = write_recording(tmp_path / "rec", "mcap", n=2)
     code, out = run("ingest", rec.path, "-w", tmp_path / "ws", option, value)
-    assert_one_line_error(code, out, needle)
+    assert_one_line_error(code, out, needle, usage=usage)
+
+
+def test_the_same_recording_twice_is_refused_and_overlapping_flights_are_kept_apart(tmp_path: Path) -> None:
+    rec = write_recording(tmp_path / "a", "mcap", n=4)
+    other = write_recording(tmp_path / "b", "mcap", n=4)  # same clock: overlaps rec in time
+    twice = tmp_path / "sub" / ".." / rec.path.name
+    (tmp_path / "sub").mkdir()
+    code, out = run("ingest", rec.path, twice, "-w", tmp_path / "ws")
+    assert_one_line_error(code, out, "is the same recording as", "give each recording once")
+    _ws_untouched(tmp_path / "ws")
+    code, out = run("ingest", rec.path, other.path, "-w", tmp_path / "ws2")
+    assert code == 0 and "overlap in time" in out and "separate flights" in out, out
+    from mapkit.export import body_velocities
+    from mapkit.ingest import open_frames_store
+
+    store = open_frames_store(tmp_path / "ws2")
+    assert store.source_index.tolist() == [0] * 4 + [1] * 4
+    v = body_velocities(store.stamp_ns, store.T_world_body, store.source_index)
+    np.testing.assert_allclose(v[:4], v[4:])  # the same flight twice: each differenced on its own
+    assert np.isfinite(v).all()
+
+
+def test_damaged_ros_recordings_say_what_is_damaged_and_how_to_repair(tmp_path: Path) -> None:
+    rec = write_recording(tmp_path / "a", "ros1", n=20)
+    data = bytearray(rec.path.read_bytes())
+    for i in range(len(data) // 3, len(data) // 3 + 200):  # inside the chunk holding the images
+        data[i] ^= 0x5A
+    (tmp_path / "corrupt.bag").write_bytes(bytes(data))
+    code, out = run("ingest", tmp_path / "corrupt.bag", "-w", tmp_path / "w1")
+    assert_one_line_error(code, out, "is damaged")
+    assert "no depth topic" not in out
+    (tmp_path / "cut.bag").write_bytes(rec.path.read_bytes()[: int(len(data) * 0.8)])
+    code, out = run("ingest", tmp_path / "cut.bag", "-w", tmp_path / "w2")
+    assert_one_line_error(code, out, "rosbag reindex")
+    ros2 = write_recording(tmp_path / "r2", "ros2", n=5)
+    meta = ros2.path / "metadata.yaml"
+    meta.write_text(meta.read_text()[:200] + "\n  : - [ bad")
+    code, out = run("ingest", ros2.path, "-w", tmp_path / "w3")
+    assert_one_line_error(code, out, "metadata.yaml does not parse")
+    assert len(out.strip().splitlines()) == 1

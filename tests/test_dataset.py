@@ -58,6 +58,6 @@ def test_bad_requests_are_one_line_errors(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="--tilt-deg"):
         build_dataset(tmp_path / "t", small(tilt_deg=(0.0, float("nan"))), progress=False)
     result = CliRunner().invoke(main, ["dataset", "-o", str(tmp_path / "d"), "--worlds", "0"])
-    assert result.exit_code == 1 and "--worlds 0" in result.output and "Traceback" not in result.output
+    assert result.exit_code == 2 and "'--worlds': 0 must be >= 1" in result.output and "Traceback" not in result.output
     with pytest.raises(DatasetError, match="holds no dataset.json"):
         dataset_workspaces(tmp_path)

@@ -317,6 +317,26 @@ def test_missing_corrupt_and_foreign_stores(tmp_path):
     _expect_open_error(path2, "'esdf_raw'", "--overwrite")
 
 
+def test_damaged_chunks_are_one_line_for_every_reader(tmp_path):
+    """slice, point lookups and queries all name the grid and the fix (a blosc error before)."""
+    from click.testing import CliRunner
+
+    from mapkit.cli.main import main
+
+    path, *_ = small_map(tmp_path, name="map.zarr")
+    for chunk in (path / "esdf" / "c").rglob("*"):
+        if chunk.is_file():
+            chunk.write_bytes(b"\x00garbage")
+    m = EsdfMap.open(path)
+    for read in (lambda: m.distance_at_voxel(0, 0, 0), lambda: m.query(np.zeros((1, 3)))):
+        with pytest.raises(EsdfError, match="cannot read 'esdf' of map .* re-run `mapkit esdf --overwrite`"):
+            read()
+    z = float(m.origin[2])
+    r = CliRunner().invoke(main, ["slice", "-w", str(tmp_path), "-o", str(tmp_path / "s.png"), "--z", str(z)])
+    assert r.exit_code == 1 and "cannot read 'esdf'" in r.output and "Traceback" not in r.output, r.output
+    assert len(r.output.strip().splitlines()) == 1 and not (tmp_path / "s.png").exists()
+
+
 # ----------------------------------------------------------------------------- queries
 def linear_map(shape=(12, 10, 9), origin=(0.3, -0.2, 1.0), vs=0.25, coef=(0.7, -1.3, 0.4), c0=0.5):
     p = centres(shape, origin, vs)

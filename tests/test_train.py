@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
@@ -57,9 +58,11 @@ def test_smoke_run_writes_the_run_directory(workspace: Path, tmp_path: Path) -> 
 
 def test_resume_continues_after_the_last_epoch(workspace: Path, tmp_path: Path) -> None:
     train([workspace], tiny("r", epochs=1, max_steps=None), runs_dir=tmp_path, progress=False)
+    with open(tmp_path / "r" / "metrics.jsonl", "a") as f:  # killed after epoch 2's row, before its checkpoint
+        f.write(json.dumps({"epoch": 2, "step": 99}) + "\n")
     s = train([workspace], tiny("r", epochs=2, max_steps=None), runs_dir=tmp_path, resume=True, progress=False)
-    epochs = [json.loads(x)["epoch"] for x in (tmp_path / "r" / "metrics.jsonl").read_text().splitlines()]
-    assert epochs == [0, 1, 2] and s.epochs_done == 2
+    rows = [json.loads(x) for x in (tmp_path / "r" / "metrics.jsonl").read_text().splitlines()]
+    assert [row["epoch"] for row in rows] == [0, 1, 2] and rows[-1]["step"] != 99 and s.epochs_done == 2
     with pytest.raises(TrainConfigError, match="incompatible config: planner"):
         train([workspace], preset("cpu", name="r", epochs=3, batch_size=4, planner={"input_size": [48, 64]}),
               runs_dir=tmp_path, resume=True, progress=False)
@@ -172,6 +175,24 @@ def test_plan_from_a_recorded_frame(workspace: Path, tmp_path: Path) -> None:
     with open(out / "plan_000003.mcap", "rb") as f:
         schemas = {s.name for s in make_reader(f).get_summary().schemas.values()}
     assert "nav_msgs/msg/Path" in schemas
+    # Stamps exact to the nanosecond: frame stamp + round(t · 1e9), in TUM, JSON and every MCAP pose.
+    from mapkit.ingest import open_frames_store
+    from mcap_ros2.decoder import DecoderFactory
+
+    stamp = int(open_frames_store(workspace).stamp_ns[3])
+    expected = [stamp + round(t * 1e9) for t in data["t"]]
+    assert data["stamps_ns"] == expected and len(set(expected)) == len(expected)
+    assert [int(line.split()[0].replace(".", "")) for line in tum] == expected
+    with open(out / "plan_000003.mcap", "rb") as f:
+        _, _, _, path = next(make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages())
+    assert [p.header.stamp.sec * 10**9 + p.header.stamp.nanosec for p in path.poses] == expected
+    # A goal beyond the planner's range: planned to the local goal on its way, and said so.
+    result = runner.invoke(main, ["plan", "--model", str(tmp_path / "p"), "-w", str(workspace), "--frame", "3",
+                                  "--goal", "1e9", "0", "0", "-o", str(tmp_path / "far")])
+    assert result.exit_code == 0 and "beyond the planner's 6 m range" in result.output, result.output
+    far = json.loads((tmp_path / "far" / "plan_000003.json").read_text())
+    assert far["goal_clipped"] and far["goal_body"] == [6.0, 0.0, 0.0]
+    assert np.abs(np.asarray(far["keypoints_body"])).max() < 100 and far["control_effort_m2_s7"] < 1e9
     result = runner.invoke(main, ["plan", "--model", str(tmp_path / "nope"), "-w", str(workspace), "--frame", "3",
                                   "--goal", "4", "0", "0"])
     assert result.exit_code == 1 and "no model.pt" in result.output
@@ -254,3 +275,30 @@ def test_nested_options_are_type_checked(planner: dict, loss: dict, message: str
     assert message in str(info.value)
     preset("cpu", planner={"input_size": [48, 64], "candidate_anchors": [[1.0, 0], [-1, 0.5]]},
            loss={"robot_radius": 0.35}).validate()  # lists stand for tuples, integers for floats
+
+
+def test_a_model_of_random_bytes_is_one_line_without_unsafe_advice(workspace: Path, tmp_path: Path) -> None:
+    run = tmp_path / "junk"
+    run.mkdir()
+    (run / "model.pt").write_bytes(np.random.default_rng(0).bytes(4000))
+    partial = tmp_path / "partial"
+    partial.mkdir()
+    torch.save({"planner_config": {}}, partial / "model.pt")  # a torch file, but not a whole model
+    for model in (run, partial):
+        result = CliRunner().invoke(main, ["plan", "--model", str(model), "-w", str(workspace), "--frame", "0",
+                                           "--goal", "3", "0", "0", "-o", str(tmp_path / "out")])
+        lines = result.output.strip().splitlines()
+        assert result.exit_code == 1 and len(lines) == 1 and "is not a mapkit planner" in lines[0], result.output
+        assert "weights_only" not in result.output
+    result = CliRunner().invoke(main, ["train", "-w", str(workspace), "--init", str(run), "--runs-dir", str(tmp_path / "r"),
+                                       "--max-steps", "1"])
+    assert result.exit_code == 1 and "is not a mapkit planner" in result.output and "Traceback" not in result.output
+
+
+def test_a_missing_map_names_the_command_that_makes_it(workspace: Path, tmp_path: Path) -> None:
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(workspace, ws, ignore=shutil.ignore_patterns("map.zarr", "runs"))
+    result = CliRunner().invoke(main, ["train", "-w", str(ws), "--runs-dir", str(tmp_path / "r"), "--max-steps", "1"])
+    assert result.exit_code == 1 and "map.zarr is missing" in result.output and "mapkit esdf -w" in result.output

@@ -531,7 +531,7 @@ class ViewerApp:
         g, s = self.server.gui, self.server.scene
         fr = self.frames
         n = len(fr)
-        self._velocity_body = body_velocities(fr.stamp_ns, fr.T_world_body)
+        self._velocity_body = body_velocities(fr.stamp_ns, fr.T_world_body, fr.source_index)
         p = fr.T_world_body[:, :3, 3]
         if n >= 2:
             seg, _ = viz.polyline_segments(p)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -12,7 +11,7 @@ from numpy.typing import NDArray
 
 from mapkit._resources import available_memory
 from mapkit.esdf._errors import EsdfError
-from mapkit.fusion import CLOUD, TSDF
+from mapkit.fusion import CLOUD, TSDF, FusionError, check_fused
 from mapkit.fusion._occupancy import Grid, carve_free_space, fill_unknown, occupancy_from_tsdf
 from mapkit.ingest import open_frames_store
 from mapkit.workspace import check_writable
@@ -174,10 +173,10 @@ def drop_stray_obstacles(occupied: NDArray[np.bool_], surface: NDArray[np.float6
 
 def plan_grid(workspace: Path, config: EsdfConfig) -> tuple[Grid, dict]:
     """The ESDF grid over the fused map's bounds plus padding; errors for impossible sizes."""
-    meta_path = workspace / "fuse.json"
-    if not (workspace / TSDF).exists() or not meta_path.exists():
-        raise EsdfBuildError(f"{workspace} has no fused map (tsdf.npz, fuse.json); run `mapkit fuse BAG... -w {workspace}` first")
-    meta = json.loads(meta_path.read_text())
+    try:
+        meta = check_fused(workspace)
+    except FusionError as exc:
+        raise EsdfBuildError(str(exc)) from None
     lo, hi = (np.asarray(b, dtype=np.float64) for b in meta["bounds"])
     extent = hi - lo
     if config.voxel > extent.max():

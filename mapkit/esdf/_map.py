@@ -162,28 +162,28 @@ class EsdfMap:
 
     def _grid(self, name: str) -> np.ndarray:
         if name not in self._dense:
-            arr = getattr(self, name)
-            if arr is None:
-                raise EsdfError(f"this map has no {name!r} grid")
-            try:
-                dense = np.ascontiguousarray(arr[...])
-            except Exception as exc:  # noqa: BLE001 - damaged chunks surface here
-                raise EsdfError(f"cannot read {name!r} of map {str(self.path)!r} ({type(exc).__name__}: {exc}); {_FIX}") from None
-            self._dense[name] = dense
+            self._dense[name] = np.ascontiguousarray(self.read(name, ...))
         return self._dense[name]
+
+    def read(self, name: str, index: Any) -> np.ndarray:
+        """``name``'s values at ``index`` (numpy indexing), from memory when loaded, else from the
+        store; a damaged chunk is an :class:`EsdfError` naming the grid and the store."""
+        if name in self._dense:
+            return np.asarray(self._dense[name][index])
+        arr = getattr(self, name)
+        if arr is None:
+            raise EsdfError(f"this map has no {name!r} grid")
+        try:
+            return np.asarray(arr[index])
+        except Exception as exc:  # noqa: BLE001 - zarr/numcodecs raise many kinds for damaged chunks
+            raise EsdfError(f"cannot read {name!r} of map {str(self.path)!r} ({type(exc).__name__}: {exc}); {_FIX}") from None
 
     def distance_at_voxel(self, i: int, j: int, k: int, *, raw: bool = False) -> float:
         """Stored signed distance (metres) of voxel [i, j, k] (reads one chunk if not loaded)."""
         for v, n, ax in zip((i, j, k), self.shape, "xyz"):
             if not 0 <= int(v) < n:
                 raise EsdfError(f"voxel index {ax}={v} is outside 0..{n - 1}")
-        name = "esdf_raw" if raw else "esdf"
-        if name in self._dense:
-            return float(self._dense[name][i, j, k])
-        arr = getattr(self, name)
-        if arr is None:
-            raise EsdfError(f"this map has no {name!r} grid")
-        return float(arr[int(i), int(j), int(k)])
+        return float(self.read("esdf_raw" if raw else "esdf", (int(i), int(j), int(k))))
 
     # ------------------------------------------------------------------ queries
     def query(self, points: Any, *, raw: bool = False, outside: Outside = "nan") -> tuple[np.ndarray, np.ndarray]:

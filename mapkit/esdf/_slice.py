@@ -50,13 +50,8 @@ def slice_plane(map: EsdfMap, *, axis: str, position: float, raw: bool = False) 
     k = int(min(max(round((pos - map.origin[a]) / vs), 0), n - 1))
     index: list[slice | int] = [slice(None)] * 3
     index[a] = k
-    name = "esdf_raw" if raw else "esdf"
-    src = map._dense.get(name, getattr(map, name))
-    if src is None:
-        raise EsdfError(f"this map has no {name!r} grid")
-    values = np.asarray(src[tuple(index)], dtype=np.float32)
-    obs_src = map._dense.get("observed", map.observed)
-    observed = np.ones(values.shape, dtype=bool) if obs_src is None else np.asarray(obs_src[tuple(index)]) > 0
+    values = map.read("esdf_raw" if raw else "esdf", tuple(index)).astype(np.float32)
+    observed = np.ones(values.shape, dtype=bool) if map.observed is None else map.read("observed", tuple(index)) > 0
     u_ax, v_ax = (_axis_index(s) for s in _PLANE_AXES[axis])
     ext = []
     for b in (u_ax, v_ax):

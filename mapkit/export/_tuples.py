@@ -126,13 +126,16 @@ def map_digest(map_path: Path) -> str:
     return h.hexdigest()
 
 
-def body_velocities(stamps_ns: NDArray[np.int64], T_world_body: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(N, 3) body-frame velocity from the pose history (central differences; one-sided at ends)."""
-    t = stamps_ns.astype(np.float64) * 1e-9
-    p = T_world_body[:, :3, 3]
-    if len(t) < 2:
-        return np.zeros((len(t), 3))
-    v_world = np.gradient(p, t, axis=0)
+def body_velocities(stamps_ns: NDArray[np.int64], T_world_body: NDArray[np.float64],
+                    source_index: NDArray[np.int32] | None = None) -> NDArray[np.float64]:
+    """(N, 3) body-frame velocity from the pose history (central differences; one-sided at ends),
+    per recording when ``source_index`` is given (two flights' frames never difference each other)."""
+    sources = np.zeros(len(stamps_ns), dtype=np.int32) if source_index is None else np.asarray(source_index)
+    v_world = np.zeros((len(stamps_ns), 3))
+    for src in np.unique(sources):
+        sel = np.flatnonzero(sources == src)
+        if len(sel) >= 2:
+            v_world[sel] = np.gradient(T_world_body[sel, :3, 3], stamps_ns[sel].astype(np.float64) * 1e-9, axis=0)
     return np.einsum("nji,nj->ni", T_world_body[:, :3, :3], v_world)  # R^T v
 
 
@@ -303,7 +306,7 @@ def export_tuples(workspace: str | Path, config: ExportConfig | None = None, *, 
         )
     indices = np.arange(0, len(store), config.stride)
     stamps_s = store.stamp_ns.astype(np.float64) * 1e-9
-    velocity = body_velocities(store.stamp_ns, store.T_world_body)
+    velocity = body_velocities(store.stamp_ns, store.T_world_body, store.source_index)
     rng = np.random.default_rng(config.seed)
     G = config.goals_per_frame
     keep: list[int] = []

@@ -2,14 +2,17 @@
 
 from mapkit.fusion._tsdf import (
     CLOUD,
+    FUSE_META,
     MESH,
     TSDF,
     FuseConfig,
     FusionError,
     FuseSummary,
+    check_fused,
     estimate_blocks,
     fuse,
     fuse_store,
 )
 
-__all__ = ["CLOUD", "MESH", "TSDF", "FuseConfig", "FuseSummary", "FusionError", "estimate_blocks", "fuse", "fuse_store"]
+__all__ = ["CLOUD", "FUSE_META", "MESH", "TSDF", "FuseConfig", "FuseSummary", "FusionError", "check_fused", "estimate_blocks",
+           "fuse", "fuse_store"]

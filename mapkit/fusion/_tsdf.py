@@ -19,13 +19,15 @@ from mapkit._threads import prefetch
 from mapkit.errors import MapkitError
 from mapkit.geometry import invert_transform
 from mapkit.ingest import FramesStore, IngestConfig, ingest, open_frames_store
-from mapkit.workspace import FRAMES, atomic_output, check_writable
+from mapkit.workspace import FRAMES, atomic_output, check_writable, clean_stale
 
 log = logging.getLogger(__name__)
 
 BLOCK_RESOLUTION = 8  # voxels per block edge: measured ~1.5x faster integration than 16 (fewer voxels outside the truncation band)
 _BYTES_PER_VOXEL = 8  # tsdf + weight, float32 each
 CLOUD, MESH, TSDF = "cloud.ply", "mesh.ply", "tsdf.npz"
+FUSE_META = "fuse.json"
+"""Written last by fuse: the config, bounds and the outputs' sizes (see :func:`check_fused`)."""
 
 
 class FusionError(MapkitError):
@@ -136,6 +138,17 @@ def _o3d_intrinsics(K: NDArray[np.float64]) -> Any:
     return o3c.Tensor(K, o3c.float64)
 
 
+def _touched_blocks(vbg: Any, image: Any, K: Any, extrinsic: Any, config: FuseConfig) -> Any:
+    """The blocks a depth image touches, or None when it touches none (Open3D raises then: an
+    image of a few pixels, or depth only at its edges)."""
+    try:
+        return vbg.compute_unique_block_coordinates(image, K, extrinsic, 1.0, float(config.max_depth), float(config.trunc))
+    except RuntimeError as exc:
+        if "No block is touched" in str(exc):
+            return None
+        raise
+
+
 def estimate_blocks(store: FramesStore, config: FuseConfig, *, sample: int = 24) -> int:
     """Blocks the map will need: the union of the blocks seen by `sample` evenly spaced frames,
     scaled to the whole flight by the share of new blocks the later samples still add.
@@ -158,11 +171,11 @@ def estimate_blocks(store: FramesStore, config: FuseConfig, *, sample: int = 24)
         depth = np.asarray(store.depth[int(i)])
         if not np.any(depth <= config.max_depth):
             continue
-        coords = probe.compute_unique_block_coordinates(
-            _o3d_depth(depth, o3c.Device("CPU:0")), K,
-            o3c.Tensor(invert_transform(store.T_world_camera[int(i)]), o3c.float64),
-            1.0, float(config.max_depth), float(config.trunc),
-        ).numpy()
+        touched = _touched_blocks(probe, _o3d_depth(depth, o3c.Device("CPU:0")), K,
+                                  o3c.Tensor(invert_transform(store.T_world_camera[int(i)]), o3c.float64), config)
+        if touched is None:
+            continue
+        coords = touched.numpy()
         c = coords.reshape(-1, 3).astype(np.int64) + (1 << 20)  # block keys packed into one int64
         keys = (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
         before = len(seen)
@@ -174,6 +187,88 @@ def estimate_blocks(store: FramesStore, config: FuseConfig, *, sample: int = 24)
     # Frames between samples add about as many new blocks as the later samples did per sample.
     unseen_frames = max(n - len(idx), 0) * len(idx) / max(n, 1)
     return int(len(seen) + per_frame_new * unseen_frames + 256)
+
+
+def _surface_points(vbg: Any, config: FuseConfig) -> Any:
+    """The TSDF's zero crossing as an Open3D point cloud, or None when it has none (Open3D raises on
+    an empty extraction instead of returning an empty cloud)."""
+    try:
+        return vbg.extract_point_cloud(weight_threshold=config.weight_threshold)
+    except RuntimeError as exc:
+        if "has shape {0}" in str(exc):
+            return None
+        raise
+
+
+def _written(path: Path, ok: bool, what: str, count: int, read: Any) -> None:
+    """Raise unless Open3D reported success and ``path`` reads back with ``count`` elements: its
+    writers return False, or write short files on a full disk, without raising."""
+    import open3d as o3d
+
+    if not ok or not path.exists() or path.stat().st_size == 0:
+        complete = False
+    else:
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):  # a short file warns
+            complete = read(path) == count
+    if not complete:
+        raise FusionError(f"could not write the {what} completely to {path.parent} (disk full or not writable?); "
+                          "the previous outputs were kept")
+
+
+def _write_outputs(workspace: Path, cloud: Any, vbg: Any, config: FuseConfig, meta: dict[str, Any]) -> None:
+    """cloud.ply, tsdf.npz (+ mesh.ply), then fuse.json, as one unit: every file is written and
+    checked beside its target first; fuse.json is removed before the first replacement and written
+    last with the outputs' sizes, so a kill in between leaves no manifest, and readers check it."""
+    import open3d as o3d
+
+    workspace.mkdir(parents=True, exist_ok=True)
+    clean_stale(workspace)
+    tag = f".partial-{os.getpid()}"
+    staged: dict[str, Path] = {}
+    try:
+        staged[CLOUD] = workspace / f".{CLOUD}{tag}.ply"
+        legacy = cloud.to_legacy()
+        _written(staged[CLOUD], o3d.io.write_point_cloud(str(staged[CLOUD]), legacy, write_ascii=False), "cloud",
+                 len(legacy.points), lambda p: len(o3d.io.read_point_cloud(str(p)).points))
+        if config.mesh:
+            staged[MESH] = workspace / f".{MESH}{tag}.ply"
+            mesh = vbg.extract_triangle_mesh(weight_threshold=config.weight_threshold).cpu().to_legacy()
+            mesh.compute_vertex_normals()
+            _written(staged[MESH], o3d.io.write_triangle_mesh(str(staged[MESH]), mesh, write_ascii=False), "mesh",
+                     len(mesh.triangles), lambda p: len(o3d.io.read_triangle_mesh(str(p)).triangles))
+        staged[TSDF] = workspace / f".{TSDF}{tag}.npz"
+        vbg.cpu().save(str(staged[TSDF]))
+        _written(staged[TSDF], True, "TSDF", 1, lambda p: int(np.load(p).files != []))
+    except BaseException:
+        for path in staged.values():
+            path.unlink(missing_ok=True)
+        raise
+    manifest = workspace / FUSE_META
+    manifest.unlink(missing_ok=True)
+    for name, path in staged.items():
+        os.replace(path, workspace / name)
+    meta["outputs"] = {name: (workspace / name).stat().st_size for name in staged}
+    with atomic_output(manifest, overwrite=True) as tmp:
+        tmp.write_text(json.dumps(meta, indent=2))
+
+
+def check_fused(workspace: Path) -> dict[str, Any]:
+    """fuse.json of ``workspace``, after checking that the outputs it lists are the ones it describes
+    (a fuse killed while replacing them leaves no fuse.json, or files of another size)."""
+    manifest = workspace / FUSE_META
+    if not (workspace / TSDF).exists() or not manifest.exists():
+        raise FusionError(f"{workspace} has no complete fused map (tsdf.npz, fuse.json); run `mapkit fuse BAG... "
+                          f"-w {workspace}` (with --overwrite when a fuse was interrupted)")
+    try:
+        meta = json.loads(manifest.read_text())
+    except (OSError, ValueError) as exc:
+        raise FusionError(f"{manifest} is unreadable ({exc}); re-run `mapkit fuse --overwrite`") from None
+    for name, size in meta.get("outputs", {}).items():  # older workspaces have no sizes
+        path = workspace / name
+        if not path.exists() or path.stat().st_size != size:
+            raise FusionError(f"{path} is not the file fuse.json describes (a fuse was interrupted or the file was "
+                              f"changed); re-run `mapkit fuse --overwrite -w {workspace}`")
+    return meta
 
 
 def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overwrite: bool = False, progress: bool = True) -> FuseSummary:
@@ -226,41 +321,31 @@ def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overw
             t = time.perf_counter()
             image = _o3d_depth(depth, device, ready=True)
             extrinsic = o3c.Tensor(invert_transform(store.T_world_camera[i]), o3c.float64)
-            coords = vbg.compute_unique_block_coordinates(image, K, extrinsic, 1.0, float(config.max_depth), float(config.trunc))
+            coords = _touched_blocks(vbg, image, K, extrinsic, config)
+            if coords is None:
+                skipped += 1
+                continue
             vbg.integrate(coords, image, K, extrinsic, 1.0, float(config.max_depth), float(config.trunc))
             integrate_s += time.perf_counter() - t
     bar.close()
     if skipped == len(indices):
         raise FusionError(
-            f"no frame has depth within --max-depth {config.max_depth} m (nearest valid depth in the first frame: "
-            f"{np.nanmin(store.depth[0]):.2f} m); raise --max-depth"
+            f"no frame touches the map: depth within --max-depth {config.max_depth} m is needed (nearest valid "
+            f"depth in the first frame: {np.nanmin(store.depth[0]):.2f} m) on images of more than a few pixels "
+            f"(these are {store.depth.shape[2]}x{store.depth.shape[1]}); raise --max-depth or check the depth topic"
         )
 
-    pcd = vbg.extract_point_cloud(weight_threshold=config.weight_threshold)
-    n_points = int(pcd.point.positions.shape[0]) if "positions" in pcd.point else 0
+    pcd = _surface_points(vbg, config)
+    n_points = int(pcd.point.positions.shape[0]) if pcd is not None and "positions" in pcd.point else 0
     if n_points == 0:
         raise FusionError(
-            f"fusion produced an empty cloud from {len(indices)} frames (max depth {config.max_depth} m, "
-            f"weight threshold {config.weight_threshold}); check --max-depth and the frames' depth"
+            f"fusion produced an empty cloud from {len(indices)} frames (--voxel {config.voxel} m, --max-depth "
+            f"{config.max_depth} m, weight threshold {config.weight_threshold}): no voxel saw a surface often enough; "
+            f"use a voxel near the depth's resolution (e.g. --voxel 0.05) and check --max-depth and the frames' depth"
         )
-    workspace.mkdir(parents=True, exist_ok=True)
     cloud = pcd.cpu()
     positions = cloud.point.positions.numpy()
     bounds = np.stack([positions.min(axis=0), positions.max(axis=0)]).astype(np.float64)
-    with atomic_output(workspace / CLOUD, overwrite=overwrite) as tmp:
-        legacy = cloud.to_legacy()
-        if not o3d.io.write_point_cloud(str(tmp) + ".ply", legacy, write_ascii=False):
-            raise FusionError(f"could not write {workspace / CLOUD}")
-        os.replace(str(tmp) + ".ply", tmp)
-    if config.mesh:
-        mesh = vbg.extract_triangle_mesh(weight_threshold=config.weight_threshold).cpu().to_legacy()
-        mesh.compute_vertex_normals()
-        with atomic_output(workspace / MESH, overwrite=overwrite) as tmp:
-            o3d.io.write_triangle_mesh(str(tmp) + ".ply", mesh, write_ascii=False)
-            os.replace(str(tmp) + ".ply", tmp)
-    with atomic_output(workspace / TSDF, overwrite=overwrite) as tmp:
-        vbg.cpu().save(str(tmp) + ".npz")
-        os.replace(str(tmp) + ".npz", tmp)
     meta = {
         "mapkit_version": __version__,
         "frames": str(store.path),
@@ -269,7 +354,7 @@ def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overw
         "points": n_points,
         "bounds": bounds.tolist(),
     }
-    (workspace / "fuse.json").write_text(json.dumps(meta, indent=2))
+    _write_outputs(workspace, cloud, vbg, config, meta)
     active = int(vbg.hashmap().size())
     return FuseSummary(
         frames_used=len(indices) - skipped, frames_total=len(store), dropped=dict(store.attrs.get("dropped", {})),

@@ -94,6 +94,9 @@ def _decode_compressed_depth(msg: Any, *, topic: str) -> NDArray[np.float32]:
         png.load()
     except Exception as exc:
         raise IngestError(f"topic {topic}: compressedDepth PNG does not decode ({exc}); corrupted message") from None
+    if not png.mode.startswith("I"):  # 8-bit grey or colour would read as millimetres silently
+        raise IngestError(f"topic {topic}: compressedDepth PNG is mode {png.mode}, not a 16-bit greyscale image; "
+                          "corrupted message or not a depth stream")
     q = np.asarray(png)
     if q.ndim != 2 or q.size == 0:
         raise IngestError(f"topic {topic}: compressedDepth PNG has shape {q.shape}; expected a 2-D 16-bit image")

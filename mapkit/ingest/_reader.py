@@ -137,10 +137,14 @@ def _find(summary: BagSummary, name: str, option: str) -> str:
     return topic
 
 
+class _EmptyTopic(IngestError):
+    """A listed topic without messages (not damage)."""
+
+
 def _first_message(source: Source, topic: str) -> Any:
     for raw in source.messages([topic]):
         return source.deserialize(raw)
-    raise IngestError(f"topic {topic} in {str(source.path)!r} has no messages")
+    raise _EmptyTopic(f"topic {topic} in {str(source.path)!r} has no messages")
 
 
 def choose_roles(source: Source, config: IngestConfig) -> SourcePlan:
@@ -163,18 +167,25 @@ def choose_roles(source: Source, config: IngestConfig) -> SourcePlan:
         depth = RoleChoice(topic, msgtype, "given by --depth-topic")
     else:
         seen: list[str] = []
+        unreadable: list[str] = []
         candidates: list[tuple[tuple[int, int], str, str, str]] = []
         for topic in images:
             msgtype = s.topics[topic].msgtype
             try:
                 enc = image_encoding(_first_message(source, topic), msgtype)
-            except IngestError:
+            except _EmptyTopic:
+                continue
+            except IngestError as exc:
+                unreadable.append(str(exc))
                 continue
             seen.append(f"{topic} ({enc})")
             if enc in DEPTH_ENCODINGS + ("compressedDepth",):
                 # Prefer names that say depth, raw over compressed, then the busiest topic.
                 rank = ("depth" in topic.lower(), msgtype.endswith("/Image"))
                 candidates.append(((int(rank[0]) * 2 + int(rank[1]), s.topics[topic].count), topic, msgtype, enc))
+        if not candidates and unreadable:
+            raise IngestError(f"{str(s.path)!r} lists image topics but cannot give their messages, so it is damaged "
+                              f"({unreadable[0]})")
         if not candidates:
             listed = ", ".join(seen) if seen else "none"
             raise IngestError(
@@ -522,6 +533,33 @@ class FrameStream:
         return msg
 
 
+def _refuse_duplicates(paths: list[Path]) -> None:
+    """The same recording twice (by name, link or another spelling) would give every frame twice."""
+    seen: dict[tuple[int, int], Path] = {}
+    for path in paths:
+        try:
+            st = path.stat()
+        except OSError:
+            continue  # a missing input gets its own error when opened
+        key = (st.st_dev, st.st_ino)
+        if key in seen:
+            raise IngestError(f"{str(path)!r} is the same recording as {str(seen[key])!r}; give each recording once")
+        seen[key] = path
+
+
+def _warn_overlap(stream: FrameStream, plan: SourcePlan) -> None:
+    """Recordings whose time spans overlap are separate flights: their frames stay in input order,
+    apart (``source_index``), and each flight's poses are used only for its own frames. Say so."""
+    s = plan.summary
+    for other in stream.plans:
+        o = other.summary
+        if other is not plan and s.start_ns < o.end_ns and o.start_ns < s.end_ns:
+            stream.warnings.append(
+                f"{str(s.path)!r} and {str(o.path)!r} overlap in time; they are kept as separate flights "
+                "(frames in input order, each with its own recording's poses; source_index in frames.zarr)")
+            return
+
+
 def open_frames(paths: Sequence[str | Path], config: IngestConfig | None = None) -> FrameStream:
     """Plan the reading of one or more recordings; iterate the result for `Frame`s.
 
@@ -533,6 +571,7 @@ def open_frames(paths: Sequence[str | Path], config: IngestConfig | None = None)
     if not paths:
         raise IngestError("no input recordings given")
     stream = FrameStream([Path(p) for p in paths], config)
+    _refuse_duplicates(stream.paths)
     for path in stream.paths:
         with Source(path) as source:
             plan = choose_roles(source, config)
@@ -547,6 +586,7 @@ def open_frames(paths: Sequence[str | Path], config: IngestConfig | None = None)
                 f"but {str(first.summary.path)!r} has {first.K.ravel().tolist()} {first.width}x{first.height}; "  # type: ignore[union-attr]
                 "ingest recordings of different cameras into separate workspaces"
             )
+        _warn_overlap(stream, plan)
         if plan.world_frame != first.world_frame:
             raise IngestError(
                 f"{str(plan.summary.path)!r} uses world frame {plan.world_frame!r} but "

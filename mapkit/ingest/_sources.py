@@ -186,7 +186,13 @@ class _Rosbags:
         try:
             reader.open()
         except Exception as exc:  # rosbags raises several unrelated types for damaged files
-            raise IngestError(f"cannot read {str(path)!r} as a {FORMAT_NAMES[kind]}: {exc}") from None
+            why = " ".join(str(exc).split())  # YAML errors span several lines
+            if kind == "ros1" and "index" in why.lower():
+                why += ("; the index at the end of the bag is missing or cut off (was the recorder killed?): rebuild "
+                        "it with `rosbag reindex` and run again")
+            elif kind == "ros2" and "yaml" in type(exc).__name__.lower() + why.lower():
+                why = f"its metadata.yaml does not parse ({why}); restore it or regenerate it with `ros2 bag reindex`"
+            raise IngestError(f"cannot read {str(path)!r} as a {FORMAT_NAMES[kind]}: {why}") from None
         self._reader = reader
         topics: dict[str, TopicSummary] = {}
         for conn in reader.connections:

@@ -37,10 +37,20 @@ class PlanResult:
     """∫‖snap‖² dt, m²/s⁷."""
     latency_ms: float
     """Depth → trajectory, wall clock."""
+    goal_body: np.ndarray | None = None
+    """(3,) the goal planned to: the one asked for, or the local goal on its way (``goal_clipped``)."""
+    goal_clipped: bool = False
+    """True when the goal asked for lay beyond :data:`LOCAL_GOAL_RANGE` and the plan went to the point that
+    far along the way to it (the model never saw farther goals; a receding-horizon loop replans)."""
 
     @property
     def execute(self) -> bool:
         return self.eta < 0.5
+
+
+LOCAL_GOAL_RANGE = 6.0
+"""Metres: the farthest goal a plan goes to directly (``mapkit eval``'s local-goal horizon; training
+goals lie within the depth range)."""
 
 
 class Planner:
@@ -60,6 +70,7 @@ class Planner:
     def load(cls, run_dir: str | Path, *, device: str = "cpu") -> "Planner":
         """Load runs/NAME/model.pt (state dict + planner config; nothing pickled but tensors);
         ``run_dir="pretrained"`` loads the model shipped with mapkit."""
+        from mapkit._saved import load_saved
         from mapkit.planner import PlannerConfig, PlannerNet
         from mapkit.planning._pretrained import PRETRAINED, resolve_model
 
@@ -71,8 +82,8 @@ class Planner:
             raise PlanningError(f"{run_dir} has no model.pt; train one with `mapkit train` (or check the run path)")
         if device.startswith("cuda") and not torch.cuda.is_available():
             raise PlanningError(f"--device {device}: torch sees no CUDA device; use --device cpu")
+        saved = load_saved(path, "mapkit planner", PlanningError, ("planner_config", "state_dict"))
         try:
-            saved = torch.load(path, map_location="cpu", weights_only=True)
             net = PlannerNet(PlannerConfig.from_dict(saved["planner_config"]))
             net.load_state_dict(saved["state_dict"])
         except Exception as exc:
@@ -90,9 +101,12 @@ class Planner:
 
         `K` (3, 3) and `T_body_camera` (4, 4) (optical camera → body): the depth camera's
         calibration, needed by models that check their candidate paths against the depth image."""
-        goal = np.asarray(goal_body, dtype=np.float32).reshape(3)
-        if not np.all(np.isfinite(goal)):
-            raise PlanningError(f"goal {goal.tolist()} is not finite")
+        asked = np.asarray(goal_body, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(asked)):
+            raise PlanningError(f"goal {asked.tolist()} is not finite")
+        distance = float(np.linalg.norm(asked))
+        clipped = distance > LOCAL_GOAL_RANGE
+        goal = (asked * (LOCAL_GOAL_RANGE / distance) if clipped else asked).astype(np.float32)
         vel = np.zeros(3, np.float32) if velocity_body is None else np.asarray(velocity_body, np.float32).reshape(3)
         d = torch.from_numpy(np.asarray(depth, dtype=np.float32)[None]).to(self.device)
         with torch.inference_mode():
@@ -112,13 +126,14 @@ class Planner:
             if self.device.type == "cuda":
                 torch.cuda.synchronize()
             latency = 1e3 * (time.perf_counter() - t0)
-            total = float(p.durations.sum())
-            t = torch.linspace(0.0, total, max(2, int(total * rate_hz) + 1), dtype=p.keypoints.dtype, device=self.device)
-            pos = p.trajectory.position(t)
+            total = float(p.durations.double().sum())
+            t = np.linspace(0.0, total, max(2, int(total * rate_hz) + 1))  # float64: stamps are built from it
+            pos = p.trajectory.position(torch.from_numpy(t).to(p.keypoints.dtype).to(self.device))
         return PlanResult(
             keypoints=p.keypoints[0].cpu().numpy(), eta=float(p.eta[0]), durations=p.durations[0].cpu().numpy(),
-            samples_t=t.cpu().numpy(), samples_body=pos.reshape(-1, 3).cpu().numpy(),
+            samples_t=t, samples_body=pos.reshape(-1, 3).cpu().numpy(),
             control_effort=float(p.trajectory.snap_cost().reshape(-1)[0]), latency_ms=latency,
+            goal_body=goal.astype(np.float64), goal_clipped=clipped,
         )
 
 
@@ -140,26 +155,29 @@ def write_plan_outputs(result: PlanResult, T_world_body: np.ndarray, stamp_ns: i
     R, p0 = T_world_body[:3, :3], T_world_body[:3, 3]
     world = result.samples_body @ R.T + p0
     q = quat_xyzw_from_matrix(R)  # the body's attitude at planning time (the planner plans positions)
-    t_abs = stamp_ns * 1e-9 + result.samples_t
+    # int64 nanoseconds end to end: epoch seconds in a float lose the nanoseconds (float32: whole minutes)
+    t_ns = int(stamp_ns) + np.round(np.asarray(result.samples_t, dtype=np.float64) * 1e9).astype(np.int64)
     json_path = out_dir / f"{stem}.json"
     json_path.write_text(json.dumps({
         "frame": world_frame, "stamp_ns": int(stamp_ns), "eta": result.eta, "execute": result.execute,
         "keypoints_body": result.keypoints.tolist(), "durations": result.durations.tolist(),
         "control_effort_m2_s7": result.control_effort, "latency_ms": result.latency_ms,
-        "t": result.samples_t.tolist(), "positions_world": world.tolist(),
+        "t": np.asarray(result.samples_t, dtype=np.float64).tolist(), "stamps_ns": t_ns.tolist(),
+        "goal_body": None if result.goal_body is None else result.goal_body.tolist(), "goal_clipped": result.goal_clipped,
+        "positions_world": world.tolist(),
     }, indent=1))
     tum_path = out_dir / f"{stem}.tum"
-    tum_path.write_text("".join(f"{t:.9f} {x:.6f} {y:.6f} {z:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n"
-                                for t, (x, y, z) in zip(t_abs, world)))
+    tum_path.write_text("".join(f"{t // 10**9}.{t % 10**9:09d} {x:.6f} {y:.6f} {z:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n"
+                                for t, (x, y, z) in zip(t_ns.tolist(), world)))
     mcap_path = out_dir / f"{stem}.mcap"
     with BagRecorder(mcap_path, "mcap", overwrite=True) as bag:
         Path_ = bag.typestore.types["nav_msgs/msg/Path"]
         PoseStamped = bag.typestore.types["geometry_msgs/msg/PoseStamped"]
         poses = []
-        for t, pos in zip(t_abs, world):
+        for t, pos in zip(t_ns.tolist(), world):
             T = np.eye(4)
             T[:3, :3] = R
             T[:3, 3] = pos
-            poses.append(PoseStamped(header=bag.header(int(round(t * 1e9)), world_frame), pose=bag.pose_message(T)))
+            poses.append(PoseStamped(header=bag.header(t, world_frame), pose=bag.pose_message(T)))
         bag.write_raw("/planner/path", "nav_msgs/msg/Path", Path_(header=bag.header(int(stamp_ns), world_frame), poses=poses), int(stamp_ns))
     return [json_path, tum_path, mcap_path]

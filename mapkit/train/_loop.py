@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from mapkit._saved import load_saved
 from mapkit._version import __version__
 from mapkit.train._config import TrainConfig, TrainConfigError
 from mapkit.train._data import TrainDataError, TupleSamples, TupleStore
@@ -243,9 +244,13 @@ def _open_stores(workspaces: Sequence[str | Path]) -> tuple[list[TupleStore], li
     stores = [TupleStore.open(ws) for ws in workspaces]
     maps = []
     for s in stores:
-        digest = map_digest(s.workspace / MAP) if (s.workspace / MAP).exists() else None
-        if digest != s.attrs["map"]["sha256"]:
-            raise TrainDataError(f"{s.workspace / MAP} changed since `mapkit export` (or is missing); re-run `mapkit export --overwrite`")
+        if not (s.workspace / MAP).exists():
+            raise TrainDataError(f"{s.workspace / MAP} is missing (the tuples' distances and collision labels come from "
+                                 f"it): rebuild it with `mapkit esdf -w {s.workspace}` using the options it had, or "
+                                 f"copy it back, then `mapkit export -w {s.workspace} --overwrite`")
+        if map_digest(s.workspace / MAP) != s.attrs["map"]["sha256"]:
+            raise TrainDataError(f"{s.workspace / MAP} changed since `mapkit export`; re-run `mapkit export -w "
+                                 f"{s.workspace} --overwrite` so the tuples match the map")
         maps.append(EsdfMap.open(s.workspace / MAP))
     return stores, maps
 
@@ -273,7 +278,7 @@ def _load_init(net: nn.Module, init: str, *, tan_fresh: bool = False) -> None:
     path = path / "model.pt" if path.is_dir() else path
     if not path.is_file():
         raise TrainConfigError(f"--init {init}: no model.pt there; pass a run directory, its model.pt or 'pretrained'")
-    saved = torch.load(path, map_location="cpu", weights_only=True)
+    saved = load_saved(path, "mapkit planner", TrainConfigError, ("planner_config", "state_dict"))
     mine = net.config.to_dict()
     theirs = saved.get("planner_config", {})
     diff = sorted(k for k in mine if k in theirs and json.dumps(mine[k]) != json.dumps(theirs[k])
@@ -295,6 +300,16 @@ def _selection_score(val: dict[str, float], only: str = "all") -> float:
     if only == "tan":
         return -val["time"]
     return val["blocked_reach"] if val.get("blocked_count", 0) > 0 else -val["total"]
+
+
+def _metrics_upto(path: Path, epoch: int) -> list[dict[str, Any]]:
+    """The rows of metrics.jsonl up to ``epoch`` (the checkpoint's), rewriting the file without the
+    rest: a kill after an epoch's row but before its checkpoint must not leave that row twice."""
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    kept = [row for row in rows if int(row.get("epoch", 0)) <= epoch]
+    if len(kept) != len(rows):
+        _atomic_text("".join(json.dumps(row) + "\n" for row in kept), path)
+    return kept
 
 
 def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: str | Path | None = None,
@@ -335,7 +350,8 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
                     f"--resume with an incompatible config: {key} is {getattr(config, key)!r} but the run has "
                     f"{getattr(saved, key)!r}; use the run's options or a new --name"
                 )
-        state = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
+        state = load_saved(checkpoint_path, "mapkit training checkpoint", TrainConfigError,
+                           ("epoch", "step", "model", "optimizer"))
         start_epoch, step = int(state["epoch"]) + 1, int(state["step"])
     elif run_dir.exists() and any(run_dir.iterdir()) and not overwrite:
         raise TrainConfigError(f"run {run_dir} exists; pass --resume to continue it, --overwrite to restart, or a new --name")
@@ -388,7 +404,7 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
                                                         [*workspaces, *val_workspaces]))),
                                                     "mapkit_version": __version__}, indent=2), run_dir / "config.json")
         if (run_dir / "metrics.jsonl").exists():
-            metrics = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
+            metrics = _metrics_upto(run_dir / "metrics.jsonl", start_epoch - 1)
         try:
             from torch.utils.tensorboard import SummaryWriter  # optional extra
 

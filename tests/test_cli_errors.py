@@ -1,0 +1,193 @@
+"""Every numeric option of every command, given a value no command can use, stops before any work
+with one line naming the option (click usage error, exit 2) — and the exit-code convention."""
+
+from __future__ import annotations
+
+import click
+import pytest
+from click.testing import CliRunner
+
+from mapkit.cli.main import Number, main
+
+
+def _numeric_options() -> list[tuple[str, click.Option]]:
+    found = []
+    for name, command in sorted(main.commands.items()):
+        for param in command.params:
+            if isinstance(param, click.Option) and isinstance(param.type, Number):
+                found.append((name, param))
+    return found
+
+
+NUMERIC = _numeric_options()
+
+
+def test_every_numeric_option_is_checked():
+    """No numeric option is a bare float/int any more (those accept nan and inf)."""
+    bare = [f"{name} {param.opts[0]}" for name, command in main.commands.items() for param in command.params
+            if isinstance(param, click.Option) and param.type in (click.FLOAT, click.INT)]
+    assert not bare, bare
+    assert len(NUMERIC) >= 50
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf", "-inf", "abc"])
+@pytest.mark.parametrize("command, option", NUMERIC, ids=[f"{c}{o.opts[0]}" for c, o in NUMERIC])
+def test_a_bad_number_is_one_line_naming_the_option(command: str, option: click.Option, bad: str):
+    values = [bad] + ["0"] * (option.nargs - 1)
+    r = CliRunner().invoke(main, [command, option.opts[0], *values], prog_name="mapkit")
+    lines = r.output.strip().splitlines()
+    assert r.exit_code == 2, r.output
+    assert len(lines) == 1 and lines[0].startswith(f"error: mapkit {command}: ") and option.opts[0] in lines[0]
+    assert "Traceback" not in r.output
+
+
+@pytest.mark.parametrize("command, option", [(c, o) for c, o in NUMERIC if o.type.low is not None],
+                         ids=[f"{c}{o.opts[0]}" for c, o in NUMERIC if o.type.low is not None])
+def test_a_number_below_range_is_refused(command: str, option: click.Option):
+    low = option.type.low
+    bad = str(low) if option.type.low_open else str(low - 1)
+    values = [bad] + ["1"] * (option.nargs - 1)
+    r = CliRunner().invoke(main, [command, option.opts[0], *values], prog_name="mapkit")
+    assert r.exit_code == 2 and r.output.count("\n") == 1 and f"must be {'>' if option.type.low_open else '>='}" in r.output
+
+
+def test_usage_errors_are_one_line_with_exit_2_and_help_still_works():
+    for args in (["nosuch"], ["esdf", "--no-such-option"], ["view", "-w", "x", "--port", "99999"], ["plan", "-w", "x"]):
+        r = CliRunner().invoke(main, args, prog_name="mapkit")
+        assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1 and r.output.startswith("error: mapkit")
+    r = CliRunner().invoke(main, ["esdf", "--help"], prog_name="mapkit")
+    assert r.exit_code == 0 and "Usage: mapkit esdf" in r.output
+
+
+def _dead_pid() -> int:
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_what_killed_commands_left_is_cleaned_up_and_a_half_replaced_store_restored(tmp_path, caplog):
+    from mapkit.workspace import atomic_output, clean_stale
+
+    dead = _dead_pid()
+    (tmp_path / f".map.zarr.partial-{dead}").mkdir()
+    (tmp_path / f".map.zarr.partial-{dead}" / "zarr.json").write_text("{}")
+    (tmp_path / f".cloud.ply.partial-{dead}.ply").write_bytes(b"ply")
+    (tmp_path / f".frames.zarr.old-{dead}").mkdir()  # killed between moving the old store aside and the new in
+    (tmp_path / f".tuples.zarr.old-{dead}").mkdir()
+    (tmp_path / "tuples.zarr").mkdir()  # ... or after the new one was in place
+    mine = tmp_path / f".x.partial-{__import__('os').getpid()}"  # a live process's: left alone
+    mine.write_text("busy")
+    with caplog.at_level("WARNING"):
+        handled = clean_stale(tmp_path)
+    assert len(handled) == 4 and mine.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["frames.zarr", "tuples.zarr", mine.name])
+    assert "restored" in caplog.text and "removed" in caplog.text
+    (tmp_path / f".eval.partial-{dead}").mkdir()
+    with atomic_output(tmp_path / "eval", overwrite=False) as tmp:  # every writer cleans up first
+        tmp.mkdir()
+    assert not (tmp_path / f".eval.partial-{dead}").exists() and (tmp_path / "eval").is_dir()
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A directory on a tmpfs of a chosen size (needs root and mount; CI runs as root)."""
+    import subprocess
+
+    mounted = []
+
+    def make(size_bytes: int):
+        where = tmp_path / f"disk{len(mounted)}"
+        where.mkdir()
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_bytes}", "tmpfs", str(where)], capture_output=True)
+        if r.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here ({r.stderr.decode().strip() or 'not root'}); CI runs this as root")
+        mounted.append(where)
+        return where
+
+    yield make
+    for where in mounted:
+        subprocess.run(["umount", "--lazy", str(where)], capture_output=True)  # lazy: a store handle may still be open
+
+
+def _dir_bytes(path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def test_a_full_disk_is_one_line_naming_the_place_and_keeps_what_was_there(small_disk, tmp_path):
+    import shutil
+
+    from scenes import box_world, orbit_poses, record_scene
+
+    flight = record_scene(box_world(), tmp_path / "box.mcap", orbit_poses(24))
+    runner = CliRunner()
+    tiny = small_disk(64 * 1024)
+    r = runner.invoke(main, ["ingest", str(flight), "-w", str(tiny / "ws")])
+    assert r.exit_code == 1 and f"No space left on device: {tiny / 'ws'}" in r.output and "Traceback" not in r.output
+    assert not [p for p in tiny.rglob("*") if p.name.endswith("zarr") or ".partial-" in p.name]
+
+    ws = tmp_path / "ws"
+    assert runner.invoke(main, ["fuse", str(flight), "-w", str(ws), "--voxel", "0.1", "--mesh"]).exit_code == 0
+    disk = small_disk(_dir_bytes(ws) + 256 * 1024)
+    shutil.copytree(ws, disk / "ws")
+    before = {p.name: p.read_bytes() for p in (disk / "ws").iterdir() if p.is_file()}
+    r = runner.invoke(main, ["fuse", "-w", str(disk / "ws"), "--voxel", "0.06", "--mesh", "--overwrite"])
+    errors = [line for line in r.output.splitlines() if line.startswith("error:")]
+    assert r.exit_code == 1 and len(errors) == 1 and "Traceback" not in r.output, r.output
+    assert {p.name: p.read_bytes() for p in (disk / "ws").iterdir() if p.is_file()} == before
+    assert not [p for p in (disk / "ws").iterdir() if ".partial-" in p.name]
+    r = runner.invoke(main, ["esdf", "-w", str(disk / "ws"), "--voxel", "0.1"])
+    assert r.exit_code == 1 and "No space left on device" in r.output and not (disk / "ws" / "map.zarr").exists(), r.output
+
+
+def test_kill_9_at_any_point_leaves_every_store_readable(tmp_path):
+    """kill -9 of ingest / fuse / esdf / export --overwrite at several moments: every output still
+    opens with its reader and fuse's files match fuse.json; the next run clears what was left."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from scenes import box_world, orbit_poses, record_scene
+
+    from mapkit.esdf import EsdfMap
+    from mapkit.fusion import check_fused
+    from mapkit.ingest import open_frames_store
+    from mapkit.train._data import TupleStore
+
+    flight = record_scene(box_world(), tmp_path / "box.mcap", orbit_poses(36))
+    ws = tmp_path / "ws"
+    commands = {
+        "ingest": ["ingest", str(flight)],
+        "fuse": ["fuse", "--voxel", "0.05", "--mesh"],
+        "esdf": ["esdf", "--voxel", "0.05"],
+        "export": ["export"],
+    }
+    for args in commands.values():
+        assert CliRunner().invoke(main, [*args, "-w", str(ws)]).exit_code == 0
+
+    def readable() -> None:
+        open_frames_store(ws)
+        check_fused(ws)
+        EsdfMap.open(ws / "map.zarr").load()
+        TupleStore.open(ws)
+
+    killed = 0
+    env = {**os.environ, "PYTHONPATH": str(__import__("pathlib").Path(__file__).parent)}
+    for name, args in commands.items():
+        for delay in (0.8, 2.0):
+            proc = subprocess.Popen([sys.executable, "-m", "mapkit.cli", *args, "-w", str(ws), "--overwrite"],
+                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+            time.sleep(delay)
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGKILL)
+                killed += 1
+            proc.wait()
+            readable()
+    assert killed >= 3  # the kills did land mid-command
+    assert CliRunner().invoke(main, ["esdf", "-w", str(ws), "--voxel", "0.05", "--overwrite"]).exit_code == 0
+    assert not [p.name for p in ws.iterdir() if ".partial-" in p.name or ".old-" in p.name]
+    readable()
