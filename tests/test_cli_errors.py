@@ -3,6 +3,8 @@ with one line naming the option (click usage error, exit 2) — and the exit-cod
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 import pytest
 from click.testing import CliRunner
@@ -191,3 +193,37 @@ def test_kill_9_at_any_point_leaves_every_store_readable(tmp_path):
     assert CliRunner().invoke(main, ["esdf", "-w", str(ws), "--voxel", "0.05", "--overwrite"]).exit_code == 0
     assert not [p.name for p in ws.iterdir() if ".partial-" in p.name or ".old-" in p.name]
     readable()
+
+
+def test_unreadable_and_unwritable_places_are_one_line_for_an_unprivileged_user(tmp_path):
+    """Run as `nobody` (needs root and setpriv; CI runs as root): an input in a folder it cannot read
+    and a workspace in a folder it cannot write."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    import tempfile
+
+    if os.geteuid() != 0 or shutil.which("setpriv") is None:
+        pytest.skip("needs root and setpriv to run a command as an unprivileged user; CI runs this as root")
+    from recordings import write_recording
+
+    base = Path(tempfile.mkdtemp(prefix="mapkit-perm-"))
+    try:
+        base.chmod(0o755)
+        rec = write_recording(base / "open", "mcap", n=3)
+        rec.path.chmod(0o644)
+        locked = base / "locked"
+        locked.mkdir(mode=0o700)
+        shutil.copy(rec.path, locked / "rec.mcap")
+        readonly = base / "readonly"
+        readonly.mkdir(mode=0o755)
+        cases = [(["ingest", str(locked / "rec.mcap"), "-w", str(base / "ws1")], "Permission denied"),
+                 (["ingest", str(rec.path), "-w", str(readonly / "ws")], "Permission denied")]
+        for args, needle in cases:
+            r = subprocess.run(["setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups",
+                                sys.executable, "-m", "mapkit.cli", *args], capture_output=True, text=True, cwd=base)
+            lines = [line for line in r.stderr.splitlines() if line.strip() and not line.startswith("ingest:")]
+            assert r.returncode == 1 and len(lines) == 1 and needle in lines[0] and "Traceback" not in r.stderr, r.stderr
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
