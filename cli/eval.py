@@ -41,11 +41,14 @@ from mapkit.cli.main import COUNT, FINITE, INDEX, library_call, main
               help="Seconds from the depth frame to the plan taking over (the vehicle flies on meanwhile).")
 @click.option("--final-approach", type=FINITE, default=0.0, show_default=True,
               help="Metres from the goal where one segment to rest at the goal replaces the planner's plans (0: never).")
+@click.option("--look-ahead", type=FINITE, default=1.5, show_default=True,
+              help="Seconds: the moving vehicle heads toward where its reference will be this much later (0: along the velocity).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: str, corridor: float,
-             corridor_check: bool, v_max: float, a_max: float, memory: float, plan_latency: float, final_approach: float, overwrite: bool) -> None:
+             corridor_check: bool, v_max: float, a_max: float, memory: float, plan_latency: float, final_approach: float, look_ahead: float,
+             overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, Execution, LoopConfig, evaluate
 
@@ -56,7 +59,8 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
                         execution=Execution(corridor=corridor or None, check_corridor=corridor_check, v_max=v_max or None,
                                             a_max=a_max or None, memory=memory or None),
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
-                                        on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach))
+                                        on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,
+                                        look_ahead=look_ahead))
     result = evaluate(run_dir, output, config, overwrite=overwrite)
     s, lat = result.summary["success"], result.summary["latency"]
     cols = [*config.worlds, "overall"]

@@ -574,3 +574,40 @@ def test_a_blocked_vehicle_brakes_beside_a_remembered_wall_not_into_it():
     end = stop.derivative(np.array([stop.t_end]), 0)[0]
     assert np.allclose(end, 2.0 ** 2 / 3.0 * direction, atol=1e-9)
     assert np.allclose(stop.derivative(np.array([stop.t_end]), 1)[0], 0.0, atol=1e-9)
+
+
+def test_the_vehicle_looks_where_its_reference_turns():
+    """With look-ahead the camera heads toward the reference 1.5 s on (into a left turn), without it
+    along the velocity."""
+    world = World([Box((50.0, 50.0, 1.5), (0.1, 0.1, 0.1))], np.array([[-10.0, -10.0, 0.0], [60.0, 60.0, 3.0]]))
+
+    class Turning:
+        name, needs_depth, replans = "turning", False, True
+
+        def __init__(self) -> None:
+            self.seen: list[Observation] = []
+            self.first = None
+
+        def plan(self, obs: Observation) -> MethodPlan:
+            self.seen.append(obs)
+            if self.first is None:  # one left turn, flown for the whole episode
+                wp = torch.tensor([[[0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [4.0, 4.0, 0.0]]], dtype=torch.float64)
+                with torch.no_grad():
+                    traj = min_snap(wp, torch.tensor([[2.0, 2.0]], dtype=torch.float64))
+                self.first = pieces_from_body(traj.coeffs[0].numpy(), np.array([2.0, 2.0]), obs.T_world_body, obs.t)
+            return MethodPlan(pieces=self.first, latency_ms=0.0, eta=0.0)
+
+    start, goal = np.array([0.0, 0.0, 1.5]), np.array([4.0, 4.0, 1.5])
+    yaws = {}
+    for look in (0.0, 1.5):
+        method = Turning()
+        run_episode(world, start, goal, method, LoopConfig(look_ahead=look, timeout_min=3.0, plan_latency=0.0))
+        obs = next(o for o in method.seen if 1.0 <= o.t <= 1.6)
+        R = obs.T_world_body[:3, :3]
+        v = obs.state_world[1]
+        yaws[look] = (np.arctan2(R[1, 0], R[0, 0]), np.arctan2(v[1], v[0]),
+                      method.first.derivative(np.array([obs.t + 1.5]), 0)[0] - obs.T_world_body[:3, 3])
+    yaw, v_yaw, _ = yaws[0.0]
+    assert abs(yaw - v_yaw) < 0.05
+    yaw, v_yaw, ahead = yaws[1.5]
+    assert abs(yaw - np.arctan2(ahead[1], ahead[0])) < 0.05 and yaw > v_yaw + 0.2  # turned further left

@@ -86,6 +86,8 @@ class EvalConfig:
                 raise EvalError(f"Execution.{name} must be a positive number of seconds, got {value}")
         if not (math.isfinite(loop.plan_latency) and 0 <= loop.plan_latency < loop.replan_interval):
             raise EvalError(f"--plan-latency must be in [0, replan interval {loop.replan_interval} s), got {loop.plan_latency}")
+        if not (math.isfinite(loop.look_ahead) and loop.look_ahead >= 0):
+            raise EvalError(f"--look-ahead must be >= 0 seconds (0: head along the velocity), got {loop.look_ahead}")
         if not (math.isfinite(loop.final_approach) and loop.final_approach >= 0):
             raise EvalError(f"--final-approach must be >= 0 metres (0 turns it off), got {loop.final_approach}")
         lc = self.loop
