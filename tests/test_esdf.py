@@ -496,3 +496,31 @@ def test_query_torch_on_cuda_matches_cpu():
         ref = m.query(p.numpy(), outside="clamp")
         np.testing.assert_allclose(d.detach().cpu().numpy(), ref[0], atol=1e-4)
         np.testing.assert_allclose(g.cpu().numpy(), ref[1], atol=1e-3)
+
+
+def test_map_zarr_is_an_ome_zarr_image_in_metres(tmp_path):
+    """The ome-zarr package's reader finds the ESDF with axes x/y/z in metres, 3 levels, and scale and
+    translation that put every level's voxels where the map's are; xarray still opens the root."""
+    import xarray as xr
+    from ome_zarr.io import parse_url
+    from ome_zarr.reader import Reader
+
+    path, _, _, esdf, _ = small_map(tmp_path, shape=(40, 30, 20), origin=(-1.0, 2.0, 0.25), vs=0.1)
+    image = next(iter(Reader(parse_url(str(path)))()))
+    levels = [np.asarray(level) for level in image.data]
+    assert [a.shape for a in levels] == [(40, 30, 20), (20, 15, 10), (10, 8, 5)][: len(levels)] and len(levels) >= 2
+    np.testing.assert_array_equal(levels[0], np.asarray(esdf, dtype=np.float32))
+    assert [a["name"] for a in image.metadata["axes"]] == ["x", "y", "z"]
+    assert {a["unit"] for a in image.metadata["axes"]} == {"meter"}
+    transforms = image.metadata["coordinateTransformations"]
+    (scale0, shift0), (scale1, shift1) = ([t["scale" if t["type"] == "scale" else "translation"] for t in level]
+                                          for level in transforms[:2])
+    np.testing.assert_allclose(scale0, [0.1] * 3) and np.testing.assert_allclose(shift0, [-1.0, 2.0, 0.25])
+    np.testing.assert_allclose(scale1, [0.2] * 3)
+    fine = esdf[2:4, 6:8, 4:6]  # the 8 voxels under coarse voxel (1, 3, 2)
+    np.testing.assert_allclose(levels[1][1, 3, 2], fine.mean(), rtol=1e-5)
+    centres = np.array([-1.0, 2.0, 0.25]) + 0.1 * np.array([[i, j, k] for i in (2, 3) for j in (6, 7) for k in (4, 5)])
+    np.testing.assert_allclose(np.asarray(shift1) + 0.2 * np.array([1, 3, 2]), centres.mean(axis=0))
+    with xr.open_zarr(path) as ds:  # the ngff subgroup stays out of the xarray view
+        assert set(ds.data_vars) == {"esdf", "esdf_raw", "observed"}
+    assert EsdfMap.open(path).load().shape == (40, 30, 20)

@@ -7,7 +7,9 @@ Layout (zarr v3 group, consolidated metadata so ``xarray.open_zarr`` opens it qu
 - ``x``, ``y``, ``z`` float64 voxel-centre coordinates with ``dimension_names`` ["x"], ["y"], ["z"];
 - attrs: ``kind`` = "mapkit.map", ``mapkit_version``, ``voxel_size``, ``origin`` (centre of voxel
   [0,0,0]), ``shape``, ``frame_id``, ``sigma``, ``unknown_policy``, ``units`` = "m",
-  ``distance_convention``, ``parameters`` (whatever made the map) and any extra attrs of `finalize`.
+  ``distance_convention``, ``parameters`` (whatever made the map) and any extra attrs of `finalize`;
+- ``ome``: OME-Zarr (NGFF 0.5) multiscale metadata over ``esdf`` and its 2× / 4× coarser means in the
+  ``ngff`` subgroup (:mod:`mapkit.esdf._ngff`), so NGFF viewers place the map in metres.
 
 The store is written under a temporary sibling name and renamed into place only when complete
 (:func:`mapkit.workspace.atomic_output`), so a killed run never leaves a map that opens.
@@ -26,6 +28,7 @@ import numpy as np
 from mapkit._version import __version__
 from mapkit.esdf import _checks
 from mapkit.esdf._errors import EsdfError
+from mapkit.esdf._ngff import multiscales, write_levels
 from mapkit.workspace import WorkspaceError, atomic_output
 
 KIND = "mapkit.map"
@@ -123,6 +126,8 @@ class MapWriter(AbstractContextManager):
         try:
             if extra_attrs:
                 self._root.attrs.update(_json_attrs("extra_attrs", extra_attrs))
+            levels = write_levels(self._root, self.esdf, _compressor(), CHUNK)
+            self._root.attrs["ome"] = multiscales(self._root.attrs["voxel_size"], self._root.attrs["origin"], levels)
             with warnings.catch_warnings():
                 # zarr notes that consolidated metadata is not (yet) in the v3 spec; xarray relies on it
                 warnings.simplefilter("ignore")

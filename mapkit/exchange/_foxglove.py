@@ -1,0 +1,344 @@
+"""`mapkit export-foxglove`: one MCAP file that Foxglove opens with no configuration.
+
+Written with the ``foxglove-sdk`` package (its message schemas and MCAP writer), every message
+stamped with the recording's own time (int64 ns):
+
+- ``/tf`` ``FrameTransforms``: world → body → camera at every frame;
+- ``/camera/depth`` ``RawImage`` (32FC1 metres, NaN invalid) and ``/camera/calibration``;
+- ``/map/cloud`` ``PointCloud`` of the fused cloud, coloured by height;
+- ``/map/esdf`` ``VoxelGrid`` (fields ``distance`` float32 and ``observed`` uint8), or ``Grid``
+  slices at chosen heights on ``/map/esdf_slices`` when the grid has more than ``voxel_limit`` voxels;
+- ``/planner/plans`` ``SceneUpdate`` (with a model): the trajectory, its key-points and corridor boxes
+  at chosen frames, toward where the flight was ``goal_ahead`` seconds later;
+- ``/eval/<method>`` ``SceneUpdate`` (with an eval folder): every flown path, in frame ``eval/<world>``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapkit.errors import MapkitError
+from mapkit.geometry import invert_transform, quat_xyzw_from_matrix
+
+
+class ExchangeError(MapkitError):
+    """A workspace, model or output that an export cannot use."""
+
+
+@dataclass(frozen=True)
+class FoxgloveConfig:
+    """What ``export_foxglove`` writes."""
+
+    model: str | None = None
+    """Run directory or "pretrained": plans at ``plan_count`` frames (None: no plans)."""
+    eval_dir: Path | None = None
+    """A `mapkit eval` output folder: its flown paths per method (None: none)."""
+    plan_count: int = 12
+    """Frames, evenly spread over the flight, that get a plan."""
+    goal_ahead: float = 4.0
+    """Seconds: each plan goes to where the flight was this much later (the local goal a planner got)."""
+    voxel_limit: int = 2_000_000
+    """Largest ESDF written as one VoxelGrid; Foxglove draws every cell, and past a few million the 3D
+    panel stalls. Larger maps become Grid slices at ``slice_heights``."""
+    slice_heights: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0)
+    """Metres (world z) of the ESDF slices written instead of a too-large VoxelGrid."""
+    overwrite: bool = False
+
+    def validate(self) -> None:
+        if self.plan_count < 1:
+            raise ExchangeError(f"--plans {self.plan_count} must be at least 1")
+        if not (np.isfinite(self.goal_ahead) and self.goal_ahead > 0):
+            raise ExchangeError(f"--goal-ahead {self.goal_ahead} must be a positive number of seconds")
+        if self.voxel_limit < 1:
+            raise ExchangeError(f"voxel_limit {self.voxel_limit} must be at least 1")
+
+
+@dataclass
+class FoxgloveSummary:
+    """What was written."""
+
+    path: Path
+    messages: dict[str, int] = field(default_factory=dict)
+    """Topic → message count."""
+    esdf_as: str = ""
+    """"VoxelGrid", "Grid slices" or "" (no map)."""
+    seconds: float = 0.0
+
+
+def _pose(T: NDArray[np.float64]) -> Any:
+    from foxglove.messages import Pose, Quaternion, Vector3
+
+    q = quat_xyzw_from_matrix(T[:3, :3])
+    return Pose(position=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+                orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+
+
+def _stamp(ns: int) -> Any:
+    from foxglove.messages import Timestamp
+
+    return Timestamp(sec=int(ns) // 1_000_000_000, nsec=int(ns) % 1_000_000_000)
+
+
+def _transform(ns: int, parent: str, child: str, T: NDArray[np.float64]) -> Any:
+    from foxglove.messages import FrameTransform, Quaternion, Vector3
+
+    q = quat_xyzw_from_matrix(T[:3, :3])
+    return FrameTransform(timestamp=_stamp(ns), parent_frame_id=parent, child_frame_id=child,
+                          translation=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+                          rotation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+
+
+def _fields(*spec: tuple[str, int, str]) -> list[Any]:
+    from foxglove.messages import PackedElementField, PackedElementFieldNumericType
+
+    return [PackedElementField(name=name, offset=offset, type=getattr(PackedElementFieldNumericType, kind))
+            for name, offset, kind in spec]
+
+
+def _height_colours(z: NDArray[np.float64]) -> NDArray[np.uint8]:
+    """RGBA per point from a blue → red ramp over the cloud's 2nd–98th height percentiles."""
+    lo, hi = np.percentile(z, [2, 98]) if len(z) else (0.0, 1.0)
+    u = np.clip((z - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
+    rgba = np.stack([255 * u, 255 * (1 - np.abs(2 * u - 1)), 255 * (1 - u), np.full_like(u, 255)], axis=1)
+    return rgba.astype(np.uint8)
+
+
+def _log_flight(frames: Any, channels: dict[str, Any]) -> int:
+    """World → body → camera transforms, depth (16UC1 mm, 0 invalid) and calibration per frame."""
+    from foxglove.messages import CameraCalibration, FrameTransforms, RawImage
+
+    world, body, camera = (str(frames.attrs.get(k) or d) for k, d in
+                           (("world_frame", "world"), ("body_frame", "body"), ("camera_frame", "camera")))
+    K = np.asarray(frames.K, dtype=np.float64)
+    height, width = frames.depth.shape[1:]
+    P = np.concatenate([K, np.zeros((3, 1))], axis=1)
+    for i, ns in enumerate(frames.stamp_ns.tolist()):
+        T_wb = frames.T_world_body[i]
+        T_bc = invert_transform(T_wb) @ frames.T_world_camera[i]
+        channels["/tf"].log(FrameTransforms(transforms=[_transform(ns, world, body, T_wb), _transform(ns, body, camera, T_bc)]),
+                            log_time=ns)
+        depth = np.asarray(frames.depth[i], dtype=np.float64)
+        mm = np.where(np.isfinite(depth), np.clip(np.round(depth * 1000.0), 0, 65535), 0).astype("<u2")
+        channels["/camera/depth"].log(RawImage(timestamp=_stamp(ns), frame_id=camera, width=width, height=height,
+                                               encoding="16UC1", step=2 * width, data=mm.tobytes()), log_time=ns)
+        channels["/camera/calibration"].log(CameraCalibration(
+            timestamp=_stamp(ns), frame_id=camera, width=width, height=height, distortion_model="plumb_bob",
+            D=[0.0] * 5, K=K.ravel().tolist(), R=np.eye(3).ravel().tolist(), P=P.ravel().tolist()), log_time=ns)
+    return len(frames.stamp_ns)
+
+
+def _log_cloud(path: Path, world: str, ns: int, channel: Any) -> None:
+    import open3d as o3d
+    from foxglove.messages import PointCloud
+
+    points = np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64)
+    if not len(points):
+        raise ExchangeError(f"{path} has no points; re-run `mapkit fuse --overwrite`")
+    packed = np.zeros(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgba", "u1", 4)])
+    packed["x"], packed["y"], packed["z"] = points.T
+    packed["rgba"] = _height_colours(points[:, 2])
+    fields = _fields(("x", 0, "Float32"), ("y", 4, "Float32"), ("z", 8, "Float32"), ("red", 12, "Uint8"),
+                     ("green", 13, "Uint8"), ("blue", 14, "Uint8"), ("alpha", 15, "Uint8"))
+    channel.log(PointCloud(timestamp=_stamp(ns), frame_id=world, pose=_pose(np.eye(4)), point_stride=16,
+                           fields=fields, data=packed.tobytes()), log_time=ns)
+
+
+def _corner(esdf_map: Any) -> NDArray[np.float64]:
+    """World pose of the grid's lower corner (voxel [0, 0, 0]'s centre minus half a voxel)."""
+    T = np.eye(4)
+    T[:3, 3] = np.asarray(esdf_map.origin) - 0.5 * esdf_map.voxel_size
+    return T
+
+
+def _log_esdf(esdf_map: Any, world: str, ns: int, channels: dict[str, Any], config: FoxgloveConfig) -> str:
+    """The ESDF as one VoxelGrid (distance, observed), or Grid slices when it is too large."""
+    from foxglove.messages import Grid, Vector2, Vector3, VoxelGrid
+
+    nx, ny, nz = esdf_map.shape
+    vs = float(esdf_map.voxel_size)
+    cell = np.dtype([("distance", "<f4"), ("observed", "u1")])
+    fields = _fields(("distance", 0, "Float32"), ("observed", 4, "Uint8"))
+    observed = esdf_map.observed is not None
+    if nx * ny * nz <= config.voxel_limit:
+        data = np.zeros((nz, ny, nx), dtype=cell)  # Foxglove: depth (z), then rows (y), then cells (x)
+        data["distance"] = esdf_map.read("esdf", ...).transpose(2, 1, 0)
+        data["observed"] = esdf_map.read("observed", ...).transpose(2, 1, 0) if observed else 1
+        channels["/map/esdf"].log(VoxelGrid(
+            timestamp=_stamp(ns), frame_id=world, pose=_pose(_corner(esdf_map)), row_count=ny, column_count=nx,
+            cell_size=Vector3(x=vs, y=vs, z=vs), slice_stride=cell.itemsize * nx * ny, row_stride=cell.itemsize * nx,
+            cell_stride=cell.itemsize, fields=fields, data=data.tobytes()), log_time=ns)
+        return "VoxelGrid"
+    for z in config.slice_heights:
+        k = int(round((z - esdf_map.origin[2]) / vs))
+        if not 0 <= k < nz:
+            continue
+        data = np.zeros((ny, nx), dtype=cell)
+        data["distance"] = esdf_map.read("esdf", (slice(None), slice(None), k)).T
+        data["observed"] = esdf_map.read("observed", (slice(None), slice(None), k)).T if observed else 1
+        T = _corner(esdf_map)
+        T[2, 3] = esdf_map.origin[2] + k * vs
+        channels["/map/esdf_slices"].log(Grid(
+            timestamp=_stamp(ns), frame_id=world, pose=_pose(T), column_count=nx, cell_size=Vector2(x=vs, y=vs),
+            row_stride=cell.itemsize * nx, cell_stride=cell.itemsize, fields=fields, data=data.tobytes()), log_time=ns)
+    return "Grid slices"
+
+
+def _colour(r: float, g: float, b: float, a: float = 1.0) -> Any:
+    from foxglove.messages import Color
+
+    return Color(r=r, g=g, b=b, a=a)
+
+
+def _line(points_world: NDArray[np.float64], colour: Any, thickness: float = 0.04) -> Any:
+    from foxglove.messages import LinePrimitive, LinePrimitiveLineType, Point3
+
+    return LinePrimitive(type=LinePrimitiveLineType.LineStrip, pose=_pose(np.eye(4)), thickness=thickness,
+                         scale_invariant=False, points=[Point3(x=float(x), y=float(y), z=float(z)) for x, y, z in points_world],
+                         color=colour)
+
+
+def _plan_entity(result: Any, T_wb: NDArray[np.float64], ns: int, world: str, corridor: float, index: int) -> Any:
+    """Trajectory, key-points and one corridor box per key-point segment (body axes) of one plan."""
+    from foxglove.messages import CubePrimitive, SceneEntity, SpherePrimitive, Vector3
+
+    R, p = T_wb[:3, :3], T_wb[:3, 3]
+    samples = result.samples_body @ R.T + p
+    ends = np.concatenate([np.zeros((1, 3)), result.keypoints])
+    spheres, cubes = [], []
+    for k, kp in enumerate(result.keypoints):
+        T = np.eye(4)
+        T[:3, 3] = R @ kp + p
+        spheres.append(SpherePrimitive(pose=_pose(T), size=Vector3(x=0.15, y=0.15, z=0.15), color=_colour(1.0, 0.6, 0.0)))
+        lo, hi = np.minimum(ends[k], ends[k + 1]) - corridor, np.maximum(ends[k], ends[k + 1]) + corridor
+        box = np.eye(4)
+        box[:3, :3], box[:3, 3] = R, R @ (0.5 * (lo + hi)) + p
+        size = hi - lo
+        cubes.append(CubePrimitive(pose=_pose(box), size=Vector3(x=float(size[0]), y=float(size[1]), z=float(size[2])),
+                                   color=_colour(0.2, 0.6, 1.0, 0.12)))
+    colour = _colour(0.1, 0.8, 0.2) if result.execute else _colour(0.9, 0.1, 0.1)
+    return SceneEntity(timestamp=_stamp(ns), frame_id=world, id=f"plan_{index:06d}", lines=[_line(samples, colour)],
+                       spheres=spheres, cubes=cubes,
+                       metadata=[])
+
+
+def _log_plans(frames: Any, world: str, config: FoxgloveConfig, channel: Any) -> int:
+    """Plans of ``config.model`` at evenly spread frames, each toward where the flight was
+    ``goal_ahead`` seconds later (same recording), clipped to the planner's range."""
+    from foxglove.messages import SceneUpdate
+
+    from mapkit.export import body_velocities
+    from mapkit.planning import Planner, PlanningError
+    from mapkit.planning._planner import LOCAL_GOAL_RANGE
+
+    try:
+        planner = Planner.load(str(config.model))
+    except PlanningError as exc:
+        raise ExchangeError(f"--model: {exc}") from None
+    corridor = 1.0  # mapkit eval's default flight corridor (Execution.corridor)
+    stamps = frames.stamp_ns.astype(np.int64)
+    velocity = body_velocities(stamps, frames.T_world_body, frames.source_index)
+    count = 0
+    for i in np.unique(np.linspace(0, len(stamps) - 1, config.plan_count).round().astype(int)).tolist():
+        same = np.flatnonzero((frames.source_index == frames.source_index[i]) & (stamps >= stamps[i] + int(config.goal_ahead * 1e9)))
+        if not len(same):
+            continue
+        T_wb = frames.T_world_body[i]
+        goal_body = invert_transform(T_wb) @ np.append(frames.T_world_body[same[0]][:3, 3], 1.0)
+        if np.linalg.norm(goal_body[:3]) < 0.5:
+            continue  # hovering: nowhere to plan to
+        result = planner.plan(np.asarray(frames.depth[i]), goal_body[:3] * min(1.0, LOCAL_GOAL_RANGE / np.linalg.norm(goal_body[:3])),
+                              velocity_body=velocity[i], corridor=corridor, K=frames.K,
+                              T_body_camera=invert_transform(T_wb) @ frames.T_world_camera[i])
+        channel.log(SceneUpdate(entities=[_plan_entity(result, T_wb, int(stamps[i]), world, corridor, i)]), log_time=int(stamps[i]))
+        count += 1
+    return count
+
+
+_OUTCOME_COLOURS = {"success": (0.1, 0.7, 0.2), "collision": (0.9, 0.1, 0.1), "timeout": (1.0, 0.6, 0.0)}
+
+
+def _log_eval(eval_dir: Path, ns: int, channels: dict[str, Any], context: Any) -> int:
+    """Every flown path of a `mapkit eval` folder: one topic per method, one entity per world, in
+    frame ``eval/<world>`` (the evaluation's own simulated worlds, not the workspace's)."""
+    import json
+
+    from foxglove.channels import SceneUpdateChannel
+    from foxglove.messages import SceneEntity, SceneUpdate
+
+    try:
+        results = json.loads((eval_dir / "results.json").read_text())
+        paths = np.load(eval_dir / "trajectories.npz")
+    except (OSError, ValueError) as exc:
+        raise ExchangeError(f"--eval {eval_dir}: not a readable `mapkit eval` folder ({exc}); run `mapkit eval -o "
+                            f"{eval_dir}` first") from None
+    outcome = {(e["world"], int(e["pair"]), e["method"]): e["outcome"] for e in results.get("episodes", [])}
+    lines: dict[str, dict[str, list[Any]]] = {}
+    for key in paths.files:
+        world, pair, method = key.split("/")
+        colour = _OUTCOME_COLOURS.get(outcome.get((world, int(pair), method), ""), (0.5, 0.5, 0.5))
+        lines.setdefault(method, {}).setdefault(world, []).append(_line(paths[key][:, 1:4], _colour(*colour), 0.03))
+    for method, worlds in sorted(lines.items()):
+        topic = f"/eval/{method}"
+        channels[topic] = SceneUpdateChannel(topic, context=context)
+        channels[topic].log(SceneUpdate(entities=[SceneEntity(timestamp=_stamp(ns), frame_id=f"eval/{world}", id=world,
+                                                              lines=world_lines, metadata=[])
+                                                  for world, world_lines in sorted(worlds.items())]), log_time=ns)
+    return len(lines)
+
+
+def export_foxglove(workspace: str | Path, output: str | Path, config: FoxgloveConfig = FoxgloveConfig()) -> FoxgloveSummary:
+    """Write the workspace's flight, cloud, ESDF (and plans, evaluation paths) to ``output`` (.mcap),
+    atomically; see the module docstring for the topics."""
+    import foxglove
+    from foxglove.channels import (CameraCalibrationChannel, FrameTransformsChannel, GridChannel, PointCloudChannel,
+                                   RawImageChannel, SceneUpdateChannel, VoxelGridChannel)
+
+    from mapkit.esdf import MAP, EsdfMap
+    from mapkit.fusion import CLOUD
+    from mapkit.ingest import open_frames_store
+    from mapkit.workspace import atomic_output
+
+    config.validate()
+    t0 = time.perf_counter()
+    workspace, output = Path(workspace), Path(output)
+    if output.suffix != ".mcap":
+        raise ExchangeError(f"-o {output}: give a file name ending in .mcap")
+    frames = open_frames_store(workspace)
+    if len(frames.stamp_ns) == 0:
+        raise ExchangeError(f"{workspace}/frames.zarr has no frames; nothing to export")
+    esdf_map = EsdfMap.open(workspace / MAP) if (workspace / MAP).exists() else None
+    world = str(frames.attrs.get("world_frame") or "world")
+    first = int(frames.stamp_ns[0])
+    summary = FoxgloveSummary(output)
+    context = foxglove.Context()
+    channels: dict[str, Any] = {
+        "/tf": FrameTransformsChannel("/tf", context=context),
+        "/camera/depth": RawImageChannel("/camera/depth", context=context),
+        "/camera/calibration": CameraCalibrationChannel("/camera/calibration", context=context),
+        "/map/cloud": PointCloudChannel("/map/cloud", context=context),
+        "/map/esdf": VoxelGridChannel("/map/esdf", context=context),
+        "/map/esdf_slices": GridChannel("/map/esdf_slices", context=context),
+        "/planner/plans": SceneUpdateChannel("/planner/plans", context=context),
+    }
+    with atomic_output(output, overwrite=config.overwrite) as tmp:
+        writer = foxglove.open_mcap(tmp, context=context)
+        try:
+            summary.messages["/tf"] = _log_flight(frames, channels)
+            if (workspace / CLOUD).exists():
+                _log_cloud(workspace / CLOUD, world, first, channels["/map/cloud"])
+            if esdf_map is not None:
+                summary.esdf_as = _log_esdf(esdf_map, world, first, channels, config)
+            if config.model is not None:
+                summary.messages["/planner/plans"] = _log_plans(frames, world, config, channels["/planner/plans"])
+            if config.eval_dir is not None:
+                summary.messages["/eval/*"] = _log_eval(Path(config.eval_dir), first, channels, context)
+        finally:
+            writer.close()
+    summary.seconds = time.perf_counter() - t0
+    return summary
