@@ -1,4 +1,4 @@
-"""`mapkit export-foxglove`."""
+"""`mapkit export-foxglove` and `mapkit export-rerun`."""
 
 from __future__ import annotations
 
@@ -27,4 +27,32 @@ def export_foxglove_cmd(workspace: Path, output: Path, model: str | None, eval_d
     config = FoxgloveConfig(model=model, eval_dir=eval_dir, plan_count=plan_count, goal_ahead=goal_ahead, overwrite=overwrite)
     s = export_foxglove(workspace, output, config)
     topics = ", ".join(f"{topic} {count}" for topic, count in s.messages.items())
-    click.echo(f"wrote {s.path}: {topics}; ESDF as {s.esdf_as or 'none (no map.zarr)'}; {s.seconds:.1f} s")
+    for note in s.notes:
+        click.echo(f"note: {note}", err=True)
+    click.echo(f"wrote {s.path} ({s.bytes / 1e6:.1f} MB): {topics}; ESDF as {s.esdf_as or 'none'}; {s.seconds:.1f} s")
+
+
+@main.command("export-rerun")
+@workspace_option("Workspace to export (frames.zarr; cloud.ply and map.zarr when present).")
+@click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Rerun recording to write (OUT.rrd).")
+@click.option("--model", default=None, help="Run directory or \"pretrained\": add plans at --plans frames.")
+@click.option("--eval", "eval_dir", type=click.Path(path_type=Path), default=None, help="A `mapkit eval` folder: add its flown paths.")
+@click.option("--plans", "plan_count", type=COUNT, default=12, show_default=True, help="Frames that get a plan (with --model).")
+@click.option("--goal-ahead", type=POSITIVE, default=4.0, show_default=True,
+              help="Seconds: each plan goes to where the flight was this much later.")
+@click.option("--spawn", is_flag=True, help="Open the written file in the Rerun viewer.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
+@library_call
+def export_rerun_cmd(workspace: Path, output: Path, model: str | None, eval_dir: Path | None, plan_count: int,
+                     goal_ahead: float, spawn: bool, overwrite: bool) -> None:
+    """One .rrd of the flight, cloud, ESDF, plans and evaluation paths, with a default layout for Rerun."""
+    from mapkit.exchange import RerunConfig, export_rerun, open_in_rerun
+
+    config = RerunConfig(model=model, eval_dir=eval_dir, plan_count=plan_count, goal_ahead=goal_ahead, overwrite=overwrite)
+    s = export_rerun(workspace, output, config)
+    for note in s.notes:
+        click.echo(f"note: {note}", err=True)
+    click.echo(f"wrote {s.path} ({s.bytes / 1e6:.1f} MB): {s.frames} frames, {s.plans} plans, {s.eval_paths} evaluation "
+               f"paths; {', '.join(s.entities)}; {s.seconds:.1f} s")
+    if spawn:
+        open_in_rerun(s.path)

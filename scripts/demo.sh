@@ -32,6 +32,8 @@ $MAPKIT eval --model pretrained --world all --pairs 2 --seed 0 \
   --methods learned,iplanner-style,straight,oracle -o "$WS/eval" --overwrite
 echo "== mapkit export-foxglove -w $WS/forest -o $WS/forest.mcap (open it in Foxglove: flight, cloud, ESDF, plans, eval paths)"
 $MAPKIT export-foxglove -w "$WS/forest" -o "$WS/forest.mcap" --model pretrained --eval "$WS/eval" --overwrite
+echo "== mapkit export-rerun -w $WS/forest -o $WS/forest.rrd (the same for Rerun)"
+$MAPKIT export-rerun -w "$WS/forest" -o "$WS/forest.rrd" --model pretrained --eval "$WS/eval" --overwrite
 echo "demo: workspaces in $WS/ (frames.zarr, cloud.ply, mesh.ply, map.zarr, slices.png, tuples.zarr, runs/demo), eval report of the shipped planner in $WS/eval/report.md"
 echo "demo: look at it in the browser (point cloud, ESDF slices, the flight, live plans, corridors, eval paths):"
 echo "  $MAPKIT view -w $WS/forest --model pretrained --eval $WS/eval"

@@ -140,3 +140,71 @@ def test_bad_requests_are_one_line(workspace: Path, tmp_path: Path) -> None:
     assert r.exit_code == 1 and "--overwrite" in r.output
     with pytest.raises(ExchangeError, match="--plans 0"):
         FoxgloveConfig(plan_count=0).validate()
+
+
+def _rerun_columns(path: Path, entity: str, index: str | None = "recording") -> dict[str, list]:
+    """Columns of ``entity`` read back with Rerun's own reader (a local server's dataframe query)."""
+    import rerun as rr
+
+    with rr.server.Server(datasets={"export": [str(path)]}) as server:
+        client = server.client()  # kept alive: the query runs in its context
+        dataset = client.get_dataset("export")
+        table = dataset.filter_contents(entity).reader(index=index).to_arrow_table()
+    columns = table.to_pydict()
+    columns["recording"] = table.column("recording").cast("int64").to_pylist()  # ns, not datetimes (µs)
+    return columns
+
+
+def test_rerun_recording_reads_back_equal_to_the_stores(workspace: Path, tmp_path: Path) -> None:
+    from mapkit.exchange import RerunConfig, export_rerun
+
+    evald = tmp_path / "eval"
+    evald.mkdir()
+    path = np.array([[0.0, 0.0, 0.0, 1.0], [1.0, 1.0, 0.0, 1.0], [2.0, 2.0, 1.0, 1.0]])
+    np.savez(evald / "trajectories.npz", **{"garage/003/learned": path})
+    (evald / "results.json").write_text(json.dumps({"episodes": []}))
+    out = tmp_path / "ws.rrd"
+    summary = export_rerun(workspace, out, RerunConfig(model="pretrained", plan_count=3, goal_ahead=0.2, eval_dir=evald))
+    frames = open_frames_store(workspace)
+    assert summary.frames == len(frames.stamp_ns) and summary.plans >= 1 and summary.eval_paths == 1
+
+    body = _rerun_columns(out, "/world/body")
+    stamps = body["recording"]
+    assert stamps == frames.stamp_ns.tolist()
+    i = len(stamps) // 2
+    np.testing.assert_allclose(body["/world/body:Transform3D:translation"][i][0], frames.T_world_body[i][:3, 3], atol=1e-6)
+    q = body["/world/body:Transform3D:quaternion"][i][0]
+    np.testing.assert_allclose(Rotation.from_quat(q).as_matrix(), frames.T_world_body[i][:3, :3], atol=1e-6)
+
+    cloud = _rerun_columns(out, "/world/cloud", index=None)["/world/cloud:Points3D:positions"][0]
+    points = np.asarray(o3d.io.read_point_cloud(str(workspace / "cloud.ply")).points)
+    np.testing.assert_allclose(np.asarray(cloud), points, atol=1e-6)
+
+    esdf = EsdfMap.open(workspace / "map.zarr").load()
+    tensor = _rerun_columns(out, "/map/esdf", index=None)["/map/esdf:Tensor:data"][0][0]
+    assert tensor["shape"] == list(esdf.shape) and [n for n in tensor["names"]] == ["x", "y", "z"]
+    np.testing.assert_array_equal(np.asarray(tensor["buffer"]).reshape(esdf.shape), esdf.esdf.astype(np.float32))
+
+    plans = _rerun_columns(out, "/world/plans/corridor")
+    assert len(plans["recording"]) == summary.plans
+    strips = _rerun_columns(out, "/eval/garage/learned", index=None)["/eval/garage/learned:LineStrips3D:strips"][0]
+    np.testing.assert_allclose(np.asarray(strips[0]), path[:, 1:4])
+
+
+def test_rerun_command_line(workspace: Path, tmp_path: Path) -> None:
+    runner = CliRunner()
+    r = runner.invoke(main, ["export-rerun", "-w", str(workspace), "-o", str(tmp_path / "x.mcap")])
+    assert r.exit_code == 1 and "ending in .rrd" in r.output
+    r = runner.invoke(main, ["export-rerun", "-w", str(workspace), "-o", str(tmp_path / "x.rrd")])
+    assert r.exit_code == 0 and "24 frames" in r.output and (tmp_path / "x.rrd").stat().st_size > 0, r.output
+
+
+def test_missing_layers_are_noted_and_the_rest_is_written(workspace: Path, tmp_path: Path) -> None:
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(workspace, ws, ignore=shutil.ignore_patterns("map.zarr", "cloud.ply"))
+    for command, out in (("export-foxglove", "a.mcap"), ("export-rerun", "a.rrd")):
+        r = CliRunner().invoke(main, [command, "-w", str(ws), "-o", str(tmp_path / out)])
+        assert r.exit_code == 0 and "mapkit esdf -w" in r.output and "mapkit fuse -w" in r.output, r.output
+    assert "/map/esdf" not in _read(tmp_path / "a.mcap") and len(_read(tmp_path / "a.mcap")["/tf"]) == 24

@@ -18,7 +18,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 from numpy.typing import NDArray
@@ -68,6 +68,9 @@ class FoxgloveSummary:
     """Topic → message count."""
     esdf_as: str = ""
     """"VoxelGrid", "Grid slices" or "" (no map)."""
+    notes: list[str] = field(default_factory=list)
+    """Layers left out, each with the command that makes them."""
+    bytes: int = 0
     seconds: float = 0.0
 
 
@@ -227,11 +230,14 @@ def _plan_entity(result: Any, T_wb: NDArray[np.float64], ns: int, world: str, co
                        metadata=[])
 
 
-def _log_plans(frames: Any, world: str, config: FoxgloveConfig, channel: Any) -> int:
-    """Plans of ``config.model`` at evenly spread frames, each toward where the flight was
-    ``goal_ahead`` seconds later (same recording), clipped to the planner's range."""
-    from foxglove.messages import SceneUpdate
+PLAN_CORRIDOR = 1.0
+"""Metres: the flight corridor of exported plans (``mapkit eval``'s default, ``Execution.corridor``)."""
 
+
+def _plan_results(frames: Any, config: FoxgloveConfig) -> Iterator[tuple[int, NDArray[np.float64], Any, float]]:
+    """(stamp, T_world_body, PlanResult, corridor) of ``config.model`` at evenly spread frames, each
+    toward where the flight was ``goal_ahead`` seconds later (same recording), clipped to the
+    planner's range; frames with nowhere to go are skipped."""
     from mapkit.export import body_velocities
     from mapkit.planning import Planner, PlanningError
     from mapkit.planning._planner import LOCAL_GOAL_RANGE
@@ -240,22 +246,29 @@ def _log_plans(frames: Any, world: str, config: FoxgloveConfig, channel: Any) ->
         planner = Planner.load(str(config.model))
     except PlanningError as exc:
         raise ExchangeError(f"--model: {exc}") from None
-    corridor = 1.0  # mapkit eval's default flight corridor (Execution.corridor)
     stamps = frames.stamp_ns.astype(np.int64)
     velocity = body_velocities(stamps, frames.T_world_body, frames.source_index)
-    count = 0
     for i in np.unique(np.linspace(0, len(stamps) - 1, config.plan_count).round().astype(int)).tolist():
-        same = np.flatnonzero((frames.source_index == frames.source_index[i]) & (stamps >= stamps[i] + int(config.goal_ahead * 1e9)))
-        if not len(same):
+        later = np.flatnonzero((frames.source_index == frames.source_index[i]) & (stamps >= stamps[i] + int(config.goal_ahead * 1e9)))
+        if not len(later):
             continue
         T_wb = frames.T_world_body[i]
-        goal_body = invert_transform(T_wb) @ np.append(frames.T_world_body[same[0]][:3, 3], 1.0)
-        if np.linalg.norm(goal_body[:3]) < 0.5:
+        goal = (invert_transform(T_wb) @ np.append(frames.T_world_body[later[0]][:3, 3], 1.0))[:3]
+        distance = float(np.linalg.norm(goal))
+        if distance < 0.5:
             continue  # hovering: nowhere to plan to
-        result = planner.plan(np.asarray(frames.depth[i]), goal_body[:3] * min(1.0, LOCAL_GOAL_RANGE / np.linalg.norm(goal_body[:3])),
-                              velocity_body=velocity[i], corridor=corridor, K=frames.K,
+        result = planner.plan(np.asarray(frames.depth[i]), goal * min(1.0, LOCAL_GOAL_RANGE / distance),
+                              velocity_body=velocity[i], corridor=PLAN_CORRIDOR, K=frames.K,
                               T_body_camera=invert_transform(T_wb) @ frames.T_world_camera[i])
-        channel.log(SceneUpdate(entities=[_plan_entity(result, T_wb, int(stamps[i]), world, corridor, i)]), log_time=int(stamps[i]))
+        yield int(stamps[i]), T_wb, result, PLAN_CORRIDOR
+
+
+def _log_plans(frames: Any, world: str, config: FoxgloveConfig, channel: Any) -> int:
+    from foxglove.messages import SceneUpdate
+
+    count = 0
+    for ns, T_wb, result, corridor in _plan_results(frames, config):
+        channel.log(SceneUpdate(entities=[_plan_entity(result, T_wb, ns, world, corridor, count)]), log_time=ns)
         count += 1
     return count
 
@@ -334,6 +347,7 @@ def export_foxglove(workspace: str | Path, output: str | Path, config: FoxgloveC
                 _log_cloud(workspace / CLOUD, world, first, channels["/map/cloud"])
             if esdf_map is not None:
                 summary.esdf_as = _log_esdf(esdf_map, world, first, channels, config)
+            summary.notes = missing_layers(workspace)
             if config.model is not None:
                 summary.messages["/planner/plans"] = _log_plans(frames, world, config, channels["/planner/plans"])
             if config.eval_dir is not None:
@@ -341,4 +355,18 @@ def export_foxglove(workspace: str | Path, output: str | Path, config: FoxgloveC
         finally:
             writer.close()
     summary.seconds = time.perf_counter() - t0
+    summary.bytes = output.stat().st_size
     return summary
+
+
+def missing_layers(workspace: Path) -> list[str]:
+    """A note per map layer the workspace lacks (the export writes what exists)."""
+    from mapkit.esdf import MAP
+    from mapkit.fusion import CLOUD
+
+    notes = []
+    if not (workspace / CLOUD).exists():
+        notes.append(f"no {CLOUD}: the cloud is left out (make it with `mapkit fuse -w {workspace}`)")
+    if not (workspace / MAP).exists():
+        notes.append(f"no {MAP}: the ESDF is left out (make it with `mapkit esdf -w {workspace}`)")
+    return notes
