@@ -314,17 +314,11 @@ def export_foxglove(workspace: str | Path, output: str | Path, config: FoxgloveC
 
     from mapkit.esdf import MAP, EsdfMap
     from mapkit.fusion import CLOUD
-    from mapkit.ingest import open_frames_store
     from mapkit.workspace import atomic_output
 
-    config.validate()
     t0 = time.perf_counter()
     workspace, output = Path(workspace), Path(output)
-    if output.suffix != ".mcap":
-        raise ExchangeError(f"-o {output}: give a file name ending in .mcap")
-    frames = open_frames_store(workspace)
-    if len(frames.stamp_ns) == 0:
-        raise ExchangeError(f"{workspace}/frames.zarr has no frames; nothing to export")
+    frames = open_inputs(workspace, output, ".mcap", config)
     esdf_map = EsdfMap.open(workspace / MAP) if (workspace / MAP).exists() else None
     world = str(frames.attrs.get("world_frame") or "world")
     first = int(frames.stamp_ns[0])
@@ -357,6 +351,19 @@ def export_foxglove(workspace: str | Path, output: str | Path, config: FoxgloveC
     summary.seconds = time.perf_counter() - t0
     summary.bytes = output.stat().st_size
     return summary
+
+
+def open_inputs(workspace: Path, output: Path, suffix: str, config: FoxgloveConfig) -> Any:
+    """The workspace's frames store, after checking the config and the output's suffix."""
+    from mapkit.ingest import open_frames_store
+
+    config.validate()
+    if output.suffix != suffix:
+        raise ExchangeError(f"-o {output}: give a file name ending in {suffix}")
+    frames = open_frames_store(workspace)
+    if len(frames.stamp_ns) == 0:
+        raise ExchangeError(f"{workspace}/frames.zarr has no frames; nothing to export")
+    return frames
 
 
 def missing_layers(workspace: Path) -> list[str]:

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapkit.exchange._foxglove import (_OUTCOME_COLOURS, ExchangeError, FoxgloveConfig, _height_colours, _plan_results,
-                                       missing_layers)
+                                       missing_layers, open_inputs)
 from mapkit.geometry import invert_transform, quat_xyzw_from_matrix
 
 RerunConfig = FoxgloveConfig
@@ -157,17 +157,11 @@ def export_rerun(workspace: str | Path, output: str | Path, config: RerunConfig 
     atomically; see the module docstring for the entities."""
     import rerun as rr
 
-    from mapkit.ingest import open_frames_store
     from mapkit.workspace import atomic_output
 
-    config.validate()
     t0 = time.perf_counter()
     workspace, output = Path(workspace), Path(output)
-    if output.suffix != ".rrd":
-        raise ExchangeError(f"-o {output}: give a file name ending in .rrd")
-    frames = open_frames_store(workspace)
-    if len(frames.stamp_ns) == 0:
-        raise ExchangeError(f"{workspace}/frames.zarr has no frames; nothing to export")
+    frames = open_inputs(workspace, output, ".rrd", config)
     summary = RerunSummary(output)
     with atomic_output(output, overwrite=config.overwrite) as tmp:
         rec = rr.RecordingStream("mapkit")
