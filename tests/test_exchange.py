@@ -110,6 +110,7 @@ def test_a_large_esdf_becomes_slices_and_plans_and_eval_paths_are_scene_updates(
                             eval_dir=evald)
     summary = export_foxglove(workspace, out, config)
     assert summary.esdf_as == "Grid slices" and summary.messages["/planner/plans"] >= 1
+    assert any("more than one VoxelGrid message holds" in note for note in summary.notes)
     topics = _read(out)
     assert "/map/esdf" not in topics
     _, grid = topics["/map/esdf_slices"][0]

@@ -339,9 +339,14 @@ def export_foxglove(workspace: str | Path, output: str | Path, config: FoxgloveC
             summary.messages["/tf"] = _log_flight(frames, channels)
             if (workspace / CLOUD).exists():
                 _log_cloud(workspace / CLOUD, world, first, channels["/map/cloud"])
+            summary.notes = missing_layers(workspace)
             if esdf_map is not None:
                 summary.esdf_as = _log_esdf(esdf_map, world, first, channels, config)
-            summary.notes = missing_layers(workspace)
+                if summary.esdf_as == "Grid slices":
+                    summary.notes.append(
+                        f"the ESDF has {int(np.prod(esdf_map.shape)):,} voxels, more than one VoxelGrid message holds "
+                        f"well ({config.voxel_limit:,}); wrote Grid slices at z = "
+                        f"{', '.join(f'{z:g}' for z in config.slice_heights)} m on /map/esdf_slices instead")
             if config.model is not None:
                 summary.messages["/planner/plans"] = _log_plans(frames, world, config, channels["/planner/plans"])
             if config.eval_dir is not None:
