@@ -34,6 +34,6 @@ echo "== mapkit export-foxglove -w $WS/forest -o $WS/forest.mcap (open it in Fox
 $MAPKIT export-foxglove -w "$WS/forest" -o "$WS/forest.mcap" --model pretrained --eval "$WS/eval" --overwrite
 echo "== mapkit export-rerun -w $WS/forest -o $WS/forest.rrd (the same for Rerun)"
 $MAPKIT export-rerun -w "$WS/forest" -o "$WS/forest.rrd" --model pretrained --eval "$WS/eval" --overwrite
-echo "demo: workspaces in $WS/ (frames.zarr, cloud.ply, mesh.ply, map.zarr, slices.png, tuples.zarr, runs/demo), eval report of the shipped planner in $WS/eval/report.md"
+echo "demo: workspaces in $WS/ (frames.zarr, cloud.ply, mesh.ply, map.zarr, slices.png, tuples.zarr, runs/demo), eval report of the shipped planner in $WS/eval/report.md, $WS/forest.mcap for Foxglove and $WS/forest.rrd for Rerun"
 echo "demo: look at it in the browser (point cloud, ESDF slices, the flight, live plans, corridors, eval paths):"
 echo "  $MAPKIT view -w $WS/forest --model pretrained --eval $WS/eval"
