@@ -21,6 +21,7 @@ from typing import Callable, Literal, Protocol
 import numpy as np
 from scipy.linalg import expm
 
+from mapkit._formats import Outcome
 from mapkit.evaluation._pieces import Pieces, hold
 from mapkit.sim import World
 
@@ -156,7 +157,7 @@ class Method(Protocol):
 class Episode:
     """One flight from start to goal."""
 
-    outcome: str
+    outcome: Outcome
     """``success``, ``collision`` or ``timeout``."""
     time_s: float
     """Episode time at the end."""
@@ -238,7 +239,7 @@ class _Flight:
     effort: float = 0.0
     min_dist: float = math.inf
     peaks: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    outcome: str = "timeout"
+    outcome: Outcome = "timeout"
     coll_point: list[float] | None = None
     coll_time: float | None = None
 

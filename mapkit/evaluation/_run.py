@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from mapkit._formats import EVAL_FORMAT
 from mapkit._version import __version__
 from mapkit.evaluation._loop import LoopConfig, run_episode
 from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, Execution, make_methods
@@ -27,7 +28,6 @@ log = logging.getLogger(__name__)
 
 WORLD_ORDER = ("office", "garage", "forest")
 """The paper's table order; ``--world all`` runs these."""
-FORMAT = "mapkit-eval/1"
 PATH_RATE_HZ = 20.0
 
 
@@ -446,7 +446,7 @@ def evaluate(
     lat = latency_summary(latencies, list(config.worlds), list(config.methods))
     alloc = latency_summary(allocations, list(config.worlds), list(config.methods))
     doc = {
-        "format": FORMAT,
+        "format": EVAL_FORMAT,
         "versions": _versions(),
         "model": model_info,
         "seed": config.seed,
@@ -466,7 +466,7 @@ def evaluate(
             world.to_json(tmp / "worlds" / f"{kind}.world.json")
         (tmp / "results.json").write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
         (tmp / "latency.json").write_text(json.dumps(
-            {"format": FORMAT, "device": platform.processor() or platform.machine(), "torch_threads": 1,
+            {"format": EVAL_FORMAT, "device": platform.processor() or platform.machine(), "torch_threads": 1,
              "workers": config.workers, "latency": lat, "allocation": alloc}, indent=1) + "\n")
         np.savez_compressed(tmp / "trajectories.npz", **paths)
         write_report(tmp, doc, lat, worlds, alloc)

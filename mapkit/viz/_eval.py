@@ -10,10 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from mapkit._formats import EVAL_FORMAT
 from mapkit.viz._errors import VizError
-
-EVAL_FORMAT = "mapkit-eval/1"
-OUTCOMES = ("success", "collision", "timeout")
 
 
 @dataclass
