@@ -227,3 +227,49 @@ def test_unreadable_and_unwritable_places_are_one_line_for_an_unprivileged_user(
             assert r.returncode == 1 and len(lines) == 1 and needle in lines[0] and "Traceback" not in r.stderr, r.stderr
     finally:
         shutil.rmtree(base, ignore_errors=True)
+
+
+def _dataclass_defaults(cls) -> dict:
+    import dataclasses
+
+    return {f.name: f.default for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING}
+
+
+def test_every_click_default_equals_the_library_default():
+    """A command's option default is the default of the dataclass field it fills (same name, with
+    dashes as underscores), so the CLI and the library never disagree silently."""
+    from mapkit.dataset import DatasetConfig
+    from mapkit.esdf import EsdfConfig
+    from mapkit.evaluation import EvalConfig, Execution, LoopConfig
+    from mapkit.exchange import FoxgloveConfig
+    from mapkit.export import ExportConfig
+    from mapkit.fusion import FuseConfig
+    from mapkit.ingest import IngestConfig
+    from mapkit.sim import SimConfig
+
+    sources = {"fuse": [FuseConfig, IngestConfig], "esdf": [EsdfConfig], "ingest": [IngestConfig],
+               "export": [ExportConfig], "simulate": [SimConfig], "dataset": [DatasetConfig],
+               "eval": [EvalConfig, Execution, LoopConfig], "export-foxglove": [FoxgloveConfig],
+               "export-rerun": [FoxgloveConfig]}
+    renamed = {("fuse", "frame_stride"): "stride"}
+    off_means_none = {"corridor", "v_max", "a_max", "memory"}  # eval: 0 on the command line = None in Execution
+    compared, mismatched = 0, []
+    for command, classes in sources.items():
+        for param in main.commands[command].params:
+            if not isinstance(param, click.Option) or param.default is None or type(param.default).__name__ == "Sentinel":
+                continue
+            name = renamed.get((command, param.name), param.name)
+            for cls in classes:
+                defaults = _dataclass_defaults(cls)
+                if name not in defaults or (command == "eval" and name in off_means_none and param.default == 0):
+                    continue
+                want = defaults[name]
+                got = param.default
+                if isinstance(got, str) and isinstance(want, tuple):  # "a,b,c" lists; eval's "all" = every method
+                    got = tuple(want) if got == "all" else tuple(got.split(","))
+                same = (tuple(got) == tuple(want)) if isinstance(want, (tuple, list)) else got == want
+                compared += 1
+                if not same:
+                    mismatched.append(f"{command} --{param.name.replace('_', '-')}: click {got!r}, {cls.__name__} {want!r}")
+                break
+    assert compared >= 40 and not mismatched, mismatched
