@@ -178,3 +178,20 @@ def test_header_stamps_sync_not_log_time(tmp_path: Path) -> None:
     rec = write_recording(tmp_path / "rec", "ros2", n=3)
     frames = list(open_frames([rec.path]))
     assert frames[0].stamp_ns == T0
+
+
+def test_tf_lookup_gives_a_matrix_or_raises_no_pose_with_the_reason():
+    from mapkit.ingest._tf import NO_POSE, POSE_GAP, EdgeSeries, NoPose, TfTree
+
+    series = EdgeSeries("world", "body", "test")
+    q = np.array([0.0, 0.0, 0.0, 1.0])
+    series.add(0, np.array([0.0, 0.0, 0.0]), q)
+    series.add(1_000_000_000, np.array([2.0, 0.0, 0.0]), q)
+    tree = TfTree()
+    tree.replace_dynamic(series)
+    T = tree.lookup("world", "body", 500_000_000, max_gap_ns=2_000_000_000)
+    np.testing.assert_allclose(T[:3, 3], [1.0, 0.0, 0.0])
+    for stamp, gap, reason in ((500_000_000, 100_000_000, POSE_GAP), (2_000_000_000, 2_000_000_000, NO_POSE)):
+        with pytest.raises(NoPose) as info:
+            tree.lookup("world", "body", stamp, max_gap_ns=gap)
+        assert info.value.reason == reason

@@ -31,7 +31,7 @@ from mapkit.ingest._errors import IngestError
 from mapkit.ingest._fastcdr import parse_image, parse_odometry
 from mapkit._threads import prefetch
 from mapkit.ingest._sources import BagSummary, Source, normalize_topic
-from mapkit.ingest._tf import NO_POSE, POSE_GAP, EdgeSeries, TfTree
+from mapkit.ingest._tf import NO_POSE, POSE_GAP, EdgeSeries, NoPose, TfTree
 
 log = logging.getLogger(__name__)
 
@@ -453,13 +453,11 @@ class FrameStream:
             if not np.isfinite(depth).any():
                 self.dropped[NO_VALID_DEPTH] += 1
                 return None
-            T_world_body = tree.lookup(plan.world_frame, plan.body_frame, stamp, max_gap_ns)
-            if isinstance(T_world_body, str):
-                self.dropped[T_world_body] += 1
-                return None
-            T_body_camera = tree.lookup(plan.body_frame, plan.camera_frame, stamp, max_gap_ns)
-            if isinstance(T_body_camera, str):
-                self.dropped[T_body_camera] += 1
+            try:
+                T_world_body = tree.lookup(plan.world_frame, plan.body_frame, stamp, max_gap_ns)
+                T_body_camera = tree.lookup(plan.body_frame, plan.camera_frame, stamp, max_gap_ns)
+            except NoPose as missing:
+                self.dropped[missing.reason] += 1
                 return None
             return Frame(depth, stamp, T_world_body @ T_body_camera, T_world_body, plan.K, index)  # type: ignore[arg-type]
 

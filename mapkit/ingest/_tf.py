@@ -13,6 +13,16 @@ NO_POSE = "outside_pose_coverage"
 POSE_GAP = "pose_gap"
 
 
+class NoPose(Exception):
+    """A moving edge has no pose at the asked stamp; ``reason`` is NO_POSE (outside its samples) or
+    POSE_GAP (inside a gap longer than allowed). Not an error of the recording: the frame is dropped
+    and counted by reason."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
 class EdgeSeries:
     """T_parent_child sampled over time; interpolated linearly (translation) and by slerp.
 
@@ -68,18 +78,18 @@ class EdgeSeries:
     def last_stamp(self) -> int | None:
         return int(self._t[self._n - 1]) if self._n else None
 
-    def at(self, stamp: int, max_gap_ns: int) -> NDArray[np.float64] | str:
-        """T_parent_child at `stamp`, or the reason it has none (NO_POSE / POSE_GAP)."""
+    def at(self, stamp: int, max_gap_ns: int) -> NDArray[np.float64]:
+        """T_parent_child at `stamp`; raises :class:`NoPose` (NO_POSE / POSE_GAP) when it has none."""
         n = self._n
         t = self._t
         if n == 0 or stamp < t[0] or stamp > t[n - 1]:
-            return NO_POSE
+            raise NoPose(NO_POSE)
         i = int(np.searchsorted(t[:n], stamp, side="right"))
         if t[i - 1] == stamp:
             return transform_from_pose(self._trans[i - 1], self._quats[i - 1])
         gap = int(t[i] - t[i - 1])
         if gap > max_gap_ns:
-            return POSE_GAP
+            raise NoPose(POSE_GAP)
         s = (stamp - int(t[i - 1])) / gap
         return interpolate_transform(self._trans[i - 1], self._quats[i - 1], self._trans[i], self._quats[i], s)
 
@@ -161,7 +171,7 @@ class TfTree:
         edges = [f for f in chain_a + chain_b if f not in common]
         return [self.dynamic[f] for f in edges if f in self.dynamic]
 
-    def _T_ancestor_frame(self, frame: str, ancestor: str, stamp: int, max_gap_ns: int) -> NDArray[np.float64] | str:
+    def _T_ancestor_frame(self, frame: str, ancestor: str, stamp: int, max_gap_ns: int) -> NDArray[np.float64]:
         T = np.eye(4)
         while frame != ancestor:
             if frame in self.static:
@@ -169,23 +179,17 @@ class TfTree:
             else:
                 series = self.dynamic[frame]
                 parent, T_edge = series.parent, series.at(stamp, max_gap_ns)
-                if isinstance(T_edge, str):
-                    return T_edge
             T = T_edge @ T
             frame = parent
         return T
 
-    def lookup(self, target: str, source: str, stamp: int, max_gap_ns: int) -> NDArray[np.float64] | str:
-        """T_target_source at `stamp`, or the reason there is none."""
+    def lookup(self, target: str, source: str, stamp: int, max_gap_ns: int) -> NDArray[np.float64]:
+        """T_target_source at `stamp`; raises :class:`NoPose` when a moving edge has no pose there."""
         chain_t = self.ancestors(target)
         chain_s = self.ancestors(source)
         common = next((f for f in chain_s if f in chain_t), None)
         if common is None:
             raise IngestError(f"frames {target!r} and {source!r} are not connected by any transform")
         T_common_target = self._T_ancestor_frame(target, common, stamp, max_gap_ns)
-        if isinstance(T_common_target, str):
-            return T_common_target
         T_common_source = self._T_ancestor_frame(source, common, stamp, max_gap_ns)
-        if isinstance(T_common_source, str):
-            return T_common_source
         return invert_transform(T_common_target) @ T_common_source
