@@ -10,7 +10,12 @@ interval, and so on until the goal, a collision (exact distance to the world) or
 Building blocks for other loops: :func:`run_episode` with any object that has ``name``,
 ``needs_depth``, ``replans`` and ``plan(Observation) -> MethodPlan``; :class:`Pieces` (world-frame
 piecewise polynomials with exact snap effort); :func:`sample_pairs`.
+
+Reading results.json: :class:`EpisodeRecord` (one row of ``episodes``), :data:`Outcome`,
+:data:`EVAL_FORMAT`.
 """
+
+from mapkit._formats import EVAL_FORMAT, OUTCOMES, EpisodeRecord, Outcome
 
 from mapkit.evaluation._loop import Episode, LoopConfig, MethodPlan, Observation, level_pose, run_episode
 from mapkit.evaluation._methods import METHODS, Execution, LearnedMethod, OracleMethod, StraightMethod, make_methods
@@ -20,7 +25,8 @@ from mapkit.evaluation._pieces import Pieces, hold, pieces_from_body
 from mapkit.evaluation._run import WORLD_ORDER, CameraSpec, EvalConfig, EvalResult, evaluate, summarise
 
 __all__ = [
-    "METHODS", "WORLD_ORDER",
+    "METHODS", "WORLD_ORDER", "EVAL_FORMAT", "OUTCOMES",
+    "EpisodeRecord", "Outcome",
     "CameraSpec", "EvalConfig", "EvalError", "EvalResult", "evaluate", "summarise",
     "Episode", "LoopConfig", "MethodPlan", "Observation", "level_pose", "run_episode",
     "Execution", "LearnedMethod", "OracleMethod", "StraightMethod", "make_methods",

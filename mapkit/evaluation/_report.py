@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mapkit._formats import EpisodeRecord
 from mapkit.sim import World
 
 PAPER_SUCCESS = {  # % office / garage / forest / overall, from the paper
@@ -49,19 +50,40 @@ def _lat(lat: dict) -> str:
 
 def write_report(out: Path, doc: dict, latency: dict, worlds: dict[str, World], allocation: dict | None = None) -> list[Path]:
     """Write report.md, paths_<world>.png per world, effort_latency.png and speed_profiles.png into
-    ``out``; ``allocation``: the time allocation's own latency per method (Table III)."""
+    ``out``; ``doc``: results.json's content; ``allocation``: the time allocation's own latency per
+    method (Table III)."""
+    episodes = [EpisodeRecord.from_dict(e) for e in doc["episodes"]]
     files = []
     for kind, world in worlds.items():
-        files.append(_paths_figure(out / f"paths_{kind}.png", doc, kind, world))
+        files.append(_paths_figure(out / f"paths_{kind}.png", doc, episodes, kind, world))
     files.append(_bars_figure(out / "effort_latency.png", doc, latency))
-    files.append(_speed_figure(out / "speed_profiles.png", doc))
-    files.append(_markdown(out / "report.md", doc, latency, [f.name for f in files], allocation or {}))
+    files.append(_speed_figure(out / "speed_profiles.png", doc, episodes))
+    files.append(_markdown(out / "report.md", doc, episodes, latency, [f.name for f in files], allocation or {}))
     return files
 
 
-def _markdown(path: Path, doc: dict, latency: dict, figures: list[str], allocation: dict) -> Path:
-    s, methods = doc["summary"], doc["methods"]
-    worlds = list(doc["worlds"])
+def _markdown(path: Path, doc: dict, episodes: list[EpisodeRecord], latency: dict, figures: list[str],
+              allocation: dict) -> Path:
+    """Write report.md: set-up, Tables I–III, per-world table, figures and versions."""
+    methods = doc["methods"]
+    L = _setup_lines(doc)
+    L += _success_table(doc)
+    L += _effort_table(doc, latency)
+    for other, paper in (("iplanner-style", "paper: 30.9 % lower than iPlanner"),
+                         ("learned+gradient", "paper: TAN 21.16 vs gradient descent 26.99"),
+                         ("oracle", "target: at most 2×")):
+        if "learned" in methods and other in methods:
+            L += [_effort_comparison(doc, episodes, "learned", other, paper), ""]
+    L += _allocation_table(doc, latency, allocation)
+    L += _per_world_table(doc, latency)
+    L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
+    L += [f"Versions: {', '.join(f'{k} {v}' for k, v in doc['versions'].items())}.", ""]
+    path.write_text("\n".join(L))
+    return path
+
+
+def _setup_lines(doc: dict) -> list[str]:
+    """The title and what was run: model, worlds and pairs, the closed loop's settings."""
     cfg, loop = doc["config"], doc["config"]["loop"]
     model = doc["model"]
     n_pairs = {k: len(v["pairs"]) for k, v in doc["worlds"].items()}
@@ -84,22 +106,34 @@ def _markdown(path: Path, doc: dict, latency: dict, figures: list[str], allocati
         f"flight; both over successful flights. Peaks are the flown vehicle's largest speed, acceleration and jerk. "
         f"Latency: wall clock, one CPU thread ({doc['versions']['torch']}).",
         "",
-        "## Table I — success rate (%)",
-        "",
-        "| method | " + " | ".join(worlds) + " | overall | collision | timeout | goal hidden from start |",
-        "|---|" + "---|" * (len(worlds) + 4),
     ]
+    return L
+
+
+def _success_table(doc: dict) -> list[str]:
+    """Table I (success rate per world and overall) and the paper's figures."""
+    s, methods = doc["summary"], doc["methods"]
+    worlds = list(doc["worlds"])
+    L = ["## Table I — success rate (%)", "",
+         "| method | " + " | ".join(worlds) + " | overall | collision | timeout | goal hidden from start |",
+         "|---|" + "---|" * (len(worlds) + 4)]
     for m in methods:
         row = [_pct(s[m][w]["success_rate"]) for w in worlds]
         o = s[m]["overall"]
         L.append(f"| {m} | " + " | ".join(row) + f" | **{_pct(o['success_rate'])}** | {_pct(o['collision_rate'])} | "
                  f"{_pct(o['timeout_rate'])} | {_pct(o['hidden_goal_success_rate'])} ({o['hidden_goal_episodes']}) |")
     L += ["", "Paper (its own worlds, 60 pairs each; office / garage / forest / overall): " + "; ".join(
-        f"{k} {' / '.join(f'{v:g}' for v in vals)}" for k, vals in PAPER_SUCCESS.items()) + ".", "",
-        "## Table II — control effort and planning latency", "",
-        "| method | executed effort m²/s⁷: median (mean ± std) | per-plan effort, median | peak speed / acc. / jerk, "
-        "median | latency ms | path length / straight | min distance m (mean, min) |",
-        "|---|---|---|---|---|---|---|"]
+        f"{k} {' / '.join(f'{v:g}' for v in vals)}" for k, vals in PAPER_SUCCESS.items()) + ".", ""]
+    return L
+
+
+def _effort_table(doc: dict, latency: dict) -> list[str]:
+    """Table II (effort, peaks, latency, path ratio, clearance) and the paper's figures."""
+    s, methods = doc["summary"], doc["methods"]
+    L = ["## Table II — control effort and planning latency", "",
+         "| method | executed effort m²/s⁷: median (mean ± std) | per-plan effort, median | peak speed / acc. / jerk, "
+         "median | latency ms | path length / straight | min distance m (mean, min) |",
+         "|---|---|---|---|---|---|---|"]
     for m in methods:
         o = s[m]["overall"]
         md = o["min_distance"]
@@ -109,49 +143,54 @@ def _markdown(path: Path, doc: dict, latency: dict, figures: list[str], allocati
                  f"{_median(o.get('plan_effort', {}))} | {peaks} | {_lat(latency[m]['overall'])} | "
                  f"{_pm(o['path_length_ratio'])} | {mind} |")
     L += ["", "Paper: " + "; ".join(f"{k} {e} m²/s⁷, {t} ms" for k, (e, t) in PAPER_EFFORT_LATENCY.items()) + ".", ""]
-    for other, paper in (("iplanner-style", "paper: 30.9 % lower than iPlanner"),
-                         ("learned+gradient", "paper: TAN 21.16 vs gradient descent 26.99"),
-                         ("oracle", "target: at most 2×")):
-        if "learned" in methods and other in methods:
-            L += [_effort_comparison(doc, "learned", other, paper), ""]
+    return L
+
+
+def _allocation_table(doc: dict, latency: dict, allocation: dict) -> list[str]:
+    """Table III (the time allocations on the same key-points), empty when no learned method ran."""
+    s, methods = doc["summary"], doc["methods"]
     ta = [m for m in ("learned+uniform", "learned+poly5", "learned+gradient", "learned") if m in methods]
-    if ta:
-        L += ["## Table III — time allocation (same key-points, total time and execution)", "",
-              "| allocation | executed effort, median | per-plan effort, median | allocation ms, median | "
-              "planning ms | success % | paper effort / latency |",
-              "|---|---|---|---|---|---|---|"]
-        for m in ta:
-            name = "TAN" if m == "learned" else m.split("+")[1]
-            pe, pl = PAPER_TIME_ALLOCATION[name]
-            o = s[m]["overall"]
-            alloc = allocation.get(m, {}).get("overall", {}).get("median_ms")
-            L.append(f"| {name} | {_median(o['control_effort'])} | {_median(o.get('plan_effort', {}))} | "
-                     f"{'–' if alloc is None else f'{alloc:.3g}'} | {_lat(latency[m]['overall'])} | "
-                     f"{_pct(o['success_rate'])} | {pe} / {pl} |")
-        L.append("")
-    L += ["## Per world", "", "| method | world | success % | collision % | timeout % | effort m²/s⁷ | latency ms |",
-          "|---|---|---|---|---|---|---|"]
+    if not ta:
+        return []
+    L = ["## Table III — time allocation (same key-points, total time and execution)", "",
+         "| allocation | executed effort, median | per-plan effort, median | allocation ms, median | "
+         "planning ms | success % | paper effort / latency |",
+         "|---|---|---|---|---|---|---|"]
+    for m in ta:
+        name = "TAN" if m == "learned" else m.split("+")[1]
+        pe, pl = PAPER_TIME_ALLOCATION[name]
+        o = s[m]["overall"]
+        alloc = allocation.get(m, {}).get("overall", {}).get("median_ms")
+        L.append(f"| {name} | {_median(o['control_effort'])} | {_median(o.get('plan_effort', {}))} | "
+                 f"{'–' if alloc is None else f'{alloc:.3g}'} | {_lat(latency[m]['overall'])} | "
+                 f"{_pct(o['success_rate'])} | {pe} / {pl} |")
+    L.append("")
+    return L
+
+
+def _per_world_table(doc: dict, latency: dict) -> list[str]:
+    """Outcome rates, effort and latency per method and world."""
+    s, methods = doc["summary"], doc["methods"]
+    L = ["## Per world", "", "| method | world | success % | collision % | timeout % | effort m²/s⁷ | latency ms |",
+         "|---|---|---|---|---|---|---|"]
     for m in methods:
-        for w in worlds:
+        for w in doc["worlds"]:
             o = s[m][w]
             L.append(f"| {m} | {w} | {_pct(o['success_rate'])} | {_pct(o['collision_rate'])} | "
                      f"{_pct(o['timeout_rate'])} | {_effort(o['control_effort'])} | {_lat(latency[m][w])} |")
-    L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
-    L += [f"Versions: {', '.join(f'{k} {v}' for k, v in doc['versions'].items())}.", ""]
-    path.write_text("\n".join(L))
-    return path
+    return L
 
 
-def _effort_comparison(doc: dict, a: str, b: str, paper: str) -> str:
+def _effort_comparison(doc: dict, episodes: list[EpisodeRecord], a: str, b: str, paper: str) -> str:
     """Effort of a vs b over all their successful flights and over the pairs both reached."""
     s = doc["summary"]
     ea, eb = s[a]["overall"]["control_effort"].get("median"), s[b]["overall"]["control_effort"].get("median")
     if ea is None or not eb:
         return f"Effort {a} vs {b}: no comparison (one of them reached no goal; {paper})."
-    ok = {}
-    for e in doc["episodes"]:
-        if e["method"] in (a, b) and e["outcome"] == "success":
-            ok.setdefault((e["world"], e["pair"]), {})[e["method"]] = e["control_effort"]
+    ok: dict[tuple[str, int], dict[str, float | None]] = {}
+    for e in episodes:
+        if e.method in (a, b) and e.outcome == "success":
+            ok.setdefault((e.world, e.pair), {})[e.method] = e.control_effort
     both = [v for v in ok.values() if len(v) == 2]
 
     def rel(x: float, y: float) -> str:
@@ -182,14 +221,15 @@ def _occupancy_views(world: World, z: float, res: float) -> tuple[np.ndarray, np
     return top, side, (lo[0], hi[0], lo[1], hi[1]), (lo[0], hi[0], lo[2], hi[2])
 
 
-def _paths_figure(path: Path, doc: dict, kind: str, world: World) -> Path:
+def _paths_figure(path: Path, doc: dict, episodes: list[EpisodeRecord], kind: str, world: World) -> Path:
+    """Top and side views of ``kind`` with every method's executed paths coloured by outcome."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     methods = doc["methods"]
-    eps = [e for e in doc["episodes"] if e["world"] == kind]
+    eps = [e for e in episodes if e.world == kind]
     starts = np.array([p["start"] for p in doc["worlds"][kind]["pairs"]])
     z = float(np.median(starts[:, 2])) if len(starts) else float(np.mean(world.flight_z))
     res = float(np.clip(max(world.bounds[1] - world.bounds[0]) / 200.0, 0.05, 0.25))
@@ -209,22 +249,22 @@ def _paths_figure(path: Path, doc: dict, kind: str, world: World) -> Path:
         ax_s.imshow(side.T, origin="lower", extent=ext_side, cmap="Greys", vmin=0, vmax=1.6, interpolation="nearest",
                     aspect="auto")
         ok = 0
-        for e in (e for e in eps if e["method"] == m):
-            p = paths.get(f"{kind}/{e['pair']:03d}/{m}")
-            c = OUTCOME_COLOURS[e["outcome"]]
-            ok += e["outcome"] == "success"
+        for e in (e for e in eps if e.method == m):
+            p = paths.get(f"{kind}/{e.pair:03d}/{m}")
+            c = OUTCOME_COLOURS[e.outcome]
+            ok += e.outcome == "success"
             if p is not None and len(p):
                 ax_t.plot(p[:, 1], p[:, 2], color=c, lw=0.7, alpha=0.8)
                 ax_s.plot(p[:, 1], p[:, 3], color=c, lw=0.7, alpha=0.8)
-            if e["collision_point"] is not None:
-                cp = e["collision_point"]
+            if e.collision_point is not None:
+                cp = e.collision_point
                 ax_t.plot(cp[0], cp[1], "x", color="tab:red", ms=5)
                 ax_s.plot(cp[0], cp[2], "x", color="tab:red", ms=5)
         if len(starts):
             goals = np.array([p["goal"] for p in doc["worlds"][kind]["pairs"]])
             ax_t.plot(starts[:, 0], starts[:, 1], "o", ms=2.5, color="black")
             ax_t.plot(goals[:, 0], goals[:, 1], "*", ms=4, color="tab:blue")
-        n_ep = sum(e["method"] == m for e in eps)
+        n_ep = sum(e.method == m for e in eps)
         ax_t.set_title(f"{m}\n{ok}/{n_ep} reached", fontsize=9)
         ax_t.set_xlabel("x (m)", fontsize=7)
         ax_s.set_xlabel("x (m)", fontsize=7)
@@ -243,7 +283,7 @@ def _paths_figure(path: Path, doc: dict, kind: str, world: World) -> Path:
     return path
 
 
-def _speed_figure(path: Path, doc: dict, flights: int = 3) -> Path:
+def _speed_figure(path: Path, doc: dict, episodes: list[EpisodeRecord], flights: int = 3) -> Path:
     """Speed over time of the first few pairs every method reached (from the 20 Hz paths)."""
     import matplotlib
 
@@ -255,9 +295,9 @@ def _speed_figure(path: Path, doc: dict, flights: int = 3) -> Path:
     paths = load_paths(path.parent)
     methods = doc["methods"]
     reached: dict[tuple[str, int], set[str]] = {}
-    for e in doc["episodes"]:
-        if e["outcome"] == "success":
-            reached.setdefault((e["world"], e["pair"]), set()).add(e["method"])
+    for e in episodes:
+        if e.outcome == "success":
+            reached.setdefault((e.world, e.pair), set()).add(e.method)
     keys = [k for k, v in reached.items() if v >= set(methods)] or sorted(reached, key=lambda k: -len(reached[k]))
     keys = keys[:flights]
     fig, axes = plt.subplots(1, max(1, len(keys)), figsize=(5 * max(1, len(keys)), 3.2), squeeze=False)
@@ -280,6 +320,7 @@ def _speed_figure(path: Path, doc: dict, flights: int = 3) -> Path:
 
 
 def _bars_figure(path: Path, doc: dict, latency: dict) -> Path:
+    """Bars of success rate, effort and latency per method and world."""
     import matplotlib
 
     matplotlib.use("Agg")

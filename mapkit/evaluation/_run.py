@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from mapkit._formats import EVAL_FORMAT
+from mapkit._formats import EVAL_FORMAT, EpisodeRecord
 from mapkit._version import __version__
 from mapkit.evaluation._loop import LoopConfig, run_episode
 from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, Execution, make_methods
@@ -148,8 +148,8 @@ def _training_camera(run_cfg: dict) -> CameraSpec | None:
     if isinstance(saved, dict):
         try:
             return CameraSpec(**saved)
-        except TypeError:  # another version's fields: read the workspaces instead
-            pass
+        except TypeError as exc:  # another version's fields: read the workspaces instead
+            log.info("the run's recorded camera does not fit this version (%s); reading its workspaces", exc)
     for ws in run_cfg.get("workspaces", []):
         try:
             return CameraSpec(**workspace_camera(ws))
@@ -164,7 +164,13 @@ def _training_worlds(run_cfg: dict) -> set[tuple[str, int]]:
     from mapkit.train import simulated_worlds
 
     out: set[tuple[str, int]] = {(str(k), int(s)) for k, s in run_cfg.get("training_worlds", [])}
-    return out | simulated_worlds([*run_cfg.get("workspaces", []), *run_cfg.get("val_workspaces", [])])
+    # An unreadable workspace is logged, not fatal: a moved or deleted workspace (the shipped model's
+    # always are) must not make a model unevaluable. When the run recorded its training worlds the
+    # check loses nothing (a debug line); an older run without that record may then miss a training
+    # world, which the user should hear about (a warning).
+    level = logging.DEBUG if "training_worlds" in run_cfg else logging.WARNING
+    return out | simulated_worlds([*run_cfg.get("workspaces", []), *run_cfg.get("val_workspaces", [])],
+                                  unreadable_level=level)
 
 
 def _default_camera() -> CameraSpec:
@@ -177,86 +183,152 @@ def _default_camera() -> CameraSpec:
 
 
 # --------------------------------------------------------------------------------- workers
-_STATE: dict[str, Any] = {}
+@dataclass(frozen=True)
+class _WorkerSetup:
+    """What every worker process needs, sent once to each (picklable)."""
+
+    model: str | None
+    """Run directory of the model, None when no method needs one."""
+    seed: int
+    pair_clearance: float
+    camera: CameraSpec
+    methods: tuple[str, ...]
+    oracle_corridor: float
+    execution: Execution
+    loop: LoopConfig
 
 
-def _init_worker(payload: dict) -> None:
+@dataclass(frozen=True)
+class _WorldBundle:
+    """A world with what flying in it needs: free-space graph, camera, its rays and the methods."""
+
+    world: Any
+    graph: Any
+    camera: Any
+    rays: np.ndarray
+    methods: list[Any]
+
+
+@dataclass(frozen=True)
+class _WorkerState:
+    """One process's set-up, its model and the worlds built so far (``worlds`` fills lazily)."""
+
+    setup: _WorkerSetup
+    net: Any
+    worlds: dict[str, _WorldBundle] = field(default_factory=dict)
+
+
+@dataclass
+class _EpisodeRun:
+    """One episode as a worker returns it: the results.json row and what goes elsewhere."""
+
+    record: EpisodeRecord
+    latencies_ms: list[float]
+    """Wall-clock planning times (latency.json)."""
+    allocation_ms: list[float]
+    """Time allocation latencies (latency.json)."""
+    path: np.ndarray
+    """(N, 4) float32 [t, x, y, z] at PATH_RATE_HZ (trajectories.npz)."""
+
+
+_WORKER: _WorkerState | None = None
+"""This process's state; a module global because ProcessPoolExecutor's initializer can only set one."""
+
+
+def _init_worker(setup: _WorkerSetup) -> None:
     """Per process: one torch thread (deterministic results whatever --workers is), the model."""
     import torch
 
+    global _WORKER
     torch.set_num_threads(1)
-    _STATE.clear()
-    _STATE.update(payload)
-    _STATE["net"] = None
-    if payload["model"] is not None:
+    net = None
+    if setup.model is not None:
         from mapkit.planning import Planner
 
-        _STATE["net"] = Planner.load(payload["model"]).net
-    _STATE["worlds"] = {}
+        net = Planner.load(setup.model).net
+    _WORKER = _WorkerState(setup=setup, net=net)
 
 
-def _world_bundle(kind: str) -> dict:
+def _worker() -> _WorkerState:
+    """This process's state; set by :func:`_init_worker`."""
+    if _WORKER is None:
+        raise RuntimeError("evaluation worker used before _init_worker")
+    return _WORKER
+
+
+def _world_bundle(kind: str) -> _WorldBundle:
+    """The world ``kind`` of this process, built on first use."""
     from mapkit.sim import CameraModel, make_world
     from mapkit.sim.search import FreeSpaceGraph
 
-    cache = _STATE["worlds"]
-    if kind not in cache:
-        world = make_world(kind, seed=_STATE["seed"])
-        graph = FreeSpaceGraph(world, clearance=_STATE["pair_clearance"])
-        cam = _STATE["camera"]
-        K = np.asarray(cam["K"])
-        camera = CameraModel(width=cam["width"], height=cam["height"], fx=float(K[0, 0]), fy=float(K[1, 1]))
+    state = _worker()
+    setup = state.setup
+    if kind not in state.worlds:
+        world = make_world(kind, seed=setup.seed)
+        graph = FreeSpaceGraph(world, clearance=setup.pair_clearance)
+        cam = setup.camera
+        K = np.asarray(cam.K)
+        camera = CameraModel(width=cam.width, height=cam.height, fx=float(K[0, 0]), fy=float(K[1, 1]))
         u = (np.arange(camera.width) - K[0, 2]) / K[0, 0]
         v = (np.arange(camera.height) - K[1, 2]) / K[1, 1]
         uu, vv = np.meshgrid(u, v, indexing="xy")
         rays = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], axis=1)
         from mapkit.planner import CameraInput
 
-        calibration = CameraInput.from_calibration(K, cam["width"], cam["height"], np.asarray(cam["T_body_camera"]))
-        methods = make_methods(list(_STATE["methods"]), _STATE["net"], world, graph,
-                               oracle_corridor=_STATE["oracle_corridor"], robot_radius=_STATE["loop"]["robot_radius"],
-                               camera=calibration, execution=Execution(**_STATE["execution"]))
-        cache[kind] = dict(world=world, graph=graph, camera=camera, rays=rays, methods=methods)
-    return cache[kind]
+        calibration = CameraInput.from_calibration(K, cam.width, cam.height, np.asarray(cam.T_body_camera))
+        methods = make_methods(list(setup.methods), state.net, world, graph,
+                               oracle_corridor=setup.oracle_corridor, robot_radius=setup.loop.robot_radius,
+                               camera=calibration, execution=dataclasses.replace(setup.execution))
+        state.worlds[kind] = _WorldBundle(world=world, graph=graph, camera=camera, rays=rays, methods=methods)
+    return state.worlds[kind]
 
 
-def _run_pair(kind: str, pair: dict) -> list[dict]:
+def _path_at_rate(samples: np.ndarray, control_rate: float) -> np.ndarray:
+    """Every n-th row of the control-rate samples (PATH_RATE_HZ), the last one always kept, float32."""
+    step = max(1, int(round(control_rate / PATH_RATE_HZ)))
+    path = samples[::step]
+    if len(samples) and (len(samples) - 1) % step:
+        path = np.concatenate([path, samples[-1:]])
+    return path.astype(np.float32)
+
+
+def _run_pair(kind: str, pair: dict) -> list[_EpisodeRun]:
+    """Every method flown from one start–goal pair (``pair``: :meth:`Pair.to_dict`)."""
     from mapkit.sim import render_depth
 
     b = _world_bundle(kind)
-    world, camera, rays = b["world"], b["camera"], b["rays"]
-    T_bc = np.asarray(_STATE["camera"]["T_body_camera"])
-    loop = LoopConfig(**_STATE["loop"])
+    setup = _worker().setup
+    world, camera, rays = b.world, b.camera, b.rays
+    T_bc = np.asarray(setup.camera.T_body_camera)
+    loop = dataclasses.replace(setup.loop)
 
     def render(T_world_body: np.ndarray) -> np.ndarray:
         return render_depth(world, T_world_body @ T_bc, camera, rays=rays)
 
     start, goal = np.asarray(pair["start"]), np.asarray(pair["goal"])
     out = []
-    for method in b["methods"]:
+    for method in b.methods:
         ep = run_episode(world, start, goal, method, loop, render=render)
-        step = max(1, int(round(loop.control_rate / PATH_RATE_HZ)))
-        path = ep.samples[::step]
-        if len(ep.samples) and (len(ep.samples) - 1) % step:
-            path = np.concatenate([path, ep.samples[-1:]])
         straight = pair["distance"]
-        out.append({
-            "world": kind, "pair": pair["pair"], "method": method.name, "outcome": ep.outcome,
-            "start": pair["start"], "goal": pair["goal"], "distance": straight,
-            "line_of_sight": pair["line_of_sight"], "time_s": ep.time_s, "path_length": ep.path_length,
-            "path_length_ratio": ep.path_length / straight, "control_effort": ep.control_effort,
+        record = EpisodeRecord(
+            world=kind, pair=pair["pair"], method=method.name, outcome=ep.outcome,
+            start=pair["start"], goal=pair["goal"], distance=straight,
+            line_of_sight=pair["line_of_sight"], time_s=ep.time_s, path_length=ep.path_length,
+            path_length_ratio=ep.path_length / straight, control_effort=ep.control_effort,
             # inf in a world without obstacles: JSON has no infinity, so "none in reach"
-            "min_distance": ep.min_distance if math.isfinite(ep.min_distance) else None,
-            "collision_point": ep.collision_point,
-            "collision_time": ep.collision_time, "plans": ep.plans, "rejected_plans": ep.rejected_plans,
-            "plan_effort": ep.plan_effort, "peak_speed": ep.peak_speed, "peak_acceleration": ep.peak_acceleration,
-            "peak_jerk": ep.peak_jerk, "_latencies_ms": ep.latencies_ms, "_allocation_ms": ep.allocation_ms,
-            "_path": path.astype(np.float32),
-        })
+            min_distance=ep.min_distance if math.isfinite(ep.min_distance) else None,
+            collision_point=ep.collision_point,
+            collision_time=ep.collision_time, plans=ep.plans, rejected_plans=ep.rejected_plans,
+            plan_effort=ep.plan_effort, peak_speed=ep.peak_speed, peak_acceleration=ep.peak_acceleration,
+            peak_jerk=ep.peak_jerk,
+        )
+        out.append(_EpisodeRun(record=record, latencies_ms=ep.latencies_ms, allocation_ms=ep.allocation_ms,
+                               path=_path_at_rate(ep.samples, loop.control_rate)))
     return out
 
 
-def _call(args: tuple[str, dict]) -> tuple[str, int, list[dict]]:
+def _call(args: tuple[str, dict]) -> tuple[str, int, list[_EpisodeRun]]:
+    """One pool task: (world kind, pair index, its episodes)."""
     kind, pair = args
     return kind, pair["pair"], _run_pair(kind, pair)
 
@@ -269,34 +341,39 @@ def _stats(values: list[float]) -> dict[str, float | None]:
     return {"mean": float(a.mean()), "std": float(a.std()), "median": float(np.median(a))}
 
 
-def summarise(episodes: list[dict], worlds: list[str], methods: list[str]) -> dict:
+def _present(values: list[float | None]) -> list[float]:
+    """The values a file recorded (None: a field older results lack)."""
+    return [v for v in values if v is not None]
+
+
+def summarise(episodes: list[EpisodeRecord], worlds: list[str], methods: list[str]) -> dict:
     """Per method: per world and ``overall`` rates and metric statistics (effort and path ratio over
     successful episodes; clearance over all)."""
     out: dict[str, dict] = {}
     for m in methods:
         out[m] = {}
         for w in [*worlds, "overall"]:
-            eps = [e for e in episodes if e["method"] == m and (w == "overall" or e["world"] == w)]
+            eps = [e for e in episodes if e.method == m and (w == "overall" or e.world == w)]
             n = len(eps)
-            ok = [e for e in eps if e["outcome"] == "success"]
-            dists = [e["min_distance"] for e in eps if e["min_distance"] is not None]
-            hidden = [e for e in eps if not e["line_of_sight"]]
+            ok = [e for e in eps if e.outcome == "success"]
+            dists = _present([e.min_distance for e in eps])
+            hidden = [e for e in eps if not e.line_of_sight]
             out[m][w] = {
                 "episodes": n,
                 "success_rate": len(ok) / n if n else None,
-                "collision_rate": sum(e["outcome"] == "collision" for e in eps) / n if n else None,
-                "timeout_rate": sum(e["outcome"] == "timeout" for e in eps) / n if n else None,
-                "control_effort": _stats([e["control_effort"] for e in ok]),
-                "plan_effort": _stats([e["plan_effort"] for e in ok if e.get("plan_effort") is not None]),
-                "peak_speed": _stats([e["peak_speed"] for e in ok if "peak_speed" in e]),
-                "peak_acceleration": _stats([e["peak_acceleration"] for e in ok if "peak_acceleration" in e]),
-                "peak_jerk": _stats([e["peak_jerk"] for e in ok if "peak_jerk" in e]),
-                "path_length_ratio": _stats([e["path_length_ratio"] for e in ok]),
+                "collision_rate": sum(e.outcome == "collision" for e in eps) / n if n else None,
+                "timeout_rate": sum(e.outcome == "timeout" for e in eps) / n if n else None,
+                "control_effort": _stats(_present([e.control_effort for e in ok])),
+                "plan_effort": _stats(_present([e.plan_effort for e in ok])),
+                "peak_speed": _stats(_present([e.peak_speed for e in ok])),
+                "peak_acceleration": _stats(_present([e.peak_acceleration for e in ok])),
+                "peak_jerk": _stats(_present([e.peak_jerk for e in ok])),
+                "path_length_ratio": _stats(_present([e.path_length_ratio for e in ok])),
                 "min_distance": {**_stats(dists), "min": float(min(dists)) if dists else None},
                 "hidden_goal_episodes": len(hidden),
-                "hidden_goal_success_rate": (sum(e["outcome"] == "success" for e in hidden) / len(hidden)
+                "hidden_goal_success_rate": (sum(e.outcome == "success" for e in hidden) / len(hidden)
                                              if hidden else None),
-                "rejected_plan_rate": (sum(e["rejected_plans"] for e in eps) / max(1, sum(e["plans"] for e in eps))
+                "rejected_plan_rate": (sum(e.rejected_plans or 0 for e in eps) / max(1, sum(e.plans or 0 for e in eps))
                                        if eps else None),
             }
     return out
@@ -325,6 +402,180 @@ def _versions() -> dict[str, str]:
 
 
 # ------------------------------------------------------------------------------------ main
+@dataclass
+class _ModelContext:
+    """What the model (or its absence) decides about an evaluation."""
+
+    camera: CameraSpec
+    """The camera rendered in the loop."""
+    loop: LoopConfig
+    """The loop with the model's robot radius and cruise speed."""
+    trained_worlds: set[tuple[str, int]]
+    """(kind, seed) of the worlds the model trained or validated on."""
+    model_info: dict[str, Any] | None
+    """results.json's ``model`` (None without a model)."""
+
+
+def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> _ModelContext:
+    """Load the model (a missing or foreign one is a one-line error) and read its training camera,
+    robot radius, cruise speed and training worlds; the defaults without a model."""
+    from mapkit.planning import Planner, resolve_model
+
+    context = _ModelContext(camera=_default_camera(), loop=dataclasses.replace(config.loop), trained_worlds=set(),
+                            model_info=None)
+    need_model = [m for m in config.methods if m in NEEDS_MODEL]
+    if need_model and model is None:
+        raise EvalError(f"methods {need_model} need a trained model: pass --model RUN")
+    if model is None:
+        return context
+    run_dir = resolve_model(model)
+    planner = Planner.load(run_dir)  # a missing or foreign model.pt is a one-line error here
+    net = planner.net
+    run_cfg = _run_config(run_dir)
+    cam = _training_camera(run_cfg)
+    if cam is None:
+        log.warning("the run's training workspaces are not readable; rendering %s", context.camera.source)
+    else:
+        context.camera = cam
+    h, w = net.config.input_size
+    if h > context.camera.height or w > context.camera.width:
+        raise EvalError(
+            f"model {run_dir} expects depth resized to {h}x{w} but its training camera renders "
+            f"{context.camera.height}x{context.camera.width}; this model was trained for another camera and cannot be evaluated "
+            f"with it (retrain, or evaluate a model whose input size is at most the camera's)"
+        )
+    loss = run_cfg.get("loss", {}) or {}
+    if "robot_radius" in loss:
+        context.loop = dataclasses.replace(context.loop, robot_radius=float(loss["robot_radius"]))
+    context.loop = dataclasses.replace(context.loop, cruise_speed=float(net.config.cruise_speed))
+    context.trained_worlds = _training_worlds(run_cfg)
+    context.model_info = {"path": str(run_dir.resolve()), "sha256": _sha256(run_dir / "model.pt"),
+                          "planner_config": net.config.to_dict(),
+                          "training_worlds": sorted(map(list, context.trained_worlds))}
+    return context
+
+
+def _refuse_training_seed(config: EvalConfig, trained_worlds: set[tuple[str, int]]) -> None:
+    """Raise :class:`EvalError` when ``config.seed`` makes a world the model trained on."""
+    clash = [k for k in config.worlds if (k, config.seed) in trained_worlds]
+    if clash:
+        raise EvalError(f"--seed {config.seed} made the training world(s) {', '.join(clash)} of this model; "
+                        f"pass another --seed so the evaluation worlds are unseen")
+
+
+def _worlds_and_pairs(config: EvalConfig) -> tuple[dict[str, Any], dict[str, list[Pair]]]:
+    """The evaluation worlds and their pairs (deterministic in the seed), sampled here so every
+    method and worker gets the same."""
+    from mapkit.sim import make_world
+    from mapkit.sim.search import FreeSpaceGraph
+
+    worlds = {k: make_world(k, seed=config.seed) for k in config.worlds}
+    pairs: dict[str, list[Pair]] = {}
+    for kind, world in worlds.items():
+        graph = FreeSpaceGraph(world, clearance=config.pair_clearance)
+        pairs[kind] = sample_pairs(graph, config.pairs, seed=config.seed, min_distance=config.min_distance)
+    return worlds, pairs
+
+
+def _fly_all(setup: _WorkerSetup, tasks: list[tuple[str, dict]], workers: int,
+             progress: bool) -> dict[tuple[str, int], list[_EpisodeRun]]:
+    """Run every (world, pair) task, in this process or in ``workers`` spawned ones."""
+    from tqdm import tqdm
+
+    global _WORKER
+    results: dict[tuple[str, int], list[_EpisodeRun]] = {}
+    bar = tqdm(total=len(tasks), unit="pair", desc="eval", dynamic_ncols=True, disable=not progress)
+    try:
+        if workers == 1:
+            import torch
+
+            threads = torch.get_num_threads()
+            try:
+                _init_worker(setup)
+                for task in tasks:
+                    kind, idx, runs = _call(task)
+                    results[(kind, idx)] = runs
+                    bar.update(1)
+            finally:
+                torch.set_num_threads(threads)
+                _WORKER = None
+        else:
+            with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
+                                     initializer=_init_worker, initargs=(setup,)) as pool:
+                for kind, idx, runs in pool.map(_call, tasks):
+                    results[(kind, idx)] = runs
+                    bar.update(1)
+    finally:
+        bar.close()
+    return results
+
+
+@dataclass
+class _Collected:
+    """The episodes in results.json order, with their latencies and paths split off."""
+
+    episodes: list[EpisodeRecord] = field(default_factory=list)
+    latencies: dict[tuple[str, str], list[float]] = field(default_factory=dict)
+    """(world, method) → planning latencies, ms."""
+    allocations: dict[tuple[str, str], list[float]] = field(default_factory=dict)
+    """(world, method) → time allocation latencies, ms."""
+    paths: dict[str, np.ndarray] = field(default_factory=dict)
+    """``"{world}/{pair:03d}/{method}"`` → (N, 4) float32 executed path."""
+
+
+def _collect(config: EvalConfig, pairs: dict[str, list[Pair]],
+             results: dict[tuple[str, int], list[_EpisodeRun]]) -> _Collected:
+    """Order the episodes by world, pair and method and split off latencies and paths."""
+    out = _Collected()
+    for kind in config.worlds:
+        for p in pairs[kind]:
+            for run in results[(kind, p.index)]:
+                method = run.record.method
+                out.latencies.setdefault((kind, method), []).extend(run.latencies_ms)
+                out.allocations.setdefault((kind, method), []).extend(run.allocation_ms)
+                out.paths[f"{kind}/{p.index:03d}/{method}"] = run.path
+                out.episodes.append(run.record)
+    return out
+
+
+def _results_doc(config: EvalConfig, context: _ModelContext, pairs: dict[str, list[Pair]],
+                 summary: dict, episodes: list[EpisodeRecord]) -> dict[str, Any]:
+    """results.json's content (key order is the file's)."""
+    doc = {
+        "format": EVAL_FORMAT,
+        "versions": _versions(),
+        "model": context.model_info,
+        "seed": config.seed,
+        "config": dataclasses.asdict(config),
+        "camera": dataclasses.asdict(context.camera),
+        "worlds": {k: {"seed": config.seed, "world_json": f"worlds/{k}.world.json",
+                       "pairs": [p.to_dict() for p in pairs[k]]} for k in config.worlds},
+        "methods": list(config.methods),
+        "summary": summary,
+        "episodes": [e.to_dict() for e in episodes],
+    }
+    del doc["config"]["workers"]  # does not change any result
+    return doc
+
+
+def _write_outputs(out_dir: Path, doc: dict[str, Any], lat: dict, alloc: dict, worlds: dict[str, Any],
+                   paths: dict[str, np.ndarray], workers: int, *, overwrite: bool) -> None:
+    """Write the eval folder as one unit: worlds, results.json, latency.json, trajectories.npz, report."""
+    from mapkit.evaluation._report import write_report
+
+    with atomic_output(out_dir, overwrite=overwrite) as tmp:
+        tmp.mkdir(parents=True)
+        (tmp / "worlds").mkdir()
+        for kind, world in worlds.items():
+            world.to_json(tmp / "worlds" / f"{kind}.world.json")
+        (tmp / "results.json").write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+        (tmp / "latency.json").write_text(json.dumps(
+            {"format": EVAL_FORMAT, "device": platform.processor() or platform.machine(), "torch_threads": 1,
+             "workers": workers, "latency": lat, "allocation": alloc}, indent=1) + "\n")
+        np.savez_compressed(tmp / "trajectories.npz", **paths)
+        write_report(tmp, doc, lat, worlds, alloc)
+
+
 def evaluate(
     model: str | os.PathLike[str] | None,
     out_dir: str | os.PathLike[str],
@@ -344,132 +595,30 @@ def evaluate(
         out_dir: output folder (refused if it exists, unless ``overwrite``).
         config: what to run.
     """
-    from tqdm import tqdm
-
-    from mapkit.evaluation._report import write_report
-    from mapkit.planning import Planner, resolve_model
-    from mapkit.sim import make_world
-    from mapkit.sim.search import FreeSpaceGraph
+    from mapkit.planning import resolve_model
 
     config = config or EvalConfig()
     out_dir = Path(out_dir)
     config.validate()
     check_writable(out_dir, overwrite=overwrite)
-    need_model = [m for m in config.methods if m in NEEDS_MODEL]
-    model_info: dict[str, Any] | None = None
-    camera = _default_camera()
-    loop = dataclasses.replace(config.loop)
-    if need_model and model is None:
-        raise EvalError(f"methods {need_model} need a trained model: pass --model RUN")
-    trained_worlds: set[tuple[str, int]] = set()
-    if model is not None:
-        run_dir = resolve_model(model)
-        planner = Planner.load(run_dir)  # a missing or foreign model.pt is a one-line error here
-        net = planner.net
-        run_cfg = _run_config(run_dir)
-        cam = _training_camera(run_cfg)
-        if cam is None:
-            log.warning("the run's training workspaces are not readable; rendering %s", camera.source)
-        else:
-            camera = cam
-        h, w = net.config.input_size
-        if h > camera.height or w > camera.width:
-            raise EvalError(
-                f"model {run_dir} expects depth resized to {h}x{w} but its training camera renders "
-                f"{camera.height}x{camera.width}; this model was trained for another camera and cannot be evaluated "
-                f"with it (retrain, or evaluate a model whose input size is at most the camera's)"
-            )
-        loss = run_cfg.get("loss", {}) or {}
-        if "robot_radius" in loss:
-            loop = dataclasses.replace(loop, robot_radius=float(loss["robot_radius"]))
-        loop = dataclasses.replace(loop, cruise_speed=float(net.config.cruise_speed))
-        trained_worlds = _training_worlds(run_cfg)
-        model_info = {"path": str(run_dir.resolve()), "sha256": _sha256(run_dir / "model.pt"),
-                      "planner_config": net.config.to_dict(), "training_worlds": sorted(map(list, trained_worlds))}
-    clash = [k for k in config.worlds if (k, config.seed) in trained_worlds]
-    if clash:
-        raise EvalError(f"--seed {config.seed} made the training world(s) {', '.join(clash)} of this model; "
-                        f"pass another --seed so the evaluation worlds are unseen")
-    config = dataclasses.replace(config, loop=loop)
+    context = _model_context(model, config)
+    _refuse_training_seed(config, context.trained_worlds)
+    config = dataclasses.replace(config, loop=context.loop)
+    worlds, pairs = _worlds_and_pairs(config)
 
-    # Pairs (deterministic in the seed), sampled here so every method and worker gets the same.
-    worlds = {k: make_world(k, seed=config.seed) for k in config.worlds}
-    pairs: dict[str, list[Pair]] = {}
-    for kind, world in worlds.items():
-        graph = FreeSpaceGraph(world, clearance=config.pair_clearance)
-        pairs[kind] = sample_pairs(graph, config.pairs, seed=config.seed, min_distance=config.min_distance)
-
-    payload = {
-        "model": None if model is None or not need_model else str(resolve_model(model)), "seed": config.seed,
-        "pair_clearance": config.pair_clearance, "camera": dataclasses.asdict(camera),
-        "methods": list(config.methods), "oracle_corridor": config.oracle_corridor,
-        "execution": dataclasses.asdict(config.execution), "loop": dataclasses.asdict(config.loop),
-    }
+    need_model = any(m in NEEDS_MODEL for m in config.methods)
+    setup = _WorkerSetup(model=None if model is None or not need_model else str(resolve_model(model)),
+                         seed=config.seed, pair_clearance=config.pair_clearance, camera=context.camera,
+                         methods=tuple(config.methods), oracle_corridor=config.oracle_corridor,
+                         execution=config.execution, loop=config.loop)
     tasks = [(k, p.to_dict()) for k in config.worlds for p in pairs[k]]
-    results: dict[tuple[str, int], list[dict]] = {}
-    bar = tqdm(total=len(tasks), unit="pair", desc="eval", dynamic_ncols=True, disable=not progress)
-    try:
-        if config.workers == 1:
-            import torch
+    collected = _collect(config, pairs, _fly_all(setup, tasks, config.workers, progress))
 
-            threads = torch.get_num_threads()
-            try:
-                _init_worker(payload)
-                for task in tasks:
-                    kind, idx, recs = _call(task)
-                    results[(kind, idx)] = recs
-                    bar.update(1)
-            finally:
-                torch.set_num_threads(threads)
-                _STATE.clear()
-        else:
-            with ProcessPoolExecutor(max_workers=config.workers, mp_context=get_context("spawn"),
-                                     initializer=_init_worker, initargs=(payload,)) as pool:
-                for kind, idx, recs in pool.map(_call, tasks):
-                    results[(kind, idx)] = recs
-                    bar.update(1)
-    finally:
-        bar.close()
-
-    episodes: list[dict] = []
-    latencies: dict[tuple[str, str], list[float]] = {}
-    allocations: dict[tuple[str, str], list[float]] = {}
-    paths: dict[str, np.ndarray] = {}
-    for kind in config.worlds:
-        for p in pairs[kind]:
-            for rec in results[(kind, p.index)]:
-                latencies.setdefault((kind, rec["method"]), []).extend(rec.pop("_latencies_ms"))
-                allocations.setdefault((kind, rec["method"]), []).extend(rec.pop("_allocation_ms"))
-                paths[f"{kind}/{p.index:03d}/{rec['method']}"] = rec.pop("_path")
-                episodes.append(rec)
-    summary = summarise(episodes, list(config.worlds), list(config.methods))
-    lat = latency_summary(latencies, list(config.worlds), list(config.methods))
-    alloc = latency_summary(allocations, list(config.worlds), list(config.methods))
-    doc = {
-        "format": EVAL_FORMAT,
-        "versions": _versions(),
-        "model": model_info,
-        "seed": config.seed,
-        "config": dataclasses.asdict(config),
-        "camera": dataclasses.asdict(camera),
-        "worlds": {k: {"seed": config.seed, "world_json": f"worlds/{k}.world.json",
-                       "pairs": [p.to_dict() for p in pairs[k]]} for k in config.worlds},
-        "methods": list(config.methods),
-        "summary": summary,
-        "episodes": episodes,
-    }
-    del doc["config"]["workers"]  # does not change any result
-    with atomic_output(out_dir, overwrite=overwrite) as tmp:
-        tmp.mkdir(parents=True)
-        (tmp / "worlds").mkdir()
-        for kind, world in worlds.items():
-            world.to_json(tmp / "worlds" / f"{kind}.world.json")
-        (tmp / "results.json").write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
-        (tmp / "latency.json").write_text(json.dumps(
-            {"format": EVAL_FORMAT, "device": platform.processor() or platform.machine(), "torch_threads": 1,
-             "workers": config.workers, "latency": lat, "allocation": alloc}, indent=1) + "\n")
-        np.savez_compressed(tmp / "trajectories.npz", **paths)
-        write_report(tmp, doc, lat, worlds, alloc)
+    worlds_list, methods = list(config.worlds), list(config.methods)
+    summary = summarise(collected.episodes, worlds_list, methods)
+    lat = latency_summary(collected.latencies, worlds_list, methods)
+    alloc = latency_summary(collected.allocations, worlds_list, methods)
+    doc = _results_doc(config, context, pairs, summary, collected.episodes)
+    _write_outputs(out_dir, doc, lat, alloc, worlds, collected.paths, config.workers, overwrite=overwrite)
     files = sorted(p for p in out_dir.rglob("*") if p.is_file())
     return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat, "allocation": alloc}, files=files)
-

@@ -4,8 +4,11 @@ worlds refusable by `mapkit eval`) after the workspaces are gone — e.g. the sh
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Any, Sequence
+
+log = logging.getLogger(__name__)
 
 
 def workspace_camera(workspace: str | Path) -> dict[str, Any]:
@@ -20,27 +23,41 @@ def workspace_camera(workspace: str | Path) -> dict[str, Any]:
             "T_body_camera": [list(map(float, r)) for r in T_bc], "source": f"{workspace}/frames.zarr"}
 
 
-def simulated_worlds(workspaces: Sequence[str | Path]) -> set[tuple[str, int]]:
+def simulated_worlds(workspaces: Sequence[str | Path], *, unreadable_level: int = logging.WARNING) -> set[tuple[str, int]]:
     """(kind, seed) of the simulated worlds behind the workspaces' recordings (their .world.json
-    beside each recording); unreadable workspaces and real recordings add nothing."""
+    beside each recording); real recordings add nothing. An unreadable workspace or .world.json adds
+    nothing either and is logged with the reason at ``unreadable_level`` (the caller knows whether
+    it matters: `mapkit eval` of a run that recorded its worlds loses nothing)."""
     from mapkit.ingest import open_frames_store
-    from mapkit.sim.simulate import ground_truth_paths
 
     out: set[tuple[str, int]] = set()
     for ws in workspaces:
         try:
             sources = open_frames_store(ws).attrs.get("sources", [])
-        except Exception:  # noqa: BLE001 - a moved or deleted workspace
+        except Exception as exc:  # noqa: BLE001 - a moved, deleted or damaged workspace: logged, the caller decides
+            log.log(unreadable_level, "workspace %s is not readable (%s: %s); the simulated worlds of its "
+                    "recordings are not known", ws, type(exc).__name__, exc)
             continue
         for src in sources:
-            p = Path(src.get("path", ""))
-            for fmt in ("mcap", "ros2"):
-                wj = ground_truth_paths(p, fmt)[0]
-                if wj.exists():
-                    try:
-                        d = json.loads(wj.read_text())
-                        out.add((str(d["kind"]), int(d["seed"])))
-                    except (OSError, ValueError, KeyError):
-                        pass
-                    break
+            world = _recording_world(Path(src.get("path", "")), unreadable_level)
+            if world is not None:
+                out.add(world)
     return out
+
+
+def _recording_world(recording: Path, unreadable_level: int) -> tuple[str, int] | None:
+    """(kind, seed) from the .world.json beside a simulated recording; None for a real recording or
+    an unreadable file (logged at ``unreadable_level``)."""
+    from mapkit.sim import ground_truth_paths
+
+    for fmt in ("mcap", "ros2"):
+        wj = ground_truth_paths(recording, fmt)[0]
+        if wj.exists():
+            try:
+                d = json.loads(wj.read_text())
+                return str(d["kind"]), int(d["seed"])
+            except (OSError, ValueError, KeyError) as exc:
+                log.log(unreadable_level, "%s is not a readable world file (%s: %s); its world is not known",
+                        wj, type(exc).__name__, exc)
+            return None
+    return None

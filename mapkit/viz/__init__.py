@@ -45,7 +45,7 @@ from mapkit.viz._color import (
     speed_colors,
 )
 from mapkit.viz._errors import VizError
-from mapkit.viz._eval import EVAL_FORMAT, EvalResults, load_eval, world_mesh_arrays
+from mapkit.viz._eval import EVAL_FORMAT, EpisodeRecord, EvalResults, load_eval, world_mesh_arrays
 from mapkit.viz._geometry import (
     CorridorGeometry,
     corridor_cross_section,
@@ -78,6 +78,7 @@ __all__ = [
     "SLICE_MODES",
     "CloudView",
     "CorridorGeometry",
+    "EpisodeRecord",
     "EvalResults",
     "MapSlicer",
     "PlyPoints",

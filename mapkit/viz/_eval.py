@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from mapkit._formats import EVAL_FORMAT
+from mapkit._formats import EPISODE_KEYS, EVAL_FORMAT, EpisodeRecord
 from mapkit.viz._errors import VizError
 
 
@@ -23,7 +23,10 @@ class EvalResults:
     """name → {"seed": int, "world_json": path relative to :attr:`path`}."""
     methods: list[str]
     episodes: list[dict[str, Any]]
-    """Each with world, pair, method, outcome, start (3,), goal (3,), collision_point (3,) or None, ..."""
+    """The rows of results.json as read: each with world, pair, method, outcome, start (3,), goal (3,),
+    collision_point (3,) or None, ... (the viewer reads these; typed: :attr:`records`)."""
+    records: list[EpisodeRecord] = field(default_factory=list)
+    """The same rows as typed records, in file order."""
     notes: list[str] = field(default_factory=list)
     """Problems found that do not stop viewing (missing paths, unreadable worlds)."""
     _npz: Any = None
@@ -31,6 +34,10 @@ class EvalResults:
     def pairs(self, world: str) -> list[int]:
         """Sorted pair indices evaluated in `world`."""
         return sorted({int(e["pair"]) for e in self.episodes if e["world"] == world})
+
+    def records_of(self, world: str, pair: int | None = None) -> list[EpisodeRecord]:
+        """Typed episodes of `world` (one pair, or all when `pair` is None), in file order."""
+        return [e for e in self.records if e.world == world and (pair is None or int(e.pair) == pair)]
 
     def episodes_of(self, world: str, pair: int | None = None) -> list[dict[str, Any]]:
         """Episodes of `world` (one pair, or all when `pair` is None), in file order."""
@@ -52,9 +59,11 @@ class EvalResults:
         return a
 
     def world_file(self, world: str) -> Path:
+        """The .world.json of `world`."""
         return self.path / str(self.worlds[world]["world_json"])
 
     def close(self) -> None:
+        """Close trajectories.npz."""
         if self._npz is not None:
             self._npz.close()
             self._npz = None
@@ -81,7 +90,7 @@ def load_eval(path: str | Path) -> EvalResults:
     if not isinstance(worlds, dict) or not isinstance(methods, list) or not isinstance(episodes, list):
         raise VizError(f"{str(rj)!r} lacks 'worlds' (object), 'methods' (list) or 'episodes' (list); re-run `mapkit eval`")
     for i, e in enumerate(episodes):
-        if not isinstance(e, dict) or not {"world", "pair", "method", "outcome", "start", "goal"} <= set(e):
+        if not isinstance(e, dict) or not set(EPISODE_KEYS) <= set(e):
             raise VizError(f"{str(rj)!r}: episode {i} lacks world/pair/method/outcome/start/goal; re-run `mapkit eval`")
         if e["world"] not in worlds:
             raise VizError(f"{str(rj)!r}: episode {i} names world {e['world']!r}, which 'worlds' does not list")
@@ -98,7 +107,8 @@ def load_eval(path: str | Path) -> EvalResults:
             notes.append(f"trajectories.npz cannot be read ({type(exc).__name__}: {exc}); paths are not shown")
     else:
         notes.append("trajectories.npz is missing; executed paths are not shown")
-    return EvalResults(d, dict(worlds), [str(m) for m in methods], list(episodes), notes, npz)
+    records = [EpisodeRecord.from_dict(e) for e in episodes]
+    return EvalResults(d, dict(worlds), [str(m) for m in methods], list(episodes), records, notes, npz)
 
 
 def world_mesh_arrays(world_json: str | Path, *, resolution: int = 24) -> tuple[np.ndarray, np.ndarray]:
