@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 
 def make_recording(path: Path, n: int) -> Path:
-    from mapkit.sim.record import BagRecorder
+    from mapkit.bags import BagRecorder
 
     T0 = 1_700_000_000_000_000_000
     K = np.array([[387.0, 0, 319.5], [0, 387.0, 239.5], [0, 0, 1]])

@@ -30,23 +30,14 @@ def matrix_from_quat_xyzw(q_xyzw: ArrayLike) -> NDArray[np.float64]:
 
 
 def quat_xyzw_from_matrix(R: ArrayLike) -> NDArray[np.float64]:
-    """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix (Shepperd's method)."""
-    R = np.asarray(R, dtype=np.float64)
-    trace = R[0, 0] + R[1, 1] + R[2, 2]
-    if trace > 0:
-        s = 2.0 * np.sqrt(trace + 1.0)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
-    q = np.asarray(q)
-    q /= np.linalg.norm(q)
+    """Unit quaternion (x, y, z, w), w >= 0, of a rotation: a 3x3 matrix or the rotation block of a 4x4.
+
+    scipy's conversion, because every recording :class:`mapkit.bags.BagRecorder` writes carries its
+    bytes (a hand-written Shepperd's method differs in the last bit for most rotations)."""
+    from scipy.spatial.transform import Rotation
+
+    q: NDArray[np.float64] = Rotation.from_matrix(np.asarray(R, dtype=np.float64)[:3, :3]).as_quat()
+    # One fixed sign (w >= 0) so repeated writes of the same pose give identical bytes.
     return -q if q[3] < 0 else q
 
 

@@ -10,7 +10,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mapkit.geometry import invert_transform
-from mapkit.sim.record import BagRecorder
+from mapkit.bags import BagRecorder
 
 T0 = 1_700_000_000_000_000_000
 FPS = 30.0

@@ -6,9 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mapkit.sim.camera import CameraModel, camera_extrinsics, render_depth
-from mapkit.sim.record import BagRecorder
-from mapkit.sim.world import Box, Capsule, HalfSpace, World
+from mapkit.bags import BagRecorder
+from mapkit.sim import Box, CameraModel, Capsule, HalfSpace, World, camera_extrinsics, render_depth
 
 T0 = 1_700_000_000_000_000_000
 

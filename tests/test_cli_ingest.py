@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from mapkit import __version__
 from mapkit.cli.main import main
-from mapkit.sim.record import BagRecorder
+from mapkit.bags import BagRecorder
 from recordings import T0, write_recording
 
 

@@ -12,7 +12,7 @@ from mapkit.cli.main import main
 from mapkit.esdf import EsdfMap
 from mapkit.esdf import EsdfBuildError, EsdfConfig, build_esdf
 from mapkit.fusion import FuseConfig, fuse
-from mapkit.sim.world import HalfSpace, World
+from mapkit.sim import HalfSpace, World
 from scenes import box_world, orbit_poses, record_scene, sphere_world
 
 

@@ -11,8 +11,7 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from mapkit.sim.errors import SimError
-from mapkit.sim.record import BagRecorder, output_path
+from mapkit.bags import BagError, BagRecorder, output_path
 
 STAMP = 1_700_000_000_123_456_789
 
@@ -156,7 +155,7 @@ def test_bare_mcap_opens_in_mcap_reader(tmp_path: Path) -> None:
 def test_existing_output_and_failure_leave_no_partial(tmp_path: Path) -> None:
     path = _write_all(tmp_path / "rec", "mcap")
     before = path.read_bytes()
-    with pytest.raises(SimError, match="exists"):
+    with pytest.raises(BagError, match="exists"):
         BagRecorder(tmp_path / "rec", "mcap")
     with pytest.raises(RuntimeError):
         with BagRecorder(tmp_path / "rec", "mcap", overwrite=True) as rec:
@@ -172,10 +171,10 @@ def test_existing_output_and_failure_leave_no_partial(tmp_path: Path) -> None:
 
 
 def test_bad_inputs(tmp_path: Path) -> None:
-    with pytest.raises(SimError, match="unknown bag format"):
+    with pytest.raises(BagError, match="unknown bag format"):
         BagRecorder(tmp_path / "x", "rosbag3")
     with BagRecorder(tmp_path / "x", "mcap") as rec:
-        with pytest.raises(SimError, match="encoding"):
+        with pytest.raises(BagError, match="encoding"):
             rec.write_depth("/d", STAMP, _depth(), frame_id="cam", encoding="8UC1")
-        with pytest.raises(SimError, match="shape"):
+        with pytest.raises(BagError, match="shape"):
             rec.write_depth("/d", STAMP, np.zeros(5, np.float32), frame_id="cam")

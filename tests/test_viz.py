@@ -12,7 +12,7 @@ import torch
 
 from mapkit.errors import MapkitError
 from mapkit.esdf import EsdfMap, slice_plane, write_map
-from mapkit.sim.world import Box, HalfSpace, World
+from mapkit.sim import Box, HalfSpace, World
 from mapkit.viz import (
     HATCH_RGB,
     MapSlicer,

@@ -21,7 +21,7 @@ import numpy as np
 from mapkit._version import __version__
 from mapkit.errors import MapkitError
 from mapkit.export import ExportConfig
-from mapkit.sim.worlds import _MIN_SIZES, DEFAULT_DENSITIES, DEFAULT_SIZES, WORLD_KINDS
+from mapkit.sim import DEFAULT_DENSITIES, DEFAULT_SIZES, MIN_SIZES, WORLD_KINDS
 
 MANIFEST = "dataset.json"
 DONE = "dataset_item.json"  # written last in each world's workspace: the world is complete
@@ -154,7 +154,7 @@ def world_specs(config: DatasetConfig) -> list[WorldSpec]:
             density = min(density, 0.95)  # a fraction of occupied bays
         out.append(WorldSpec(
             index=i, name=f"{i:03d}-{kind}-s{config.seed + i}", kind=kind, seed=config.seed + i,
-            size=(round(max(X * s, 12.0, _MIN_SIZES[kind][0]), 2), round(max(Y * s, 10.0, _MIN_SIZES[kind][1]), 2), Z),
+            size=(round(max(X * s, 12.0, MIN_SIZES[kind][0]), 2), round(max(Y * s, 10.0, MIN_SIZES[kind][1]), 2), Z),
             density=round(density, 4),
             speed=round(float(rng.uniform(*config.speed)), 2), tilt_deg=round(tilt, 1),
             width=cam.width, height=cam.height, fx=round(387.0 * cam.width / 640.0 * cam.fx_scale, 2),

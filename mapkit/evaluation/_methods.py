@@ -38,8 +38,7 @@ from mapkit.evaluation._loop import MethodPlan, Observation
 from mapkit.evaluation._pieces import Pieces, pieces_from_body
 from mapkit.planner import Allocation, CameraInput, PlannerConfig, Timing, plan_timing
 from mapkit.planner._model import PlannerNet, PlannerOutput
-from mapkit.sim import World
-from mapkit.sim.search import FreeSpaceGraph
+from mapkit.sim import FreeSpaceGraph, World
 from mapkit.trajopt import Trajectory, allocate_times, min_snap
 
 LEARNED_ALLOCATIONS: dict[str, Allocation] = {"learned": "tan", "learned+uniform": "uniform",

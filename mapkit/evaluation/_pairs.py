@@ -7,8 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapkit.errors import MapkitError
-from mapkit.sim.search import FreeSpaceGraph
-from mapkit.sim.worlds import WORLD_KINDS
+from mapkit.sim import WORLD_KINDS, FreeSpaceGraph
 
 
 class EvalError(MapkitError):

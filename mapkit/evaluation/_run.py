@@ -259,7 +259,7 @@ def _worker() -> _WorkerState:
 def _world_bundle(kind: str) -> _WorldBundle:
     """The world ``kind`` of this process, built on first use."""
     from mapkit.sim import CameraModel, make_world
-    from mapkit.sim.search import FreeSpaceGraph
+    from mapkit.sim import FreeSpaceGraph
 
     state = _worker()
     setup = state.setup
@@ -467,7 +467,7 @@ def _worlds_and_pairs(config: EvalConfig) -> tuple[dict[str, Any], dict[str, lis
     """The evaluation worlds and their pairs (deterministic in the seed), sampled here so every
     method and worker gets the same."""
     from mapkit.sim import make_world
-    from mapkit.sim.search import FreeSpaceGraph
+    from mapkit.sim import FreeSpaceGraph
 
     worlds = {k: make_world(k, seed=config.seed) for k in config.worlds}
     pairs: dict[str, list[Pair]] = {}

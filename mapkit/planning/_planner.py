@@ -148,7 +148,7 @@ def check_output_folder(out_dir: Path) -> None:
 def write_plan_outputs(result: PlanResult, T_world_body: np.ndarray, stamp_ns: int, out_dir: Path, *,
                        world_frame: str = "world", stem: str = "plan") -> list[Path]:
     """plan.json, plan.tum (t x y z qx qy qz qw, world frame) and plan.mcap (nav_msgs/Path)."""
-    from mapkit.sim.record import BagRecorder
+    from mapkit.bags import BagRecorder
 
     check_output_folder(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

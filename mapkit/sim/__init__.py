@@ -4,21 +4,31 @@ Public API:
 
 - :func:`make_world`, :class:`World` (+ primitives :class:`Box`, :class:`Cylinder`,
   :class:`Capsule`, :class:`HalfSpace`): procedural forest / office / garage worlds with an exact
-  signed distance and analytic ray casting.
+  signed distance and analytic ray casting (``_world.py`` holds the primitives and :class:`World`,
+  ``_procedural.py`` the seeded generators and their default sizes and densities).
 - :class:`CameraModel`, :func:`render_depth`: a D435-like depth camera (pixel-centre convention).
-- :func:`plan_flight`: a smooth, collision-checked flight through a world.
+- :func:`plan_flight` → :class:`Flight`: a smooth, collision-checked flight through a world.
+- :class:`FreeSpaceGraph`: search-based paths through a world's exact free space (``mapkit eval``'s
+  start–goal pairs and its ``oracle`` planner).
 - :class:`SimConfig`, :func:`simulate`, :func:`render_flight`, :class:`SimResult`: the whole
   recording (bag + ``.world.json`` / ``.world.ply`` / ``.flight.npz``).
-- :class:`BagRecorder`: write depth / camera_info / odometry / tf messages to mcap, rosbag2 or
-  ROS1 bags without ROS.
+- :class:`BagRecorder`, :func:`output_path`: re-exported from :mod:`mapkit.bags`, which writes the
+  bags (the simulator is one of its users).
 - :class:`SimError`: every user-facing problem, in one line.
+
+Names: the flight type is :class:`Flight`, not ``Trajectory``, so that it does not collide with
+:class:`mapkit.trajopt.Trajectory` (a min-snap polynomial). There is no ``Trajectory`` alias: users get
+a flight from :func:`plan_flight` and never construct one, so the old name only ever appeared in
+annotations.
 """
 
-from mapkit.sim.camera import CameraModel, apply_realsense_noise, camera_extrinsics, render_depth
-from mapkit.sim.errors import SimError
-from mapkit.sim.flight import Trajectory, plan_flight
-from mapkit.sim.record import BagRecorder, output_path
-from mapkit.sim.simulate import (
+from mapkit.bags import BagRecorder, output_path
+from mapkit.sim._camera import CameraModel, apply_realsense_noise, camera_extrinsics, render_depth
+from mapkit.sim._errors import SimError
+from mapkit.sim._flight import Flight, plan_flight
+from mapkit.sim._procedural import DEFAULT_DENSITIES, DEFAULT_SIZES, MIN_SIZES, WORLD_KINDS, make_world
+from mapkit.sim._search import FreeSpaceGraph
+from mapkit.sim._simulate import (
     BODY_FRAME,
     CAMERA_INFO_TOPIC,
     CAMERA_LINK_FRAME,
@@ -33,14 +43,14 @@ from mapkit.sim.simulate import (
     render_flight,
     simulate,
 )
-from mapkit.sim.world import Box, Capsule, Cylinder, HalfSpace, World
-from mapkit.sim.worlds import WORLD_KINDS, make_world
+from mapkit.sim._world import Box, Capsule, Cylinder, HalfSpace, Primitive, World
 
 __all__ = [
     "BagRecorder", "output_path",
-    "Box", "Capsule", "Cylinder", "HalfSpace", "World", "WORLD_KINDS", "make_world",
+    "Box", "Capsule", "Cylinder", "HalfSpace", "Primitive", "World",
+    "WORLD_KINDS", "DEFAULT_SIZES", "DEFAULT_DENSITIES", "MIN_SIZES", "make_world",
     "CameraModel", "render_depth", "apply_realsense_noise", "camera_extrinsics",
-    "Trajectory", "plan_flight",
+    "Flight", "plan_flight", "FreeSpaceGraph",
     "SimConfig", "SimResult", "RenderedFlight", "simulate", "render_flight", "ground_truth_paths",
     "DEPTH_TOPIC", "CAMERA_INFO_TOPIC", "ODOM_TOPIC", "WORLD_FRAME", "BODY_FRAME", "CAMERA_LINK_FRAME",
     "OPTICAL_FRAME",

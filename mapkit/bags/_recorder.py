@@ -27,11 +27,11 @@ from pathlib import Path
 from typing import Any, Literal, Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from mapkit.sim.errors import SimError
+from mapkit.bags._errors import BagError
+from mapkit.geometry import quat_xyzw_from_matrix
 
-__all__ = ["BagRecorder", "BagFormat", "DEPTH_ENCODINGS", "output_path", "quat_xyzw_from_matrix"]
+__all__ = ["BagRecorder", "BagFormat", "DEPTH_ENCODINGS", "FORMATS", "output_path"]
 
 BagFormat = Literal["mcap", "ros2", "ros1"]
 FORMATS: tuple[str, ...] = ("mcap", "ros2", "ros1")
@@ -49,7 +49,7 @@ def output_path(path: str | os.PathLike[str], format: str) -> Path:
     mcap → ``OUT.mcap`` (a single file), ros1 → ``OUT.bag``, ros2 → ``OUT/`` (a directory).
     """
     if format not in FORMATS:
-        raise SimError(f"unknown bag format {format!r}; use one of {', '.join(FORMATS)}")
+        raise BagError(f"unknown bag format {format!r}; use one of {', '.join(FORMATS)}")
     p = Path(path)
     if p.suffix in (".mcap", ".bag", ".db3"):
         p = p.with_suffix("")
@@ -58,14 +58,6 @@ def output_path(path: str | os.PathLike[str], format: str) -> Path:
     if format == "ros1":
         return p.with_name(p.name + ".bag")
     return p
-
-
-def quat_xyzw_from_matrix(T: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w), float64, of the rotation block of a 4x4 (or 3x3) matrix."""
-    R = np.asarray(T, dtype=np.float64)[:3, :3]
-    q = Rotation.from_matrix(R).as_quat()
-    # One fixed sign (w >= 0) so repeated writes of the same pose give identical bytes.
-    return -q if q[3] < 0 else q
 
 
 class BagRecorder:
@@ -100,9 +92,9 @@ class BagRecorder:
         self.compression = compression
         self.overwrite = overwrite
         if self.path.exists() and not overwrite:
-            raise SimError(f"output {self.path} exists; pass overwrite=True (--overwrite) or choose another path")
+            raise BagError(f"output {self.path} exists; pass overwrite=True (--overwrite) or choose another path")
         if not self.path.parent.is_dir():
-            raise SimError(f"output directory {self.path.parent} does not exist; create it first")
+            raise BagError(f"output directory {self.path.parent} does not exist; create it first")
         self.is_ros1 = format == "ros1"
         self.typestore = get_typestore(Stores.ROS1_NOETIC if self.is_ros1 else Stores.ROS2_HUMBLE)
         if "tf2_msgs/msg/TFMessage" not in self.typestore.types:
@@ -174,7 +166,7 @@ class BagRecorder:
         if self.path.exists():
             if not self.overwrite:
                 self.abort()
-                raise SimError(f"output {self.path} appeared while writing; pass --overwrite or choose another path")
+                raise BagError(f"output {self.path} appeared while writing; pass --overwrite or choose another path")
             if self.path.is_dir():
                 shutil.rmtree(self.path)
             else:
@@ -207,7 +199,7 @@ class BagRecorder:
         if conn is not None:
             return conn
         if self._writer is None:
-            raise SimError("BagRecorder is not open; use it as a context manager (with BagRecorder(...) as rec:)")
+            raise BagError("BagRecorder is not open; use it as a context manager (with BagRecorder(...) as rec:)")
         latched = topic == _TF_STATIC_TOPIC
         if self.format == "mcap":
             if msgtype not in self._schemas:
@@ -280,7 +272,7 @@ class BagRecorder:
         Point = self._type("geometry_msgs/msg/Point")
         Quaternion = self._type("geometry_msgs/msg/Quaternion")
         Pose = self._type("geometry_msgs/msg/Pose")
-        q = quat_xyzw_from_matrix(T)
+        q = quat_xyzw_from_matrix(T[:3, :3])
         return Pose(
             position=Point(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
             orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
@@ -291,7 +283,7 @@ class BagRecorder:
         Vector3 = self._type("geometry_msgs/msg/Vector3")
         Quaternion = self._type("geometry_msgs/msg/Quaternion")
         Transform = self._type("geometry_msgs/msg/Transform")
-        q = quat_xyzw_from_matrix(T)
+        q = quat_xyzw_from_matrix(T[:3, :3])
         return Transform(
             translation=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
             rotation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
@@ -329,9 +321,9 @@ class BagRecorder:
         elif encoding == "32FC1":
             pix = depth.astype(np.float32)
         else:
-            raise SimError(f"unknown depth encoding {encoding!r}; use one of {', '.join(DEPTH_ENCODINGS)}")
+            raise BagError(f"unknown depth encoding {encoding!r}; use one of {', '.join(DEPTH_ENCODINGS)}")
         if row_padding < 0:
-            raise SimError(f"row_padding must be >= 0 bytes, got {row_padding}")
+            raise BagError(f"row_padding must be >= 0 bytes, got {row_padding}")
         height, width = pix.shape
         pix = pix.astype(pix.dtype.newbyteorder(">" if big_endian else "<"))
         rows = pix.view(np.uint8).reshape(height, width * pix.itemsize)
@@ -374,7 +366,7 @@ class BagRecorder:
         elif encoding == "32FC1":
             pix, params = encode_inverse_depth(depth, depth_max=depth_max, depth_quantization=depth_quantization)
         else:
-            raise SimError(f"unknown compressedDepth encoding {encoding!r}; use 16UC1 or 32FC1")
+            raise BagError(f"unknown compressedDepth encoding {encoding!r}; use 16UC1 or 32FC1")
         header = struct.pack("<iff", _INV_DEPTH, float(params[0]), float(params[1]))
         CompressedImage = self._type("sensor_msgs/msg/CompressedImage")
         payload = header + png_uint16(pix)
@@ -529,14 +521,14 @@ def png_uint16(pix: np.ndarray) -> bytes:
 def _check_depth(depth_m: np.ndarray) -> np.ndarray:
     depth = np.asarray(depth_m)
     if depth.ndim != 2 or depth.size == 0:
-        raise SimError(f"depth image must be a non-empty (H, W) array, got shape {depth.shape}")
+        raise BagError(f"depth image must be a non-empty (H, W) array, got shape {depth.shape}")
     return depth
 
 
 def _check_T(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4):
-        raise SimError(f"transform must be a 4x4 matrix, got shape {T.shape}")
+        raise BagError(f"transform must be a 4x4 matrix, got shape {T.shape}")
     return T
 
 

@@ -12,8 +12,8 @@ import math
 from dataclasses import dataclass
 import numpy as np
 
-from mapkit.sim.errors import SimError
-from mapkit.sim.world import World, ray_entry
+from mapkit.sim._errors import SimError
+from mapkit.sim._world import World, ray_entry
 
 __all__ = [
     "CameraModel",

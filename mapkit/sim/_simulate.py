@@ -12,12 +12,12 @@ from typing import Iterator, NamedTuple
 
 import numpy as np
 
-from mapkit.sim.camera import NOISE_MODELS, CameraModel, apply_realsense_noise, camera_extrinsics, render_depth
-from mapkit.sim.errors import SimError
-from mapkit.sim.flight import Trajectory, plan_flight
-from mapkit.sim.record import FORMATS, BagRecorder, output_path
-from mapkit.sim.world import World
-from mapkit.sim.worlds import WORLD_KINDS, make_world
+from mapkit.bags import FORMATS, BagRecorder, output_path
+from mapkit.sim._camera import NOISE_MODELS, CameraModel, apply_realsense_noise, camera_extrinsics, render_depth
+from mapkit.sim._errors import SimError
+from mapkit.sim._flight import Flight, plan_flight
+from mapkit.sim._procedural import WORLD_KINDS, make_world
+from mapkit.sim._world import World
 
 __all__ = ["SimConfig", "SimResult", "RenderedFlight", "render_flight", "simulate", "ground_truth_paths",
            "DEPTH_TOPIC", "CAMERA_INFO_TOPIC", "ODOM_TOPIC", "WORLD_FRAME", "BODY_FRAME", "CAMERA_LINK_FRAME",
@@ -65,7 +65,7 @@ class SimConfig:
     size: tuple[float, float, float] | None = None
     """World extent (x, y, z) metres; None → the world's default."""
     density: float | None = None
-    """World obstacle density (see mapkit.sim.worlds); None → default."""
+    """World obstacle density (see mapkit.sim.make_world); None → default."""
     speed: float = 1.5
     """Cruise speed, m/s (1..3)."""
     margin: float = 0.4
@@ -160,7 +160,7 @@ def ground_truth_paths(bag: Path, format: str) -> tuple[Path, Path, Path]:
 @dataclass
 class _Plan:
     world: World
-    trajectory: Trajectory
+    trajectory: Flight
     odom_stamps: np.ndarray
     t_odom: np.ndarray
     T_base_link: np.ndarray
@@ -219,7 +219,7 @@ def simulate(config: SimConfig, out: str | os.PathLike[str], *, progress: bool =
 
     Args:
         config: what to simulate.
-        out: output path, with or without suffix (see mapkit.sim.record.output_path).
+        out: output path, with or without suffix (see mapkit.bags.output_path).
         progress: show a tqdm bar over frames on stderr.
     Raises:
         SimError: bad config, existing output without ``overwrite``, or no feasible flight.

@@ -15,10 +15,10 @@ from typing import Callable
 
 import numpy as np
 
-from mapkit.sim.errors import SimError
-from mapkit.sim.world import Box, Capsule, Cylinder, HalfSpace, Primitive, World
+from mapkit.sim._errors import SimError
+from mapkit.sim._world import Box, Capsule, Cylinder, HalfSpace, Primitive, World
 
-__all__ = ["WORLD_KINDS", "DEFAULT_SIZES", "DEFAULT_DENSITIES", "make_world"]
+__all__ = ["WORLD_KINDS", "DEFAULT_SIZES", "DEFAULT_DENSITIES", "MIN_SIZES", "make_world"]
 
 WORLD_KINDS: tuple[str, ...] = ("forest", "office", "garage")
 DEFAULT_SIZES: dict[str, tuple[float, float, float]] = {
@@ -27,7 +27,7 @@ DEFAULT_SIZES: dict[str, tuple[float, float, float]] = {
     "garage": (30.0, 20.0, 2.6),
 }
 DEFAULT_DENSITIES: dict[str, float] = {"forest": 0.06, "office": 0.05, "garage": 0.6}
-_MIN_SIZES: dict[str, tuple[float, float, float]] = {
+MIN_SIZES: dict[str, tuple[float, float, float]] = {
     "forest": (6.0, 6.0, 3.0),
     "office": (8.0, 6.0, 2.4),
     "garage": (12.0, 12.0, 2.2),
@@ -280,7 +280,7 @@ def make_world(
     if kind not in _GENERATORS:
         raise SimError(f"unknown world {kind!r}; use one of {', '.join(WORLD_KINDS)}")
     X, Y, Z = (float(v) for v in (size if size is not None else DEFAULT_SIZES[kind]))
-    lo = _MIN_SIZES[kind]
+    lo = MIN_SIZES[kind]
     if X < lo[0] or Y < lo[1] or Z < lo[2] or not all(math.isfinite(v) for v in (X, Y, Z)):
         raise SimError(f"world size {(X, Y, Z)} too small for {kind}; use at least {lo} metres")
     if X * Y > 250_000 or Z > 100:

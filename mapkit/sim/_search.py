@@ -1,8 +1,8 @@
-"""Search-based paths through a :class:`~mapkit.sim.world.World`'s exact free space.
+"""Search-based paths through a :class:`~mapkit.sim.World`'s exact free space.
 
 The ground-truth counterpart of a learned planner: the world's signed distance is sampled on a grid
 over the flight volume, cells with enough clearance form a 26-neighbour graph (the same one
-:func:`~mapkit.sim.flight.plan_flight` uses, with a cost that keeps paths to the middle of
+:func:`~mapkit.sim.plan_flight` uses, with a cost that keeps paths to the middle of
 corridors), and Dijkstra + line-of-sight shortcuts give a short polyline with a guaranteed
 clearance. Used by ``mapkit eval`` to sample start–goal pairs and as its ``oracle`` planner.
 """
@@ -15,9 +15,9 @@ import numpy as np
 from scipy import ndimage
 from scipy.sparse.csgraph import dijkstra
 
-from mapkit.sim.errors import SimError
-from mapkit.sim.flight import _graph, _Grid, _shortcut
-from mapkit.sim.world import World
+from mapkit.sim._errors import SimError
+from mapkit.sim._flight import _graph, _Grid, _shortcut
+from mapkit.sim._world import World
 
 __all__ = ["FreeSpaceGraph"]
 

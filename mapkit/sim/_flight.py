@@ -1,4 +1,4 @@
-"""Collision-free UAV flights through a :class:`~mapkit.sim.world.World`.
+"""Collision-free UAV flights through a :class:`~mapkit.sim.World`.
 
 How a flight is made:
 
@@ -28,10 +28,10 @@ from scipy import ndimage, sparse
 from scipy.interpolate import BSpline
 from scipy.sparse.csgraph import dijkstra
 
-from mapkit.sim.errors import SimError
-from mapkit.sim.world import World
+from mapkit.sim._errors import SimError
+from mapkit.sim._world import World
 
-__all__ = ["Trajectory", "plan_flight", "MIN_SPEED", "MAX_SPEED"]
+__all__ = ["Flight", "plan_flight", "MIN_SPEED", "MAX_SPEED"]
 
 MIN_SPEED = 1.0
 MAX_SPEED = 3.0
@@ -40,7 +40,7 @@ _LATERAL_ACCEL = 2.0  # m/s²; bounds speed in turns: v <= sqrt(a / curvature)
 
 
 @dataclass
-class Trajectory:
+class Flight:
     """A smooth flight: arc-length tables of a B-spline plus a time mapping and yaw table.
 
     Use :meth:`sample` / :meth:`T_world_body` with times in seconds from the start.
@@ -198,7 +198,7 @@ def plan_flight(
     margin: float = 0.4,
     seed: int = 0,
     resolution: float | None = None,
-) -> Trajectory:
+) -> Flight:
     """Plan a smooth collision-free flight of at least ``duration`` seconds.
 
     Args:
@@ -379,5 +379,5 @@ def plan_flight(
     period, phase = float(rng.uniform(6.0, 10.0)), float(rng.uniform(0, 2 * math.pi))
     yaw = yaw + 0.25 * np.sin(2 * math.pi * yaw_t / period + phase)
     yaw_rate = np.gradient(yaw, yaw_t)
-    return Trajectory(spline=spline, u_k=u_k, s_k=s_k, t_k=t_k, v_k=v, yaw_t=yaw_t, yaw=yaw, yaw_rate=yaw_rate,
+    return Flight(spline=spline, u_k=u_k, s_k=s_k, t_k=t_k, v_k=v, yaw_t=yaw_t, yaw=yaw, yaw_rate=yaw_rate,
                       min_clearance=float(d_k.min()))

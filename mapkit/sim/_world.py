@@ -25,20 +25,15 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence, Union
+from typing import Any, Iterable, Union
 
 import numpy as np
 
-from mapkit.sim.errors import SimError
+from mapkit.sim._errors import SimError
 
 __all__ = ["Box", "Cylinder", "Capsule", "HalfSpace", "Primitive", "World"]
 
 _CHUNK = 16384  # points per SDF block: bounds the (points x primitives) temporaries
-
-
-def _vec(x: Sequence[float] | np.ndarray, n: int = 3) -> np.ndarray:
-    a = np.asarray(x, dtype=np.float64).reshape(n)
-    return a
 
 
 # ---------------------------------------------------------------------------------- primitives
