@@ -5,8 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
-
 from mapkit.cli.main import COUNT, FINITE, INDEX, library_call, main
+
+from mapkit._choices import ON_REJECT
 
 
 @main.command("eval")
@@ -25,7 +26,7 @@ from mapkit.cli.main import COUNT, FINITE, INDEX, library_call, main
 @click.option("--horizon", type=FINITE, default=6.0, show_default=True, help="Local goal distance, metres.")
 @click.option("--min-distance", type=FINITE, default=8.0, show_default=True, help="Start-goal distance, metres.")
 @click.option("--ignore-eta", is_flag=True, help="Execute plans even when eta >= 0.5.")
-@click.option("--on-reject", type=click.Choice(["continue", "brake"]), default="continue", show_default=True,
+@click.option("--on-reject", type=click.Choice(ON_REJECT), default="continue", show_default=True,
               help="A rejected plan (eta >= 0.5) in flight: keep flying the previous plan, or brake to rest and look around.")
 @click.option("--corridor", type=FINITE, default=1.0, show_default=True,
               help="Widest half-width (m) of the flight corridor learned plans may use around their key-points; 0 = through them.")

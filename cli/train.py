@@ -7,8 +7,9 @@ from pathlib import Path
 from typing import Any
 
 import click
-
 from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, library_call, main
+
+from mapkit._choices import PRESET_NAMES, TRAINED_WEIGHTS
 
 
 def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
@@ -34,7 +35,7 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @click.option("--val-workspace", "val_workspaces", multiple=True, type=click.Path(path_type=Path),
               help="Held-out workspace for validation (repeatable); without one, each store's own split validates.")
 @click.option("--grad-clip", type=POSITIVE, default=None, help="Override the gradient-norm clip.")
-@click.option("--preset", default="cpu", show_default=True, type=click.Choice(["cpu", "paper"]), help="Named configuration.")
+@click.option("--preset", default="cpu", show_default=True, type=click.Choice(PRESET_NAMES), help="Named configuration.")
 @click.option("--name", default=None, help="Run name (default: the preset's name).")
 @click.option("--runs-dir", type=click.Path(path_type=Path), default=None, help="Where runs go (default: first WS/runs).")
 @click.option("--epochs", type=COUNT, default=None, help="Override the preset's epochs.")
@@ -50,7 +51,7 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @click.option("--loss", "loss_items", multiple=True, metavar="FIELD=VALUE", help="LossConfig field override (repeatable).")
 @click.option("--init", "init", default=None, metavar="MODEL",
               help="Start from this model's weights (run directory, model.pt or 'pretrained'): fine-tuning.")
-@click.option("--only", type=click.Choice(["all", "tan"]), default="all", show_default=True,
+@click.option("--only", type=click.Choice(TRAINED_WEIGHTS), default="all", show_default=True,
               help="Train only the Time Allocation Net ('tan') on the key-points of the frozen --init model.")
 @click.option("--resume", is_flag=True, help="Continue the run after its last completed epoch.")
 @click.option("--overwrite", is_flag=True, help="Restart an existing run from scratch.")

@@ -269,11 +269,10 @@ def test_set_threads_follows_the_cpu_affinity() -> None:
     ({}, {"no_such_field": 1}, "LossConfig has no field 'no_such_field'"),
 ])
 def test_nested_options_are_type_checked(planner: dict, loss: dict, message: str) -> None:
-    config = preset("cpu", planner=planner, loss=loss)
-    with pytest.raises(TrainConfigError) as info:
-        config.validate()
+    with pytest.raises(TrainConfigError) as info:  # when the typed config is built from the dicts
+        preset("cpu", planner=planner, loss=loss).validate()
     assert message in str(info.value)
-    preset("cpu", planner={"input_size": [48, 64], "candidate_anchors": [[1.0, 0], [-1, 0.5]]},
+    preset("cpu", planner={"input_size": [48, 64], "num_candidates": 2, "candidate_anchors": [[1.0, 0], [-1, 0.5]]},
            loss={"robot_radius": 0.35}).validate()  # lists stand for tuples, integers for floats
 
 

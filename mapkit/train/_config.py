@@ -6,9 +6,11 @@ import dataclasses
 import json
 import math
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
+from mapkit._choices import PresetName, TrainedWeights
 from mapkit.errors import MapkitError
+from mapkit.planner import LossConfig, PlannerConfig
 
 
 class TrainConfigError(MapkitError):
@@ -22,7 +24,7 @@ class TrainConfig:
 
     name: str = "run"
     """Run directory name under --runs-dir."""
-    preset: str = "cpu"
+    preset: PresetName = "cpu"
     """The preset this config started from ('paper' or 'cpu')."""
     epochs: int = 24
     """Passes over the training samples."""
@@ -52,28 +54,45 @@ class TrainConfig:
     """Start from the weights of this model (a run directory, its model.pt, or "pretrained" for the
     planner shipped with mapkit) instead of random ones: fine-tuning on one's own flights or with a
     changed loss. Its planner configuration must equal this run's."""
-    only: Literal["all", "tan"] = "all"
+    only: TrainedWeights = "all"
     """Which weights train. "tan": only the Time Allocation Net, on the key-points of the frozen
     ``init`` model (the TAN learns from U_T alone, so this is the joint training's TAN part without
     changing the paths); its TAN options (``tan_boundary``, ``tan_hidden``, timing rule) may differ
     from the init model's. The best epoch is then chosen by the held-out U_T."""
-    planner: dict[str, Any] = field(default_factory=dict)
-    """PlannerConfig fields (mapkit.planner)."""
-    loss: dict[str, Any] = field(default_factory=dict)
-    """LossConfig fields (mapkit.planner)."""
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    """The planner network's configuration (mapkit.planner)."""
+    loss: LossConfig = field(default_factory=LossConfig)
+    """The training loss's weights and parameters (mapkit.planner)."""
+    _planner_keys: tuple[str, ...] = field(default=(), repr=False, compare=False)
+    """PlannerConfig fields given by name (preset, --planner, config.json), in order: config.json
+    lists them even at their default value, as it did when ``planner`` was a dict of them."""
+    _loss_keys: tuple[str, ...] = field(default=(), repr=False, compare=False)
+    """LossConfig fields given by name, likewise."""
 
     def to_dict(self) -> dict[str, Any]:
-        return json.loads(json.dumps(dataclasses.asdict(self)))
+        """config.json's form: ``planner`` / ``loss`` as the fields given by name, then any other
+        field that differs from its default (JSON types)."""
+        data: dict[str, Any] = {f.name: getattr(self, f.name) for f in _option_fields()}
+        data["planner"] = _named_fields(self.planner, self._planner_keys)
+        data["loss"] = _named_fields(self.loss, self._loss_keys)
+        return json.loads(json.dumps(data))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "TrainConfig":
-        known = {f.name for f in dataclasses.fields(cls)}
+        """Build a config from :meth:`to_dict`'s form (config.json, a preset with overrides);
+        ``planner`` / ``loss`` may be dicts of fields or config objects. Unknown options and
+        ill-typed nested fields raise :class:`TrainConfigError` naming them."""
+        known = {f.name for f in _option_fields()}
         unknown = sorted(set(data) - known)
         if unknown:
             raise TrainConfigError(f"unknown training options {unknown}; known: {sorted(known)}")
-        return cls(**data)
+        options = dict(data)
+        planner, planner_keys = _nested(options.pop("planner", {}), PlannerConfig, "--planner")
+        loss, loss_keys = _nested(options.pop("loss", {}), LossConfig, "--loss")
+        return cls(**options, planner=planner, loss=loss, _planner_keys=planner_keys, _loss_keys=loss_keys)
 
     def validate(self) -> None:
+        """Raise :class:`TrainConfigError` naming the first option out of its range."""
         if self.epochs < 1:
             raise TrainConfigError(f"--epochs {self.epochs} must be at least 1")
         if self.batch_size < 1:
@@ -90,26 +109,48 @@ class TrainConfig:
             raise TrainConfigError("--only tan trains the TAN on the key-points of another model: pass --init MODEL")
         if self.max_steps is not None and self.max_steps < 1:
             raise TrainConfigError(f"--max-steps {self.max_steps} must be at least 1")
-        from mapkit._fields import check_fields
-        from mapkit.planner import LossConfig, PlannerConfig
 
-        check_fields(self.planner, PlannerConfig, "--planner", TrainConfigError)
-        check_fields(self.loss, LossConfig, "--loss", TrainConfigError)
+
+def _option_fields() -> list[dataclasses.Field]:
+    """TrainConfig's options (its fields less the private bookkeeping of named nested fields)."""
+    return [f for f in dataclasses.fields(TrainConfig) if not f.name.startswith("_")]
+
+
+def _named_fields(config: PlannerConfig | LossConfig, keys: tuple[str, ...]) -> dict[str, Any]:
+    """The fields in ``keys`` (in that order), then every other one that differs from its default."""
+    values = dataclasses.asdict(config)
+    defaults = dataclasses.asdict(type(config)())
+    return {k: values[k] for k in [*keys, *(k for k in values if k not in keys and values[k] != defaults[k])]}
+
+
+def _nested(value: Any, cls: type, option: str) -> tuple[Any, tuple[str, ...]]:
+    """A PlannerConfig / LossConfig from a dict of fields (type-checked: a wrong one is a one-line
+    error naming it) or as given, with the names the dict gave."""
+    if isinstance(value, cls):
+        return value, ()
+    if not isinstance(value, dict):
+        raise TrainConfigError(f"{option}: expected {cls.__name__} fields as an object, got {value!r}")
+    from mapkit._fields import check_fields
+
+    check_fields(value, cls, option, TrainConfigError)
+    built = cls.from_dict(value) if hasattr(cls, "from_dict") else cls(**value)
+    return built, tuple(value)
 
 
 PRESETS: dict[str, TrainConfig] = {
     # The paper's set-up: 360x640 input, batch 16, Adam 1e-4, 50 epochs, full-width ResNet-18.
-    "paper": TrainConfig(preset="paper", epochs=50, batch_size=16, lr=1e-4,
-                         planner={"input_size": [360, 640], "encoder_width": 1.0}),
+    "paper": TrainConfig.from_dict({"preset": "paper", "epochs": 50, "batch_size": 16, "lr": 1e-4,
+                                    "planner": {"input_size": [360, 640], "encoder_width": 1.0}}),
     # A model on a 2-core CPU within the hour: small input, a quarter-width encoder, eight scored
     # candidate paths checked against the depth image (winner-takes-all, soft-min score targets), a
     # sharper obstacle hinge (ε 0.3 m: free space no longer swamps the collision signal), LeakyReLU
     # heads and lr 5e-4 with gradient clipping (ReLU heads died on 47 worlds).
-    "cpu": TrainConfig(preset="cpu", epochs=8, batch_size=16, lr=5e-4,
-                       planner={"input_size": [96, 160], "encoder_width": 0.25, "num_candidates": 8,
-                                "head_activation": "leaky_relu", "depth_check": True, "velocity_input": True},
-                       loss={"obstacle_softness": 0.3, "time_target_iters": 5, "score_temperature": 0.5},
-                       goals_together=True),
+    "cpu": TrainConfig.from_dict({"preset": "cpu", "epochs": 8, "batch_size": 16, "lr": 5e-4,
+                                  "planner": {"input_size": [96, 160], "encoder_width": 0.25, "num_candidates": 8,
+                                              "head_activation": "leaky_relu", "depth_check": True,
+                                              "velocity_input": True},
+                                  "loss": {"obstacle_softness": 0.3, "time_target_iters": 5, "score_temperature": 0.5},
+                                  "goals_together": True}),
 }
 
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import logging
 import math
 import os
 import time
@@ -22,6 +24,8 @@ from mapkit.train._provenance import simulated_worlds, workspace_camera
 
 METRIC_KEYS = ("total", "obstacle", "goal", "smoothness", "escape", "time", "score", "collision_rate",
                "winner_collision_rate", "score_accuracy")
+log = logging.getLogger(__name__)
+
 REACH_DISTANCE = 1.0
 """Metres: a validation plan "reaches" its goal when its end lies this close and it does not collide."""
 
@@ -312,19 +316,50 @@ def _metrics_upto(path: Path, epoch: int) -> list[dict[str, Any]]:
     return kept
 
 
-def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: str | Path | None = None,
-          resume: bool = False, overwrite: bool = False, progress: bool = True,
-          val_workspaces: Sequence[str | Path] = ()) -> TrainSummary:
-    """Train the planner on the tuples of `workspaces`; writes runs_dir/NAME (default: first WS/runs).
+@dataclass
+class _Session:
+    """A training run in progress: what the steps of :func:`train` share."""
 
-    With ``val_workspaces`` (held-out worlds) every tuple of ``workspaces`` trains and every tuple of
-    ``val_workspaces`` validates; otherwise each store's own train/val split is used. model.pt holds
-    the epoch with the best validation blocked-goal reach (see :func:`evaluate`); checkpoint.pt the
-    latest (for --resume)."""
-    from tqdm import tqdm
+    config: TrainConfig
+    run_dir: Path
+    device: torch.device
+    rank: int
+    world: int
+    """DDP world size (1 without torchrun)."""
+    rng: np.random.Generator
+    """Shuffling and end-speed sampling (seeded; its state goes into checkpoints)."""
+    step: int = 0
+    """Optimiser steps so far."""
+    net: Any = None
+    """The PlannerNet (set by :func:`_build_model`)."""
+    step_module: Any = None
+    """The net behind DistributedDataParallel when ``world`` > 1, else its plain wrapper."""
+    optimizer: Any = None
+    best_score: float = -math.inf
+    best_epoch: int | None = None
+    metrics: list[dict[str, Any]] = field(default_factory=list)
+    writer: Any = None
+    """TensorBoard SummaryWriter, None without the optional extra."""
 
-    from mapkit.planner import LossConfig, PlannerConfig, PlannerNet, candidate_loss, time_allocation_loss
+    def log_row(self, entry: dict[str, Any]) -> None:
+        """Append a row to metrics.jsonl (and to :attr:`metrics`)."""
+        self.metrics.append(entry)
+        with open(self.run_dir / "metrics.jsonl", "a") as f:
+            f.write(json.dumps(entry) + "\n")
 
+
+@dataclass
+class _Splits:
+    """Training and validation samples with their maps."""
+
+    train_set: TupleSamples
+    maps: list[Any]
+    val_set: TupleSamples
+    val_maps: list[Any]
+
+
+def _check_inputs(workspaces: Sequence[str | Path], val_workspaces: Sequence[str | Path], config: TrainConfig) -> None:
+    """Raise when the config is out of range, no workspace is given, or a workspace is in both splits."""
     config.validate()
     if not workspaces:
         raise TrainDataError("no workspace given; pass -w WS (repeatable)")
@@ -332,32 +367,34 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     if overlap:
         raise TrainDataError(f"{sorted(map(str, overlap))[0]} is both a training and a validation workspace; "
                              "hold out whole worlds")
-    device = _device(config.device)
-    rank, world = _distributed()
-    threads = set_threads(world) if device.type == "cpu" else torch.get_num_threads()
-    run_dir = Path(runs_dir) if runs_dir else Path(workspaces[0]) / "runs"
-    run_dir = run_dir / config.name
+
+
+def _resume_state(run_dir: Path, config: TrainConfig, *, resume: bool, overwrite: bool) -> dict[str, Any] | None:
+    """The checkpoint to continue from (its config must match), None for a fresh run; refuses to
+    start over an existing run without ``overwrite``."""
     checkpoint_path = run_dir / "checkpoint.pt"
-    start_epoch, step, state = 1, 0, None
     if resume:
         if not checkpoint_path.exists():
             raise TrainConfigError(f"--resume: {checkpoint_path} does not exist; start without --resume")
         saved_all = json.loads((run_dir / "config.json").read_text())
-        saved = TrainConfig.from_dict({k: v for k, v in saved_all.items() if k in TrainConfig.__dataclass_fields__})
+        known = {f.name for f in dataclasses.fields(TrainConfig) if not f.name.startswith("_")}
+        theirs = TrainConfig.from_dict({k: v for k, v in saved_all.items() if k in known}).to_dict()
+        mine = config.to_dict()
         for key in ("planner", "loss", "batch_size", "corridor", "preset"):
-            if getattr(saved, key) != getattr(config, key):
+            if theirs[key] != mine[key]:
                 raise TrainConfigError(
-                    f"--resume with an incompatible config: {key} is {getattr(config, key)!r} but the run has "
-                    f"{getattr(saved, key)!r}; use the run's options or a new --name"
+                    f"--resume with an incompatible config: {key} is {mine[key]!r} but the run has "
+                    f"{theirs[key]!r}; use the run's options or a new --name"
                 )
-        state = load_saved(checkpoint_path, "mapkit training checkpoint", TrainConfigError,
-                           ("epoch", "step", "model", "optimizer"))
-        start_epoch, step = int(state["epoch"]) + 1, int(state["step"])
-    elif run_dir.exists() and any(run_dir.iterdir()) and not overwrite:
+        return load_saved(checkpoint_path, "mapkit training checkpoint", TrainConfigError,
+                          ("epoch", "step", "model", "optimizer"))
+    if run_dir.exists() and any(run_dir.iterdir()) and not overwrite:
         raise TrainConfigError(f"run {run_dir} exists; pass --resume to continue it, --overwrite to restart, or a new --name")
+    return None
 
-    torch.manual_seed(config.seed)
-    rng = np.random.default_rng(config.seed)
+
+def _splits(workspaces: Sequence[str | Path], val_workspaces: Sequence[str | Path], config: TrainConfig) -> _Splits:
+    """Open the stores: held-out workspaces validate when given, else each store's own split."""
     stores, maps = _open_stores(workspaces)
     if val_workspaces:
         val_stores, val_maps = _open_stores(val_workspaces)
@@ -368,144 +405,221 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
         val_set, val_maps = TupleSamples(stores, "val"), maps
     if len(train_set) == 0:
         raise TrainDataError("no training samples: every tuple is in the validation split; lower --val-fraction at export")
+    return _Splits(train_set, maps, val_set, val_maps)
 
-    planner_cfg = PlannerConfig.from_dict(config.planner) if config.planner else PlannerConfig()
-    loss_cfg = LossConfig(**config.loss)
-    net = PlannerNet(planner_cfg).to(device)
-    step_module: nn.Module = _Step(net)
-    if world > 1:
-        step_module = nn.parallel.DistributedDataParallel(step_module, device_ids=[device.index] if device.type == "cuda" else None)
+
+def _build_model(run: _Session, state: dict[str, Any] | None) -> None:
+    """The net (DDP-wrapped when distributed), its optimiser, and the weights of --init or the checkpoint."""
+    from mapkit.planner import PlannerNet
+
+    config = run.config
+    run.net = net = PlannerNet(config.planner).to(run.device)
+    run.step_module = _Step(net)
+    if run.world > 1:
+        run.step_module = nn.parallel.DistributedDataParallel(
+            run.step_module, device_ids=[run.device.index] if run.device.type == "cuda" else None)
     if config.only == "tan":
         for name, param in net.named_parameters():
             param.requires_grad_(name.startswith("tan."))
-    optimizer = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=config.lr,
-                                 weight_decay=config.weight_decay)
+    run.optimizer = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=config.lr,
+                                     weight_decay=config.weight_decay)
     if state is None and config.init:
         _load_init(net, config.init, tan_fresh=config.only == "tan")
     if state is not None:
         net.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
+        run.optimizer.load_state_dict(state["optimizer"])
         torch.set_rng_state(state["rng_torch"])
-        rng.bit_generator.state = state["rng_numpy"]
-    best_score, best_epoch = (state.get("best_score", -math.inf), state.get("best_epoch")) if state else (-math.inf, None)
+        run.rng.bit_generator.state = state["rng_numpy"]
+        run.best_score, run.best_epoch = state.get("best_score", -math.inf), state.get("best_epoch")
 
-    writer = None
-    metrics: list[dict[str, Any]] = []
+
+def _start_run_dir(run: _Session, workspaces: Sequence[str | Path], val_workspaces: Sequence[str | Path], *,
+                   resume: bool, start_epoch: int) -> None:
+    """Rank 0: config.json, the metrics kept from before a resume, and TensorBoard when installed."""
+    run_dir, config = run.run_dir, run.config
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        for stale in ("metrics.jsonl", "checkpoint.pt", "model.pt", "training_curves.png"):
+            (run_dir / stale).unlink(missing_ok=True)
+    _atomic_text(json.dumps(config.to_dict() | {"planner_resolved": config.planner.to_dict(),
+                                                "workspaces": [str(Path(w).resolve()) for w in workspaces],
+                                                "val_workspaces": [str(Path(w).resolve()) for w in val_workspaces],
+                                                "camera": _camera_or_none(workspaces[0]),
+                                                "training_worlds": sorted(map(list, simulated_worlds(
+                                                    [*workspaces, *val_workspaces]))),
+                                                "mapkit_version": __version__}, indent=2), run_dir / "config.json")
+    if (run_dir / "metrics.jsonl").exists():
+        run.metrics = _metrics_upto(run_dir / "metrics.jsonl", start_epoch - 1)
+    run.writer = _tensorboard(run_dir)
+
+
+def _tensorboard(run_dir: Path) -> Any:
+    """A SummaryWriter into run_dir/tensorboard, or None.
+
+    TensorBoard is an optional extra and metrics.jsonl holds every number it would show, so a run
+    goes on without it: not installed is the usual case (an info line); installed but failing is
+    logged as a warning with the reason, since the user asked for it by installing it."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter  # optional extra
+    except ImportError as exc:
+        log.info("TensorBoard is not installed (%s); the metrics are in %s", exc, run_dir / "metrics.jsonl")
+        return None
+    try:
+        return SummaryWriter(str(run_dir / "tensorboard"))
+    except Exception as exc:  # noqa: BLE001 - any failure of the optional logger: warned, the run goes on
+        log.warning("TensorBoard cannot write to %s (%s: %s); the metrics are in metrics.jsonl",
+                    run_dir / "tensorboard", type(exc).__name__, exc)
+        return None
+
+
+def _validation(run: _Session, data: _Splits, *, straight: bool = False) -> dict[str, float]:
+    """The validation metrics of the current weights (or of straight-line key-points)."""
+    c = run.config
+    return evaluate(run.net, data.val_set, data.val_maps, c.loss, run.device, straight=straight,
+                    max_batches=c.val_batches, batch_size=c.batch_size, corridor=c.corridor)
+
+
+def _train_step(run: _Session, data: _Splits, k: int, part: Any) -> dict[str, Any]:
+    """One optimiser step on one batch; its loss terms."""
+    from mapkit.planner import candidate_loss, time_allocation_loss
+
+    config, net = run.config, run.net
+    batch = data.train_set.load(k, part, run.device)
+    with torch.set_grad_enabled(config.only == "all"):
+        out = run.step_module(batch["depth"], batch["goal"], batch["image_index"], batch["camera"], batch["velocity"])
+    end_speed = _end_speeds(config.planner, len(part), run.rng, run.device)
+    if config.only == "tan":
+        loss, terms = time_allocation_loss(net, out.keypoints, start_velocity=batch["velocity"],
+                                           end_speed=end_speed, config=config.loss)
+        terms = {key: terms.get(key, torch.tensor(0.0)) for key in METRIC_KEYS}  # paths are not costed
+    else:
+        loss, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"],
+                                     esdf_map=data.maps[k], start_velocity=batch["velocity"], end_speed=end_speed,
+                                     corridor=config.corridor, config=config.loss)
+    if not torch.isfinite(loss):
+        raise TrainConfigError(f"loss became {float(loss)} at step {run.step}; lower --lr (now {config.lr})")
+    run.optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    if config.grad_clip is not None:
+        nn.utils.clip_grad_norm_(net.parameters(), config.grad_clip)
+    run.optimizer.step()
+    run.step += 1
+    return terms
+
+
+def _train_epoch(run: _Session, data: _Splits, epoch: int, progress: bool) -> tuple[dict[str, float], int, float]:
+    """One pass over the training batches: (sums of each metric weighted by batch size, samples,
+    seconds of steps)."""
+    from tqdm import tqdm
+
+    config = run.config
+    # A frozen encoder stays in eval mode: batch norm would otherwise move its running statistics
+    # (and so the key-points) even without gradients. The TAN has no such layers.
+    run.net.train(config.only == "all")
+    sums = {k: 0.0 for k in METRIC_KEYS}
+    count = 0
+    batches = list(data.train_set.batches(config.batch_size, shuffle=True, generator=run.rng, rank=run.rank,
+                                          world_size=run.world))
+    bar = tqdm(batches, desc=f"epoch {epoch}/{config.epochs}", unit="batch", disable=not progress or run.rank != 0,
+               dynamic_ncols=True)
+    t_steps = time.perf_counter()
+    for k, part in bar:
+        terms = _train_step(run, data, k, part)
+        m = len(part)
+        count += m
+        for key in METRIC_KEYS:
+            sums[key] += float(terms[key]) * m
+        if run.rank == 0:
+            bar.set_postfix({k: f"{sums[k] / count:.3g}" for k in ("total", "obstacle", "goal", "collision_rate")})
+            if run.writer is not None:
+                for key in METRIC_KEYS:
+                    run.writer.add_scalar(f"train/{key}", float(terms[key]), run.step)
+        if config.max_steps is not None and run.step >= config.max_steps:
+            break
+    bar.close()
+    return sums, count, time.perf_counter() - t_steps
+
+
+def _end_epoch(run: _Session, data: _Splits, epoch: int, sums: dict[str, float], count: int, steps_seconds: float,
+               t_epoch: float) -> None:
+    """Rank 0 after an epoch: validate, log the row, write the checkpoint, model.pt when better, curves."""
+    val = _validation(run, data)
+    score = _selection_score(val, run.config.only)
+    improved = score > run.best_score
+    if improved:
+        run.best_score, run.best_epoch = score, epoch
+    seconds = time.perf_counter() - t_epoch
+    run.log_row({"epoch": epoch, "step": run.step, "train": {k: v / max(count, 1) for k, v in sums.items()}, "val": val,
+             "seconds": seconds, "samples_per_second": count * run.world / steps_seconds, "best_epoch": run.best_epoch})
+    if run.writer is not None:
+        for key, value in val.items():
+            run.writer.add_scalar(f"val/{key}", value, epoch)
+    _write_checkpoint(run, epoch)
+    if improved:
+        _write_model(run, epoch, val)
+    _curves(run.metrics, run.run_dir / "training_curves.png")
+
+
+def _write_checkpoint(run: _Session, epoch: int) -> None:
+    """checkpoint.pt: weights, optimiser, RNG states and the best so far (for --resume)."""
+    _atomic_save({"model": run.net.state_dict(), "optimizer": run.optimizer.state_dict(), "epoch": epoch,
+                  "step": run.step, "config": run.config.to_dict(), "rng_torch": torch.get_rng_state(),
+                  "rng_numpy": run.rng.bit_generator.state, "best_score": run.best_score, "best_epoch": run.best_epoch},
+                 run.run_dir / "checkpoint.pt")
+
+
+def _write_model(run: _Session, epoch: int, val: dict[str, float]) -> None:
+    """model.pt: the weights of the best epoch with their planner config."""
+    _atomic_save({"state_dict": run.net.state_dict(), "planner_config": run.config.planner.to_dict(),
+                  "loss_config": run.config.to_dict()["loss"], "mapkit_version": __version__, "epoch": epoch,
+                  "selection": {"blocked_reach": val["blocked_reach"], "total": val["total"]}},
+                 run.run_dir / "model.pt")
+
+
+def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: str | Path | None = None,
+          resume: bool = False, overwrite: bool = False, progress: bool = True,
+          val_workspaces: Sequence[str | Path] = ()) -> TrainSummary:
+    """Train the planner on the tuples of `workspaces`; writes runs_dir/NAME (default: first WS/runs).
+
+    With ``val_workspaces`` (held-out worlds) every tuple of ``workspaces`` trains and every tuple of
+    ``val_workspaces`` validates; otherwise each store's own train/val split is used. model.pt holds
+    the epoch with the best validation blocked-goal reach (see :func:`evaluate`); checkpoint.pt the
+    latest (for --resume)."""
+    _check_inputs(workspaces, val_workspaces, config)
+    device = _device(config.device)
+    rank, world = _distributed()
+    threads = set_threads(world) if device.type == "cpu" else torch.get_num_threads()
+    run_dir = (Path(runs_dir) if runs_dir else Path(workspaces[0]) / "runs") / config.name
+    state = _resume_state(run_dir, config, resume=resume, overwrite=overwrite)
+    start_epoch = int(state["epoch"]) + 1 if state else 1
+    torch.manual_seed(config.seed)
+    run = _Session(config=config, run_dir=run_dir, device=device, rank=rank, world=world,
+                   rng=np.random.default_rng(config.seed), step=int(state["step"]) if state else 0)
+    data = _splits(workspaces, val_workspaces, config)
+    _build_model(run, state)
     if rank == 0:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        if not resume:
-            for stale in ("metrics.jsonl", "checkpoint.pt", "model.pt", "training_curves.png"):
-                (run_dir / stale).unlink(missing_ok=True)
-        _atomic_text(json.dumps(config.to_dict() | {"planner_resolved": planner_cfg.to_dict(),
-                                                    "workspaces": [str(Path(w).resolve()) for w in workspaces],
-                                                    "val_workspaces": [str(Path(w).resolve()) for w in val_workspaces],
-                                                    "camera": _camera_or_none(workspaces[0]),
-                                                    "training_worlds": sorted(map(list, simulated_worlds(
-                                                        [*workspaces, *val_workspaces]))),
-                                                    "mapkit_version": __version__}, indent=2), run_dir / "config.json")
-        if (run_dir / "metrics.jsonl").exists():
-            metrics = _metrics_upto(run_dir / "metrics.jsonl", start_epoch - 1)
-        try:
-            from torch.utils.tensorboard import SummaryWriter  # optional extra
-
-            writer = SummaryWriter(str(run_dir / "tensorboard"))
-        except Exception:
-            writer = None
-
-    def log(entry: dict[str, Any]) -> None:
-        metrics.append(entry)
-        with open(run_dir / "metrics.jsonl", "a") as f:
-            f.write(json.dumps(entry) + "\n")
-
+        _start_run_dir(run, workspaces, val_workspaces, resume=resume, start_epoch=start_epoch)
     if rank == 0 and not resume:
-        base = {
-            "epoch": 0,
-            "val": evaluate(net, val_set, val_maps, loss_cfg, device, max_batches=config.val_batches, batch_size=config.batch_size,
-                            corridor=config.corridor),
-            "straight": evaluate(net, val_set, val_maps, loss_cfg, device, straight=True, max_batches=config.val_batches,
-                                 batch_size=config.batch_size, corridor=config.corridor),
-        }
-        log(base)
-    baseline = next((m for m in metrics if m.get("epoch") == 0), {})
+        run.log_row({"epoch": 0, "val": _validation(run, data), "straight": _validation(run, data, straight=True)})
+    baseline = next((m for m in run.metrics if m.get("epoch") == 0), {})
 
     t_start = time.perf_counter()
     train_seconds = 0.0
     samples_seen = 0
     epoch = start_epoch - 1
     for epoch in range(start_epoch, config.epochs + 1):
-        # A frozen encoder stays in eval mode: batch norm would otherwise move its running statistics
-        # (and so the key-points) even without gradients. The TAN has no such layers.
-        net.train(config.only == "all")
-        sums = {k: 0.0 for k in METRIC_KEYS}
-        count = 0
         t_epoch = time.perf_counter()
-        batches = list(train_set.batches(config.batch_size, shuffle=True, generator=rng, rank=rank, world_size=world))
-        bar = tqdm(batches, desc=f"epoch {epoch}/{config.epochs}", unit="batch", disable=not progress or rank != 0, dynamic_ncols=True)
-        t_steps = time.perf_counter()
-        for k, part in bar:
-            batch = train_set.load(k, part, device)
-            with torch.set_grad_enabled(config.only == "all"):
-                out = step_module(batch["depth"], batch["goal"], batch["image_index"], batch["camera"], batch["velocity"])
-            end_speed = _end_speeds(planner_cfg, len(part), rng, device)
-            if config.only == "tan":
-                loss, terms = time_allocation_loss(net, out.keypoints, start_velocity=batch["velocity"],
-                                                   end_speed=end_speed, config=loss_cfg)
-                terms = {key: terms.get(key, torch.tensor(0.0)) for key in METRIC_KEYS}  # paths are not costed
-            else:
-                loss, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"],
-                                             esdf_map=maps[k], start_velocity=batch["velocity"], end_speed=end_speed,
-                                             corridor=config.corridor, config=loss_cfg)
-            if not torch.isfinite(loss):
-                raise TrainConfigError(f"loss became {float(loss)} at step {step}; lower --lr (now {config.lr})")
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            if config.grad_clip is not None:
-                nn.utils.clip_grad_norm_(net.parameters(), config.grad_clip)
-            optimizer.step()
-            step += 1
-            m = len(part)
-            samples_seen += m
-            count += m
-            for key in METRIC_KEYS:
-                sums[key] += float(terms[key]) * m
-            if rank == 0:
-                bar.set_postfix({k: f"{sums[k] / count:.3g}" for k in ("total", "obstacle", "goal", "collision_rate")})
-                if writer is not None:
-                    for key in METRIC_KEYS:
-                        writer.add_scalar(f"train/{key}", float(terms[key]), step)
-            if config.max_steps is not None and step >= config.max_steps:
-                break
-        bar.close()
-        steps_seconds = time.perf_counter() - t_steps
+        sums, count, steps_seconds = _train_epoch(run, data, epoch, progress)
+        samples_seen += count
         train_seconds += steps_seconds
         if rank == 0:
-            val = evaluate(net, val_set, val_maps, loss_cfg, device, max_batches=config.val_batches, batch_size=config.batch_size,
-                           corridor=config.corridor)
-            score = _selection_score(val, config.only)
-            improved = score > best_score
-            if improved:
-                best_score, best_epoch = score, epoch
-            seconds = time.perf_counter() - t_epoch
-            log({"epoch": epoch, "step": step, "train": {k: v / max(count, 1) for k, v in sums.items()}, "val": val,
-                 "seconds": seconds, "samples_per_second": count * world / steps_seconds, "best_epoch": best_epoch})
-            if writer is not None:
-                for key, value in val.items():
-                    writer.add_scalar(f"val/{key}", value, epoch)
-            _atomic_save({"model": net.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch, "step": step,
-                          "config": config.to_dict(), "rng_torch": torch.get_rng_state(), "rng_numpy": rng.bit_generator.state,
-                          "best_score": best_score, "best_epoch": best_epoch},
-                         checkpoint_path)
-            if improved:
-                _atomic_save({"state_dict": net.state_dict(), "planner_config": planner_cfg.to_dict(),
-                              "loss_config": config.loss, "mapkit_version": __version__, "epoch": epoch,
-                              "selection": {"blocked_reach": val["blocked_reach"], "total": val["total"]}},
-                             run_dir / "model.pt")
-            _curves(metrics, run_dir / "training_curves.png")
-        if config.max_steps is not None and step >= config.max_steps:
+            _end_epoch(run, data, epoch, sums, count, steps_seconds, t_epoch)
+        if config.max_steps is not None and run.step >= config.max_steps:
             break
-    if writer is not None:
-        writer.close()
+    if run.writer is not None:
+        run.writer.close()
     seconds = time.perf_counter() - t_start
-    last = next((m for m in reversed(metrics) if "train" in m), {})
+    last = next((m for m in reversed(run.metrics) if "train" in m), {})
     rate = samples_seen * world / train_seconds if train_seconds > 0 else math.nan
-    return TrainSummary(run_dir, epoch, step, seconds, rate, last, baseline, best_epoch, train_set.blocked_count(), threads)
+    return TrainSummary(run_dir, epoch, run.step, seconds, rate, last, baseline, run.best_epoch,
+                        data.train_set.blocked_count(), threads)

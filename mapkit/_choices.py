@@ -1,0 +1,18 @@
+"""Option values shared by the library's config dataclasses and the CLI's ``click.Choice`` lists, in
+a module that imports nothing heavy: the CLI builds its options at import time, without torch."""
+
+from __future__ import annotations
+
+from typing import Literal, get_args
+
+PresetName = Literal["cpu", "paper"]
+"""Named training configurations (:data:`mapkit.train.PRESETS`)."""
+PRESET_NAMES: tuple[PresetName, ...] = get_args(PresetName)
+
+TrainedWeights = Literal["all", "tan"]
+"""Which weights a run trains: all, or only the Time Allocation Net."""
+TRAINED_WEIGHTS: tuple[TrainedWeights, ...] = get_args(TrainedWeights)
+
+OnReject = Literal["continue", "brake"]
+"""What a flying vehicle does with a rejected plan (``LoopConfig.on_reject``)."""
+ON_REJECT: tuple[OnReject, ...] = get_args(OnReject)

@@ -1,0 +1,76 @@
+"""TrainConfig with typed planner / loss configs, serialised as config.json always had them."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+from pathlib import Path
+
+import pytest
+import torch
+
+from mapkit._choices import ON_REJECT, PRESET_NAMES, TRAINED_WEIGHTS
+from mapkit.planner import LossConfig, PlannerConfig, PlannerNet
+from mapkit.train import PRESETS, TrainConfig, TrainConfigError, preset
+
+PRETRAINED = Path(__file__).resolve().parents[1] / "mapkit" / "planning" / "pretrained"
+
+OLD_CONFIG = {  # a config.json's options as the code before typed nested configs wrote them
+    "name": "cpu", "preset": "cpu", "epochs": 8, "batch_size": 16, "lr": 0.0005, "weight_decay": 0.0, "seed": 0,
+    "device": "cpu", "max_steps": None, "val_batches": None, "goals_together": True, "grad_clip": 10.0,
+    "corridor": None, "init": None, "only": "all",
+    "planner": {"input_size": [96, 160], "encoder_width": 0.25, "num_candidates": 8, "head_activation": "leaky_relu",
+                "depth_check": True, "velocity_input": True, "num_keypoints": 5},
+    "loss": {"obstacle_softness": 0.3, "time_target_iters": 5, "score_temperature": 0.5, "robot_radius": 0.3},
+}
+
+
+def test_an_old_config_dict_loads_typed_and_writes_back_unchanged() -> None:
+    config = TrainConfig.from_dict(OLD_CONFIG)
+    assert isinstance(config.planner, PlannerConfig) and isinstance(config.loss, LossConfig)
+    assert config.planner.input_size == (96, 160) and config.planner.num_candidates == 8
+    assert config.loss.obstacle_softness == 0.3 and config.loss.gamma_goal == LossConfig().gamma_goal
+    # Fields named at their default value (num_keypoints, robot_radius) stay named, in their order.
+    assert json.dumps(config.to_dict()) == json.dumps(OLD_CONFIG)
+
+
+def test_round_trip_and_fields_changed_in_python_are_written() -> None:
+    config = preset("cpu", name="x", planner={"input_size": [48, 64]}, loss={"robot_radius": 0.35})
+    again = TrainConfig.from_dict(config.to_dict())
+    assert again == config and again.to_dict() == config.to_dict()
+    changed = dataclasses.replace(config, planner=dataclasses.replace(config.planner, num_keypoints=7))
+    assert changed.to_dict()["planner"]["num_keypoints"] == 7
+    direct = TrainConfig(planner=PlannerConfig(num_keypoints=3))
+    assert direct.to_dict()["planner"] == {"num_keypoints": 3} and direct.to_dict()["loss"] == {}
+
+
+def test_presets_are_written_as_before() -> None:
+    assert PRESETS["paper"].to_dict()["planner"] == {"input_size": [360, 640], "encoder_width": 1.0}
+    assert list(PRESETS["cpu"].to_dict()["planner"]) == ["input_size", "encoder_width", "num_candidates",
+                                                         "head_activation", "depth_check", "velocity_input"]
+    assert PRESETS["cpu"].to_dict()["loss"] == {"obstacle_softness": 0.3, "time_target_iters": 5,
+                                                "score_temperature": 0.5}
+
+
+def test_the_shipped_models_config_loads_and_fits_its_weights() -> None:
+    saved = json.loads((PRETRAINED / "config.json").read_text())
+    known = {f.name for f in dataclasses.fields(TrainConfig) if not f.name.startswith("_")}
+    config = TrainConfig.from_dict({k: v for k, v in saved.items() if k in known})
+    assert config.to_dict()["planner"] == saved["planner"] and config.to_dict()["loss"] == saved["loss"]
+    assert config.planner == PlannerConfig.from_dict(saved["planner_resolved"])
+    model = torch.load(PRETRAINED / "model.pt", map_location="cpu", weights_only=True)
+    PlannerNet(config.planner).load_state_dict(model["state_dict"])  # strict: every weight fits
+
+
+def test_a_non_object_nested_config_is_one_line() -> None:
+    with pytest.raises(TrainConfigError, match="--planner: expected PlannerConfig fields"):
+        TrainConfig.from_dict({"planner": [1, 2]})
+
+
+def test_choices_are_the_librarys() -> None:
+    from mapkit.evaluation import LoopConfig
+
+    assert set(PRESET_NAMES) == set(PRESETS)
+    assert TRAINED_WEIGHTS == typing.get_args(typing.get_type_hints(TrainConfig)["only"])
+    assert ON_REJECT == typing.get_args(typing.get_type_hints(LoopConfig)["on_reject"])
