@@ -258,8 +258,7 @@ def _worker() -> _WorkerState:
 
 def _world_bundle(kind: str) -> _WorldBundle:
     """The world ``kind`` of this process, built on first use."""
-    from mapkit.sim import CameraModel, make_world
-    from mapkit.sim import FreeSpaceGraph
+    from mapkit.sim import CameraModel, FreeSpaceGraph, make_world
 
     state = _worker()
     setup = state.setup
@@ -466,8 +465,7 @@ def _refuse_training_seed(config: EvalConfig, trained_worlds: set[tuple[str, int
 def _worlds_and_pairs(config: EvalConfig) -> tuple[dict[str, Any], dict[str, list[Pair]]]:
     """The evaluation worlds and their pairs (deterministic in the seed), sampled here so every
     method and worker gets the same."""
-    from mapkit.sim import make_world
-    from mapkit.sim import FreeSpaceGraph
+    from mapkit.sim import FreeSpaceGraph, make_world
 
     worlds = {k: make_world(k, seed=config.seed) for k in config.worlds}
     pairs: dict[str, list[Pair]] = {}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -31,6 +32,7 @@ class TrajoptWarning(UserWarning):
 
 # ---------------------------------------------------------------------------------------- inputs
 def _as_tensor(x, name: str, like: torch.Tensor) -> torch.Tensor:
+    """``x`` as a tensor on ``like``'s device (non-tensors in ``like``'s dtype)."""
     if isinstance(x, torch.Tensor):
         return x.to(device=like.device)
     try:
@@ -52,6 +54,7 @@ def _batch_param(x, name: str, B: int, tail: tuple[int, ...], like: torch.Tensor
 
 
 def _check_finite(t: torch.Tensor, name: str) -> None:
+    """Raise :class:`TrajoptError` naming ``name`` when ``t`` holds NaN or inf."""
     if not bool(torch.isfinite(t.detach()).all()):
         raise TrajoptError(f"{name} contains NaN or inf; pass finite values")
 
@@ -135,25 +138,74 @@ def _to_global(local: torch.Tensor, seg: torch.Tensor, N: int) -> torch.Tensor:
 
 
 # ------------------------------------------------------------------------------------ solver
-def _solve_position_qp(
-    w, T, start, end, *, corridor, corridor_samples, v_max, a_max, solver
-):
-    """Knot vectors (B, N, 3), ok mask (B,) numpy, statuses and info for the inequality path."""
-    B, M = T.shape
-    lay = layout(M, 4, corridor is not None)
-    N = lay.n_knot
-    X0 = knot_values(w, start, end, 4)
-    dev = w.device
-    fi = index_tensor(lay.free, dev)
-    xi = index_tensor(lay.fixed, dev)
-    nf = lay.free.size
-    Hff, Hfp = partitioned_hessian(T, 4, lay)
-    Xp = X0.index_select(1, xi)  # (B, nfix, 3)
-    P = torch.zeros(B, 3 * nf, 3 * nf, dtype=_WORK, device=dev)
-    for a in range(3):
-        P[:, a * nf:(a + 1) * nf, a * nf:(a + 1) * nf] = 2.0 * Hff
-    q = (2.0 * (Hfp @ Xp)).transpose(1, 2).reshape(B, 3 * nf)
+@dataclass
+class _PositionQp:
+    """The inequality-constrained position problem of one batch over the free knot values z (B, 3·nf):
+    minimise ½ zᵀPz + qᵀz subject to lo <= C z + c_fix <= hi (rows ``local`` of segments ``seg_np``)."""
 
+    B: int
+    N: int
+    """Knot-vector length."""
+    nf: int
+    """Free knot values per axis."""
+    fi: torch.Tensor
+    """Indices of the free knot values."""
+    xi: torch.Tensor
+    """Indices of the fixed knot values."""
+    X0: torch.Tensor
+    """(B, N, 3) knot values, the free ones to be replaced."""
+    Xp: torch.Tensor
+    """(B, nfix, 3) fixed knot values."""
+    P: torch.Tensor
+    q: torch.Tensor
+    local: torch.Tensor
+    """(B, m, 3, 8) constraint rows on one segment's coefficients."""
+    seg_np: np.ndarray
+    """(m,) segment of each row."""
+    lo: torch.Tensor
+    hi: torch.Tensor
+    C: torch.Tensor
+    """(B, m, 3·nf) rows on the free values (no autograd)."""
+    c_fix: torch.Tensor
+    """(B, m) the fixed values' part of each row (no autograd)."""
+
+    def solve_active(self, active: list[np.ndarray], upper: list[np.ndarray]) -> torch.Tensor:
+        """Differentiable KKT solve holding each element's ``active`` rows at their bounds (``upper``:
+        the upper one); only the held rows are rebuilt with autograd."""
+        B, dev = self.B, self.P.device
+        k = max([a.size for a in active] + [0])
+        idx = np.zeros((B, k), dtype=np.int64)
+        msk = np.zeros((B, k), dtype=bool)
+        upm = np.zeros((B, k), dtype=bool)
+        for b, (a, u) in enumerate(zip(active, upper)):
+            idx[b, : a.size] = a
+            msk[b, : a.size] = True
+            upm[b, : a.size] = u
+        idx_t = torch.as_tensor(idx, device=dev)
+        loc_a = torch.gather(self.local, 1, idx_t.reshape(B, k, 1, 1).expand(B, k, 3, 8))
+        seg_a = index_tensor(self.seg_np, dev)[idx_t]
+        Ca_full = _to_global(loc_a, seg_a, self.N)
+        Ca = Ca_full.index_select(3, self.fi).reshape(B, k, 3 * self.nf)
+        cfix_a = torch.einsum("bman,bna->bm", Ca_full.index_select(3, self.xi), self.Xp)
+        bound = torch.where(torch.as_tensor(upm, device=dev), torch.gather(self.hi, 1, idx_t),
+                            torch.gather(self.lo, 1, idx_t)) - cfix_a
+        return _qp.kkt_solve(self.P, self.q, Ca, bound, torch.as_tensor(msk, device=dev))
+
+    def violated(self, z: torch.Tensor) -> torch.Tensor:
+        """(B,) elements whose rows are violated by more than ~1e-8 relative, in physical units (m,
+        m/s, m/s²), or whose solution is not finite."""
+        lo, hi = self.lo.detach(), self.hi.detach()
+        lo_p = (lo - self.c_fix)
+        hi_p = (hi - self.c_fix)
+        tol = 1e-8 * (1.0 + torch.maximum(lo.abs(), hi.abs()))
+        zd = z.detach()
+        cz = torch.einsum("bmn,bn->bm", self.C, zd)
+        viol = torch.clamp(cz - hi_p - tol, min=0) + torch.clamp(lo_p - tol - cz, min=0)
+        return (~torch.isfinite(zd).all(-1)) | (viol.amax(-1) > 0)
+
+
+def _inequality_rows(w, T, corridor, corridor_samples, v_max, a_max):
+    """Rows (B, m, 3, 8), their segments (m,) and bounds lo/hi (B, m) of the corridor and limits given."""
     row_sets = []
     if corridor is not None:
         row_sets.append(_corridor_rows(w, T, corridor, corridor_samples))
@@ -165,92 +217,90 @@ def _solve_position_qp(
     seg_np = np.concatenate([r[1] for r in row_sets])
     lo = torch.cat([r[2] for r in row_sets], dim=1)
     hi = torch.cat([r[3] for r in row_sets], dim=1)
-    m = local.shape[1]
+    return local, seg_np, lo, hi
 
+
+def _position_qp(w, T, start, end, *, corridor, corridor_samples, v_max, a_max) -> _PositionQp:
+    """Set up the position QP: snap objective on the free knot values and the inequality rows."""
+    B, M = T.shape
+    lay = layout(M, 4, corridor is not None)
+    X0 = knot_values(w, start, end, 4)
+    dev = w.device
+    fi = index_tensor(lay.free, dev)
+    xi = index_tensor(lay.fixed, dev)
+    nf = lay.free.size
+    Hff, Hfp = partitioned_hessian(T, 4, lay)
+    Xp = X0.index_select(1, xi)  # (B, nfix, 3)
+    P = torch.zeros(B, 3 * nf, 3 * nf, dtype=_WORK, device=dev)
+    for a in range(3):
+        P[:, a * nf:(a + 1) * nf, a * nf:(a + 1) * nf] = 2.0 * Hff
+    q = (2.0 * (Hfp @ Xp)).transpose(1, 2).reshape(B, 3 * nf)
+    local, seg_np, lo, hi = _inequality_rows(w, T, corridor, corridor_samples, v_max, a_max)
     # The whole constraint matrix, without autograd, for the numerical solve.
     with torch.no_grad():
-        seg_all = index_tensor(seg_np, dev).unsqueeze(0).expand(B, m)
-        Cfull = _to_global(local.detach(), seg_all, N)
-        C = Cfull.index_select(3, fi).reshape(B, m, 3 * nf)
+        seg_all = index_tensor(seg_np, dev).unsqueeze(0).expand(B, local.shape[1])
+        Cfull = _to_global(local.detach(), seg_all, lay.n_knot)
+        C = Cfull.index_select(3, fi).reshape(B, local.shape[1], 3 * nf)
         c_fix = torch.einsum("bman,bna->bm", Cfull.index_select(3, xi), Xp.detach())
-        d = torch.rsqrt(torch.diagonal(P.detach(), dim1=-2, dim2=-1))
-        Ps = P.detach() * d.unsqueeze(-1) * d.unsqueeze(-2)
-        qs = q.detach() * d
-        Cs = C * d.unsqueeze(1)
+    return _PositionQp(B=B, N=lay.n_knot, nf=nf, fi=fi, xi=xi, X0=X0, Xp=Xp, P=P, q=q, local=local, seg_np=seg_np,
+                       lo=lo, hi=hi, C=C, c_fix=c_fix)
+
+
+def _scaled(qp: _PositionQp) -> tuple[np.ndarray, ...]:
+    """The problem scaled for the numerical solvers (unit Hessian diagonal, unit-norm rows), numpy:
+    P, q, C, lo, hi."""
+    with torch.no_grad():
+        d = torch.rsqrt(torch.diagonal(qp.P.detach(), dim1=-2, dim2=-1))
+        Ps = qp.P.detach() * d.unsqueeze(-1) * d.unsqueeze(-2)
+        qs = qp.q.detach() * d
+        Cs = qp.C * d.unsqueeze(1)
         rn = Cs.norm(dim=-1)
         rn = torch.where(rn > 0, rn, torch.ones_like(rn))
         Cs = Cs / rn.unsqueeze(-1)
-        los = (lo.detach() - c_fix) / rn
-        his = (hi.detach() - c_fix) / rn
-    Cs_np = Cs.cpu().numpy()
-    res = _qp.solve_batch(
-        Ps.cpu().numpy(), qs.cpu().numpy(), Cs_np, los.cpu().numpy(), his.cpu().numpy(), solver=solver
-    )
+        los = (qp.lo.detach() - qp.c_fix) / rn
+        his = (qp.hi.detach() - qp.c_fix) / rn
+    return Ps.cpu().numpy(), qs.cpu().numpy(), Cs.cpu().numpy(), los.cpu().numpy(), his.cpu().numpy()
+
+
+def _solve_position_qp(
+    w, T, start, end, *, corridor, corridor_samples, v_max, a_max, solver
+):
+    """Knot vectors (B, N, 3), ok mask (B,) numpy, statuses and info for the inequality path."""
+    qp = _position_qp(w, T, start, end, corridor=corridor, corridor_samples=corridor_samples, v_max=v_max,
+                      a_max=a_max)
+    Ps_np, qs_np, Cs_np, los_np, his_np = _scaled(qp)
+    res = _qp.solve_batch(Ps_np, qs_np, Cs_np, los_np, his_np, solver=solver)
     ok = res.ok.copy()
     status = list(res.status)
-
-    def differentiable_solve(active, upper):
-        k = max([a.size for a in active] + [0])
-        idx = np.zeros((B, k), dtype=np.int64)
-        msk = np.zeros((B, k), dtype=bool)
-        upm = np.zeros((B, k), dtype=bool)
-        for b, (a, u) in enumerate(zip(active, upper)):
-            idx[b, : a.size] = a
-            msk[b, : a.size] = True
-            upm[b, : a.size] = u
-        idx_t = torch.as_tensor(idx, device=dev)
-        # Only the held rows are rebuilt with autograd.
-        loc_a = torch.gather(local, 1, idx_t.reshape(B, k, 1, 1).expand(B, k, 3, 8))
-        seg_a = index_tensor(seg_np, dev)[idx_t]
-        Ca_full = _to_global(loc_a, seg_a, N)
-        Ca = Ca_full.index_select(3, fi).reshape(B, k, 3 * nf)
-        cfix_a = torch.einsum("bman,bna->bm", Ca_full.index_select(3, xi), Xp)
-        bound = torch.where(torch.as_tensor(upm, device=dev), torch.gather(hi, 1, idx_t),
-                            torch.gather(lo, 1, idx_t)) - cfix_a
-        return _qp.kkt_solve(P, q, Ca, bound, torch.as_tensor(msk, device=dev))
-
-    lo_p = (lo.detach() - c_fix)
-    hi_p = (hi.detach() - c_fix)
-    tol = 1e-8 * (1.0 + torch.maximum(lo.detach().abs(), hi.detach().abs()))
-
-    def check(z):
-        """Rows violated by more than ~1e-8 relative, in physical units (m, m/s, m/s²)."""
-        zd = z.detach()
-        cz = torch.einsum("bmn,bn->bm", C, zd)
-        viol = torch.clamp(cz - hi_p - tol, min=0) + torch.clamp(lo_p - tol - cz, min=0)
-        return (~torch.isfinite(zd).all(-1)) | (viol.amax(-1) > 0)
-
     active, upper = res.active, res.upper
     try:
-        z = differentiable_solve(active, upper)
-        bad = check(z).cpu().numpy() & ok
+        z = qp.solve_active(active, upper)
+        bad = qp.violated(z).cpu().numpy() & ok
     except RuntimeError:  # a singular KKT matrix somewhere in the batch
         bad = ok.copy()
     if bad.any():
         # The solver's active set did not reproduce its solution (an interior-point backend's
         # inexact multipliers, or a degenerate set): correct it with a few primal-dual active-set
         # steps on the scaled problem, keeping a linearly independent set of rows.
-        Ps_np, qs_np = Ps.cpu().numpy(), qs.cpu().numpy()
-        los_np, his_np = los.cpu().numpy(), his.cpu().numpy()
         active, upper = list(active), list(upper)
         for b in np.nonzero(bad)[0]:
             active[b], upper[b] = _correct_active_set(
                 Ps_np[b], qs_np[b], Cs_np[b], los_np[b], his_np[b], active[b], upper[b]
             )
-        z = differentiable_solve(active, upper)
-        bad = check(z).cpu().numpy() & ok
+        z = qp.solve_active(active, upper)
+        bad = qp.violated(z).cpu().numpy() & ok
         for b in np.nonzero(bad)[0]:
             ok[b] = False
             status[b] = "the active-set KKT solve did not reproduce a feasible solution"
-    z = torch.where(torch.as_tensor(ok, device=dev).unsqueeze(-1), z, torch.zeros_like(z))
-    X = X0.index_copy(1, fi, z.reshape(B, 3, nf).transpose(1, 2))
+    z = torch.where(torch.as_tensor(ok, device=w.device).unsqueeze(-1), z, torch.zeros_like(z))
+    X = qp.X0.index_copy(1, qp.fi, z.reshape(qp.B, 3, qp.nf).transpose(1, 2))
     info = {
         "path": "qp",
         "solver": solver,
         "solver_seconds": res.seconds,
         "active": [int(a.size) for a in active],
-        "rows": int(m),
-        "variables": int(3 * nf),
+        "rows": int(qp.local.shape[1]),
+        "variables": int(3 * qp.nf),
     }
     return X, ok, status, info
 
@@ -369,6 +419,35 @@ def min_snap(
         A :class:`Trajectory` in the dtype and on the device of ``waypoints``; unbatched inputs
         give an unbatched trajectory.
     """
+    w, batched = _work_waypoints(waypoints)
+    out_dtype = waypoints.dtype
+    B, M1, _ = w.shape
+    M = M1 - 1
+    T_in = _durations(durations, out_dtype, w, M)
+    T = T_in.to(_WORK)
+    _check_finite(w, "waypoints")
+    _check_positive_durations(T)
+    start_t, end_t = _boundary(start, "start", B, w), _boundary(end, "end", B, w)
+    _check_options(corridor_samples, solver, on_infeasible)
+    corr, vm, am = _inequalities(corridor, v_max, a_max, B, M, w)
+
+    if corr is None and vm is None and am is None:
+        X = solve_knots(T, knot_values(w, start_t, end_t, 4), layout(M, 4, False))
+        solved = torch.ones(B, dtype=torch.bool, device=w.device)
+        messages: tuple[str, ...] = ()
+        info: dict = {"path": "closed_form"}
+    else:
+        X, solved, messages, info = _solve_constrained(w, T, start_t, end_t, corr, corridor_samples, vm, am, solver,
+                                                       limits_everywhere, on_infeasible)
+    coeffs = coefficients(X, T, 4).to(out_dtype)
+    yaw_c = None if yaw is None else _yaw_coefficients(yaw, w, T).to(out_dtype)
+    return Trajectory(
+        coeffs, T_in, yaw_coeffs=yaw_c, solved=solved, messages=messages, batched=batched, info=info
+    )
+
+
+def _work_waypoints(waypoints: torch.Tensor) -> tuple[torch.Tensor, bool]:
+    """(B, M+1, 3) waypoints in the work precision and whether the input was batched; checks type and shape."""
     if not isinstance(waypoints, torch.Tensor):
         raise TrajoptError(f"waypoints must be a torch tensor, got {type(waypoints).__name__}")
     if not waypoints.is_floating_point():
@@ -378,35 +457,45 @@ def min_snap(
         raise TrajoptError(
             f"waypoints must have shape (B, M+1, 3) or (M+1, 3) with M >= 1, got {tuple(waypoints.shape)}"
         )
-    out_dtype = waypoints.dtype
-    w = (waypoints if batched else waypoints.unsqueeze(0)).to(_WORK)
-    B, M1, _ = w.shape
-    M = M1 - 1
+    return (waypoints if batched else waypoints.unsqueeze(0)).to(_WORK), batched
+
+
+def _durations(durations, out_dtype: torch.dtype, w: torch.Tensor, M: int) -> torch.Tensor:
+    """(B, M) durations as given (dtype kept for the trajectory), broadcast over the batch."""
     if not isinstance(durations, torch.Tensor):
         durations = torch.as_tensor(np.asarray(durations, dtype=np.float64), dtype=out_dtype, device=w.device)
     T_in = durations if durations.ndim == 2 else durations.unsqueeze(0)
     if T_in.shape[-1] != M:
         raise TrajoptError(f"durations must have M={M} entries per element, got shape {tuple(durations.shape)}")
-    T_in = torch.broadcast_to(T_in, (B, M))
-    T = T_in.to(_WORK)
-    _check_finite(w, "waypoints")
+    return torch.broadcast_to(T_in, (w.shape[0], M))
+
+
+def _check_positive_durations(T: torch.Tensor) -> None:
+    """Raise :class:`TrajoptError` unless every duration is finite and > 0."""
     _check_finite(T, "durations")
     if bool((T.detach() <= 0).any()):
         raise TrajoptError("durations must all be > 0 seconds; got a zero or negative duration")
-    start_t = (
-        torch.zeros(B, 3, 3, dtype=_WORK, device=w.device) if start is None
-        else _batch_param(start, "start", B, (3, 3), w)
-    )
-    end_t = (
-        torch.zeros(B, 3, 3, dtype=_WORK, device=w.device) if end is None
-        else _batch_param(end, "end", B, (3, 3), w)
-    )
+
+
+def _boundary(value, name: str, B: int, w: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 3) velocity, acceleration and jerk at one end (zeros when not given)."""
+    if value is None:
+        return torch.zeros(B, 3, 3, dtype=_WORK, device=w.device)
+    return _batch_param(value, name, B, (3, 3), w)
+
+
+def _check_options(corridor_samples: int, solver: str, on_infeasible: str) -> None:
+    """Raise :class:`TrajoptError` for a sample count, solver or infeasibility policy out of range."""
     if corridor_samples < 1:
         raise TrajoptError(f"corridor_samples must be >= 1, got {corridor_samples}")
     if solver not in _qp.SOLVERS:
         raise TrajoptError(f"solver must be one of {_qp.SOLVERS}, got {solver!r}")
     if on_infeasible not in ("warn", "raise", "ignore"):
         raise TrajoptError(f"on_infeasible must be 'warn', 'raise' or 'ignore', got {on_infeasible!r}")
+
+
+def _inequalities(corridor, v_max, a_max, B: int, M: int, w: torch.Tensor):
+    """Corridor half-widths (B, M), speed and acceleration limits (B,), each None when not given; checked > 0."""
     corr = None
     if corridor is not None:
         corr = _batch_param(corridor, "corridor", B, (M,), w)
@@ -421,48 +510,56 @@ def min_snap(
         am = _batch_param(a_max, "a_max", B, (), w)
         if bool((am.detach() <= 0).any()):
             raise TrajoptError("a_max must be > 0 m/s²")
+    return corr, vm, am
 
-    solved = torch.ones(B, dtype=torch.bool, device=w.device)
-    messages: tuple[str, ...] = ()
-    if corr is None and vm is None and am is None:
-        X = solve_knots(T, knot_values(w, start_t, end_t, 4), layout(M, 4, False))
-        info = {"path": "closed_form"}
-    else:
-        X, ok, status, info = _solve_position_qp(
-            w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples,
-            v_max=vm, a_max=am, solver=solver,
-        )
-        if limits_everywhere and (vm is not None or am is not None):
-            X, ok, status, info = _tighten_limits(X, ok, status, info, w, T, start_t, end_t, corr, corridor_samples,
-                                                  vm, am, solver)
-        if not ok.all():
-            failed = np.nonzero(~ok)[0]
-            messages = tuple(f"batch element {int(b)}: {status[b]}" for b in failed)
-            X_eq = solve_knots(T, knot_values(w, start_t, end_t, 4), layout(M, 4, False))
-            ok_t = torch.as_tensor(ok, device=w.device)
-            X = torch.where(ok_t.reshape(B, 1, 1), X, X_eq)
-            solved = ok_t
-            text = (
-                f"min_snap: {failed.size} of {B} constrained problems could not be solved "
-                f"({'; '.join(messages[:3])}{'; ...' if failed.size > 3 else ''}); they hold the "
-                "solution through the key-points without corridor/limits. Widen the corridor, "
-                "relax v_max/a_max or lengthen the durations."
-            )
-            if on_infeasible == "raise":
-                raise TrajoptError(text)
-            if on_infeasible == "warn":
-                warnings.warn(text, TrajoptWarning, stacklevel=2)
-    coeffs = coefficients(X, T, 4).to(out_dtype)
-    yaw_c = None
-    if yaw is not None:
-        y = _as_tensor(yaw, "yaw", w).to(_WORK)
-        y = y if y.ndim == 2 else y.unsqueeze(0)
-        try:
-            y = torch.broadcast_to(y, (B, M1))
-        except RuntimeError as exc:
-            raise TrajoptError(f"yaw must have shape (B, M+1) or (M+1,), got {tuple(yaw.shape)}") from exc
-        _check_finite(y, "yaw")
-        yaw_c = _yaw(y, T).to(out_dtype)
-    return Trajectory(
-        coeffs, T_in, yaw_coeffs=yaw_c, solved=solved, messages=messages, batched=batched, info=info
+
+def _solve_constrained(w, T, start_t, end_t, corr, corridor_samples, vm, am, solver, limits_everywhere, on_infeasible):
+    """The inequality path: (X, solved mask, messages, info); unsolved elements fall back to the
+    closed form with a warning or an error as ``on_infeasible`` says."""
+    X, ok, status, info = _solve_position_qp(
+        w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples,
+        v_max=vm, a_max=am, solver=solver,
     )
+    if limits_everywhere and (vm is not None or am is not None):
+        X, ok, status, info = _tighten_limits(X, ok, status, info, w, T, start_t, end_t, corr, corridor_samples,
+                                              vm, am, solver)
+    solved = torch.ones(w.shape[0], dtype=torch.bool, device=w.device)
+    messages: tuple[str, ...] = ()
+    if not ok.all():
+        X, solved, messages, text = _fall_back_where_unsolved(X, ok, status, w, T, start_t, end_t)
+        if on_infeasible == "raise":
+            raise TrajoptError(text)
+        if on_infeasible == "warn":
+            warnings.warn(text, TrajoptWarning, stacklevel=3)  # at min_snap's caller
+    return X, solved, messages, info
+
+
+def _fall_back_where_unsolved(X, ok, status, w, T, start_t, end_t):
+    """Unsolved elements take the closed-form solution through the key-points: (X, solved mask,
+    one message per failed element, the text to warn or raise with)."""
+    B, M = T.shape
+    failed = np.nonzero(~ok)[0]
+    messages = tuple(f"batch element {int(b)}: {status[b]}" for b in failed)
+    X_eq = solve_knots(T, knot_values(w, start_t, end_t, 4), layout(M, 4, False))
+    ok_t = torch.as_tensor(ok, device=w.device)
+    X = torch.where(ok_t.reshape(B, 1, 1), X, X_eq)
+    text = (
+        f"min_snap: {failed.size} of {B} constrained problems could not be solved "
+        f"({'; '.join(messages[:3])}{'; ...' if failed.size > 3 else ''}); they hold the "
+        "solution through the key-points without corridor/limits. Widen the corridor, "
+        "relax v_max/a_max or lengthen the durations."
+    )
+    return X, ok_t, messages, text
+
+
+def _yaw_coefficients(yaw, w: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+    """Cubic yaw-spline coefficients from (B, M+1) or (M+1,) yaw key-points, in the work precision."""
+    B, M1 = w.shape[0], w.shape[1]
+    y = _as_tensor(yaw, "yaw", w).to(_WORK)
+    y = y if y.ndim == 2 else y.unsqueeze(0)
+    try:
+        y = torch.broadcast_to(y, (B, M1))
+    except RuntimeError as exc:
+        raise TrajoptError(f"yaw must have shape (B, M+1) or (M+1,), got {tuple(yaw.shape)}") from exc
+    _check_finite(y, "yaw")
+    return _yaw(y, T)

@@ -39,6 +39,7 @@ def _prep(waypoints) -> tuple[torch.Tensor, bool]:
 
 
 def _lengths(w: torch.Tensor) -> torch.Tensor:
+    """(B, M) segment lengths of key-points (B, M+1, 3)."""
     return (w[:, 1:] - w[:, :-1]).norm(dim=-1)
 
 
@@ -143,6 +144,98 @@ def snap_cost_of_times(
     return (J, g) if batched else (J[0], g[0])
 
 
+@dataclass
+class _SnapTimeProblem:
+    """Minimise J(T) (+ k_T·ΣT) over durations T ≥ t_min (with ΣT = total when k_T is None), float64."""
+
+    w: torch.Tensor
+    """(B, M+1, 3) key-points."""
+    start: torch.Tensor | None
+    end: torch.Tensor | None
+    k_T: float | None
+    """Weight of the total time; None: the total is fixed."""
+    total: torch.Tensor | None
+    """(B,) fixed total time (k_T None)."""
+    t_min: torch.Tensor
+    """(B, M) smallest durations."""
+    solve_options: dict | None
+    """Passed to :func:`min_snap` (constrained J); None or empty: the closed form."""
+
+    @property
+    def fixed_total(self) -> bool:
+        """The sum of the durations is held at :attr:`total`."""
+        return self.k_T is None
+
+    def cost(self, Tc: torch.Tensor, need_grad: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(B,) objective and, with ``need_grad``, its gradient (B, M); a failed solve costs +inf."""
+        if self.solve_options:
+            J, g = self._constrained_snap(Tc, need_grad)
+        elif need_grad:
+            J, g = snap_cost_of_times(self.w, Tc, start=self.start, end=self.end, with_grad=True)
+        else:
+            J, g = snap_cost_of_times(self.w, Tc, start=self.start, end=self.end), None
+        if self.k_T is None:
+            return J, g
+        return J + self.k_T * Tc.sum(-1), (None if g is None else g + self.k_T)
+
+    def _constrained_snap(self, Tc: torch.Tensor, need_grad: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """J(T) of the constrained optimum (:func:`min_snap` with ``solve_options``) and its autograd gradient."""
+        from mapkit.trajopt._minsnap import min_snap
+
+        Tv = Tc.clone().requires_grad_(need_grad)
+        with torch.enable_grad() if need_grad else torch.no_grad():
+            tr = min_snap(self.w, Tv, start=self.start, end=self.end, on_infeasible="ignore", **self.solve_options)
+            J = tr.snap_cost()
+            if need_grad:
+                (g,) = torch.autograd.grad(J.sum(), Tv)
+            else:
+                g = None
+        return torch.where(tr.solved & torch.isfinite(J), J.detach(), torch.full_like(J, math.inf)), g
+
+    def project(self, Tc: torch.Tensor) -> torch.Tensor:
+        """The nearest feasible durations: T ≥ t_min, and ΣT = total when it is fixed."""
+        t_min = self.t_min
+        if not self.fixed_total:
+            return torch.maximum(Tc, t_min)
+        # Euclidean projection onto {T >= t_min, sum T = total} (sort-based simplex projection).
+        M = Tc.shape[-1]
+        y = Tc - t_min
+        s = (self.total - t_min.sum(-1)).unsqueeze(-1)
+        u, _ = torch.sort(y, dim=-1, descending=True)
+        css = torch.cumsum(u, dim=-1) - s
+        k = torch.arange(1, M + 1, dtype=Tc.dtype, device=Tc.device)
+        cond = u - css / k > 0
+        rho = cond.to(torch.int64).cumsum(-1).argmax(-1, keepdim=True)
+        theta = torch.gather(css, 1, rho) / (rho + 1).to(Tc.dtype)
+        return torch.clamp(y - theta, min=0.0) + t_min
+
+
+def _line_search(problem: _SnapTimeProblem, T: torch.Tensor, f: torch.Tensor, g: torch.Tensor, step: torch.Tensor,
+                 active: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Armijo backtracking along the projected gradient for the active elements: (accepted (B,),
+    new T, new cost, the last trial step)."""
+    B = T.shape[0]
+    accepted = torch.zeros(B, dtype=torch.bool, device=T.device)
+    T_new = T.clone()
+    f_new = f.clone()
+    trial = step.clone()
+    for _ls in range(40):
+        todo = active & ~accepted
+        if not bool(todo.any()):
+            break
+        cand = problem.project(T - trial * g)
+        fc, _ = problem.cost(cand, False)
+        dec = ((cand - T) ** 2).sum(-1)
+        # A snap cost is never negative: a negative value is lost precision, not a descent.
+        ok = torch.isfinite(fc) & (fc >= 0) & (fc <= f - 1e-4 / trial.squeeze(-1) * dec)
+        take = todo & ok
+        T_new = torch.where(take.unsqueeze(-1), cand, T_new)
+        f_new = torch.where(take, fc, f_new)
+        accepted |= take
+        trial = torch.where((todo & ~ok).unsqueeze(-1), 0.5 * trial, trial)
+    return accepted, T_new, f_new, trial
+
+
 def _gradient_allocation(
     w: torch.Tensor,
     T0: torch.Tensor,
@@ -158,8 +251,7 @@ def _gradient_allocation(
 ) -> torch.Tensor:
     """Projected gradient descent with Armijo backtracking, batched over problems (float64)."""
     B, M = T0.shape
-    fixed_total = k_T is None
-    if fixed_total:
+    if k_T is None:
         total = T0.sum(-1) if total is None else total
         T = T0 * (total / T0.sum(-1)).unsqueeze(-1)
     else:
@@ -167,47 +259,13 @@ def _gradient_allocation(
     t_min = _min_duration(T.sum(-1), M).unsqueeze(-1).expand(B, M)
     if min_duration is not None:
         t_min = torch.maximum(t_min, min_duration.reshape(-1, 1).expand(B, M))
-
-    def cost(Tc: torch.Tensor, need_grad: bool):
-        if solve_options:
-            from mapkit.trajopt._minsnap import min_snap
-
-            Tv = Tc.clone().requires_grad_(need_grad)
-            with torch.enable_grad() if need_grad else torch.no_grad():
-                tr = min_snap(w, Tv, start=start, end=end, on_infeasible="ignore", **solve_options)
-                J = tr.snap_cost()
-                if need_grad:
-                    (g,) = torch.autograd.grad(J.sum(), Tv)
-                else:
-                    g = None
-            J = torch.where(tr.solved & torch.isfinite(J), J.detach(), torch.full_like(J, math.inf))
-        else:
-            if need_grad:
-                J, g = snap_cost_of_times(w, Tc, start=start, end=end, with_grad=True)
-            else:
-                J, g = snap_cost_of_times(w, Tc, start=start, end=end), None
-        if fixed_total:
-            return J, g
-        return J + k_T * Tc.sum(-1), (None if g is None else g + k_T)
-
-    def project(Tc: torch.Tensor) -> torch.Tensor:
-        if not fixed_total:
-            return torch.maximum(Tc, t_min)
-        # Euclidean projection onto {T >= t_min, sum T = total} (sort-based simplex projection).
-        y = Tc - t_min
-        s = (total - t_min.sum(-1)).unsqueeze(-1)
-        u, _ = torch.sort(y, dim=-1, descending=True)
-        css = torch.cumsum(u, dim=-1) - s
-        k = torch.arange(1, M + 1, dtype=Tc.dtype, device=Tc.device)
-        cond = u - css / k > 0
-        rho = cond.to(torch.int64).cumsum(-1).argmax(-1, keepdim=True)
-        theta = torch.gather(css, 1, rho) / (rho + 1).to(Tc.dtype)
-        return torch.clamp(y - theta, min=0.0) + t_min
+    problem = _SnapTimeProblem(w=w, start=start, end=end, k_T=k_T, total=total, t_min=t_min,
+                               solve_options=solve_options)
 
     with torch.no_grad():
         if min_duration is not None:
-            T = project(T)  # the start must respect the floor too
-        f, g = cost(T, True)
+            T = problem.project(T)  # the start must respect the floor too
+        f, g = problem.cost(T, True)
         if not bool(torch.isfinite(f).all()):
             raise TrajoptError(
                 "gradient time allocation: the initial durations give no finite cost for some "
@@ -218,31 +276,14 @@ def _gradient_allocation(
         for _ in range(max_iters):
             if not bool(active.any()):
                 break
-            accepted = torch.zeros(B, dtype=torch.bool, device=T.device)
-            T_new = T.clone()
-            f_new = f.clone()
-            trial = step.clone()
-            for _ls in range(40):
-                todo = active & ~accepted
-                if not bool(todo.any()):
-                    break
-                cand = project(T - trial * g)
-                fc, _ = cost(cand, False)
-                dec = ((cand - T) ** 2).sum(-1)
-                # A snap cost is never negative: a negative value is lost precision, not a descent.
-                ok = torch.isfinite(fc) & (fc >= 0) & (fc <= f - 1e-4 / trial.squeeze(-1) * dec)
-                take = todo & ok
-                T_new = torch.where(take.unsqueeze(-1), cand, T_new)
-                f_new = torch.where(take, fc, f_new)
-                accepted |= take
-                trial = torch.where((todo & ~ok).unsqueeze(-1), 0.5 * trial, trial)
+            accepted, T_new, f_new, trial = _line_search(problem, T, f, g, step, active)
             rel = (f - f_new) / f.abs().clamp_min(1e-300)
             moved = accepted & (rel > rel_tol)
             active = active & moved
             step = torch.where(accepted.unsqueeze(-1), 2.0 * trial, trial)
             T = torch.where(accepted.unsqueeze(-1), T_new, T)
             if bool(active.any()):
-                f, g = cost(T, True)
+                f, g = problem.cost(T, True)
     return T
 
 
@@ -289,14 +330,7 @@ def allocate_times(
         raise TrajoptError(f"v_max and a_max must be > 0, got {v_max} and {a_max}")
     w, batched = _prep(waypoints)
     out_dtype = w.dtype
-    B, M1, _ = w.shape
-    M = M1 - 1
-    tot = None
-    if total_time is not None:
-        tot = torch.as_tensor(total_time).to(device=w.device, dtype=_WORK)
-        tot = torch.broadcast_to(tot.reshape(-1) if tot.ndim else tot, (B,))
-        if bool((tot <= 0).any()):
-            raise TrajoptError(f"total_time must be > 0 seconds, got {total_time}")
+    tot = _total_times(total_time, w.shape[0], w.device)
 
     if method == "net":
         if net is None:
@@ -308,47 +342,75 @@ def allocate_times(
     lengths = _lengths(w64)
     if bool((lengths.sum(-1) <= 0).any()):
         raise TrajoptError("waypoints: every path needs a positive length (start and end coincide)")
+    if method == "gradient":
+        T = _gradient_times(w64, lengths, tot, v_max=v_max, a_max=a_max, k_T=k_T, start=start, end=end,
+                            initial=initial, max_iters=max_iters, rel_tol=rel_tol, solve_options=solve_options,
+                            min_duration=min_duration)
+    else:
+        T = _rule_times(method, lengths, tot, v_max, a_max)
+    return (T if batched else T[0]).to(out_dtype)
+
+
+def _total_times(total_time: float | torch.Tensor | None, B: int, device: torch.device) -> torch.Tensor | None:
+    """(B,) total times in float64 (None when not given); checked > 0."""
+    if total_time is None:
+        return None
+    tot = torch.as_tensor(total_time).to(device=device, dtype=_WORK)
+    tot = torch.broadcast_to(tot.reshape(-1) if tot.ndim else tot, (B,))
+    if bool((tot <= 0).any()):
+        raise TrajoptError(f"total_time must be > 0 seconds, got {total_time}")
+    return tot
+
+
+def _rule_times(method: str, lengths: torch.Tensor, tot: torch.Tensor | None, v_max: float,
+                a_max: float) -> torch.Tensor:
+    """(B, M) durations of the "uniform", "trapezoid" or "poly5" rule (see :func:`allocate_times`)."""
+    B, M = lengths.shape
     if method == "uniform":
         total = tot if tot is not None else _trapezoid_time(lengths.sum(-1), v_max, a_max)
-        T = (total / M).unsqueeze(-1).expand(B, M).clone()
-    elif method == "trapezoid":
+        return (total / M).unsqueeze(-1).expand(B, M).clone()
+    if method == "trapezoid":
         T = _trapezoid_time(lengths, v_max, a_max)
         T = torch.maximum(T, _min_duration(T.sum(-1), M).unsqueeze(-1).clamp_min(1e-6))
-        if tot is not None:
-            T = T * (tot / T.sum(-1)).unsqueeze(-1)
-    elif method == "poly5":
-        L = lengths.sum(-1)
-        total = tot if tot is not None else _poly5_total(L, v_max, a_max)
-        frac = torch.cumsum(lengths, dim=-1) / L.unsqueeze(-1)
-        tau = _poly5_inverse(frac[:, :-1])
-        tau = torch.cat([torch.zeros_like(tau[:, :1]), tau, torch.ones_like(tau[:, :1])], dim=1)
-        T = (tau[:, 1:] - tau[:, :-1]) * total.unsqueeze(-1)
-        T = torch.maximum(T, _min_duration(total, M).unsqueeze(-1))
-    else:  # gradient
-        if k_T is not None and not k_T > 0:
-            raise TrajoptError(f"k_T must be > 0, got {k_T}")
-        if initial is None:
-            T0 = _trapezoid_time(lengths, v_max, a_max)
-            T0 = torch.maximum(T0, _min_duration(T0.sum(-1), M).unsqueeze(-1).clamp_min(1e-6))
-        else:
-            T0 = torch.as_tensor(initial).to(device=w.device, dtype=_WORK)
-            T0 = torch.broadcast_to(T0 if T0.ndim == 2 else T0.unsqueeze(0), (B, M)).clone()
-            if bool((T0 <= 0).any()):
-                raise TrajoptError("initial durations must all be > 0 seconds")
-        floor = None
-        if min_duration is not None:
-            if k_T is not None:
-                raise TrajoptError("min_duration needs a fixed total (total_time), not k_T")
-            floor = torch.broadcast_to(torch.as_tensor(min_duration, dtype=_WORK).to(w.device).reshape(-1), (B,))
-            total_now = tot if tot is not None else T0.sum(-1)
-            if bool((floor * M > total_now * (1 + 1e-9)).any()):
-                raise TrajoptError(f"min_duration {min_duration} s × {M} segments exceeds the total time")
-            tot = total_now
-        T = _gradient_allocation(
-            w64.detach(), T0.detach(), k_T=k_T, total=tot, start=start, end=end,
-            max_iters=max_iters, rel_tol=rel_tol, solve_options=solve_options, min_duration=floor,
-        )
-    return (T if batched else T[0]).to(out_dtype)
+        return T * (tot / T.sum(-1)).unsqueeze(-1) if tot is not None else T
+    L = lengths.sum(-1)  # poly5
+    total = tot if tot is not None else _poly5_total(L, v_max, a_max)
+    frac = torch.cumsum(lengths, dim=-1) / L.unsqueeze(-1)
+    tau = _poly5_inverse(frac[:, :-1])
+    tau = torch.cat([torch.zeros_like(tau[:, :1]), tau, torch.ones_like(tau[:, :1])], dim=1)
+    T = (tau[:, 1:] - tau[:, :-1]) * total.unsqueeze(-1)
+    return torch.maximum(T, _min_duration(total, M).unsqueeze(-1))
+
+
+def _gradient_times(w64: torch.Tensor, lengths: torch.Tensor, tot: torch.Tensor | None, *, v_max: float,
+                    a_max: float, k_T: float | None, start, end, initial, max_iters: int, rel_tol: float,
+                    solve_options: dict | None, min_duration) -> torch.Tensor:
+    """(B, M) durations of the "gradient" method: checks its options, starts from ``initial`` or
+    the trapezoid rule and runs :func:`_gradient_allocation`."""
+    B, M = lengths.shape
+    if k_T is not None and not k_T > 0:
+        raise TrajoptError(f"k_T must be > 0, got {k_T}")
+    if initial is None:
+        T0 = _trapezoid_time(lengths, v_max, a_max)
+        T0 = torch.maximum(T0, _min_duration(T0.sum(-1), M).unsqueeze(-1).clamp_min(1e-6))
+    else:
+        T0 = torch.as_tensor(initial).to(device=w64.device, dtype=_WORK)
+        T0 = torch.broadcast_to(T0 if T0.ndim == 2 else T0.unsqueeze(0), (B, M)).clone()
+        if bool((T0 <= 0).any()):
+            raise TrajoptError("initial durations must all be > 0 seconds")
+    floor = None
+    if min_duration is not None:
+        if k_T is not None:
+            raise TrajoptError("min_duration needs a fixed total (total_time), not k_T")
+        floor = torch.broadcast_to(torch.as_tensor(min_duration, dtype=_WORK).to(w64.device).reshape(-1), (B,))
+        total_now = tot if tot is not None else T0.sum(-1)
+        if bool((floor * M > total_now * (1 + 1e-9)).any()):
+            raise TrajoptError(f"min_duration {min_duration} s × {M} segments exceeds the total time")
+        tot = total_now
+    return _gradient_allocation(
+        w64.detach(), T0.detach(), k_T=k_T, total=tot, start=start, end=end,
+        max_iters=max_iters, rel_tol=rel_tol, solve_options=solve_options, min_duration=floor,
+    )
 
 
 @dataclass
