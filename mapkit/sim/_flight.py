@@ -3,7 +3,7 @@
 How a flight is made:
 
 1. The world's signed distance is sampled on a grid over the flight volume; cells with at least
-   ``margin + extra`` clearance form a graph (26-neighbours, edge cost grows near obstacles so
+   ``margin + extra`` clearance form a graph (a :class:`~mapkit.sim.FreeSpaceGraph`: 26-neighbours, edge cost grows near obstacles so
    paths keep to the middle of corridors).
 2. Goals are drawn far from the goals already visited (coverage) and joined by shortest paths
    (Dijkstra) until the path is long enough for the requested duration.
@@ -21,14 +21,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
-
 import numpy as np
-from scipy import ndimage, sparse
+from scipy import ndimage
 from scipy.interpolate import BSpline
-from scipy.sparse.csgraph import dijkstra
 
 from mapkit.sim._errors import SimError
+from mapkit.sim._search import FreeSpaceGraph, _NoFreeSpace, _shortcut
 from mapkit.sim._world import World
 
 __all__ = ["Flight", "plan_flight", "MIN_SPEED", "MAX_SPEED"]
@@ -102,73 +100,6 @@ def _poses(p: np.ndarray, yaw: np.ndarray) -> np.ndarray:
     return T
 
 
-class _Grid:
-    """Flight-volume grid with signed distance at cell centres."""
-
-    def __init__(self, world: World, res: float, margin: float, inset: float) -> None:
-        lo = world.bounds[0].copy()
-        hi = world.bounds[1].copy()
-        lo[:2] += inset
-        hi[:2] -= inset
-        lo[2], hi[2] = world.flight_z
-        if np.any(hi - lo < res):
-            raise SimError(f"flight volume {lo}..{hi} is empty; enlarge --size")
-        self.axes = [np.arange(lo[i], hi[i] + 1e-9, res) for i in range(3)]
-        self.shape = tuple(len(a) for a in self.axes)
-        self.res = res
-        self.origin = np.array([a[0] for a in self.axes])
-        mesh = np.stack(np.meshgrid(*self.axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        self.centres = mesh
-        self.sdf = world.signed_distance(mesh).reshape(self.shape)
-
-    def interp_sdf(self, pts: np.ndarray) -> np.ndarray:
-        idx = ((pts - self.origin) / self.res).T
-        return ndimage.map_coordinates(self.sdf, idx, order=1, mode="nearest")
-
-
-def _graph(grid: _Grid, free: np.ndarray, margin: float) -> sparse.csr_matrix:
-    n = free.size
-    index = np.arange(n).reshape(free.shape)
-    # Cost per metre grows near obstacles so paths keep to the middle of corridors.
-    penalty = 1.0 + np.exp(-(np.maximum(grid.sdf, margin) - margin) / 0.3)
-    rows, cols, vals = [], [], []
-    offsets = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1) if (dx, dy, dz) > (0, 0, 0)]
-    nx, ny, nz = free.shape
-    for dx, dy, dz in offsets:
-        a = (slice(max(0, -dx), nx - max(0, dx)), slice(max(0, -dy), ny - max(0, dy)), slice(max(0, -dz), nz - max(0, dz)))
-        b = (slice(max(0, -dx) + dx, nx - max(0, dx) + dx), slice(max(0, -dy) + dy, ny - max(0, dy) + dy),
-             slice(max(0, -dz) + dz, nz - max(0, dz) + dz))
-        ok = free[a] & free[b]
-        length = grid.res * math.sqrt(dx * dx + dy * dy + dz * dz)
-        rows.append(index[a][ok])
-        cols.append(index[b][ok])
-        vals.append(length * 0.5 * (penalty[a][ok] + penalty[b][ok]))
-    r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
-    return sparse.csr_matrix((np.concatenate([v, v]), (np.concatenate([r, c]), np.concatenate([c, r]))), shape=(n, n))
-
-
-def _shortcut(path: np.ndarray, clear: Callable[[np.ndarray, np.ndarray], bool]) -> np.ndarray:
-    """Greedy line-of-sight shortening of a polyline (keeps the end points)."""
-    out = [path[0]]
-    i, n = 0, len(path)
-    while i < n - 1:
-        # Exponential then binary search for the farthest visible vertex.
-        step, j = 1, i + 1
-        while i + 2 * step < n and clear(path[i], path[i + 2 * step]):
-            step *= 2
-        lo, hi = i + step, min(i + 2 * step, n - 1)
-        j = lo
-        while lo <= hi:
-            mid = (lo + hi) // 2
-            if clear(path[i], path[mid]):
-                j, lo = mid, mid + 1
-            else:
-                hi = mid - 1
-        out.append(path[j])
-        i = j
-    return np.array(out)
-
-
 def _resample(poly: np.ndarray, spacing: float) -> np.ndarray:
     """Points along a polyline every <= spacing metres (vertices kept)."""
     pts = [poly[0]]
@@ -212,34 +143,83 @@ def plan_flight(
     Raises:
         SimError: bad arguments, or no collision-free flight could be found.
     """
+    _check_flight_args(duration=duration, speed=speed, margin=margin)
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
+    router = _Router(_flight_space(world, margin, resolution), rng)
+    poly = router.route(speed * duration + 2.0)
+    spline, u_k, p_k, d_k = _smooth(world, poly, margin)
+    u_k, s_k, dp, d_k = _arc_length_table(spline, u_k, p_k, d_k)
+    v = _speed_profile(dp, s_k, speed)
+    # Time per segment from its mean speed (finite even where v touches 0 at a cusp).
+    t_k = np.concatenate([[0.0], np.cumsum(np.diff(s_k) / np.maximum(0.5 * (v[1:] + v[:-1]), 1e-3))])
+    if t_k[-1] < duration:
+        raise SimError(f"planned flight lasts only {t_k[-1]:.1f} s < {duration} s; enlarge --size or lower --duration")
+    yaw_t, yaw, yaw_rate = _yaw_table(spline, u_k, s_k, t_k, rng)
+    return Flight(spline=spline, u_k=u_k, s_k=s_k, t_k=t_k, v_k=v, yaw_t=yaw_t, yaw=yaw, yaw_rate=yaw_rate,
+                  min_clearance=float(d_k.min()))
+
+
+def _check_flight_args(*, duration: float, speed: float, margin: float) -> None:
+    """Raise :class:`SimError` for a speed, duration or margin out of range."""
     if not (MIN_SPEED <= speed <= MAX_SPEED):
         raise SimError(f"speed {speed} m/s out of range; use {MIN_SPEED}..{MAX_SPEED} m/s")
     if not (0.0 < duration <= 3600.0):
         raise SimError(f"duration {duration} s out of range; use 0 < duration <= 3600 s")
     if not (0.05 <= margin <= 2.0):
         raise SimError(f"margin {margin} m out of range; use 0.05..2 m")
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]))
+
+
+def _flight_space(world: World, margin: float, resolution: float | None) -> FreeSpaceGraph:
+    """The free cells a flight's legs may use: ``margin`` plus half a cell and 10 cm from every obstacle."""
     X, Y = world.bounds[1, :2] - world.bounds[0, :2]
     res = resolution or float(np.clip(math.sqrt(X * Y / 12000.0), 0.25, 0.4))
-    has_walls = world.kind in ("office", "garage")
-    grid = _Grid(world, res, margin, inset=0.0 if has_walls else 1.0)
     need = margin + 0.5 * res + 0.1
-    free = grid.sdf >= need
-    labels, n_lab = ndimage.label(free, structure=np.ones((3, 3, 3)))
-    if n_lab == 0:
-        raise SimError(f"no free space with {margin} m clearance in world {world.kind!r}; lower --density or the margin")
-    sizes = ndimage.sum_labels(np.ones_like(labels), labels, index=np.arange(1, n_lab + 1))
-    free = labels == (1 + int(np.argmax(sizes)))
-    free_idx = np.flatnonzero(free.ravel())
-    if len(free_idx) < 20:
+    try:
+        space = FreeSpaceGraph(world, clearance=need, resolution=res, cost_margin=margin)
+    except _NoFreeSpace:
+        raise SimError(f"no free space with {margin} m clearance in world {world.kind!r}; lower --density or the margin") from None
+    if space.num_free < 20:
         raise SimError(f"world {world.kind!r} (seed {world.seed}) is too cluttered to fly through; lower --density")
-    graph = _graph(grid, free, margin)
-    sdf_flat = grid.sdf.ravel()
-    centres = grid.centres
+    return space
 
-    def pick_goal(visited: list[int], first: bool = False) -> int:
-        cand = rng.choice(free_idx, size=min(40, len(free_idx)), replace=False)
-        roomy = cand[sdf_flat[cand] >= need + 0.7]  # room to turn around
+
+class _Router:
+    """Coverage goals joined by shortest legs through a flight's free space, as one polyline."""
+
+    def __init__(self, space: FreeSpaceGraph, rng: np.random.Generator) -> None:
+        self.space, self.rng = space, rng
+        self.grid = space.grid
+        self.need = space.clearance
+        self.sdf_flat = space.grid.sdf.ravel()
+        self.centres = space.centres
+
+    def route(self, want: float) -> np.ndarray:
+        """Add legs between coverage goals until the polyline through them is ``want`` metres long
+        (more when the shortcuts make it shorter than the legs)."""
+        goals = [self.pick_goal([], first=True)]
+        legs: list[list[int]] = []
+        length = 0.0
+        for _ in range(300):
+            if length >= want:
+                poly = self.build_polyline(goals, legs)
+                if float(np.linalg.norm(np.diff(poly, axis=0), axis=1).sum()) >= want:
+                    return poly
+                want *= 1.2
+            goal = self.pick_goal(goals)
+            leg = self.leg_to(goals[-1], goal)
+            if leg is None:
+                continue
+            legs.append(leg)
+            goals.append(goal)
+            length += float(np.linalg.norm(np.diff(self.centres[leg], axis=0), axis=1).sum())
+        raise SimError(f"could not plan a flight of {want:.0f} m in world {self.space.world.kind!r}; enlarge --size "
+                       "or lower --density")
+
+    def pick_goal(self, visited: list[int], first: bool = False) -> int:
+        """A free cell with room to turn, 4..15 m from the last goal and far from the goals visited."""
+        free_idx, centres = self.space.free_index, self.centres
+        cand = self.rng.choice(free_idx, size=min(40, len(free_idx)), replace=False)
+        roomy = cand[self.sdf_flat[cand] >= self.need + 0.7]  # room to turn around
         cand = roomy if len(roomy) else cand
         if first:
             return int(cand[0])
@@ -248,23 +228,21 @@ def plan_flight(
         near = cand[(hop >= 4.0) & (hop <= 15.0)]
         cand = near if len(near) else cand
         dist = np.linalg.norm(centres[cand][:, None, :] - centres[visited][None, :, :], axis=2).min(axis=1)
-        return int(cand[np.argmax(dist * rng.uniform(0.7, 1.0, size=len(cand)))])
+        return int(cand[np.argmax(dist * self.rng.uniform(0.7, 1.0, size=len(cand)))])
 
-    def clear(a: np.ndarray, b: np.ndarray) -> bool:
-        n = max(2, int(math.ceil(np.linalg.norm(b - a) / (0.5 * res))) + 1)
+    def clear(self, a: np.ndarray, b: np.ndarray) -> bool:
+        """True when the segment a→b keeps the free cells' clearance (interpolated, every half cell)."""
+        n = max(2, int(math.ceil(np.linalg.norm(b - a) / (0.5 * self.space.resolution))) + 1)
         pts = a[None, :] + np.linspace(0.0, 1.0, n)[:, None] * (b - a)[None, :]
-        return bool(grid.interp_sdf(pts).min() >= need)
+        return bool(self.grid.interp_sdf(pts).min() >= self.need)
 
-    def leg_to(start: int, goal: int) -> list[int] | None:
-        dist, pred = dijkstra(graph, indices=start, return_predecessors=True)
-        if not np.isfinite(dist[goal]) or goal == start:
+    def leg_to(self, start: int, goal: int) -> list[int] | None:
+        """Cells of the cheapest leg from ``start`` to ``goal``; None when unreachable or the same cell."""
+        if goal == start:
             return None
-        leg = [goal]
-        while leg[-1] != start:
-            leg.append(int(pred[leg[-1]]))
-        return leg[::-1]
+        return self.space.cell_path(start, goal)
 
-    def u_turn(prev: np.ndarray, g: np.ndarray, nxt: np.ndarray) -> list[np.ndarray]:
+    def u_turn(self, prev: np.ndarray, g: np.ndarray, nxt: np.ndarray) -> list[np.ndarray]:
         """Half-circle control points replacing a reversal at goal g (empty if no room)."""
         a, b = g - prev, nxt - g
         if np.linalg.norm(a) < 1e-6 or np.linalg.norm(b) < 1e-6:
@@ -276,47 +254,32 @@ def plan_flight(
         if np.linalg.norm(n) < 1e-6:
             return []
         n /= np.linalg.norm(n)
+        z_axis = self.grid.axes[2]
         for r in (0.8, 0.6, 0.45):
-            for side in (n, -n) if rng.random() < 0.5 else (-n, n):
+            for side in (n, -n) if self.rng.random() < 0.5 else (-n, n):
                 th = np.linspace(0.0, math.pi, 5)[1:]
                 pts = g[None, :] + r * side[None, :] * (1 - np.cos(th))[:, None] + r * a[None, :] * np.sin(th)[:, None]
                 dense = g[None, :] + r * side[None, :] * (1 - np.cos(np.linspace(0, math.pi, 40)))[:, None] \
                     + r * a[None, :] * np.sin(np.linspace(0, math.pi, 40))[:, None]
-                if grid.interp_sdf(dense).min() >= need + 0.05 and np.all(dense[:, 2] >= grid.axes[2][0] - 1e-9) \
-                        and np.all(dense[:, 2] <= grid.axes[2][-1] + 1e-9) and clear(pts[-1], nxt):
+                if self.grid.interp_sdf(dense).min() >= self.need + 0.05 and np.all(dense[:, 2] >= z_axis[0] - 1e-9) \
+                        and np.all(dense[:, 2] <= z_axis[-1] + 1e-9) and self.clear(pts[-1], nxt):
                     return list(pts)
         return []
 
-    def build_polyline(goals: list[int], legs: list[list[int]]) -> np.ndarray:
-        pts: list[np.ndarray] = [centres[goals[0]]]
-        shortened = [_shortcut(centres[leg], clear) for leg in legs]
+    def build_polyline(self, goals: list[int], legs: list[list[int]]) -> np.ndarray:
+        """The legs shortened by line of sight and joined, with a U-turn where one reverses the last."""
+        pts: list[np.ndarray] = [self.centres[goals[0]]]
+        shortened = [_shortcut(self.centres[leg], self.clear) for leg in legs]
         for k, leg in enumerate(shortened):
             pts += list(leg[1:])
             if k + 1 < len(shortened):  # a goal between two legs: turn around it if it reverses
-                pts += u_turn(leg[-2], leg[-1], shortened[k + 1][1])
+                pts += self.u_turn(leg[-2], leg[-1], shortened[k + 1][1])
         return np.array(pts)
 
-    # Add legs between coverage goals until the smoothed flight is long enough.
-    goals = [pick_goal([], first=True)]
-    legs: list[list[int]] = []
-    want = speed * duration + 2.0
-    length = 0.0
-    for _ in range(300):
-        if length >= want:
-            poly = build_polyline(goals, legs)
-            if float(np.linalg.norm(np.diff(poly, axis=0), axis=1).sum()) >= want:
-                break
-            want *= 1.2
-        goal = pick_goal(goals)
-        leg = leg_to(goals[-1], goal)
-        if leg is None:
-            continue
-        legs.append(leg)
-        goals.append(goal)
-        length += float(np.linalg.norm(np.diff(centres[leg], axis=0), axis=1).sum())
-    else:
-        raise SimError(f"could not plan a flight of {want:.0f} m in world {world.kind!r}; enlarge --size or lower --density")
 
+def _smooth(world: World, poly: np.ndarray, margin: float) -> tuple[BSpline, np.ndarray, np.ndarray, np.ndarray]:
+    """B-spline through the resampled polyline, densified until the exact signed distance keeps ``margin``
+    → (spline, u_k, p_k, d_k): the curve sampled every ~2 cm with its signed distance."""
     spacing = 1.0
     for _ in range(6):
         ctrl = _resample(poly, spacing)
@@ -327,19 +290,27 @@ def plan_flight(
         p_k = spline(u_k)
         d_k = world.signed_distance(p_k)
         if d_k.min() >= margin:
-            break
+            return spline, u_k, p_k, d_k
         spacing *= 0.5
-    else:
-        raise SimError(
-            f"no collision-free flight with margin {margin} m in world {world.kind!r} "
-            f"(closest {d_k.min():.3f} m); lower --density, the margin, or try another --seed"
-        )
+    raise SimError(
+        f"no collision-free flight with margin {margin} m in world {world.kind!r} "
+        f"(closest {d_k.min():.3f} m); lower --density, the margin, or try another --seed"
+    )
+
+
+def _arc_length_table(
+    spline: BSpline, u_k: np.ndarray, p_k: np.ndarray, d_k: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(u_k, s_k, dp/du, d_k) with arc length s_k, repeated points dropped so s_k increases."""
     dp = spline.derivative(1)(u_k)
-    ddp = spline.derivative(2)(u_k)
     seg = np.linalg.norm(np.diff(p_k, axis=0), axis=1)
     s_k = np.concatenate([[0.0], np.cumsum(seg)])
     keep = np.concatenate([[True], seg > 1e-9])  # drop repeated points so s is increasing
-    u_k, p_k, s_k, dp, ddp, d_k = u_k[keep], p_k[keep], s_k[keep], dp[keep], ddp[keep], d_k[keep]
+    return u_k[keep], s_k[keep], dp[keep], d_k[keep]
+
+
+def _speed_profile(dp: np.ndarray, s_k: np.ndarray, speed: float) -> np.ndarray:
+    """Speed (K,) m/s along the arc: cruise, slower in turns, zero at cusps, bounded acceleration."""
     # Curvature from the turn of the unit tangent per metre: also sees cusps (dp -> 0, where
     # |dp x ddp| / |dp|^3 is 0/0 and a straight reversal would read as zero curvature).
     tangent = dp / np.maximum(np.linalg.norm(dp, axis=1, keepdims=True), 1e-12)
@@ -359,12 +330,14 @@ def plan_flight(
     for i in range(len(v) - 2, -1, -1):
         v[i] = min(v[i], math.sqrt(v[i + 1] ** 2 + 2.0 * _LONG_ACCEL * ds_k[i]))
     v[0] = v[-1] = max(v[0], MIN_SPEED)  # the recording starts and ends in motion
-    # Time per segment from its mean speed (finite even where v touches 0 at a cusp).
-    t_k = np.concatenate([[0.0], np.cumsum(np.diff(s_k) / np.maximum(0.5 * (v[1:] + v[:-1]), 1e-3))])
-    if t_k[-1] < duration:
-        raise SimError(f"planned flight lasts only {t_k[-1]:.1f} s < {duration} s; enlarge --size or lower --duration")
+    return v
 
-    # Yaw along the horizontal velocity, smoothed over ~0.4 s, plus a slow look-around sway.
+
+def _yaw_table(
+    spline: BSpline, u_k: np.ndarray, s_k: np.ndarray, t_k: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(yaw_t, yaw, yaw_rate) at 200 Hz: along the horizontal velocity, smoothed over ~0.4 s, plus a slow
+    seeded look-around sway."""
     yaw_t = np.arange(0.0, t_k[-1] + 1e-3, 1.0 / 200.0)
     s_y = np.interp(yaw_t, t_k, s_k)
     u_y = np.interp(s_y, s_k, u_k)
@@ -379,5 +352,4 @@ def plan_flight(
     period, phase = float(rng.uniform(6.0, 10.0)), float(rng.uniform(0, 2 * math.pi))
     yaw = yaw + 0.25 * np.sin(2 * math.pi * yaw_t / period + phase)
     yaw_rate = np.gradient(yaw, yaw_t)
-    return Flight(spline=spline, u_k=u_k, s_k=s_k, t_k=t_k, v_k=v, yaw_t=yaw_t, yaw=yaw, yaw_rate=yaw_rate,
-                      min_clearance=float(d_k.min()))
+    return yaw_t, yaw, yaw_rate

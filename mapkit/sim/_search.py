@@ -1,25 +1,99 @@
 """Search-based paths through a :class:`~mapkit.sim.World`'s exact free space.
 
 The ground-truth counterpart of a learned planner: the world's signed distance is sampled on a grid
-over the flight volume, cells with enough clearance form a 26-neighbour graph (the same one
-:func:`~mapkit.sim.plan_flight` uses, with a cost that keeps paths to the middle of
-corridors), and Dijkstra + line-of-sight shortcuts give a short polyline with a guaranteed
-clearance. Used by ``mapkit eval`` to sample start–goal pairs and as its ``oracle`` planner.
+over the flight volume, cells with enough clearance form a 26-neighbour graph (with a cost that keeps
+paths to the middle of corridors), and Dijkstra + line-of-sight shortcuts give a short polyline with a
+guaranteed clearance. Used by ``mapkit eval`` to sample start–goal pairs and as its ``oracle``
+planner, and by :func:`~mapkit.sim.plan_flight` for the legs of a simulated flight.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, sparse
 from scipy.sparse.csgraph import dijkstra
 
 from mapkit.sim._errors import SimError
-from mapkit.sim._flight import _graph, _Grid, _shortcut
 from mapkit.sim._world import World
 
 __all__ = ["FreeSpaceGraph"]
+
+
+class _NoFreeSpace(SimError):
+    """No cell of the flight volume has the clearance asked for (callers may say it their way)."""
+
+
+class _Grid:
+    """Flight-volume grid with signed distance at cell centres."""
+
+    def __init__(self, world: World, res: float, inset: float) -> None:
+        lo = world.bounds[0].copy()
+        hi = world.bounds[1].copy()
+        lo[:2] += inset
+        hi[:2] -= inset
+        lo[2], hi[2] = world.flight_z
+        if np.any(hi - lo < res):
+            raise SimError(f"flight volume {lo}..{hi} is empty; enlarge --size")
+        self.axes = [np.arange(lo[i], hi[i] + 1e-9, res) for i in range(3)]
+        self.shape = tuple(len(a) for a in self.axes)
+        self.res = res
+        self.origin = np.array([a[0] for a in self.axes])
+        mesh = np.stack(np.meshgrid(*self.axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        self.centres = mesh
+        self.sdf = world.signed_distance(mesh).reshape(self.shape)
+
+    def interp_sdf(self, pts: np.ndarray) -> np.ndarray:
+        """Trilinear signed distance (N,) at points (N, 3) from the cell-centre samples."""
+        idx = ((pts - self.origin) / self.res).T
+        return ndimage.map_coordinates(self.sdf, idx, order=1, mode="nearest")
+
+
+def _graph(grid: _Grid, free: np.ndarray, margin: float) -> sparse.csr_matrix:
+    """Symmetric 26-neighbour graph of the free cells; an edge costs its length times the mean penalty
+    of its ends, which grows as the signed distance falls towards ``margin``."""
+    n = free.size
+    index = np.arange(n).reshape(free.shape)
+    # Cost per metre grows near obstacles so paths keep to the middle of corridors.
+    penalty = 1.0 + np.exp(-(np.maximum(grid.sdf, margin) - margin) / 0.3)
+    rows, cols, vals = [], [], []
+    offsets = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1) if (dx, dy, dz) > (0, 0, 0)]
+    nx, ny, nz = free.shape
+    for dx, dy, dz in offsets:
+        a = (slice(max(0, -dx), nx - max(0, dx)), slice(max(0, -dy), ny - max(0, dy)), slice(max(0, -dz), nz - max(0, dz)))
+        b = (slice(max(0, -dx) + dx, nx - max(0, dx) + dx), slice(max(0, -dy) + dy, ny - max(0, dy) + dy),
+             slice(max(0, -dz) + dz, nz - max(0, dz) + dz))
+        ok = free[a] & free[b]
+        length = grid.res * math.sqrt(dx * dx + dy * dy + dz * dz)
+        rows.append(index[a][ok])
+        cols.append(index[b][ok])
+        vals.append(length * 0.5 * (penalty[a][ok] + penalty[b][ok]))
+    r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+    return sparse.csr_matrix((np.concatenate([v, v]), (np.concatenate([r, c]), np.concatenate([c, r]))), shape=(n, n))
+
+
+def _shortcut(path: np.ndarray, clear: Callable[[np.ndarray, np.ndarray], bool]) -> np.ndarray:
+    """Greedy line-of-sight shortening of a polyline (keeps the end points)."""
+    out = [path[0]]
+    i, n = 0, len(path)
+    while i < n - 1:
+        # Exponential then binary search for the farthest visible vertex.
+        step, j = 1, i + 1
+        while i + 2 * step < n and clear(path[i], path[i + 2 * step]):
+            step *= 2
+        lo, hi = i + step, min(i + 2 * step, n - 1)
+        j = lo
+        while lo <= hi:
+            mid = (lo + hi) // 2
+            if clear(path[i], path[mid]):
+                j, lo = mid, mid + 1
+            else:
+                hi = mid - 1
+        out.append(path[j])
+        i = j
+    return np.array(out)
 
 
 class FreeSpaceGraph:
@@ -31,13 +105,16 @@ class FreeSpaceGraph:
         clearance: metres every cell centre (and every shortcut) keeps from obstacles.
         resolution: grid spacing, metres (default 0.25 indoors, up to 0.4 in large worlds).
         inset: metres kept from the world's x/y bounds (default 0 for walled worlds, 1 otherwise).
+        cost_margin: signed distance (metres) below which an edge's cost stops growing (default
+            ``clearance``); :func:`~mapkit.sim.plan_flight` keeps its free cells a little farther out
+            than this.
 
     Raises:
         SimError: no free space with that clearance.
     """
 
     def __init__(self, world: World, *, clearance: float, resolution: float | None = None,
-                 inset: float | None = None) -> None:
+                 inset: float | None = None, cost_margin: float | None = None) -> None:
         if not clearance > 0:
             raise SimError(f"clearance must be > 0 metres, got {clearance}")
         X, Y = world.bounds[1, :2] - world.bounds[0, :2]
@@ -45,19 +122,19 @@ class FreeSpaceGraph:
         self.clearance = float(clearance)
         self.resolution = float(resolution or np.clip(math.sqrt(X * Y / 12000.0), 0.25, 0.4))
         walled = world.kind in ("office", "garage")
-        self.grid = _Grid(world, self.resolution, self.clearance,
-                          inset=(0.0 if walled else 1.0) if inset is None else float(inset))
+        self.grid = _Grid(world, self.resolution, inset=(0.0 if walled else 1.0) if inset is None else float(inset))
         free = self.grid.sdf >= self.clearance
         labels, n = ndimage.label(free, structure=np.ones((3, 3, 3)))
         if n == 0:
-            raise SimError(
+            raise _NoFreeSpace(
                 f"world {world.kind!r} (seed {world.seed}) has no free space with {self.clearance} m clearance"
             )
         sizes = ndimage.sum_labels(np.ones_like(labels), labels, index=np.arange(1, n + 1))
         self.free = labels == (1 + int(np.argmax(sizes)))
         self.free_index = np.flatnonzero(self.free.ravel())
         self.centres = self.grid.centres
-        self._graph = _graph(self.grid, self.free, self.clearance)
+        # Symmetric sparse (cells x cells) edge costs between free neighbours.
+        self.graph = _graph(self.grid, self.free, self.clearance if cost_margin is None else cost_margin)
 
     @property
     def num_free(self) -> int:
@@ -90,14 +167,22 @@ class FreeSpaceGraph:
         start = np.asarray(start, dtype=np.float64).reshape(3)
         goal = np.asarray(goal, dtype=np.float64).reshape(3)
         a, b = self.nearest_cell(start), self.nearest_cell(goal)
-        dist, pred = dijkstra(self._graph, indices=a, return_predecessors=True)
-        if not np.isfinite(dist[b]):
+        cells = self.cell_path(a, b)
+        if cells is None:
             raise SimError(f"no path with {self.clearance} m clearance from {start.round(2).tolist()} to "
                            f"{goal.round(2).tolist()}")
-        cells = [b]
-        while cells[-1] != a:
-            cells.append(int(pred[cells[-1]]))
-        pts = [start, *self.centres[cells[::-1]], goal]
+        pts = [start, *self.centres[cells], goal]
         poly = np.array(pts)
         # Drop the snapped cell centres when the true end points see past them.
         return _shortcut(poly, lambda p, q: self.segment_clear(p, q))
+
+    def cell_path(self, a: int, b: int) -> list[int] | None:
+        """Cheapest sequence of flat cell indices from cell ``a`` to cell ``b`` (both included), or None
+        when they are not connected."""
+        dist, pred = dijkstra(self.graph, indices=a, return_predecessors=True)
+        if not np.isfinite(dist[b]):
+            return None
+        cells = [b]
+        while cells[-1] != a:
+            cells.append(int(pred[cells[-1]]))
+        return cells[::-1]
