@@ -1,5 +1,12 @@
 """Using a trained planner: `Planner.load(run_dir).plan(depth, goal)` and the outputs of `mapkit plan`;
-``Planner.load("pretrained")`` loads the model shipped with mapkit."""
+``Planner.load("pretrained")`` loads the model shipped with mapkit.
+
+Not to be confused with :mod:`mapkit.planner`, which *defines* the network, its configuration and
+its training loss on batched tensors. This package wraps one trained network for single frames:
+loading a run's model.pt, planning from one depth frame (with its camera calibration when the net
+needs it), clipping far goals to the planner's range, and writing the plan's files (`mapkit plan`,
+the viewer).
+"""
 
 from mapkit.planning._planner import Planner, PlanningError, PlanResult, write_plan_outputs
 from mapkit.planning._pretrained import PRETRAINED, pretrained_dir, resolve_model

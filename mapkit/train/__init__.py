@@ -2,7 +2,7 @@
 
 from mapkit.train._config import PRESETS, TrainConfig, TrainConfigError, preset
 from mapkit.train._data import TrainDataError, TupleSamples, TupleStore
-from mapkit.train._loop import TrainSummary, evaluate, set_threads, train
+from mapkit.train._loop import TrainSummary, set_threads, train, validate
 from mapkit.train._provenance import simulated_worlds, workspace_camera
 
 __all__ = [
@@ -13,10 +13,10 @@ __all__ = [
     "TrainSummary",
     "TupleSamples",
     "TupleStore",
-    "evaluate",
     "preset",
     "set_threads",
     "simulated_worlds",
     "train",
+    "validate",
     "workspace_camera",
 ]

@@ -141,7 +141,7 @@ def _straight_output(net: nn.Module, goal: torch.Tensor) -> Any:
     return PlannerOutput(keypoints=line, eta=zero + 0.5, eta_logit=zero)
 
 
-def evaluate(net: nn.Module, samples: TupleSamples, maps: list[Any], loss_config: Any, device: torch.device, *,
+def validate(net: nn.Module, samples: TupleSamples, maps: list[Any], loss_config: Any, device: torch.device, *,
              straight: bool = False, max_batches: int | None = None, batch_size: int = 16,
              corridor: float | None = None) -> dict[str, float]:
     """Mean loss terms over a split (the chosen candidate's), with straight=True for key-points on
@@ -475,7 +475,7 @@ def _tensorboard(run_dir: Path) -> Any:
 def _validation(run: _Session, data: _Splits, *, straight: bool = False) -> dict[str, float]:
     """The validation metrics of the current weights (or of straight-line key-points)."""
     c = run.config
-    return evaluate(run.net, data.val_set, data.val_maps, c.loss, run.device, straight=straight,
+    return validate(run.net, data.val_set, data.val_maps, c.loss, run.device, straight=straight,
                     max_batches=c.val_batches, batch_size=c.batch_size, corridor=c.corridor)
 
 
@@ -583,7 +583,7 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
 
     With ``val_workspaces`` (held-out worlds) every tuple of ``workspaces`` trains and every tuple of
     ``val_workspaces`` validates; otherwise each store's own train/val split is used. model.pt holds
-    the epoch with the best validation blocked-goal reach (see :func:`evaluate`); checkpoint.pt the
+    the epoch with the best validation blocked-goal reach (see :func:`validate`); checkpoint.pt the
     latest (for --resume)."""
     _check_inputs(workspaces, val_workspaces, config)
     device = _device(config.device)
