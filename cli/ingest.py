@@ -80,7 +80,7 @@ def info(recordings: tuple[Path, ...], **kw: Any) -> None:
             click.echo(f"    depth        {p.depth.topic} ({p.depth_encoding}): {p.depth.why}")
             click.echo(f"    camera info  {p.camera_info.topic or '--intrinsics'}: {p.camera_info.why}")
             click.echo(f"    pose         {p.pose.topic or 'tf'}: {p.pose.why}")
-            fx, fy, cx, cy = p.K[0, 0], p.K[1, 1], p.K[0, 2], p.K[1, 2]  # type: ignore[index]
+            fx, fy, cx, cy = p.K[0, 0], p.K[1, 1], p.K[0, 2], p.K[1, 2]
             click.echo(f"    intrinsics   fx={fx:.2f} fy={fy:.2f} cx={cx:.2f} cy={cy:.2f}")
             click.echo(f"    frames       world={p.world_frame} body={p.body_frame} camera={p.camera_frame}")
         else:

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Sequence
 
 from mapkit.ingest._errors import IngestError
-from mapkit.ingest._reader import IngestConfig, SourcePlan, choose_roles, load_poses
+from mapkit.ingest._reader import IngestConfig, SourcePlan, plan_source
 from mapkit.ingest._sources import BagSummary, Source
 
 
@@ -34,8 +34,7 @@ def inspect_recordings(paths: Sequence[str | Path], config: IngestConfig | None 
     for path in paths:
         with Source(path) as source:
             try:
-                plan = choose_roles(source, config)
-                load_poses(source, plan, config)
+                plan = plan_source(source, config)
                 out.append(RecordingInfo(source.summary, plan, None))
             except IngestError as exc:
                 out.append(RecordingInfo(source.summary, None, str(exc)))

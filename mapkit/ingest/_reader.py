@@ -100,34 +100,78 @@ class Frame:
     """Index of the input recording."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class RoleChoice:
+    """The topic picked for one role of a recording (camera info or pose), and why."""
+
     topic: str | None
+    """None: the role is filled otherwise (camera info: ``--intrinsics``; pose: the tf tree)."""
     msgtype: str | None
     why: str
 
 
-@dataclass
-class SourcePlan:
-    """What will be read from one recording and why."""
+@dataclass(frozen=True)
+class DepthChoice:
+    """The depth topic of a recording, and why it was picked."""
+
+    topic: str
+    msgtype: str
+    why: str
+
+
+@dataclass(frozen=True)
+class Roles:
+    """Which topics of one recording give depth, camera info, poses and tf (:func:`choose_roles`)."""
 
     summary: BagSummary
-    depth: RoleChoice
+    depth: DepthChoice
     depth_encoding: str
     camera_info: RoleChoice
     pose: RoleChoice
     tf_topics: list[str]
-    K: NDArray[np.float64] | None = None
-    width: int = 0
-    height: int = 0
-    world_frame: str = ""
-    body_frame: str = ""
-    camera_frame: str = ""
-    pose_parent: str = ""
-    needs_dynamic_tf: bool = True
+
+
+@dataclass(frozen=True)
+class SourcePlan:
+    """What will be read from one recording and why: the roles plus the intrinsics and frames they
+    resolve to, built in one place (:func:`plan_source`)."""
+
+    summary: BagSummary
+    depth: DepthChoice
+    depth_encoding: str
+    camera_info: RoleChoice
+    pose: RoleChoice
+    tf_topics: list[str]
+    K: NDArray[np.float64]
+    """(3, 3) intrinsics: ``--intrinsics`` or the camera info's."""
+    width: int
+    """Image size from the camera info; 0 when ``--intrinsics`` replaced it (the images then say)."""
+    height: int
+    world_frame: str
+    body_frame: str
+    camera_frame: str
+    pose_parent: str
+    """The frame the pose topic's poses are in ("" without a pose topic)."""
+    needs_dynamic_tf: bool
+    """True when /tf must be read while streaming (no pose topic, or another moving frame on the chain)."""
+
+
+@dataclass(frozen=True)
+class _Resolved:
+    """Intrinsics and frames of one recording, as :func:`_resolve` finds them."""
+
+    K: NDArray[np.float64]
+    width: int
+    height: int
+    world_frame: str
+    body_frame: str
+    camera_frame: str
+    pose_parent: str
+    needs_dynamic_tf: bool
 
 
 def _find(summary: BagSummary, name: str, option: str) -> str:
+    """The normalised topic ``name`` given by ``option``; raises when the recording lacks it."""
     topic = normalize_topic(name)
     if topic not in summary.topics:
         raise IngestError(
@@ -142,20 +186,41 @@ class _EmptyTopic(IngestError):
 
 
 def _first_message(source: Source, topic: str) -> Any:
+    """The first message of ``topic``, deserialised; raises :class:`_EmptyTopic` when there is none."""
     for raw in source.messages([topic]):
         return source.deserialize(raw)
     raise _EmptyTopic(f"topic {topic} in {str(source.path)!r} has no messages")
 
 
-def choose_roles(source: Source, config: IngestConfig) -> SourcePlan:
+def plan_source(source: Source, config: IngestConfig) -> SourcePlan:
+    """The whole reading plan of one recording: its roles, then the intrinsics and frames they resolve to."""
+    roles = choose_roles(source, config)
+    r = _resolve(source, roles, config)
+    return SourcePlan(
+        summary=roles.summary, depth=roles.depth, depth_encoding=roles.depth_encoding,
+        camera_info=roles.camera_info, pose=roles.pose, tf_topics=roles.tf_topics, K=r.K, width=r.width,
+        height=r.height, world_frame=r.world_frame, body_frame=r.body_frame, camera_frame=r.camera_frame,
+        pose_parent=r.pose_parent, needs_dynamic_tf=r.needs_dynamic_tf,
+    )
+
+
+def choose_roles(source: Source, config: IngestConfig) -> Roles:
     """Pick the depth, camera-info and pose topics of one recording (overrides first)."""
     s = source.summary
     by_type: dict[str, list[str]] = {}
     for t in s.topics.values():
         by_type.setdefault(t.msgtype, []).append(t.name)
+    depth = _choose_depth(source, config, by_type)
+    depth_encoding = image_encoding(_first_message(source, depth.topic), depth.msgtype)
+    camera_info = _choose_camera_info(s, config, by_type, depth.topic)
+    tf_topics = sorted(by_type.get(TF_TYPE, []))
+    pose = _choose_pose(s, config, by_type, tf_topics)
+    return Roles(s, depth, depth_encoding, camera_info, pose, tf_topics)
 
-    # Depth: an Image with a depth encoding or a compressedDepth CompressedImage.
-    images = [t for mt in IMAGE_TYPES for t in by_type.get(mt, [])]
+
+def _choose_depth(source: Source, config: IngestConfig, by_type: dict[str, list[str]]) -> DepthChoice:
+    """Depth: the given topic, else an Image with a depth encoding or a compressedDepth CompressedImage."""
+    s = source.summary
     if config.depth_topic:
         topic = _find(s, config.depth_topic, "--depth-topic")
         msgtype = s.topics[topic].msgtype
@@ -164,63 +229,64 @@ def choose_roles(source: Source, config: IngestConfig) -> SourcePlan:
         enc = image_encoding(_first_message(source, topic), msgtype)
         if enc not in DEPTH_ENCODINGS + ("compressedDepth",):
             raise IngestError(f"topic {topic} has encoding {enc}; expected {ACCEPTED}; pass --depth-topic")
-        depth = RoleChoice(topic, msgtype, "given by --depth-topic")
-    else:
-        seen: list[str] = []
-        unreadable: list[str] = []
-        candidates: list[tuple[tuple[int, int], str, str, str]] = []
-        for topic in images:
-            msgtype = s.topics[topic].msgtype
-            try:
-                enc = image_encoding(_first_message(source, topic), msgtype)
-            except _EmptyTopic:
-                continue
-            except IngestError as exc:
-                unreadable.append(str(exc))
-                continue
-            seen.append(f"{topic} ({enc})")
-            if enc in DEPTH_ENCODINGS + ("compressedDepth",):
-                # Prefer names that say depth, raw over compressed, then the busiest topic.
-                rank = ("depth" in topic.lower(), msgtype.endswith("/Image"))
-                candidates.append(((int(rank[0]) * 2 + int(rank[1]), s.topics[topic].count), topic, msgtype, enc))
-        if not candidates and unreadable:
-            raise IngestError(f"{str(s.path)!r} lists image topics but cannot give their messages, so it is damaged "
-                              f"({unreadable[0]})")
-        if not candidates:
-            listed = ", ".join(seen) if seen else "none"
-            raise IngestError(
-                f"no depth topic in {str(s.path)!r}: image topics seen: {listed}; expected encoding "
-                f"{ACCEPTED}; pass --depth-topic"
-            )
-        candidates.sort(reverse=True)
-        _, topic, msgtype, enc = candidates[0]
-        others = [c[1] for c in candidates[1:]]
-        why = f"{msgtype.split('/')[-1]} with encoding {enc}"
-        if others:
-            why += f"; preferred over {', '.join(others)} (name/type/count)"
-        depth = RoleChoice(topic, msgtype, why)
-    depth_encoding = image_encoding(_first_message(source, depth.topic), depth.msgtype)  # type: ignore[arg-type]
+        return DepthChoice(topic, msgtype, "given by --depth-topic")
+    images = [t for mt in IMAGE_TYPES for t in by_type.get(mt, [])]
+    seen: list[str] = []
+    unreadable: list[str] = []
+    candidates: list[tuple[tuple[int, int], str, str, str]] = []
+    for topic in images:
+        msgtype = s.topics[topic].msgtype
+        try:
+            enc = image_encoding(_first_message(source, topic), msgtype)
+        except _EmptyTopic:
+            continue
+        except IngestError as exc:
+            unreadable.append(str(exc))
+            continue
+        seen.append(f"{topic} ({enc})")
+        if enc in DEPTH_ENCODINGS + ("compressedDepth",):
+            # Prefer names that say depth, raw over compressed, then the busiest topic.
+            rank = ("depth" in topic.lower(), msgtype.endswith("/Image"))
+            candidates.append(((int(rank[0]) * 2 + int(rank[1]), s.topics[topic].count), topic, msgtype, enc))
+    if not candidates and unreadable:
+        raise IngestError(f"{str(s.path)!r} lists image topics but cannot give their messages, so it is damaged "
+                          f"({unreadable[0]})")
+    if not candidates:
+        listed = ", ".join(seen) if seen else "none"
+        raise IngestError(
+            f"no depth topic in {str(s.path)!r}: image topics seen: {listed}; expected encoding "
+            f"{ACCEPTED}; pass --depth-topic"
+        )
+    candidates.sort(reverse=True)
+    _, topic, msgtype, enc = candidates[0]
+    others = [c[1] for c in candidates[1:]]
+    why = f"{msgtype.split('/')[-1]} with encoding {enc}"
+    if others:
+        why += f"; preferred over {', '.join(others)} (name/type/count)"
+    return DepthChoice(topic, msgtype, why)
 
-    # Camera info: the given one, else the CameraInfo sharing the depth topic's namespace.
+
+def _choose_camera_info(s: BagSummary, config: IngestConfig, by_type: dict[str, list[str]], depth_topic: str) -> RoleChoice:
+    """Camera info: the given one, else the CameraInfo sharing the depth topic's namespace."""
     infos = by_type.get(CAMERA_INFO_TYPE, [])
     if config.camera_info_topic:
         topic = _find(s, config.camera_info_topic, "--camera-info-topic")
-        camera_info = RoleChoice(topic, CAMERA_INFO_TYPE, "given by --camera-info-topic")
-    elif config.intrinsics is not None:
-        camera_info = RoleChoice(None, None, "--intrinsics given")
-    elif infos:
-        base = depth.topic.rsplit("/", 1)[0]  # type: ignore[union-attr]
+        return RoleChoice(topic, CAMERA_INFO_TYPE, "given by --camera-info-topic")
+    if config.intrinsics is not None:
+        return RoleChoice(None, None, "--intrinsics given")
+    if infos:
+        base = depth_topic.rsplit("/", 1)[0]
         infos.sort(key=lambda t: (not t.startswith(base + "/"), "depth" not in t.lower(), t))
         why = "CameraInfo in the depth topic's namespace" if infos[0].startswith(base + "/") else "only CameraInfo topic" if len(infos) == 1 else "CameraInfo whose name says depth"
-        camera_info = RoleChoice(infos[0], CAMERA_INFO_TYPE, why)
-    else:
-        raise IngestError(
-            f"no camera info in {str(s.path)!r} (no sensor_msgs/CameraInfo topic); "
-            "pass --intrinsics fx,fy,cx,cy"
-        )
+        return RoleChoice(infos[0], CAMERA_INFO_TYPE, why)
+    raise IngestError(
+        f"no camera info in {str(s.path)!r} (no sensor_msgs/CameraInfo topic); "
+        "pass --intrinsics fx,fy,cx,cy"
+    )
 
-    # Pose: the given topic, else an Odometry, else a PoseStamped/-WithCovariance, else tf.
-    tf_topics = sorted(by_type.get(TF_TYPE, []))
+
+def _choose_pose(s: BagSummary, config: IngestConfig, by_type: dict[str, list[str]], tf_topics: list[str]) -> RoleChoice:
+    """Pose: the given topic, else an Odometry, else a PoseStamped/-WithCovariance, else tf."""
     if config.pose_topic and config.pose_topic.strip().lower() != "tf":
         topic = _find(s, config.pose_topic, "--pose-topic")
         msgtype = s.topics[topic].msgtype
@@ -229,50 +295,58 @@ def choose_roles(source: Source, config: IngestConfig) -> SourcePlan:
                 f"--pose-topic {topic} carries {msgtype}; expected nav_msgs/Odometry, "
                 "geometry_msgs/PoseStamped, PoseWithCovarianceStamped or TransformStamped (or 'tf')"
             )
-        pose = RoleChoice(topic, msgtype, "given by --pose-topic")
-    else:
-        poses = [(mt, t) for mt in POSE_TYPES for t in by_type.get(mt, [])]
-        if poses and not config.pose_topic:
-            mt, topic = poses[0]
-            same = [t for m, t in poses if m == mt]
-            if len(same) > 1:
-                topic = max(same, key=lambda t: s.topics[t].count)
-            pose = RoleChoice(topic, mt, f"{mt.split('/')[-1]} topic" + (f"; preferred over {len(poses) - 1} other pose topic(s)" if len(poses) > 1 else ""))
-        elif any(s.topics[t].count for t in tf_topics if "static" not in t):
-            pose = RoleChoice(None, TF_TYPE, "no pose topic; world → camera from the tf tree")
-        else:
-            raise IngestError(
-                f"no pose in {str(s.path)!r}: no Odometry/PoseStamped topic and no /tf; "
-                "record one or pass --pose-topic"
-            )
-    return SourcePlan(s, depth, depth_encoding, camera_info, pose, tf_topics)
+        return RoleChoice(topic, msgtype, "given by --pose-topic")
+    poses = [(mt, t) for mt in POSE_TYPES for t in by_type.get(mt, [])]
+    if poses and not config.pose_topic:
+        mt, topic = poses[0]
+        same = [t for m, t in poses if m == mt]
+        if len(same) > 1:
+            topic = max(same, key=lambda t: s.topics[t].count)
+        return RoleChoice(topic, mt, f"{mt.split('/')[-1]} topic" + (f"; preferred over {len(poses) - 1} other pose topic(s)" if len(poses) > 1 else ""))
+    if any(s.topics[t].count for t in tf_topics if "static" not in t):
+        return RoleChoice(None, TF_TYPE, "no pose topic; world → camera from the tf tree")
+    raise IngestError(
+        f"no pose in {str(s.path)!r}: no Odometry/PoseStamped topic and no /tf; "
+        "record one or pass --pose-topic"
+    )
 
 
 class _PoseFeed:
     """Turns pose, tf and tf_static messages into a TfTree as a recording streams by."""
 
-    def __init__(self, plan: SourcePlan, config: IngestConfig, *, body: str | None = None) -> None:
-        self.plan, self.config = plan, config
+    def __init__(self, pose_topic: str | None, tf_topics: list[str], config: IngestConfig) -> None:
+        self.pose_topic, self.config = pose_topic, config
+        self.topics = tf_topics + ([pose_topic] if pose_topic else [])  # what to read: these tf topics + the pose topic
         self.tree = TfTree()
         self.pose_series: EdgeSeries | None = None
         self._last_pose_stamp: int | None = None
         self.dropped_poses = 0
-        if body is not None and plan.pose.topic:
-            # The pose topic defines world → body; tf's say about that edge is ignored.
-            self.pose_series = EdgeSeries(plan.pose_parent, body, f"pose topic {plan.pose.topic}")
-            self.tree.replace_dynamic(self.pose_series)
-            self.tree.pinned.add(body)
-        if body is not None and config.extrinsic is not None and body != plan.camera_frame:
-            self.tree.set_static(body, plan.camera_frame, np.asarray(config.extrinsic, dtype=np.float64))
-            self.tree.pinned.add(plan.camera_frame)
 
-    @property
-    def topics(self) -> list[str]:
-        tf = [t for t in self.plan.tf_topics if self.plan.needs_dynamic_tf or "static" in t]
-        return tf + ([self.plan.pose.topic] if self.plan.pose.topic else [])
+    @classmethod
+    def for_planning(cls, roles: Roles, config: IngestConfig) -> "_PoseFeed":
+        """A feed that learns the frames: every tf topic, the pose topic's frames not known yet."""
+        return cls(roles.pose.topic, roles.tf_topics, config)
+
+    @classmethod
+    def for_plan(cls, plan: SourcePlan, config: IngestConfig) -> "_PoseFeed":
+        """A feed for streaming a planned recording: the pose topic pinned to world → body, the
+        ``--extrinsic`` pinned to body → camera, /tf only when the plan needs it."""
+        tf = [t for t in plan.tf_topics if plan.needs_dynamic_tf or "static" in t]
+        feed = cls(plan.pose.topic, tf, config)
+        body = plan.body_frame
+        if plan.pose.topic:
+            # The pose topic defines world → body; tf's say about that edge is ignored.
+            feed.pose_series = EdgeSeries(plan.pose_parent, body, f"pose topic {plan.pose.topic}")
+            feed.tree.replace_dynamic(feed.pose_series)
+            feed.tree.pinned.add(body)
+        if config.extrinsic is not None and body != plan.camera_frame:
+            feed.tree.set_static(body, plan.camera_frame, np.asarray(config.extrinsic, dtype=np.float64))
+            feed.tree.pinned.add(plan.camera_frame)
+        return feed
 
     def add(self, topic: str, msgtype: str, msg: Any) -> None:
-        if topic == self.plan.pose.topic:
+        """One message of the pose topic or a tf topic."""
+        if topic == self.pose_topic:
             self.add_pose(topic, *pose_sample(msg, msgtype))
             return
         static = "static" in topic
@@ -301,69 +375,18 @@ class _PoseFeed:
         self.pose_series.add(stamp, t, q)
 
 
-def load_poses(source: Source, plan: SourcePlan, config: IngestConfig) -> None:
+def _resolve(source: Source, roles: Roles, config: IngestConfig) -> _Resolved:
     """Resolve intrinsics and the world / body / camera frames from the first seconds of a recording."""
-    feed = _PoseFeed(plan, config)
-    info_msg = None
-    first = _first_message(source, plan.depth.topic)  # type: ignore[arg-type]
+    first = _first_message(source, roles.depth.topic)
     camera = frame_name(config.camera_frame or first.header.frame_id)
     if not camera:
-        raise IngestError(f"depth topic {plan.depth.topic} has an empty header.frame_id; pass --camera-frame")
-    static_topics = [t for t in plan.tf_topics if "static" in t]
-    static_seen = False
-
-    def enough() -> bool:
-        """Planning needs intrinsics, one pose, tf_static if recorded, and the camera in the tree."""
-        if plan.camera_info.topic and info_msg is None:
-            return False
-        if plan.pose.topic and feed.pose_series is None:
-            return False
-        if not plan.pose.topic and not feed.tree.dynamic:
-            return False
-        if static_topics and not static_seen:
-            return False
-        if config.extrinsic is None and camera not in feed.tree.frames:
-            return feed.pose_series is not None and feed.pose_series.child == camera
-        return True
-
-    wanted = feed.topics + ([plan.camera_info.topic] if plan.camera_info.topic else [])
-    for raw in source.messages(wanted):
-        if raw.topic == plan.camera_info.topic:
-            info_msg = info_msg or source.deserialize(raw)
-        else:
-            feed.add(raw.topic, raw.msgtype, source.deserialize(raw))
-            static_seen = static_seen or raw.topic in static_topics
-        if enough():
-            break
-    if plan.pose.topic and feed.pose_series is None:
-        raise IngestError(f"pose topic {plan.pose.topic} has no messages")
+        raise IngestError(f"depth topic {roles.depth.topic} has an empty header.frame_id; pass --camera-frame")
+    feed, info_msg = _read_until_planned(source, roles, config, camera)
+    K, width, height = _intrinsics(roles, config, info_msg)
     tree, pose_series = feed.tree, feed.pose_series
-
-    if config.intrinsics is not None:
-        plan.K = np.asarray(config.intrinsics, dtype=np.float64)
-    else:
-        if info_msg is None:
-            raise IngestError(
-                f"camera info topic {plan.camera_info.topic} has no messages; pass --intrinsics fx,fy,cx,cy"
-            )
-        plan.K, plan.width, plan.height = camera_intrinsics(info_msg, topic=plan.camera_info.topic or "")
-
     if pose_series is not None:
-        if pose_series.child:
-            body = frame_name(config.body_frame or pose_series.child)
-        elif config.body_frame:
-            body = frame_name(config.body_frame)
-        elif camera in tree.frames:
-            body = tree.static_top(camera)
-        elif config.extrinsic is not None:
-            body = "body"
-        else:
-            raise IngestError(
-                f"pose topic {plan.pose.topic} ({plan.pose.msgtype.split('/')[-1]}) does not name the frame it "  # type: ignore[union-attr]
-                f"locates and camera frame {camera!r} has no tf_static chain; pass --extrinsic "
-                "(T_body_camera as x,y,z,qx,qy,qz,qw, or 'identity' if the pose is the camera's)"
-            )
-        plan.pose_parent = pose_series.parent
+        body = _body_of_pose_topic(roles, config, tree, pose_series, camera)
+        pose_parent = pose_series.parent
         pose_series.child = body
         tree.replace_dynamic(pose_series)
         world = frame_name(config.world_frame or pose_series.parent)
@@ -373,23 +396,94 @@ def load_poses(source: Source, plan: SourcePlan, config: IngestConfig) -> None:
                 f"camera frame {camera!r} is not in the tf tree (frames: {', '.join(sorted(tree.frames)) or 'none'}); "
                 "pass --camera-frame or --pose-topic"
             )
+        pose_parent = ""
         world = frame_name(config.world_frame or tree.root(camera))
         body = frame_name(config.body_frame or tree.static_top(camera))
-    if config.extrinsic is not None:
-        if body == camera:
-            if not np.allclose(config.extrinsic, np.eye(4)):
-                raise IngestError(f"body frame and camera frame are both {camera!r}; --extrinsic must be 'identity'")
-        else:
-            tree.set_static(body, camera, np.asarray(config.extrinsic, dtype=np.float64))
+    _attach_extrinsic(config, tree, body, camera)
     known = ", ".join(sorted(tree.frames)) or "none"
     for a, b, hint in ((world, body, "pass --world-frame"), (body, camera, "pass --extrinsic x,y,z,qx,qy,qz,qw (T_body_camera)")):
         if a != b and (a not in tree.frames or b not in tree.frames or not tree.connected(a, b)):
             raise IngestError(f"no transform from frame {a!r} to frame {b!r} (tf frames: {known}); {hint}")
-    plan.world_frame, plan.body_frame, plan.camera_frame = world, body, camera
     # With a pose topic, /tf is only read again if a moving frame other than the body's lies on the
     # chain (e.g. a gimbal); skipping it halves the pose messages a bag like ours needs.
     moving = tree.dynamic_edges(world, camera)
-    plan.needs_dynamic_tf = pose_series is None or any(e is not pose_series for e in moving)
+    needs_dynamic_tf = pose_series is None or any(e is not pose_series for e in moving)
+    return _Resolved(K, width, height, world, body, camera, pose_parent, needs_dynamic_tf)
+
+
+def _read_until_planned(source: Source, roles: Roles, config: IngestConfig, camera: str) -> tuple[_PoseFeed, Any]:
+    """Read pose, tf and camera-info messages until the plan can be made → (feed, first camera info or None)."""
+    feed = _PoseFeed.for_planning(roles, config)
+    info_msg = None
+    static_topics = [t for t in roles.tf_topics if "static" in t]
+    static_seen = False
+
+    def enough() -> bool:
+        """Planning needs intrinsics, one pose, tf_static if recorded, and the camera in the tree."""
+        if roles.camera_info.topic and info_msg is None:
+            return False
+        if roles.pose.topic and feed.pose_series is None:
+            return False
+        if not roles.pose.topic and not feed.tree.dynamic:
+            return False
+        if static_topics and not static_seen:
+            return False
+        if config.extrinsic is None and camera not in feed.tree.frames:
+            return feed.pose_series is not None and feed.pose_series.child == camera
+        return True
+
+    wanted = feed.topics + ([roles.camera_info.topic] if roles.camera_info.topic else [])
+    for raw in source.messages(wanted):
+        if raw.topic == roles.camera_info.topic:
+            info_msg = info_msg or source.deserialize(raw)
+        else:
+            feed.add(raw.topic, raw.msgtype, source.deserialize(raw))
+            static_seen = static_seen or raw.topic in static_topics
+        if enough():
+            break
+    if roles.pose.topic and feed.pose_series is None:
+        raise IngestError(f"pose topic {roles.pose.topic} has no messages")
+    return feed, info_msg
+
+
+def _intrinsics(roles: Roles, config: IngestConfig, info_msg: Any) -> tuple[NDArray[np.float64], int, int]:
+    """(K, width, height): ``--intrinsics`` (size 0: the images say) or the first camera info's."""
+    if config.intrinsics is not None:
+        return np.asarray(config.intrinsics, dtype=np.float64), 0, 0
+    if info_msg is None:
+        raise IngestError(
+            f"camera info topic {roles.camera_info.topic} has no messages; pass --intrinsics fx,fy,cx,cy"
+        )
+    return camera_intrinsics(info_msg, topic=roles.camera_info.topic or "")
+
+
+def _body_of_pose_topic(roles: Roles, config: IngestConfig, tree: TfTree, pose_series: EdgeSeries, camera: str) -> str:
+    """The body frame the pose topic locates: its child frame, ``--body-frame``, or the top of the
+    camera's static chain."""
+    if pose_series.child:
+        return frame_name(config.body_frame or pose_series.child)
+    if config.body_frame:
+        return frame_name(config.body_frame)
+    if camera in tree.frames:
+        return tree.static_top(camera)
+    if config.extrinsic is not None:
+        return "body"
+    raise IngestError(
+        f"pose topic {roles.pose.topic} ({(roles.pose.msgtype or '').split('/')[-1]}) does not name the frame it "
+        f"locates and camera frame {camera!r} has no tf_static chain; pass --extrinsic "
+        "(T_body_camera as x,y,z,qx,qy,qz,qw, or 'identity' if the pose is the camera's)"
+    )
+
+
+def _attach_extrinsic(config: IngestConfig, tree: TfTree, body: str, camera: str) -> None:
+    """Put ``--extrinsic`` (T_body_camera) into the tree; with body == camera it must be the identity."""
+    if config.extrinsic is None:
+        return
+    if body == camera:
+        if not np.allclose(config.extrinsic, np.eye(4)):
+            raise IngestError(f"body frame and camera frame are both {camera!r}; --extrinsic must be 'identity'")
+    else:
+        tree.set_static(body, camera, np.asarray(config.extrinsic, dtype=np.float64))
 
 
 _MAX_PENDING = 256  # depth frames held while waiting for later poses (the poses' lag behind depth)
@@ -415,11 +509,13 @@ class FrameStream:
 
     @property
     def K(self) -> NDArray[np.float64]:
-        return self.plans[0].K  # type: ignore[return-value]
+        """(3, 3) intrinsics of the first recording (all recordings must share them)."""
+        return self.plans[0].K
 
     @property
     def expected_frames(self) -> int:
-        n = sum(-(-p.summary.topics[p.depth.topic].count // self.config.stride) for p in self.plans)  # type: ignore[index]
+        """Depth messages the stride keeps, over all recordings, capped by ``max_frames``."""
+        n = sum(-(-p.summary.topics[p.depth.topic].count // self.config.stride) for p in self.plans)
         return min(n, self.config.max_frames) if self.config.max_frames else n
 
     def __iter__(self) -> Iterator[Frame]:
@@ -433,86 +529,20 @@ class FrameStream:
             raise IngestError(self._why_no_frames())
 
     def _iter_source(self, index: int, path: Path, plan: SourcePlan) -> Iterator[Frame]:
-        max_gap_ns = int(round(self.config.max_pose_gap * 1e9))
-        feed = _PoseFeed(plan, self.config, body=plan.body_frame)
-        tree = feed.tree
-        pending: deque[tuple[int, Any, str]] = deque()
-        first_stamp: int | None = None
-        last_stamp: int | None = None
-        n = -1
-
-        def resolve(stamp: int, msg: Any, msgtype: str) -> Frame | None:
-            depth = decode_depth(msg, msgtype, topic=plan.depth.topic or "")
-            if plan.width and (depth.shape[1], depth.shape[0]) != (plan.width, plan.height):
-                raise IngestError(
-                    f"depth topic {plan.depth.topic} has {depth.shape[1]}x{depth.shape[0]} images but its "
-                    f"camera info says {plan.width}x{plan.height}; pass --camera-info-topic or --intrinsics"
-                )
-            if not plan.width:
-                plan.height, plan.width = depth.shape
-            if not np.isfinite(depth).any():
-                self.dropped[NO_VALID_DEPTH] += 1
-                return None
-            try:
-                T_world_body = tree.lookup(plan.world_frame, plan.body_frame, stamp, max_gap_ns)
-                T_body_camera = tree.lookup(plan.body_frame, plan.camera_frame, stamp, max_gap_ns)
-            except NoPose as missing:
-                self.dropped[missing.reason] += 1
-                return None
-            return Frame(depth, stamp, T_world_body @ T_body_camera, T_world_body, plan.K, index)  # type: ignore[arg-type]
-
-        edges_cache: list[Any] = [-1, []]  # [tree version, moving edges world → camera]
-
-        def ready(stamp: int) -> bool:
-            if edges_cache[0] != tree.version:
-                edges_cache[:] = [tree.version, tree.dynamic_edges(plan.world_frame, plan.camera_frame)]
-            return all(e.last_stamp is not None and e.last_stamp >= stamp for e in edges_cache[1])
-
+        """Frames of one recording in stamp order, each as soon as the poses around it have been read."""
+        reader = _SourceReader(self, index, path, plan)
         with Source(path) as source:
-            messages = source.messages([plan.depth.topic] + feed.topics)  # type: ignore[list-item]
+            messages = source.messages([plan.depth.topic] + reader.feed.topics)
             # MCAP sources decompress in their own thread; the others read ahead in one here.
             cdr = source.kind != "ros1"
             for raw in messages if source.kind == "mcap" else prefetch(messages):
                 if raw.topic != plan.depth.topic:
-                    fast = None
-                    if cdr and raw.topic == plan.pose.topic and raw.msgtype == "nav_msgs/msg/Odometry":
-                        fast = parse_odometry(raw.data)
-                    if fast is not None:
-                        stamp, parent, child, t, q = fast
-                        feed.add_pose(raw.topic, stamp, frame_name(parent), frame_name(child) or None, t, q)
-                    else:
-                        feed.add(raw.topic, raw.msgtype, source.deserialize(raw))
-                else:
-                    n += 1
-                    self.depth_messages += 1
-                    if n % self.config.stride:
-                        continue
-                    msg = parse_image(raw.data) if cdr and raw.msgtype == "sensor_msgs/msg/Image" else None
-                    msg = msg or source.deserialize(raw)
-                    stamp = stamp_ns(msg.header)
-                    first_stamp = stamp if first_stamp is None else first_stamp
-                    if last_stamp is not None and stamp <= last_stamp:
-                        if not self.config.drop_nonmonotonic:
-                            raise IngestError(
-                                f"depth topic {plan.depth.topic} in {str(path)!r}: stamp goes backwards at "
-                                f"message {n} ({stamp} ns after {last_stamp} ns); fix the recording's clock "
-                                "or pass --drop-nonmonotonic to drop such frames"
-                            )
-                        self.dropped[NON_MONOTONIC] += 1
-                        continue
-                    last_stamp = stamp
-                    pending.append((stamp, msg, raw.msgtype))
-                while pending and (ready(pending[0][0]) or len(pending) > _MAX_PENDING):
-                    if (frame := resolve(*pending.popleft())) is not None:
-                        yield frame
-            while pending:
-                if (frame := resolve(*pending.popleft())) is not None:
-                    yield frame
-        self.dropped["pose_message_non_monotonic"] += feed.dropped_poses
-        if not self.dropped["pose_message_non_monotonic"]:
-            del self.dropped["pose_message_non_monotonic"]
-        edges = tree.dynamic_edges(plan.world_frame, plan.camera_frame)
-        self._spans[index] = ((first_stamp or 0, last_stamp or 0), [e.span for e in edges if len(e)])
+                    reader.add_pose_message(source, raw, cdr)
+                elif not reader.add_depth_message(source, raw, cdr):
+                    continue
+                yield from reader.ready_frames(final=False)
+            yield from reader.ready_frames(final=True)
+        reader.finish()
 
     def _why_no_frames(self) -> str:
         reasons = ", ".join(f"{k}: {v}" for k, v in sorted(self.dropped.items())) or "none"
@@ -529,6 +559,104 @@ class FrameStream:
         elif self.dropped.get(POSE_GAP):
             msg += f"; raise --max-pose-gap (now {self.config.max_pose_gap} s)"
         return msg
+
+
+class _SourceReader:
+    """Reading one planned recording: its pose feed, the depth frames waiting for their poses, and the
+    stamps seen; counts go to the stream's ``dropped`` and ``depth_messages``."""
+
+    def __init__(self, stream: FrameStream, index: int, path: Path, plan: SourcePlan) -> None:
+        self.stream, self.index, self.path, self.plan = stream, index, path, plan
+        self.max_gap_ns = int(round(stream.config.max_pose_gap * 1e9))
+        self.feed = _PoseFeed.for_plan(plan, stream.config)
+        self.tree = self.feed.tree
+        self.pending: deque[tuple[int, Any, str]] = deque()
+        self.first_stamp: int | None = None
+        self.last_stamp: int | None = None
+        self.n = -1  # index of the last depth message
+        # Image size: the camera info's, or (with --intrinsics) the first image's.
+        self.width, self.height = plan.width, plan.height
+        self._edges_version = -1
+        self._edges: list[EdgeSeries] = []  # moving edges world → camera at tree version _edges_version
+
+    def add_pose_message(self, source: Source, raw: Any, cdr: bool) -> None:
+        """Feed one pose or tf message to the tf tree (Odometry in CDR parsed without deserialising)."""
+        fast = None
+        if cdr and raw.topic == self.plan.pose.topic and raw.msgtype == "nav_msgs/msg/Odometry":
+            fast = parse_odometry(raw.data)
+        if fast is not None:
+            stamp, parent, child, t, q = fast
+            self.feed.add_pose(raw.topic, stamp, frame_name(parent), frame_name(child) or None, t, q)
+        else:
+            self.feed.add(raw.topic, raw.msgtype, source.deserialize(raw))
+
+    def add_depth_message(self, source: Source, raw: Any, cdr: bool) -> bool:
+        """Queue one depth message; False when the stride skips it or its stamp goes backwards (dropped)."""
+        config = self.stream.config
+        self.n += 1
+        self.stream.depth_messages += 1
+        if self.n % config.stride:
+            return False
+        msg = parse_image(raw.data) if cdr and raw.msgtype == "sensor_msgs/msg/Image" else None
+        msg = msg or source.deserialize(raw)
+        stamp = stamp_ns(msg.header)
+        self.first_stamp = stamp if self.first_stamp is None else self.first_stamp
+        if self.last_stamp is not None and stamp <= self.last_stamp:
+            if not config.drop_nonmonotonic:
+                raise IngestError(
+                    f"depth topic {self.plan.depth.topic} in {str(self.path)!r}: stamp goes backwards at "
+                    f"message {self.n} ({stamp} ns after {self.last_stamp} ns); fix the recording's clock "
+                    "or pass --drop-nonmonotonic to drop such frames"
+                )
+            self.stream.dropped[NON_MONOTONIC] += 1
+            return False
+        self.last_stamp = stamp
+        self.pending.append((stamp, msg, raw.msgtype))
+        return True
+
+    def ready_frames(self, *, final: bool) -> Iterator[Frame]:
+        """The waiting frames whose poses have arrived, oldest first (all of them when ``final``)."""
+        while self.pending and (final or self._ready(self.pending[0][0]) or len(self.pending) > _MAX_PENDING):
+            if (frame := self._resolve(*self.pending.popleft())) is not None:
+                yield frame
+
+    def _ready(self, stamp: int) -> bool:
+        """True when every moving edge world → camera has a sample at or after ``stamp``."""
+        if self._edges_version != self.tree.version:
+            self._edges_version = self.tree.version
+            self._edges = self.tree.dynamic_edges(self.plan.world_frame, self.plan.camera_frame)
+        return all(e.last_stamp is not None and e.last_stamp >= stamp for e in self._edges)
+
+    def _resolve(self, stamp: int, msg: Any, msgtype: str) -> Frame | None:
+        """Decode one depth message and pose it; None (counted in ``dropped``) without valid depth or pose."""
+        plan = self.plan
+        depth = decode_depth(msg, msgtype, topic=plan.depth.topic)
+        if self.width and (depth.shape[1], depth.shape[0]) != (self.width, self.height):
+            raise IngestError(
+                f"depth topic {plan.depth.topic} has {depth.shape[1]}x{depth.shape[0]} images but its "
+                f"camera info says {self.width}x{self.height}; pass --camera-info-topic or --intrinsics"
+            )
+        if not self.width:
+            self.height, self.width = depth.shape
+        if not np.isfinite(depth).any():
+            self.stream.dropped[NO_VALID_DEPTH] += 1
+            return None
+        try:
+            T_world_body = self.tree.lookup(plan.world_frame, plan.body_frame, stamp, self.max_gap_ns)
+            T_body_camera = self.tree.lookup(plan.body_frame, plan.camera_frame, stamp, self.max_gap_ns)
+        except NoPose as missing:
+            self.stream.dropped[missing.reason] += 1
+            return None
+        return Frame(depth, stamp, T_world_body @ T_body_camera, T_world_body, plan.K, self.index)
+
+    def finish(self) -> None:
+        """Count the dropped pose messages and keep the stamp spans for the no-frames message."""
+        dropped = self.stream.dropped
+        dropped["pose_message_non_monotonic"] += self.feed.dropped_poses
+        if not dropped["pose_message_non_monotonic"]:
+            del dropped["pose_message_non_monotonic"]
+        edges = self.tree.dynamic_edges(self.plan.world_frame, self.plan.camera_frame)
+        self.stream._spans[self.index] = ((self.first_stamp or 0, self.last_stamp or 0), [e.span for e in edges if len(e)])
 
 
 def _refuse_duplicates(paths: list[Path]) -> None:
@@ -572,16 +700,15 @@ def open_frames(paths: Sequence[str | Path], config: IngestConfig | None = None)
     _refuse_duplicates(stream.paths)
     for path in stream.paths:
         with Source(path) as source:
-            plan = choose_roles(source, config)
-            load_poses(source, plan, config)
+            plan = plan_source(source, config)
             stream.warnings.extend(source.summary.warnings)
         stream.plans.append(plan)
     first = stream.plans[0]
     for plan in stream.plans[1:]:
-        if not np.allclose(plan.K, first.K) or (plan.width, plan.height) != (first.width, first.height):  # type: ignore[arg-type]
+        if not np.allclose(plan.K, first.K) or (plan.width, plan.height) != (first.width, first.height):
             raise IngestError(
-                f"{str(plan.summary.path)!r} has intrinsics {plan.K.ravel().tolist()} {plan.width}x{plan.height} "  # type: ignore[union-attr]
-                f"but {str(first.summary.path)!r} has {first.K.ravel().tolist()} {first.width}x{first.height}; "  # type: ignore[union-attr]
+                f"{str(plan.summary.path)!r} has intrinsics {plan.K.ravel().tolist()} {plan.width}x{plan.height} "
+                f"but {str(first.summary.path)!r} has {first.K.ravel().tolist()} {first.width}x{first.height}; "
                 "ingest recordings of different cameras into separate workspaces"
             )
         _warn_overlap(stream, plan)

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from mapkit._version import __version__
 from mapkit.ingest._errors import IngestError
-from mapkit.ingest._reader import FrameStream, IngestConfig, open_frames
+from mapkit.ingest._reader import Frame, FrameStream, IngestConfig, open_frames
 from mapkit.workspace import FRAMES, atomic_output, check_writable
 
 _BATCH = 16  # frames per zarr write: large enough to amortise zarr's per-call overhead
@@ -59,6 +59,7 @@ def _compressor() -> Any:
 
 
 def _writer_thread(depth_array: Any, jobs: "queue.Queue[tuple[int, NDArray[np.float32]] | None]", errors: list[BaseException]) -> None:
+    """Write (start, block) jobs into ``depth_array`` until None; the first failure goes to ``errors``."""
     while (job := jobs.get()) is not None:
         if errors:
             continue
@@ -69,79 +70,135 @@ def _writer_thread(depth_array: Any, jobs: "queue.Queue[tuple[int, NDArray[np.fl
             errors.append(exc)
 
 
+class _DepthWriter:
+    """The ``depth`` array of a new frames.zarr, filled in batches of :data:`_BATCH` frames by a
+    background thread; sized for ``capacity`` frames, made on the first frame, trimmed at the end."""
+
+    def __init__(self, root: Any, capacity: int) -> None:
+        self.root, self.capacity = root, capacity
+        self.array: Any = None
+        self.height = self.width = 0
+        self.count = 0  # frames added
+        self.batch: list[NDArray[np.float32]] = []
+        self.jobs: queue.Queue = queue.Queue(maxsize=4)
+        self.errors: list[BaseException] = []
+        self.thread: threading.Thread | None = None
+
+    def add(self, frame: Frame) -> None:
+        """Queue one frame's depth; the first frame fixes the image size, a different size later raises."""
+        if self.array is None:
+            self.height, self.width = frame.depth.shape
+            self.array = self.root.create_array(
+                "depth", shape=(self.capacity, self.height, self.width), chunks=(1, self.height, self.width),
+                dtype="float32", compressors=[_compressor()], fill_value=float("nan"),
+                dimension_names=["frame", "v", "u"],
+            )
+            self.thread = threading.Thread(target=_writer_thread, args=(self.array, self.jobs, self.errors), daemon=True)
+            self.thread.start()
+        if frame.depth.shape != (self.height, self.width):
+            raise IngestError(
+                f"input {frame.source_index} has {frame.depth.shape[1]}x{frame.depth.shape[0]} depth but earlier "
+                f"frames are {self.width}x{self.height}; ingest different cameras into separate workspaces"
+            )
+        self.batch.append(frame.depth)
+        self.count += 1
+
+    def flush(self) -> None:
+        """Hand the batch to the writer thread; raise what the thread failed with so far."""
+        if self.batch:
+            self.jobs.put((self.count - len(self.batch), np.stack(self.batch)))
+            self.batch.clear()
+        if self.errors:
+            raise self.errors[0]
+
+    def close(self) -> None:
+        """Stop the writer thread once it has written everything queued."""
+        self.jobs.put(None)
+        if self.thread is not None:
+            self.thread.join()
+
+    def finish(self) -> None:
+        """Raise the writer thread's failure, if any; trim the array to the frames written."""
+        if self.errors:
+            raise self.errors[0]
+        assert self.array is not None
+        if self.count != self.capacity:
+            self.array.resize((self.count, self.height, self.width))
+
+
+@dataclass
+class _FramePoses:
+    """The small per-frame arrays of frames.zarr, gathered while the depth images stream."""
+
+    stamp_ns: list[int] = field(default_factory=list)
+    T_world_camera: list[NDArray[np.float64]] = field(default_factory=list)
+    T_world_body: list[NDArray[np.float64]] = field(default_factory=list)
+    source_index: list[int] = field(default_factory=list)
+
+    def add(self, frame: Frame) -> None:
+        """Keep one frame's stamp, poses and input index."""
+        self.stamp_ns.append(frame.stamp_ns)
+        self.T_world_camera.append(frame.T_world_camera)
+        self.T_world_body.append(frame.T_world_body)
+        self.source_index.append(frame.source_index)
+
+    def write(self, root: Any) -> None:
+        """Write them as labelled arrays ``stamp_ns``, ``T_world_camera``, ``T_world_body``, ``source_index``."""
+        n = len(self.stamp_ns)
+
+        def small(name: str, data: NDArray[Any], dims: list[str]) -> None:
+            root.create_array(name, data=data, dimension_names=dims)
+
+        small("stamp_ns", np.asarray(self.stamp_ns, dtype=np.int64), ["frame"])
+        small("T_world_camera", np.asarray(self.T_world_camera, dtype=np.float64).reshape(n, 4, 4), ["frame", "row", "col"])
+        small("T_world_body", np.asarray(self.T_world_body, dtype=np.float64).reshape(n, 4, 4), ["frame", "row", "col"])
+        small("source_index", np.asarray(self.source_index, dtype=np.int32), ["frame"])
+
+
 def write_frames(stream: FrameStream, store_path: Path, *, progress: bool = True) -> IngestSummary:
     """Write every frame of `stream` into a new zarr v3 group at `store_path` (must not exist)."""
     import zarr
-    from tqdm import tqdm
 
     t0 = time.perf_counter()
-    plan0 = stream.plans[0]
     capacity = max(stream.expected_frames, 1)
     root = zarr.open_group(store_path, mode="w-", zarr_format=3)
-    height, width = plan0.height, plan0.width
-    depth_array = None
-    stamps: list[int] = []
-    T_wc: list[NDArray[np.float64]] = []
-    T_wb: list[NDArray[np.float64]] = []
-    src: list[int] = []
-    jobs: queue.Queue = queue.Queue(maxsize=4)
-    errors: list[BaseException] = []
-    writer: threading.Thread | None = None
-    batch: list[NDArray[np.float32]] = []
-    total_messages = sum(p.summary.topics[p.depth.topic].count for p in stream.plans)  # type: ignore[index]
+    depth = _DepthWriter(root, capacity)
+    poses = _stream_frames(stream, depth, progress=progress)
+    depth.finish()
+    poses.write(root)
+    sources = _sources_attrs(stream)
+    dropped = {k: int(v) for k, v in sorted(stream.dropped.items())}
+    root.attrs.update(_frames_attrs(stream, depth.width, depth.height, sources, dropped))
+    return IngestSummary(
+        store_path, depth.count, stream.depth_messages, dropped, int(depth.width), int(depth.height),
+        time.perf_counter() - t0, sources, list(stream.warnings),
+    )
+
+
+def _stream_frames(stream: FrameStream, depth: _DepthWriter, *, progress: bool) -> _FramePoses:
+    """Read every frame of ``stream`` into ``depth`` (written behind) and the returned poses, with a
+    progress bar over the depth messages."""
+    from tqdm import tqdm
+
+    poses = _FramePoses()
+    total_messages = sum(p.summary.topics[p.depth.topic].count for p in stream.plans)
     bar = tqdm(total=total_messages, unit="msg", desc="ingest", disable=not progress, dynamic_ncols=True)
-
-    def flush() -> None:
-        if batch:
-            jobs.put((len(stamps) - len(batch), np.stack(batch)))
-            batch.clear()
-        if errors:
-            raise errors[0]
-
     try:
         for frame in stream:
-            if depth_array is None:
-                height, width = frame.depth.shape
-                depth_array = root.create_array(
-                    "depth", shape=(capacity, height, width), chunks=(1, height, width), dtype="float32",
-                    compressors=[_compressor()], fill_value=float("nan"), dimension_names=["frame", "v", "u"],
-                )
-                writer = threading.Thread(target=_writer_thread, args=(depth_array, jobs, errors), daemon=True)
-                writer.start()
-            if frame.depth.shape != (height, width):
-                raise IngestError(
-                    f"input {frame.source_index} has {frame.depth.shape[1]}x{frame.depth.shape[0]} depth but earlier "
-                    f"frames are {width}x{height}; ingest different cameras into separate workspaces"
-                )
-            batch.append(frame.depth)
-            stamps.append(frame.stamp_ns)
-            T_wc.append(frame.T_world_camera)
-            T_wb.append(frame.T_world_body)
-            src.append(frame.source_index)
+            depth.add(frame)
+            poses.add(frame)
             bar.update(stream.depth_messages - bar.n)
-            if len(batch) == _BATCH:
-                flush()
-        flush()
+            if len(depth.batch) == _BATCH:
+                depth.flush()
+        depth.flush()
     finally:
-        jobs.put(None)
-        if writer is not None:
-            writer.join()
+        depth.close()
         bar.close()
-    if errors:
-        raise errors[0]
-    n = len(stamps)
-    assert depth_array is not None
-    if n != capacity:
-        depth_array.resize((n, height, width))
+    return poses
 
-    def small(name: str, data: NDArray[Any], dims: list[str]) -> None:
-        root.create_array(name, data=data, dimension_names=dims)
 
-    small("stamp_ns", np.asarray(stamps, dtype=np.int64), ["frame"])
-    small("T_world_camera", np.asarray(T_wc, dtype=np.float64).reshape(n, 4, 4), ["frame", "row", "col"])
-    small("T_world_body", np.asarray(T_wb, dtype=np.float64).reshape(n, 4, 4), ["frame", "row", "col"])
-    small("source_index", np.asarray(src, dtype=np.int32), ["frame"])
-
+def _sources_attrs(stream: FrameStream) -> list[dict[str, Any]]:
+    """Per input recording: its fingerprint, format and the topics read (the ``sources`` attribute)."""
     sources = []
     for path, plan in zip(stream.paths, stream.plans):
         sources.append(
@@ -155,28 +212,28 @@ def write_frames(stream: FrameStream, store_path: Path, *, progress: bool = True
                 "tf_topics": plan.tf_topics,
             }
         )
-    dropped = {k: int(v) for k, v in sorted(stream.dropped.items())}
-    root.attrs.update(
-        {
-            "mapkit_version": __version__,
-            "kind": "mapkit.frames",
-            "K": stream.K.tolist(),
-            "width": int(width),
-            "height": int(height),
-            "world_frame": plan0.world_frame,
-            "body_frame": plan0.body_frame,
-            "camera_frame": plan0.camera_frame,
-            "sources": sources,
-            "dropped": dropped,
-            "depth_messages": stream.depth_messages,
-            "units": {"depth": "m", "stamp_ns": "ns", "T_world_camera": "m"},
-            "parameters": json.loads(json.dumps(stream.config.to_attrs())),
-        }
-    )
-    return IngestSummary(
-        store_path, n, stream.depth_messages, dropped, int(width), int(height),
-        time.perf_counter() - t0, sources, list(stream.warnings),
-    )
+    return sources
+
+
+def _frames_attrs(stream: FrameStream, width: int, height: int, sources: list[dict[str, Any]],
+                  dropped: dict[str, int]) -> dict[str, Any]:
+    """The attributes of frames.zarr (DESIGN.md): version, intrinsics, frames, sources, counts, parameters."""
+    plan0 = stream.plans[0]
+    return {
+        "mapkit_version": __version__,
+        "kind": "mapkit.frames",
+        "K": stream.K.tolist(),
+        "width": int(width),
+        "height": int(height),
+        "world_frame": plan0.world_frame,
+        "body_frame": plan0.body_frame,
+        "camera_frame": plan0.camera_frame,
+        "sources": sources,
+        "dropped": dropped,
+        "depth_messages": stream.depth_messages,
+        "units": {"depth": "m", "stamp_ns": "ns", "T_world_camera": "m"},
+        "parameters": json.loads(json.dumps(stream.config.to_attrs())),
+    }
 
 
 def ingest(
