@@ -77,6 +77,8 @@ POSITIVE = Number(0.0, low_open=True)
 """A finite number > 0."""
 NONNEGATIVE = Number(0.0)
 """A finite number >= 0."""
+FRACTION = Number(0.0, 1.0)
+"""A finite number in [0, 1]."""
 COUNT = Number(1, integer=True)
 """An integer >= 1."""
 INDEX = Number(0, integer=True)

@@ -611,3 +611,30 @@ def test_the_vehicle_looks_where_its_reference_turns():
     assert abs(yaw - v_yaw) < 0.05
     yaw, v_yaw, ahead = yaws[1.5]
     assert abs(yaw - np.arctan2(ahead[1], ahead[0])) < 0.05 and yaw > v_yaw + 0.2  # turned further left
+
+
+def test_follow_moves_interior_key_points_toward_the_reference_by_the_fraction_within_the_limit():
+    """Each interior key-point moves ``fraction`` of the way to where the reference being flown is when
+    the new plan reaches it, at most ``limit`` per axis; the start, the last key-point and key-points
+    the reference does not reach in time stay."""
+    from mapkit.evaluation._methods import follow_reference
+
+    ref = rest_to_rest(4.0, 4.0)  # along +x from START, t in [0, 4]
+    T_wb = np.eye(4)
+    T_wb[:3, 3] = START
+    obs = Observation(t=0.5, T_world_body=T_wb, state_world=ref.state(0.5), goal_world=GOAL,
+                      local_goal_body=np.array([6.0, 0.0, 0.0]), depth=None, reference=ref)
+    wp = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.4, 0.0], [2.0, -3.0, 0.2], [3.0, 0.0, 0.0], [6.0, 0.4, 0.0]]],
+                      dtype=torch.float64)
+    durations = torch.tensor([[1.0, 1.0, 2.0, 1.0]], dtype=torch.float64)  # key-points at t = 1.5, 2.5, 4.5, 5.5
+    moved = follow_reference(wp, durations, obs, 0.5, 1.0)
+    on_ref = ref.derivative(np.array([1.5, 2.5]), 0) - START  # body frame = world frame shifted
+    want = wp.clone()
+    want[0, 1:3] += 0.5 * (torch.from_numpy(on_ref) - wp[0, 1:3]).clamp(-1.0, 1.0)
+    assert torch.allclose(moved, want, atol=1e-12)
+    assert moved[0, 2, 1] == pytest.approx(-3.0 + 0.5)  # 3 m off: clipped to the 1 m limit, then halved
+    assert torch.equal(moved[0, 3:], wp[0, 3:]) and torch.equal(moved[0, 0], wp[0, 0])
+    assert torch.equal(follow_reference(wp, durations, obs, 0.0, 1.0), wp)
+    no_ref = Observation(t=0.5, T_world_body=T_wb, state_world=ref.state(0.5), goal_world=GOAL,
+                         local_goal_body=np.zeros(3), depth=None)
+    assert torch.equal(follow_reference(wp, durations, no_ref, 0.5, 1.0), wp)
