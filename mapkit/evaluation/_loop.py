@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Literal, Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 from scipy.linalg import expm
 
+from mapkit._choices import OnReject
 from mapkit._formats import Outcome
 from mapkit.evaluation._pieces import Pieces, hold
 from mapkit.sim import World
@@ -57,7 +58,7 @@ class LoopConfig:
     """Do not execute plans with collision probability η >= 0.5 (keep flying the previous one;
     when hovering, turn 60° to look elsewhere), unless the method overrides the veto
     (:attr:`MethodPlan.overrides_eta`: its own check found the previous reference no safer)."""
-    on_reject: Literal["continue", "brake"] = "continue"
+    on_reject: OnReject = "continue"
     """What the vehicle does with a rejected plan (η >= 0.5) while it still flies: "continue" keeps
     flying the previous plan; "brake" replaces it with one minimum-snap segment to rest straight
     ahead (about 1.5 m/s² on average), then hovers and turns to look elsewhere as above."""
