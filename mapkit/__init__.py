@@ -1,8 +1,28 @@
 """mapkit: UAV depth + pose recordings to cost maps and a self-supervised trajectory planner.
 
-Subpackages, one per pipeline stage (imports point one way along the pipeline):
-``mapkit.ingest`` (bags → frames.zarr), ``mapkit.sim`` (simulated worlds and flights),
-``mapkit.trajopt`` (differentiable minimum-snap).
+Subpackages, one per pipeline stage, in pipeline order (imports point one way along it); each
+re-exports its public names from private ``_modules``:
+
+- ``mapkit.ingest``: recordings (ROS1 bag, ROS2 bag, MCAP) → synchronised depth + poses → frames.zarr.
+- ``mapkit.bags``: writing recordings without ROS (depth, CameraInfo, Odometry, tf; MCAP, ROS2, ROS1).
+- ``mapkit.sim``: procedural worlds with exact distances, a depth camera and flights → recordings.
+- ``mapkit.fusion``: TSDF fusion of frames.zarr (Open3D) → cloud.ply, mesh.ply, tsdf.npz.
+- ``mapkit.esdf``: signed distance maps → map.zarr; queries, gradients and slices of them.
+- ``mapkit.export``: training tuples → tuples.zarr (depth, poses, velocities, goals, split).
+- ``mapkit.dataset``: training data at scale: many simulated worlds run through every stage above.
+- ``mapkit.trajopt``: differentiable minimum-snap trajectories, flight corridors, time allocation.
+- ``mapkit.planner``: the planner network and its self-supervised loss (batched tensors).
+- ``mapkit.train``: training the planner → runs/NAME/ (presets, loop, checkpoints, validation, DDP).
+- ``mapkit.planning``: using a trained planner on single frames (``Planner.load("pretrained")``).
+- ``mapkit.evaluation``: closed-loop flights of planners in unseen simulated worlds → results.json.
+- ``mapkit.viz``: the computations behind the viewer (slices, colours, clouds, corridors); no viser.
+- ``mapkit.exchange``: exports for Foxglove (MCAP) and Rerun (.rrd).
+- ``mapkit.cli`` (``cli/``) and ``mapkit.viewer`` (``viewer/``): the click commands and the viser app,
+  thin layers over the library.
+
+Shared by every stage: ``mapkit.geometry`` (4x4 ``T_a_b`` transforms, quaternions ``xyzw``),
+``mapkit.errors`` (:class:`MapkitError`, the base of every stage's error) and ``mapkit.workspace`` (workspace folders, atomic store writes).
+The design decisions of each stage are in the repository's docs/ folder.
 """
 
 from mapkit._version import __version__

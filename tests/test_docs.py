@@ -53,3 +53,12 @@ def test_no_paths_outside_the_repository():
     # CI has ../shared beside the clone, a user's checkout does not.
     for page in PAGES:
         assert "../shared" not in page.read_text(), f"{page.name} points outside the repository"
+
+
+def test_package_docstring_lists_every_stage():
+    import mapkit
+
+    stages = sorted(d.name for d in (ROOT / "mapkit").iterdir() if (d / "__init__.py").exists())
+    listed = set(re.findall(r"``mapkit\.(\w+)``", mapkit.__doc__ or ""))
+    assert set(stages) <= listed, f"mapkit/__init__.py does not list {sorted(set(stages) - listed)}"
+    assert {"cli", "viewer"} <= listed
