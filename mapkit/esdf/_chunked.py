@@ -98,86 +98,120 @@ def signed_distance_chunked(
     sg = _checks.non_negative("sigma", sigma)
     tr = _checks.positive("truncate", truncate, unit="standard deviations")
     n_threads = _checks.threads(threads)
+    chunk, shape = _check_grids(occupied, out, out_raw, chunk)
+    halo = chunk_halo(voxel_size=vs, max_dist=md, sigma=sg, truncate=tr)
+
+    from tqdm import tqdm
+
+    starts = [range(0, n, chunk) for n in shape]
+    t0 = time.perf_counter()
+    total = math.prod(len(s) for s in starts)
+    bar = tqdm(total=total, unit="chunk", desc="esdf", disable=not progress, dynamic_ncols=True)
+    writer = _ChunkWriter(out, out_raw)
+    prevented = 0
+    try:
+        for corner in product(*starts):
+            core = tuple(slice(c, min(c + chunk, n)) for c, n in zip(corner, shape))
+            field, raw_core, k = _chunk_field(occupied, core, shape, halo, vs, md, sg, tr, n_threads,
+                                              want_raw=out_raw is not None)
+            prevented += k
+            writer.put(core, field, raw_core)
+            bar.update(1)
+    finally:
+        writer.close()
+        bar.close()
+    writer.raise_error()
+    return ChunkedSummary(shape=shape, chunks=total, halo=halo, n_prevented=prevented, seconds=time.perf_counter() - t0)
+
+
+def _check_grids(occupied: Any, out: Any, out_raw: Any, chunk: Any) -> tuple[int, tuple[int, int, int]]:
+    """(chunk as int, grid shape); raises :class:`EsdfError` for a bad chunk, destination or occupancy dtype."""
     if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
         raise EsdfError(f"chunk={chunk!r} must be a positive number of voxels (e.g. 128)")
     chunk = int(chunk)
     shape = _checks.grid_shape("occupied", getattr(occupied, "shape", ()))
     for name, arr in (("out", out), ("out_raw", out_raw)):
-        if arr is None:
-            continue
-        if tuple(arr.shape) != shape:
-            raise EsdfError(f"{name} has shape {tuple(arr.shape)} but occupied has {shape}; create it with the same shape")
-        if np.dtype(arr.dtype) != np.float32:
-            raise EsdfError(f"{name} has dtype {arr.dtype}; the signed distance is float32, create it as float32")
-        arr_chunks = getattr(arr, "chunks", None)
-        if isinstance(arr_chunks, tuple) and len(arr_chunks) == 3 and all(isinstance(c, int) for c in arr_chunks):
-            bad = [c for c, s in zip(arr_chunks, shape) if chunk % c and c < s]
-            if bad:
-                raise EsdfError(
-                    f"chunk={chunk} is not a multiple of {name}'s zarr chunk shape {arr_chunks}; "
-                    f"pass chunk={max(arr_chunks) * max(1, round(chunk / max(arr_chunks)))}"
-                )
+        if arr is not None:
+            _check_destination(name, arr, shape, chunk)
     occ_dtype = getattr(occupied, "dtype", None)
     if occ_dtype is not None and np.dtype(occ_dtype) != np.bool_:
         raise EsdfError(f"occupied must be a boolean occupancy grid; got dtype {occ_dtype}. Store or pass it as bool")
-    halo = chunk_halo(voxel_size=vs, max_dist=md, sigma=sg, truncate=tr)
+    return chunk, shape
 
-    starts = [range(0, n, chunk) for n in shape]
-    jobs: "queue.Queue[tuple[tuple[slice, ...], np.ndarray, np.ndarray | None] | None]" = queue.Queue(maxsize=2)
-    errors: list[BaseException] = []
 
-    def writer() -> None:
-        while (job := jobs.get()) is not None:
-            if errors:
+def _check_destination(name: str, arr: Any, shape: tuple[int, int, int], chunk: int) -> None:
+    """Raise :class:`EsdfError` unless ``arr`` is a float32 grid of ``shape`` whose zarr chunks divide ``chunk``."""
+    if tuple(arr.shape) != shape:
+        raise EsdfError(f"{name} has shape {tuple(arr.shape)} but occupied has {shape}; create it with the same shape")
+    if np.dtype(arr.dtype) != np.float32:
+        raise EsdfError(f"{name} has dtype {arr.dtype}; the signed distance is float32, create it as float32")
+    arr_chunks = getattr(arr, "chunks", None)
+    if isinstance(arr_chunks, tuple) and len(arr_chunks) == 3 and all(isinstance(c, int) for c in arr_chunks):
+        bad = [c for c, s in zip(arr_chunks, shape) if chunk % c and c < s]
+        if bad:
+            raise EsdfError(
+                f"chunk={chunk} is not a multiple of {name}'s zarr chunk shape {arr_chunks}; "
+                f"pass chunk={max(arr_chunks) * max(1, round(chunk / max(arr_chunks)))}"
+            )
+
+
+def _chunk_field(occupied: Any, core: tuple[slice, ...], shape: tuple[int, int, int], halo: int, vs: float,
+                 md: float, sg: float, tr: float, n_threads: int, *,
+                 want_raw: bool) -> tuple[np.ndarray, np.ndarray | None, int]:
+    """One chunk's (field, raw field or None, sign flips prevented), computed on the chunk plus its halo."""
+    blk_lo = tuple(max(c.start - halo, 0) for c in core)
+    blk_hi = tuple(min(c.stop + halo, n) for c, n in zip(core, shape))
+    block = np.asarray(occupied[tuple(slice(a, b) for a, b in zip(blk_lo, blk_hi))])
+    if block.dtype != np.bool_:
+        raise EsdfError(f"occupied returned dtype {block.dtype} for a chunk; it must be bool")
+    inner = tuple(slice(c.start - la, c.stop - la) for c, la in zip(core, blk_lo))
+    raw = _signed_distance_unchecked(np.ascontiguousarray(block), vs, md, "edt", n_threads)
+    del block
+    if sg > 0:
+        # the guard's interventions are counted inside the core only (the halo belongs to others)
+        sm, k = _smooth_unchecked(raw, vs, sg, tr, count_region=inner, threads=n_threads)
+        field = np.ascontiguousarray(sm[inner])
+        raw_core = np.ascontiguousarray(raw[inner]) if want_raw else None
+        return field, raw_core, k
+    field = np.ascontiguousarray(raw[inner])
+    return field, field if want_raw else None, 0
+
+
+class _ChunkWriter:
+    """Writes finished chunks into ``out`` (and ``out_raw``) from a background thread, at most two queued;
+    the first failure is kept and raised in the caller's thread."""
+
+    def __init__(self, out: Any, out_raw: Any) -> None:
+        self.out, self.out_raw = out, out_raw
+        self.jobs: "queue.Queue[tuple[tuple[slice, ...], np.ndarray, np.ndarray | None] | None]" = queue.Queue(maxsize=2)
+        self.errors: list[BaseException] = []
+        self.thread = threading.Thread(target=self._run, name="esdf-chunk-writer", daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        """The thread: write jobs until None; after a failure, drain the queue without writing."""
+        while (job := self.jobs.get()) is not None:
+            if self.errors:
                 continue
             core, field, raw_core = job
             try:
-                out[core] = field
+                self.out[core] = field
                 if raw_core is not None:
-                    out_raw[core] = raw_core
+                    self.out_raw[core] = raw_core
             except BaseException as exc:  # noqa: BLE001 - surfaced in the caller's thread
-                errors.append(exc)
+                self.errors.append(exc)
 
-    from tqdm import tqdm
+    def put(self, core: tuple[slice, ...], field: np.ndarray, raw_core: np.ndarray | None) -> None:
+        """Queue one chunk (raises first what an earlier write failed with)."""
+        self.raise_error()
+        self.jobs.put((core, field, raw_core))
 
-    t0 = time.perf_counter()
-    total = math.prod(len(s) for s in starts)
-    bar = tqdm(total=total, unit="chunk", desc="esdf", disable=not progress, dynamic_ncols=True)
-    thread = threading.Thread(target=writer, name="esdf-chunk-writer", daemon=True)
-    thread.start()
-    prevented = 0
-    try:
-        for corner in product(*starts):
-            core_lo = corner
-            core_hi = tuple(min(c + chunk, n) for c, n in zip(corner, shape))
-            blk_lo = tuple(max(c - halo, 0) for c in core_lo)
-            blk_hi = tuple(min(c + halo, n) for c, n in zip(core_hi, shape))
-            block = np.asarray(occupied[tuple(slice(a, b) for a, b in zip(blk_lo, blk_hi))])
-            if block.dtype != np.bool_:
-                raise EsdfError(f"occupied returned dtype {block.dtype} for a chunk; it must be bool")
-            inner = tuple(slice(a - la, b - la) for a, b, la in zip(core_lo, core_hi, blk_lo))
-            raw = _signed_distance_unchecked(np.ascontiguousarray(block), vs, md, "edt", n_threads)
-            del block
-            if sg > 0:
-                # the guard's interventions are counted inside the core only (the halo belongs to others)
-                sm, k = _smooth_unchecked(raw, vs, sg, tr, count_region=inner, threads=n_threads)
-                prevented += k
-                r_c, s_c = raw[inner], sm[inner]
-                field = np.ascontiguousarray(s_c)
-                raw_core = np.ascontiguousarray(r_c) if out_raw is not None else None
-                del sm
-            else:
-                field = np.ascontiguousarray(raw[inner])
-                raw_core = field if out_raw is not None else None
-            del raw
-            if errors:
-                raise errors[0]
-            jobs.put((tuple(slice(a, b) for a, b in zip(core_lo, core_hi)), field, raw_core))
-            bar.update(1)
-    finally:
-        jobs.put(None)
-        thread.join()
-        bar.close()
-    if errors:
-        raise errors[0]
-    return ChunkedSummary(shape=shape, chunks=total, halo=halo, n_prevented=prevented, seconds=time.perf_counter() - t0)
+    def close(self) -> None:
+        """Let the thread finish the queued chunks and stop."""
+        self.jobs.put(None)
+        self.thread.join()
+
+    def raise_error(self) -> None:
+        """Raise the first write failure, if any."""
+        if self.errors:
+            raise self.errors[0]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import NamedTuple, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
@@ -101,39 +101,16 @@ def _slice_figure(
     vmax: float | None,
     columns: int,
     title: str | None,
-):
+) -> Any:
     """The matplotlib Figure behind :func:`render_slices`."""
     # A bare Figure renders with Agg and leaves pyplot's global state (and backend) alone.
-    from matplotlib import colormaps
+    from matplotlib.colors import ListedColormap
     from matplotlib.figure import Figure
-    from matplotlib.colors import ListedColormap, Normalize, TwoSlopeNorm
     from matplotlib.patches import Patch
 
-    requests = [("z", v) for v in z] + [("x", v) for v in x] + [("y", v) for v in y]
-    if not requests:
-        raise EsdfError("no slice requested; pass z=(heights in m,), x=(...) or y=(...)")
-    if cmap not in colormaps:
-        raise EsdfError(f"cmap={cmap!r} is not a matplotlib colormap; try 'RdBu' or 'viridis'")
-    if isinstance(columns, bool) or not isinstance(columns, int) or columns < 1:
-        raise EsdfError(f"columns={columns!r} must be a positive integer")
+    requests = _slice_requests(z=z, x=x, y=y, cmap=cmap, columns=columns)
     slices = [(ax, slice_plane(map, axis=ax, position=v, raw=raw)) for ax, v in requests]
-    finite = np.concatenate([s.values[np.isfinite(s.values)].ravel() for _, s in slices])
-    if finite.size == 0:
-        raise EsdfError("the requested slices hold no finite distance (unwritten map?)")
-    diverging = cmap.lower().removesuffix("_r") in {
-        "rdbu", "rdylbu", "coolwarm", "bwr", "seismic", "puor", "brbg", "prgn", "piyg", "rdgy", "spectral", "rdylgn",
-    }
-    lo = float(finite.min()) if vmin is None else float(vmin)
-    hi = float(finite.max()) if vmax is None else float(vmax)
-    if diverging:
-        # each side of 0 spans its own range, so shallow obstacle interiors still show saturated
-        lo, hi = min(lo, -0.5 * map.voxel_size), max(hi, 0.5 * map.voxel_size)
-        norm = TwoSlopeNorm(vcenter=0.0, vmin=lo, vmax=hi)
-    else:
-        if not hi > lo:
-            hi = lo + 1e-6
-        norm = Normalize(vmin=lo, vmax=hi)
-
+    norm = _colour_norm([s for _, s in slices], cmap=cmap, vmin=vmin, vmax=vmax, voxel_size=map.voxel_size)
     cols = min(columns, len(slices))
     rows = math.ceil(len(slices) / cols)
     fig = Figure(figsize=(4.6 * cols + 1.2, 4.2 * rows + 0.6), layout="constrained")
@@ -141,25 +118,7 @@ def _slice_figure(
     grey = ListedColormap([(0.5, 0.5, 0.5, 0.6)])
     image = None
     for panel, (axis, s) in zip(axes.flat, slices):
-        u_name, v_name = _PLANE_AXES[axis]
-        image = panel.imshow(s.values.T, origin="lower", extent=s.extent, cmap=cmap, norm=norm, interpolation="nearest")
-        unobs = ~s.observed
-        if unobs.any():
-            panel.imshow(np.ma.masked_where(~unobs.T, np.ones(unobs.T.shape)), origin="lower", extent=s.extent,
-                         cmap=grey, interpolation="nearest", vmin=0, vmax=1)
-            uu = np.linspace(s.extent[0], s.extent[1], unobs.shape[0] + 1)
-            vv = np.linspace(s.extent[2], s.extent[3], unobs.shape[1] + 1)
-            panel.contourf(0.5 * (uu[1:] + uu[:-1]), 0.5 * (vv[1:] + vv[:-1]), unobs.T.astype(float), levels=[0.5, 1.5],
-                           colors="none", hatches=["///"])
-        if s.values.shape[0] > 1 and s.values.shape[1] > 1 and (s.values < 0).any() and (s.values > 0).any():
-            uc = np.linspace(s.extent[0] + 0.5 * map.voxel_size, s.extent[1] - 0.5 * map.voxel_size, s.values.shape[0])
-            vc = np.linspace(s.extent[2] + 0.5 * map.voxel_size, s.extent[3] - 0.5 * map.voxel_size, s.values.shape[1])
-            panel.contour(uc, vc, s.values.T, levels=[0.0], colors="k", linewidths=0.8)
-        panel.set_aspect("equal")
-        panel.set_xlabel(f"{u_name} [m]")
-        panel.set_ylabel(f"{v_name} [m]")
-        label = "height z" if axis == "z" else axis
-        panel.set_title(f"{label} = {s.position:.2f} m")
+        image = _draw_slice(panel, axis, s, cmap=cmap, norm=norm, unobserved_cmap=grey, voxel_size=map.voxel_size)
     for panel in list(axes.flat)[len(slices):]:
         panel.set_visible(False)
     cbar = fig.colorbar(image, ax=axes.ravel().tolist(), shrink=0.9)
@@ -170,3 +129,64 @@ def _slice_figure(
     kind = "raw ESDF" if raw else f"ESDF (Gaussian sigma = {map.sigma:g} m)"
     fig.suptitle(title or f"{kind}, voxel {map.voxel_size:g} m, frame {map.frame_id}")
     return fig
+
+
+def _slice_requests(*, z: Sequence[float], x: Sequence[float], y: Sequence[float], cmap: str,
+                    columns: int) -> list[tuple[str, float]]:
+    """The (axis, position) of every panel, z first; raises for no slice, an unknown cmap or bad columns."""
+    from matplotlib import colormaps
+
+    requests = [("z", v) for v in z] + [("x", v) for v in x] + [("y", v) for v in y]
+    if not requests:
+        raise EsdfError("no slice requested; pass z=(heights in m,), x=(...) or y=(...)")
+    if cmap not in colormaps:
+        raise EsdfError(f"cmap={cmap!r} is not a matplotlib colormap; try 'RdBu' or 'viridis'")
+    if isinstance(columns, bool) or not isinstance(columns, int) or columns < 1:
+        raise EsdfError(f"columns={columns!r} must be a positive integer")
+    return requests
+
+
+def _colour_norm(slices: list[Slice], *, cmap: str, vmin: float | None, vmax: float | None, voxel_size: float) -> Any:
+    """Colour scale of all panels: centred at 0 for a diverging cmap, else [vmin, vmax] (default the data's)."""
+    from matplotlib.colors import Normalize, TwoSlopeNorm
+
+    finite = np.concatenate([s.values[np.isfinite(s.values)].ravel() for s in slices])
+    if finite.size == 0:
+        raise EsdfError("the requested slices hold no finite distance (unwritten map?)")
+    diverging = cmap.lower().removesuffix("_r") in {
+        "rdbu", "rdylbu", "coolwarm", "bwr", "seismic", "puor", "brbg", "prgn", "piyg", "rdgy", "spectral", "rdylgn",
+    }
+    lo = float(finite.min()) if vmin is None else float(vmin)
+    hi = float(finite.max()) if vmax is None else float(vmax)
+    if diverging:
+        # each side of 0 spans its own range, so shallow obstacle interiors still show saturated
+        lo, hi = min(lo, -0.5 * voxel_size), max(hi, 0.5 * voxel_size)
+        return TwoSlopeNorm(vcenter=0.0, vmin=lo, vmax=hi)
+    if not hi > lo:
+        hi = lo + 1e-6
+    return Normalize(vmin=lo, vmax=hi)
+
+
+def _draw_slice(panel: Any, axis: str, s: Slice, *, cmap: str, norm: Any, unobserved_cmap: Any,
+                voxel_size: float) -> Any:
+    """One panel: the distance image, unobserved voxels hatched, the zero level in black; returns the image."""
+    u_name, v_name = _PLANE_AXES[axis]
+    image = panel.imshow(s.values.T, origin="lower", extent=s.extent, cmap=cmap, norm=norm, interpolation="nearest")
+    unobs = ~s.observed
+    if unobs.any():
+        panel.imshow(np.ma.masked_where(~unobs.T, np.ones(unobs.T.shape)), origin="lower", extent=s.extent,
+                     cmap=unobserved_cmap, interpolation="nearest", vmin=0, vmax=1)
+        uu = np.linspace(s.extent[0], s.extent[1], unobs.shape[0] + 1)
+        vv = np.linspace(s.extent[2], s.extent[3], unobs.shape[1] + 1)
+        panel.contourf(0.5 * (uu[1:] + uu[:-1]), 0.5 * (vv[1:] + vv[:-1]), unobs.T.astype(float), levels=[0.5, 1.5],
+                       colors="none", hatches=["///"])
+    if s.values.shape[0] > 1 and s.values.shape[1] > 1 and (s.values < 0).any() and (s.values > 0).any():
+        uc = np.linspace(s.extent[0] + 0.5 * voxel_size, s.extent[1] - 0.5 * voxel_size, s.values.shape[0])
+        vc = np.linspace(s.extent[2] + 0.5 * voxel_size, s.extent[3] - 0.5 * voxel_size, s.values.shape[1])
+        panel.contour(uc, vc, s.values.T, levels=[0.0], colors="k", linewidths=0.8)
+    panel.set_aspect("equal")
+    panel.set_xlabel(f"{u_name} [m]")
+    panel.set_ylabel(f"{v_name} [m]")
+    label = "height z" if axis == "z" else axis
+    panel.set_title(f"{label} = {s.position:.2f} m")
+    return image

@@ -7,6 +7,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -15,6 +16,11 @@ from mapkit._version import __version__
 from mapkit.errors import MapkitError
 from mapkit.geometry import invert_transform
 from mapkit.workspace import FRAMES, atomic_output, check_writable
+
+if TYPE_CHECKING:
+    from mapkit.esdf import EsdfMap
+    from mapkit.esdf._map import Outside
+    from mapkit.ingest import FramesStore
 
 TUPLES = "tuples.zarr"
 FUTURE, RANDOM, HIDDEN = 0, 1, 2  # goal_kind values: future pose, visible free space, hidden behind obstacles
@@ -157,7 +163,7 @@ def split_segments(stamps_ns: NDArray[np.int64], source_index: NDArray[np.int32]
     return np.isin(seg_id, val).astype(np.uint8)
 
 
-def blocked_lines(start: NDArray[np.float64], goals: NDArray[np.float64], esdf: "object", *, threshold: float,
+def blocked_lines(start: NDArray[np.float64], goals: NDArray[np.float64], esdf: EsdfMap | _ObservedMap, *, threshold: float,
                   step: float = 0.1) -> NDArray[np.bool_]:
     """(N,) True where the straight segment ``start`` (3,) → goal (N, 3) passes closer than
     ``threshold`` metres to an obstacle of the map (sampled every ``step`` metres; outside the map
@@ -168,7 +174,7 @@ def blocked_lines(start: NDArray[np.float64], goals: NDArray[np.float64], esdf: 
     n = max(2, int(np.ceil(np.linalg.norm(goals - start, axis=1).max() / step)) + 1)
     frac = np.linspace(0.0, 1.0, n)
     pts = start[None, None] + frac[None, :, None] * (goals - start)[:, None]
-    d, _ = esdf.query(pts.reshape(-1, 3), outside="nan")  # type: ignore[attr-defined]
+    d, _ = esdf.query(pts.reshape(-1, 3), outside="nan")
     d = np.where(np.isfinite(d), d, np.inf).reshape(len(goals), n)
     return d.min(axis=1) < threshold
 
@@ -184,7 +190,7 @@ def _goal_counts(config: ExportConfig) -> tuple[int, int, int]:
 
 
 def _future_goals(i: int, count: int, *, frames_T_wb: NDArray[np.float64], stamps_s: NDArray[np.float64],
-                  source_index: NDArray[np.int32], esdf: "object", config: ExportConfig,
+                  source_index: NDArray[np.int32], esdf: _ObservedMap, config: ExportConfig,
                   rng: np.random.Generator) -> list[tuple[NDArray[np.float64], float]]:
     """Up to ``count`` future poses of the same flight, ``future_horizon`` seconds ahead, with clearance."""
     dt = stamps_s - stamps_s[i]
@@ -193,12 +199,12 @@ def _future_goals(i: int, count: int, *, frames_T_wb: NDArray[np.float64], stamp
     if not len(future) or count <= 0:
         return []
     pts = frames_T_wb[rng.choice(future, size=min(len(future), count), replace=False), :3, 3]
-    d, _ = esdf.query(pts, outside="nan")  # type: ignore[attr-defined]
+    d, _ = esdf.query(pts, outside="nan")
     return [(p, float(di)) for p, di in zip(pts, d) if np.isfinite(di) and di >= config.clearance]
 
 
 def _visible_goals(count: int, *, T_world_camera: NDArray[np.float64], depth: NDArray[np.float32],
-                   K: NDArray[np.float64], esdf: "object", config: ExportConfig,
+                   K: NDArray[np.float64], esdf: _ObservedMap, config: ExportConfig,
                    rng: np.random.Generator) -> list[tuple[NDArray[np.float64], float]]:
     """Up to ``count`` goals in the camera's view, in front of the measured depth along their pixel's
     ray, in observed free space with clearance."""
@@ -218,13 +224,13 @@ def _visible_goals(count: int, *, T_world_camera: NDArray[np.float64], depth: ND
         measured = depth[np.rint(v).astype(int), np.rint(u).astype(int)]
         front = ~np.isfinite(measured) | (z < measured - config.clearance)
         pts = (T_world_camera[:3, :3] @ (ray * r[:, None]).T).T + T_world_camera[:3, 3]
-        d, _ = esdf.query(pts, outside="nan")  # type: ignore[attr-defined]
-        ok = front & np.isfinite(d) & (d >= config.clearance) & esdf.observed_at(pts)  # type: ignore[attr-defined]
+        d, _ = esdf.query(pts, outside="nan")
+        ok = front & np.isfinite(d) & (d >= config.clearance) & esdf.observed_at(pts)
         out.extend((p, float(di)) for p, di in zip(pts[ok][:need], d[ok][:need]))
     return out
 
 
-def _hidden_goals(count: int, *, T_world_body: NDArray[np.float64], esdf: "object", config: ExportConfig,
+def _hidden_goals(count: int, *, T_world_body: NDArray[np.float64], esdf: _ObservedMap, config: ExportConfig,
                   rng: np.random.Generator) -> list[tuple[NDArray[np.float64], float]]:
     """Up to ``count`` goals in observed free space (with clearance) within ``hidden_bearing_deg`` of
     the body's heading, whose straight line from the body is blocked in the map."""
@@ -241,8 +247,8 @@ def _hidden_goals(count: int, *, T_world_body: NDArray[np.float64], esdf: "objec
         r = rng.uniform(config.goal_range[0], config.goal_range[1], n)
         dz = rng.uniform(-config.hidden_height, config.hidden_height, n)
         pts = p0 + np.stack([r * np.cos(bearing), r * np.sin(bearing), dz], axis=1)
-        d, _ = esdf.query(pts, outside="nan")  # type: ignore[attr-defined]
-        ok = np.isfinite(d) & (d >= config.clearance) & esdf.observed_at(pts)  # type: ignore[attr-defined]
+        d, _ = esdf.query(pts, outside="nan")
+        ok = np.isfinite(d) & (d >= config.clearance) & esdf.observed_at(pts)
         pts, d = pts[ok], d[ok]
         hit = blocked_lines(p0, pts, esdf, threshold=config.blocked_distance)
         out.extend((p, float(di)) for p, di in zip(pts[hit][:need], d[hit][:need]))
@@ -252,7 +258,7 @@ def _hidden_goals(count: int, *, T_world_body: NDArray[np.float64], esdf: "objec
 def _sample_goals(
     i: int, *, frames_T_wb: NDArray[np.float64], stamps_s: NDArray[np.float64], source_index: NDArray[np.int32],
     T_world_camera: NDArray[np.float64], depth: NDArray[np.float32], K: NDArray[np.float64],
-    esdf: "object", config: ExportConfig, rng: np.random.Generator,
+    esdf: _ObservedMap, config: ExportConfig, rng: np.random.Generator,
 ) -> tuple[list[NDArray[np.float64]], list[int], list[float]]:
     """Up to goals_per_frame world-frame goals for frame i in the configured mix; kinds short of
     candidates are made up with visible free-space goals."""
@@ -273,11 +279,7 @@ def _sample_goals(
 
 def export_tuples(workspace: str | Path, config: ExportConfig | None = None, *, overwrite: bool = False, progress: bool = True) -> ExportSummary:
     """Write ``workspace/tuples.zarr`` from ``frames.zarr`` and ``map.zarr`` (atomically)."""
-    import zarr
-    from tqdm import tqdm
-
-    from mapkit.esdf import MAP, EsdfMap
-    from mapkit.ingest import open_frames_store
+    from mapkit.esdf import MAP
 
     config = config or ExportConfig()
     config.validate()
@@ -289,6 +291,24 @@ def export_tuples(workspace: str | Path, config: ExportConfig | None = None, *, 
     if not (ws / FRAMES).exists():
         raise ExportError(f"{ws / FRAMES} does not exist; run `mapkit ingest` (or `mapkit fuse`) first")
     t0 = time.perf_counter()
+    store, esdf = _open_inputs(ws)
+    indices = np.arange(0, len(store), config.stride)
+    velocity = body_velocities(store.stamp_ns, store.T_world_body, store.source_index)
+    goals = _collect_goals(store, esdf, indices, config, progress=progress)
+    sel = np.asarray(goals.frame_index)
+    split = split_segments(store.stamp_ns[sel], store.source_index[sel], config)
+    digest = map_digest(ws / MAP)
+    with atomic_output(target, overwrite=overwrite) as tmp:
+        root = _write_tuples(tmp, store, sel, velocity, goals, split, progress=progress)
+        root.attrs.update(_tuples_attrs(ws, store, esdf, config, digest))
+    return _summary(target, goals, split, n_indices=len(indices), seconds=time.perf_counter() - t0)
+
+
+def _open_inputs(ws: Path) -> tuple[FramesStore, _ObservedMap]:
+    """frames.zarr and map.zarr of ``ws``; raises unless they share a frame and the cameras lie in the map."""
+    from mapkit.esdf import MAP, EsdfMap
+    from mapkit.ingest import open_frames_store
+
     store = open_frames_store(ws)
     esdf = _ObservedMap(EsdfMap.open(ws / MAP))
     if esdf.frame_id != store.attrs.get("world_frame"):
@@ -296,7 +316,7 @@ def export_tuples(workspace: str | Path, config: ExportConfig | None = None, *, 
             f"map.zarr is in frame {esdf.frame_id!r} but frames.zarr in {store.attrs.get('world_frame')!r}; "
             "rebuild the map from these frames (mapkit fuse/esdf --overwrite)"
         )
-    lo, hi = esdf.bounds
+    lo, hi = esdf.map.bounds
     cams = store.T_world_camera[:, :3, 3]
     inside = np.all((cams >= lo) & (cams <= hi), axis=1)
     if not inside.any():
@@ -304,111 +324,141 @@ def export_tuples(workspace: str | Path, config: ExportConfig | None = None, *, 
             f"no camera position of frames.zarr lies inside map.zarr's bounds {lo.round(2).tolist()}–{hi.round(2).tolist()}; "
             "the map was built from other frames: rebuild it (mapkit fuse/esdf --overwrite)"
         )
-    indices = np.arange(0, len(store), config.stride)
+    return store, esdf
+
+
+@dataclass
+class _Goals:
+    """The goals of the frames kept (those with ``goals_per_frame`` valid goals), one entry per frame."""
+
+    frame_index: list[int] = field(default_factory=list)
+    goals_body: list[NDArray[np.float32]] = field(default_factory=list)
+    kinds: list[NDArray[np.uint8]] = field(default_factory=list)
+    clearance: list[NDArray[np.float32]] = field(default_factory=list)
+    blocked: list[NDArray[np.uint8]] = field(default_factory=list)
+
+
+def _collect_goals(store: FramesStore, esdf: _ObservedMap, indices: NDArray[np.int64], config: ExportConfig, *,
+                   progress: bool) -> _Goals:
+    """Sample goals for every frame at ``indices`` (one seeded generator, in frame order); raises when no
+    frame has enough."""
+    from tqdm import tqdm
+
     stamps_s = store.stamp_ns.astype(np.float64) * 1e-9
-    velocity = body_velocities(store.stamp_ns, store.T_world_body, store.source_index)
     rng = np.random.default_rng(config.seed)
-    G = config.goals_per_frame
-    keep: list[int] = []
-    goals_body: list[NDArray[np.float32]] = []
-    kinds_all: list[NDArray[np.uint8]] = []
-    clear_all: list[NDArray[np.float32]] = []
-    blocked_all: list[NDArray[np.uint8]] = []
+    out = _Goals()
     for i in tqdm(indices, desc="goals", unit="frame", disable=not progress):
         depth = np.asarray(store.depth[int(i)])
         goals, kinds, clear = _sample_goals(
             int(i), frames_T_wb=store.T_world_body, stamps_s=stamps_s, source_index=store.source_index,
             T_world_camera=store.T_world_camera[i], depth=depth, K=store.K, esdf=esdf, config=config, rng=rng,
         )
-        if len(goals) < G:
+        if len(goals) < config.goals_per_frame:
             continue  # a frame with too few valid goals is left out (counted in the summary)
         T_body_world = invert_transform(store.T_world_body[i])
         pts = np.asarray(goals)
-        goals_body.append((pts @ T_body_world[:3, :3].T + T_body_world[:3, 3]).astype(np.float32))
-        kinds_all.append(np.asarray(kinds, dtype=np.uint8))
-        clear_all.append(np.asarray(clear, dtype=np.float32))
-        blocked_all.append(blocked_lines(store.T_world_body[i, :3, 3], pts, esdf,
+        out.goals_body.append((pts @ T_body_world[:3, :3].T + T_body_world[:3, 3]).astype(np.float32))
+        out.kinds.append(np.asarray(kinds, dtype=np.uint8))
+        out.clearance.append(np.asarray(clear, dtype=np.float32))
+        out.blocked.append(blocked_lines(store.T_world_body[i, :3, 3], pts, esdf,
                                          threshold=config.blocked_distance).astype(np.uint8))
-        keep.append(int(i))
-    if not keep:
+        out.frame_index.append(int(i))
+    if not out.frame_index:
         frac = float(np.asarray(esdf.map.observed[:]).mean())
         raise ExportError(
             f"no valid goals in any of {len(indices)} frames: no observed free space with {config.clearance} m clearance "
             f"within --goal-range {config.goal_range[0]}–{config.goal_range[1]} m in front of the camera "
             f"(observed voxels: {100 * frac:.1f} %); lower --clearance or change --goal-range"
         )
-    sel = np.asarray(keep)
-    split = split_segments(store.stamp_ns[sel], store.source_index[sel], config)
-    digest = map_digest(ws / MAP)
-    with atomic_output(target, overwrite=overwrite) as tmp:
-        root = zarr.open_group(tmp, mode="w-", zarr_format=3)
-        H, W = store.height, store.width
-        from zarr.codecs import BloscCodec
+    return out
 
-        depth_out = root.create_array(
-            "depth", shape=(len(sel), H, W), chunks=(1, H, W), dtype="float32", fill_value=float("nan"),
-            compressors=[BloscCodec(cname="lz4", clevel=1, shuffle="bitshuffle")], dimension_names=["tuple", "v", "u"],
-        )
-        for start in tqdm(range(0, len(sel), 32), desc="depth", unit="batch", disable=not progress):
-            part = sel[start : start + 32]
-            depth_out[start : start + len(part)] = np.stack([np.asarray(store.depth[int(j)]) for j in part])
 
-        def small(name: str, data: NDArray, dims: list[str]) -> None:
-            root.create_array(name, data=data, dimension_names=dims)
+def _write_tuples(path: Path, store: FramesStore, sel: NDArray[np.int64], velocity: NDArray[np.float64],
+                  goals: _Goals, split: NDArray[np.uint8], *, progress: bool) -> Any:
+    """The arrays of tuples.zarr at ``path``: the kept frames' depth (in batches of 32), poses, goals, split."""
+    import zarr
+    from tqdm import tqdm
+    from zarr.codecs import BloscCodec
 
-        small("frame_index", sel.astype(np.int32), ["tuple"])
-        small("stamp_ns", store.stamp_ns[sel], ["tuple"])
-        small("source_index", store.source_index[sel], ["tuple"])
-        small("T_world_body", store.T_world_body[sel], ["tuple", "row", "col"])
-        small("T_world_camera", store.T_world_camera[sel], ["tuple", "row", "col"])
-        small("velocity_body", velocity[sel].astype(np.float32), ["tuple", "xyz"])
-        small("goals_body", np.stack(goals_body), ["tuple", "goal", "xyz"])
-        small("goal_kind", np.stack(kinds_all), ["tuple", "goal"])
-        small("goal_clearance", np.stack(clear_all), ["tuple", "goal"])
-        small("goal_blocked", np.stack(blocked_all), ["tuple", "goal"])
-        small("split", split, ["tuple"])
-        root.attrs.update({
-            "mapkit_version": __version__,
-            "kind": "mapkit.tuples",
-            "K": store.K.tolist(),
-            "width": W,
-            "height": H,
-            "world_frame": store.attrs.get("world_frame"),
-            "body_frame": store.attrs.get("body_frame"),
-            "map": {"path": str((ws / MAP).resolve()), "sha256": digest, "voxel_size": esdf.map.voxel_size},
-            "frames": str((ws / FRAMES).resolve()),
-            "goal_kinds": {name: code for code, name in GOAL_KIND_NAMES.items()},
-            "split_values": {"train": 0, "val": 1},
-            "parameters": json.loads(json.dumps(asdict(config))),
-            "units": {"goals_body": "m (body frame FLU)", "velocity_body": "m/s (body frame)", "depth": "m"},
-        })
-    kinds = np.stack(kinds_all)
-    distance = np.linalg.norm(np.stack(goals_body), axis=-1)
+    root = zarr.open_group(path, mode="w-", zarr_format=3)
+    H, W = store.height, store.width
+    depth_out = root.create_array(
+        "depth", shape=(len(sel), H, W), chunks=(1, H, W), dtype="float32", fill_value=float("nan"),
+        compressors=[BloscCodec(cname="lz4", clevel=1, shuffle="bitshuffle")], dimension_names=["tuple", "v", "u"],
+    )
+    for start in tqdm(range(0, len(sel), 32), desc="depth", unit="batch", disable=not progress):
+        part = sel[start : start + 32]
+        depth_out[start : start + len(part)] = np.stack([np.asarray(store.depth[int(j)]) for j in part])
+
+    def small(name: str, data: NDArray, dims: list[str]) -> None:
+        root.create_array(name, data=data, dimension_names=dims)
+
+    small("frame_index", sel.astype(np.int32), ["tuple"])
+    small("stamp_ns", store.stamp_ns[sel], ["tuple"])
+    small("source_index", store.source_index[sel], ["tuple"])
+    small("T_world_body", store.T_world_body[sel], ["tuple", "row", "col"])
+    small("T_world_camera", store.T_world_camera[sel], ["tuple", "row", "col"])
+    small("velocity_body", velocity[sel].astype(np.float32), ["tuple", "xyz"])
+    small("goals_body", np.stack(goals.goals_body), ["tuple", "goal", "xyz"])
+    small("goal_kind", np.stack(goals.kinds), ["tuple", "goal"])
+    small("goal_clearance", np.stack(goals.clearance), ["tuple", "goal"])
+    small("goal_blocked", np.stack(goals.blocked), ["tuple", "goal"])
+    small("split", split, ["tuple"])
+    return root
+
+
+def _tuples_attrs(ws: Path, store: FramesStore, esdf: _ObservedMap, config: ExportConfig, digest: str) -> dict[str, Any]:
+    """The attributes of tuples.zarr: version, camera, frames, the map it was made from, goal codes, parameters."""
+    from mapkit.esdf import MAP
+
+    return {
+        "mapkit_version": __version__,
+        "kind": "mapkit.tuples",
+        "K": store.K.tolist(),
+        "width": store.width,
+        "height": store.height,
+        "world_frame": store.attrs.get("world_frame"),
+        "body_frame": store.attrs.get("body_frame"),
+        "map": {"path": str((ws / MAP).resolve()), "sha256": digest, "voxel_size": esdf.map.voxel_size},
+        "frames": str((ws / FRAMES).resolve()),
+        "goal_kinds": {name: code for code, name in GOAL_KIND_NAMES.items()},
+        "split_values": {"train": 0, "val": 1},
+        "parameters": json.loads(json.dumps(asdict(config))),
+        "units": {"goals_body": "m (body frame FLU)", "velocity_body": "m/s (body frame)", "depth": "m"},
+    }
+
+
+def _summary(target: Path, goals: _Goals, split: NDArray[np.uint8], *, n_indices: int, seconds: float) -> ExportSummary:
+    """Counts of tuples, splits and goals, the goal mix and the distance histogram."""
+    kinds = np.stack(goals.kinds)
+    distance = np.linalg.norm(np.stack(goals.goals_body), axis=-1)
     counts, _ = np.histogram(distance, bins=_DISTANCE_BINS)
     labels = [f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">{lo:g}" for lo, hi in zip(_DISTANCE_BINS[:-1], _DISTANCE_BINS[1:])]
+    n = len(goals.frame_index)
     return ExportSummary(
-        target, len(sel), int((split == 0).sum()), int((split == 1).sum()), int(kinds.size),
-        int((kinds == FUTURE).sum()), len(indices) - len(sel), time.perf_counter() - t0,
+        target, n, int((split == 0).sum()), int((split == 1).sum()), int(kinds.size),
+        int((kinds == FUTURE).sum()), n_indices - n, seconds,
         kind_counts={name: int((kinds == code).sum()) for code, name in GOAL_KIND_NAMES.items()},
-        blocked_fraction=float(np.stack(blocked_all).mean()),
+        blocked_fraction=float(np.stack(goals.blocked).mean()),
         distance_histogram={k: int(v) for k, v in zip(labels, counts)},
     )
+
 
 class _ObservedMap:
     """EsdfMap plus nearest-voxel lookups of the observed mask (goals must lie in seen space)."""
 
-    def __init__(self, esdf_map: "object") -> None:
+    def __init__(self, esdf_map: EsdfMap) -> None:
         self.map = esdf_map
-        self._observed = np.asarray(esdf_map.observed[:]).astype(bool)  # type: ignore[attr-defined]
+        self._observed = np.asarray(esdf_map.observed[:]).astype(bool)
 
     def __getattr__(self, name: str) -> object:
         return getattr(self.map, name)
 
-    def query(self, points: NDArray[np.float64], *, outside: str = "nan") -> tuple[NDArray, NDArray]:
-        return self.map.query(points, outside=outside)  # type: ignore[attr-defined]
+    def query(self, points: NDArray[np.float64], *, outside: Outside = "nan") -> tuple[NDArray, NDArray]:
+        return self.map.query(points, outside=outside)
 
     def observed_at(self, points: NDArray[np.float64]) -> NDArray[np.bool_]:
-        idx = np.rint((points - self.map.origin) / self.map.voxel_size).astype(np.int64)  # type: ignore[attr-defined]
+        idx = np.rint((points - self.map.origin) / self.map.voxel_size).astype(np.int64)
         shape = np.asarray(self._observed.shape)
         ok = np.all((idx >= 0) & (idx < shape), axis=1)
         out = np.zeros(len(points), dtype=bool)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,20 +39,20 @@ class Grid:
         return int(np.prod(self.shape))
 
     def coordinates(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        return tuple(self.origin[a] + self.voxel_size * np.arange(self.shape[a]) for a in range(3))  # type: ignore[return-value]
+        return tuple(self.origin[a] + self.voxel_size * np.arange(self.shape[a]) for a in range(3))
 
 
-def _tsdf_samples(vbg: object, batch: int = _BLOCKS_PER_BATCH):
+def _tsdf_samples(vbg: Any, batch: int = _BLOCKS_PER_BATCH):
     """(positions (N,3), tsdf (N,), weight (N,)) of every voxel of a VoxelBlockGrid, in block batches."""
     import open3d.core as o3c
 
-    active = vbg.hashmap().active_buf_indices()  # type: ignore[attr-defined]
-    tsdf_all = vbg.attribute("tsdf").reshape((-1,))  # type: ignore[attr-defined]
-    weight_all = vbg.attribute("weight").reshape((-1,))  # type: ignore[attr-defined]
+    active = vbg.hashmap().active_buf_indices()
+    tsdf_all = vbg.attribute("tsdf").reshape((-1,))
+    weight_all = vbg.attribute("weight").reshape((-1,))
     n = active.shape[0]
     for start in range(0, n, batch):
         buf = active[start : start + batch].to(o3c.int32)
-        coords, flat = vbg.voxel_coordinates_and_flattened_indices(buf)  # type: ignore[attr-defined]
+        coords, flat = vbg.voxel_coordinates_and_flattened_indices(buf)
         flat = flat.reshape((-1,))
         yield coords.numpy().astype(np.float64), tsdf_all[flat].numpy(), weight_all[flat].numpy()
 

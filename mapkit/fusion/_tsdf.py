@@ -273,10 +273,6 @@ def check_fused(workspace: Path) -> dict[str, Any]:
 
 def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overwrite: bool = False, progress: bool = True) -> FuseSummary:
     """Integrate every frame of `store` into a TSDF; write cloud.ply (+ mesh.ply) and tsdf.npz."""
-    import open3d as o3d
-    import open3d.core as o3c
-    from tqdm import tqdm
-
     config.validate()
     outputs = [workspace / CLOUD, workspace / TSDF] + ([workspace / MESH] if config.mesh else [])
     for path in outputs:
@@ -285,6 +281,33 @@ def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overw
         raise FusionError(f"{store.path} has no frames (dropped: {store.attrs.get('dropped')}); nothing to fuse")
     device = _device(config.device)
     t0 = time.perf_counter()
+    vbg = _voxel_grid(store, config, device)
+    indices = range(0, len(store), config.stride)
+    skipped, integrate_s = _integrate(vbg, store, indices, config, device, progress=progress)
+    cloud, n_points = _extract_cloud(vbg, config, len(indices))
+    positions = cloud.point.positions.numpy()
+    bounds = np.stack([positions.min(axis=0), positions.max(axis=0)]).astype(np.float64)
+    meta = {
+        "mapkit_version": __version__,
+        "frames": str(store.path),
+        "config": asdict(config),
+        "world_frame": store.attrs.get("world_frame"),
+        "points": n_points,
+        "bounds": bounds.tolist(),
+    }
+    _write_outputs(workspace, cloud, vbg, config, meta)
+    active = int(vbg.hashmap().size())
+    return FuseSummary(
+        frames_used=len(indices) - skipped, frames_total=len(store), dropped=dict(store.attrs.get("dropped", {})),
+        blocks=active, voxels=active * BLOCK_RESOLUTION**3, points=n_points, bounds=bounds,
+        seconds=time.perf_counter() - t0, integrate_seconds=integrate_s, outputs=outputs,
+    )
+
+
+def _voxel_grid(store: FramesStore, config: FuseConfig, device: Any) -> Any:
+    """An empty VoxelBlockGrid sized for the surface the frames see; raises when it would not fit in memory."""
+    import open3d as o3d
+    import open3d.core as o3c
 
     blocks = estimate_blocks(store, config)
     block_bytes = BLOCK_RESOLUTION**3 * _BYTES_PER_VOXEL * 2  # hash map keeps ~2x headroom
@@ -296,23 +319,33 @@ def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overw
             f"the TSDF at --voxel {config.voxel} needs about {need / 2**30:.1f} GiB ({blocks} blocks) but "
             f"{have / 2**30:.1f} GiB is available; use --voxel {fits:.3f} or larger"
         )
-    vbg = o3d.t.geometry.VoxelBlockGrid(
+    return o3d.t.geometry.VoxelBlockGrid(
         ("tsdf", "weight"), (o3c.float32, o3c.float32), ((1), (1)),
         voxel_size=config.voxel, block_resolution=BLOCK_RESOLUTION, block_count=blocks, device=device,
     )
+
+
+def _depth_batches(store: FramesStore, indices: range, config: FuseConfig, size: int = 16) -> Any:
+    """(frame indices, [(Open3D-ready depth, any depth within max_depth)]) for batches of ``size`` frames."""
+    for start in range(0, len(indices), size):
+        chunk = list(indices[start : start + size])
+        block = store.depth[chunk[0] : chunk[-1] + 1 : config.stride]
+        yield chunk, [(_o3d_ready(d), bool(np.any(d <= config.max_depth))) for d in block]
+
+
+def _integrate(vbg: Any, store: FramesStore, indices: range, config: FuseConfig, device: Any, *,
+               progress: bool) -> tuple[int, float]:
+    """Integrate the frames at ``indices`` into ``vbg`` → (frames skipped, seconds integrating); raises
+    when no frame touches the map."""
+    import open3d.core as o3c
+    from tqdm import tqdm
+
     K = _o3d_intrinsics(store.K)
-    indices = range(0, len(store), config.stride)
     integrate_s = 0.0
     skipped = 0
     bar = tqdm(total=len(indices), unit="frame", desc="fuse", disable=not progress, dynamic_ncols=True)
-    def batches(size: int = 16) -> Any:
-        for start in range(0, len(indices), size):
-            chunk = list(indices[start : start + size])
-            block = store.depth[chunk[0] : chunk[-1] + 1 : config.stride]
-            yield chunk, [(_o3d_ready(d), bool(np.any(d <= config.max_depth))) for d in block]
-
     # zarr decompression and conversion in a second thread overlap Open3D's integration.
-    for chunk, depths in prefetch(batches(), depth=2):
+    for chunk, depths in prefetch(_depth_batches(store, indices, config), depth=2):
         for i, (depth, in_range) in zip(chunk, depths):
             bar.update(1)
             if not in_range:  # Open3D aborts on a frame that touches no block
@@ -334,33 +367,20 @@ def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overw
             f"depth in the first frame: {np.nanmin(store.depth[0]):.2f} m) on images of more than a few pixels "
             f"(these are {store.depth.shape[2]}x{store.depth.shape[1]}); raise --max-depth or check the depth topic"
         )
+    return skipped, integrate_s
 
+
+def _extract_cloud(vbg: Any, config: FuseConfig, n_frames: int) -> tuple[Any, int]:
+    """(surface point cloud on the CPU, its point count); raises when no voxel saw a surface often enough."""
     pcd = _surface_points(vbg, config)
     n_points = int(pcd.point.positions.shape[0]) if pcd is not None and "positions" in pcd.point else 0
     if n_points == 0:
         raise FusionError(
-            f"fusion produced an empty cloud from {len(indices)} frames (--voxel {config.voxel} m, --max-depth "
+            f"fusion produced an empty cloud from {n_frames} frames (--voxel {config.voxel} m, --max-depth "
             f"{config.max_depth} m, weight threshold {config.weight_threshold}): no voxel saw a surface often enough; "
             f"use a voxel near the depth's resolution (e.g. --voxel 0.05) and check --max-depth and the frames' depth"
         )
-    cloud = pcd.cpu()
-    positions = cloud.point.positions.numpy()
-    bounds = np.stack([positions.min(axis=0), positions.max(axis=0)]).astype(np.float64)
-    meta = {
-        "mapkit_version": __version__,
-        "frames": str(store.path),
-        "config": asdict(config),
-        "world_frame": store.attrs.get("world_frame"),
-        "points": n_points,
-        "bounds": bounds.tolist(),
-    }
-    _write_outputs(workspace, cloud, vbg, config, meta)
-    active = int(vbg.hashmap().size())
-    return FuseSummary(
-        frames_used=len(indices) - skipped, frames_total=len(store), dropped=dict(store.attrs.get("dropped", {})),
-        blocks=active, voxels=active * BLOCK_RESOLUTION**3, points=n_points, bounds=bounds,
-        seconds=time.perf_counter() - t0, integrate_seconds=integrate_s, outputs=outputs,
-    )
+    return pcd.cpu(), n_points
 
 
 def fuse(

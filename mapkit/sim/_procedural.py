@@ -151,7 +151,7 @@ def _office(rng: np.random.Generator, X: float, Y: float, Z: float, density: flo
         """Place ``make()`` where it keeps ``need`` metres of floor from ``against`` + placed."""
         for _ in range(60):
             prim = make()
-            lo, hi = prim.aabb()  # type: ignore[misc]
+            lo, hi = prim.aabb()  # type: ignore[misc]  # make() never builds a HalfSpace, whose aabb() is None
             if lo[0] < 0 or lo[1] < 0 or hi[0] > X or hi[1] > Y:
                 continue
             z = min(0.5 * (lo[2] + hi[2]), 1.0)

@@ -8,7 +8,7 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, NamedTuple
+from typing import Any, Iterator, NamedTuple
 
 import numpy as np
 
@@ -233,25 +233,51 @@ def simulate(config: SimConfig, out: str | os.PathLike[str], *, progress: bool =
     if not bag.parent.is_dir():
         raise SimError(f"output directory {bag.parent} does not exist; create it first")
     plan = _plan(config)
+    odom = _odometry(plan)
+    T_world_body = odom.T_world_body[::ODOM_PER_FRAME]
+    T_world_camera = T_world_body @ plan.T_base_link @ plan.T_link_optical
+    counts = _write_recording(bag, truth, plan, config, odom, T_world_body, T_world_camera, progress=progress)
+    cam = plan.camera
+    positions = odom.positions[::ODOM_PER_FRAME]
+    return SimResult(
+        stamps_ns=plan.depth_stamps.copy(), T_world_body=T_world_body, T_world_camera=T_world_camera, K=cam.K,
+        width=cam.width, height=cam.height, world=plan.world, bag_path=bag, world_json=truth[0],
+        world_ply=truth[1], flight_npz=truth[2],
+        path_length=float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()),
+        duration=float((plan.depth_stamps[-1] - plan.depth_stamps[0]) * 1e-9), counts=counts,
+    )
+
+
+class _Odometry(NamedTuple):
+    """The flight at the odometry stamps."""
+
+    positions: np.ndarray
+    """(M, 3) metres, world frame."""
+    T_world_body: np.ndarray
+    """(M, 4, 4) body poses."""
+    v_body: np.ndarray
+    """(M, 3) m/s, body frame (REP 105)."""
+    yaw_rate: np.ndarray
+    """(M,) rad/s."""
+
+
+def _odometry(plan: _Plan) -> _Odometry:
+    """Positions, poses, body-frame velocities and yaw rates of the planned flight at the odometry stamps."""
     traj = plan.trajectory
-    p_odom, v_world, yaw, yaw_rate = traj.sample(plan.t_odom)
+    p_odom, v_world, _, yaw_rate = traj.sample(plan.t_odom)
     T_world_body_odom = traj.T_world_body(plan.t_odom)
     # Twist in the body frame (REP 105): v_body = R_world_body^T v_world; level flight → ω = (0,0,ψ').
     v_body = np.einsum("nji,nj->ni", T_world_body_odom[:, :3, :3], v_world)
-    T_world_body = T_world_body_odom[::ODOM_PER_FRAME]
-    T_world_camera = T_world_body @ plan.T_base_link @ plan.T_link_optical
-    K = plan.camera.K
-    cam = plan.camera
+    return _Odometry(p_odom, T_world_body_odom, v_body, yaw_rate)
 
+
+def _write_recording(bag: Path, truth: tuple[Path, Path, Path], plan: _Plan, config: SimConfig, odom: _Odometry,
+                     T_world_body: np.ndarray, T_world_camera: np.ndarray, *, progress: bool) -> dict[str, int]:
+    """Write the bag and the ground truth beside it, all or nothing → messages written per topic."""
     tmpdir = Path(tempfile.mkdtemp(prefix=f".{bag.name}.", suffix=".truth.partial", dir=bag.parent))
     try:
         tmp_truth = [tmpdir / p.name for p in truth]
-        plan.world.to_json(tmp_truth[0])
-        import open3d as o3d
-
-        o3d.io.write_triangle_mesh(str(tmp_truth[1]), plan.world.mesh(), write_ascii=False, compressed=True)
-        np.savez(tmp_truth[2], stamps_ns=plan.depth_stamps, T_world_body=T_world_body, T_world_camera=T_world_camera,
-                 K=K, width=cam.width, height=cam.height)
+        _write_truth(tmp_truth, plan, T_world_body, T_world_camera)
         frames = _depth_frames(plan, config, T_world_camera)
         bar = None
         if progress:
@@ -259,26 +285,7 @@ def simulate(config: SimConfig, out: str | os.PathLike[str], *, progress: bool =
 
             bar = tqdm(total=len(T_world_camera), unit="frame", desc="simulate", dynamic_ncols=True)
         with BagRecorder(bag, config.format, compression=config.compression, overwrite=config.overwrite) as rec:
-            start = int(plan.odom_stamps[0])
-            rec.write_tf_static(start, [(plan.T_base_link, BODY_FRAME, CAMERA_LINK_FRAME, start),
-                                        (plan.T_link_optical, CAMERA_LINK_FRAME, OPTICAL_FRAME, start)])
-            for j, stamp in enumerate(plan.odom_stamps):
-                stamp = int(stamp)
-                T = T_world_body_odom[j]
-                rec.write_odometry(ODOM_TOPIC, stamp, T, frame_id=WORLD_FRAME, child_frame_id=BODY_FRAME,
-                                   linear_velocity=v_body[j], angular_velocity=(0.0, 0.0, yaw_rate[j]))
-                rec.write_tf(stamp, [(T, WORLD_FRAME, BODY_FRAME, stamp)])
-                if j % ODOM_PER_FRAME:
-                    continue
-                depth = next(frames)
-                if config.depth_encoding == "compressedDepth":
-                    rec.write_compressed_depth(DEPTH_TOPIC + "/compressedDepth", stamp, depth, frame_id=OPTICAL_FRAME,
-                                               encoding="16UC1")
-                else:
-                    rec.write_depth(DEPTH_TOPIC, stamp, depth, frame_id=OPTICAL_FRAME, encoding=config.depth_encoding)
-                rec.write_camera_info(CAMERA_INFO_TOPIC, stamp, K, cam.width, cam.height, frame_id=OPTICAL_FRAME)
-                if bar is not None:
-                    bar.update(1)
+            _write_messages(rec, plan, config, odom, frames, bar)
             if bar is not None:
                 bar.close()
             # Ground truth goes into place just before the bag is renamed (all or nothing).
@@ -291,11 +298,41 @@ def simulate(config: SimConfig, out: str | os.PathLike[str], *, progress: bool =
         raise
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
-    positions = p_odom[::ODOM_PER_FRAME]
-    return SimResult(
-        stamps_ns=plan.depth_stamps.copy(), T_world_body=T_world_body, T_world_camera=T_world_camera, K=K,
-        width=cam.width, height=cam.height, world=plan.world, bag_path=bag, world_json=truth[0],
-        world_ply=truth[1], flight_npz=truth[2],
-        path_length=float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()),
-        duration=float((plan.depth_stamps[-1] - plan.depth_stamps[0]) * 1e-9), counts=dict(rec.counts),
-    )
+    return dict(rec.counts)
+
+
+def _write_truth(paths: list[Path], plan: _Plan, T_world_body: np.ndarray, T_world_camera: np.ndarray) -> None:
+    """<stem>.world.json, <stem>.world.ply and <stem>.flight.npz at ``paths``."""
+    import open3d as o3d
+
+    plan.world.to_json(paths[0])
+    o3d.io.write_triangle_mesh(str(paths[1]), plan.world.mesh(), write_ascii=False, compressed=True)
+    cam = plan.camera
+    np.savez(paths[2], stamps_ns=plan.depth_stamps, T_world_body=T_world_body, T_world_camera=T_world_camera,
+             K=cam.K, width=cam.width, height=cam.height)
+
+
+def _write_messages(rec: BagRecorder, plan: _Plan, config: SimConfig, odom: _Odometry,
+                    frames: Iterator[np.ndarray], bar: Any) -> None:
+    """tf_static once, then odometry and /tf at every odometry stamp, depth and camera info at every 4th."""
+    cam = plan.camera
+    start = int(plan.odom_stamps[0])
+    rec.write_tf_static(start, [(plan.T_base_link, BODY_FRAME, CAMERA_LINK_FRAME, start),
+                                (plan.T_link_optical, CAMERA_LINK_FRAME, OPTICAL_FRAME, start)])
+    for j, stamp in enumerate(plan.odom_stamps):
+        stamp = int(stamp)
+        T = odom.T_world_body[j]
+        rec.write_odometry(ODOM_TOPIC, stamp, T, frame_id=WORLD_FRAME, child_frame_id=BODY_FRAME,
+                           linear_velocity=odom.v_body[j], angular_velocity=(0.0, 0.0, odom.yaw_rate[j]))
+        rec.write_tf(stamp, [(T, WORLD_FRAME, BODY_FRAME, stamp)])
+        if j % ODOM_PER_FRAME:
+            continue
+        depth = next(frames)
+        if config.depth_encoding == "compressedDepth":
+            rec.write_compressed_depth(DEPTH_TOPIC + "/compressedDepth", stamp, depth, frame_id=OPTICAL_FRAME,
+                                       encoding="16UC1")
+        else:
+            rec.write_depth(DEPTH_TOPIC, stamp, depth, frame_id=OPTICAL_FRAME, encoding=config.depth_encoding)
+        rec.write_camera_info(CAMERA_INFO_TOPIC, stamp, cam.K, cam.width, cam.height, frame_id=OPTICAL_FRAME)
+        if bar is not None:
+            bar.update(1)

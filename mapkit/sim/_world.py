@@ -123,7 +123,7 @@ def _t3(x: Iterable[float]) -> tuple[float, float, float]:
     v = tuple(float(e) for e in x)
     if len(v) != 3:
         raise SimError(f"expected 3 coordinates, got {v!r}")
-    return v  # type: ignore[return-value]
+    return v
 
 
 def primitive_from_dict(d: dict[str, Any]) -> Primitive:
@@ -398,7 +398,7 @@ class World:
             bounds=np.asarray(d["bounds"], dtype=np.float64),
             kind=str(d.get("kind", "custom")),
             seed=int(d.get("seed", 0)),
-            flight_z=tuple(d.get("flight_z", (0.5, 2.0))),  # type: ignore[arg-type]
+            flight_z=tuple(d.get("flight_z", (0.5, 2.0))),
             params=dict(d.get("params", {})),
         )
 
