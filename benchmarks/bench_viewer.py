@@ -124,13 +124,13 @@ def slice_rows(ws: Path) -> None:
     view_cold, view_hot = {}, {}
     try:
         for a in "xyz":
-            app.gui["slice_axis"].value = a
+            app.gui.slice.axis.value = a
             app.slicer.cache.clear()
             cold, hot = [], []
             for p, q in zip(planes[a], again[a]):
-                app.gui["slice_position"].value = p
+                app.gui.slice.position.value = p
                 cold.append(app.timings["slice_ms"] / 1e3)
-                app.gui["slice_position"].value = q
+                app.gui.slice.position.value = q
                 hot.append(app.timings["slice_ms"] / 1e3)
             view_cold[a], view_hot[a] = median_ms(cold), median_ms(hot)
     finally:

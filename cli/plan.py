@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from mapkit._choices import GOAL_FRAMES, GoalFrame
 from mapkit.cli.main import FINITE, INDEX, library_call, main, workspace_option
 
 
@@ -15,17 +16,16 @@ from mapkit.cli.main import FINITE, INDEX, library_call, main, workspace_option
 @workspace_option("Workspace with frames.zarr.")
 @click.option("--frame", "frame_index", type=INDEX, required=True, help="Index of the frame in frames.zarr.")
 @click.option("--goal", type=FINITE, nargs=3, required=True, metavar="X Y Z", help="Goal, metres.")
-@click.option("--goal-frame", type=click.Choice(["body", "world"]), default="body", show_default=True, help="Frame of --goal.")
+@click.option("--goal-frame", type=click.Choice(GOAL_FRAMES), default="body", show_default=True, help="Frame of --goal.")
 @click.option("-o", "--output", type=click.Path(path_type=Path), default=None, help="Output folder (default: WS/plans).")
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda.")
 @library_call
-def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float, float, float], goal_frame: str,
+def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float, float, float], goal_frame: GoalFrame,
              output: Path | None, device: str) -> None:
     """Plan from a recorded frame; writes the trajectory as JSON, TUM and MCAP (nav_msgs/Path)."""
     from mapkit.export import body_velocities
-    from mapkit.geometry import invert_transform
     from mapkit.ingest import open_frames_store
-    from mapkit.planning import Planner, PlanningError, write_plan_outputs
+    from mapkit.planning import Planner, PlanningError, plan_from_frame, write_plan_outputs
     from mapkit.planning._planner import LOCAL_GOAL_RANGE, check_output_folder
 
     out = output or workspace / "plans"
@@ -34,14 +34,11 @@ def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float
     if not 0 <= frame_index < len(store):
         raise PlanningError(f"--frame {frame_index}: frames.zarr has frames 0..{len(store) - 1}")
     T_wb = store.T_world_body[frame_index]
-    g = np.asarray(goal, dtype=np.float64)
-    if goal_frame == "world":
-        T_bw = invert_transform(T_wb)
-        g = T_bw[:3, :3] @ g + T_bw[:3, 3]
     velocity = body_velocities(store.stamp_ns, store.T_world_body, store.source_index)[frame_index]
     planner = Planner.load(run_dir, device=device)
-    result = planner.plan(np.asarray(store.depth[frame_index]), g, velocity_body=velocity, K=store.K,
-                          T_body_camera=invert_transform(T_wb) @ store.T_world_camera[frame_index])
+    planned = plan_from_frame(planner, np.asarray(store.depth[frame_index]), T_wb, store.T_world_camera[frame_index],
+                              store.K, goal, goal_frame=goal_frame, velocity_body=velocity)
+    g, result = planned.goal_body, planned.result
     paths = write_plan_outputs(result, T_wb, int(store.stamp_ns[frame_index]), out,
                                world_frame=str(store.attrs.get("world_frame", "world")), stem=f"plan_{frame_index:06d}")
     if result.goal_clipped:

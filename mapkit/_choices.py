@@ -16,3 +16,8 @@ TRAINED_WEIGHTS: tuple[TrainedWeights, ...] = get_args(TrainedWeights)
 OnReject = Literal["continue", "brake"]
 """What a flying vehicle does with a rejected plan (``LoopConfig.on_reject``)."""
 ON_REJECT: tuple[OnReject, ...] = get_args(OnReject)
+
+GoalFrame = Literal["body", "world"]
+"""The frame a planning goal is given in: the body frame of the frame planned from, or the world frame
+(``mapkit plan --goal-frame``, :func:`mapkit.planning.plan_from_frame`)."""
+GOAL_FRAMES: tuple[GoalFrame, ...] = get_args(GoalFrame)

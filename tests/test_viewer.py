@@ -110,10 +110,10 @@ def test_layers_and_slice_controls(data, start_app) -> None:
     m = EsdfMap.open(data["ws"] / "map.zarr")
 
     for axis in ("x", "y", "z"):
-        app.gui["slice_axis"].value = axis
+        app.gui.slice.axis.value = axis
         a = "xyz".index(axis)
         k = m.shape[a] // 3
-        app.gui["slice_position"].value = float(m.origin[a] + k * m.voxel_size) + 0.04  # snaps to centre k
+        app.gui.slice.position.value = float(m.origin[a] + k * m.voxel_size) + 0.04  # snaps to centre k
         tex = app.slice
         assert tex.axis == axis and tex.position == pytest.approx(m.origin[a] + k * m.voxel_size)
         node = app.nodes["/slice/plane"]
@@ -136,57 +136,57 @@ def test_layers_and_slice_controls(data, start_app) -> None:
                 np.testing.assert_array_equal(tex.texture[r, c], want)
                 checked_colour += 1
         assert checked_colour > 0
-    assert "voxel" in app.gui["slice_info"].content
+    assert "voxel" in app.gui.slice.info.content
 
     # colour range, colour map, cost mode: the texture follows, the colour bar carries the units
-    app.gui["slice_vmin"].value = -0.5
-    app.gui["slice_vmax"].value = 4.0
+    app.gui.slice.vmin.value = -0.5
+    app.gui.slice.vmax.value = 4.0
     assert (app.slice.norm.vmin, app.slice.norm.vmax) == (-0.5, 4.0)
-    app.gui["slice_cmap"].value = "viridis"
+    app.gui.slice.cmap.value = "viridis"
     assert app.slice.cmap == "viridis"
-    app.gui["slice_value"].value = "obstacle cost"
+    app.gui.slice.value.value = "obstacle cost"
     assert app.slice.mode == "cost" and "cost" in app.slice.label and app.slice.norm.vmin == 0.0
-    assert app.gui["slice_colorbar"].image.shape == (90, 320, 3)
-    app.gui["slice_vmin"].value = 9.0  # above max: a message, no exception
-    assert "larger than the minimum" in app.gui["message"].content
+    assert app.gui.slice.colorbar.image.shape == (90, 320, 3)
+    app.gui.slice.vmin.value = 9.0  # above max: a message, no exception
+    assert "larger than the minimum" in app.gui.message.content
 
     # layer toggles
-    app.gui["show_cloud"].value = False
+    app.gui.layers.cloud.value = False
     assert app.nodes["/cloud"].visible is False
-    app.gui["show_cloud"].value = True
+    app.gui.layers.cloud.value = True
     assert app.nodes["/cloud"].visible is True
-    app.gui["cloud_color"].value = "ESDF"
+    app.gui.cloud.color.value = "ESDF"
     assert app.nodes["/cloud/points"].colors.shape == (app.cloud.shown_points, 3)
 
 
 def test_frame_slider_depth_and_play(data, start_app) -> None:
     app = start_app(workspace=data["ws"])
     store = open_frames_store(data["ws"])
-    app.gui["frame"].value = 7
+    app.gui.flight.frame.value = 7
     want = frustum_segments(store.K, store.width, store.height, store.T_world_camera[7], depth=2.5 * app.config.frustum_depth)
     np.testing.assert_allclose(app.nodes["/flight/current"].points, want.astype(np.float32), atol=1e-5)
     np.testing.assert_allclose(app.nodes["/flight/body"].position, store.T_world_body[7, :3, 3])
-    np.testing.assert_array_equal(app.gui["depth"].image, depth_image(np.asarray(store.depth[7])))
-    assert app.gui["frame_info"].content.startswith("frame 7 of")
-    app.gui["frustum_every"].value = 5
+    np.testing.assert_array_equal(app.gui.flight.depth.image, depth_image(np.asarray(store.depth[7])))
+    assert app.gui.flight.info.content.startswith("frame 7 of")
+    app.gui.flight.frustum_every.value = 5
     assert len(app.nodes["/flight/frustums"].points) == 8 * len(range(0, len(store), 5))
-    app.gui["fps"].value = 30
-    app.gui["play"].value = True
+    app.gui.flight.fps.value = 30
+    app.gui.flight.play.value = True
     deadline = time.monotonic() + 10
-    while int(app.gui["frame"].value) == 7 and time.monotonic() < deadline:
+    while int(app.gui.flight.frame.value) == 7 and time.monotonic() < deadline:
         time.sleep(0.05)
-    app.gui["play"].value = False
-    assert int(app.gui["frame"].value) != 7
+    app.gui.flight.play.value = False
+    assert int(app.gui.flight.frame.value) != 7
 
 
 def test_live_plan_click_and_corridor(data, start_app) -> None:
     app = start_app(workspace=data["ws"], model=data["run"], corridor=0.4)
     store = open_frames_store(data["ws"])
     i = 10
-    app.gui["frame"].value = i
+    app.gui.flight.frame.value = i
     T_wb = store.T_world_body[i]
     goal = T_wb[:3, 3] + T_wb[:3, :3] @ np.array([5.0, 1.0, 0.0])
-    app.gui["goal"].value = tuple(float(v) for v in goal)
+    app.gui.plan.goal.value = tuple(float(v) for v in goal)
     plan = app.plan
     assert plan is not None and plan["frame"] == i
     res = plan["result"]
@@ -201,25 +201,25 @@ def test_live_plan_click_and_corridor(data, start_app) -> None:
     geo = plan["corridor"]
     assert geo.num_segments == K == 5 and len(geo.sections) == K
     np.testing.assert_allclose(app.nodes["/corridor/prisms"].vertices, geo.vertices.astype(np.float32), atol=1e-5)
-    assert "corridor" in app.gui["plan_info"].content and "η" in app.gui["plan_info"].content
-    assert "latency" in app.gui["plan_info"].content
+    assert "corridor" in app.gui.plan.info.content and "η" in app.gui.plan.info.content
+    assert "latency" in app.gui.plan.info.content
     assert plan["corridor_width"] == 0.4 and not plan["infeasible"]
     # corridor off: through the key-points, no prisms
-    app.gui["corridor_width"].value = 0.0
+    app.gui.plan.corridor_width.value = 0.0
     assert "/corridor/prisms" not in app.nodes and app.plan["corridor"] is None
     assert app.server.scene.get_handle_by_name("/corridor/prisms") is None
     # a click from above onto the visible slice sets the goal there and re-plans
-    app.gui["slice_axis"].value = "z"
+    app.gui.slice.axis.value = "z"
     z = app.slice.position
     centre = app.slice.centre_world
     p = app.pick((centre[0] + 1.0, centre[1], z + 20.0), (0.0, 0.0, -1.0))
     np.testing.assert_allclose(p, [centre[0] + 1.0, centre[1], z], atol=1e-9)
     np.testing.assert_allclose(app.plan["goal_world"], [centre[0] + 1.0, centre[1], z], atol=1e-3)
-    assert "goal from the slice" in app.gui["message"].content
+    assert "goal from the slice" in app.gui.message.content
     assert app.pick((0.0, 0.0, 500.0), (0.0, 0.0, 1.0)) is None  # pointing at the sky
-    assert "type the goal" in app.gui["message"].content
+    assert "type the goal" in app.gui.message.content
     # a new frame re-plans from there
-    app.gui["frame"].value = i + 5
+    app.gui.flight.frame.value = i + 5
     assert app.plan["frame"] == i + 5
 
 
@@ -232,11 +232,11 @@ def test_eval_layer(data, start_app) -> None:
     all_pairs = len(app.nodes["/eval/paths/learned"].points)
     assert all_pairs == 2 * 30
     np.testing.assert_allclose(app.nodes["/eval/collisions"].points, [[2.5, -1.0, 1.0]])
-    assert "| straight | 1 | 1 | 0 |" in app.gui["eval_table"].content
-    app.gui["eval_pair"].value = "1"
+    assert "| straight | 1 | 1 | 0 |" in app.gui.eval.table.content
+    app.gui.eval.pair.value = "1"
     assert len(app.nodes["/eval/paths/learned"].points) == 30 and "/eval/collisions" not in app.nodes
-    assert "| straight | 1 | 0 | 0 |" in app.gui["eval_table"].content
-    app.gui["show_eval"].value = False
+    assert "| straight | 1 | 0 | 0 |" in app.gui.eval.table.content
+    app.gui.layers.eval.value = False
     assert app.nodes["/eval"].visible is False
 
 
@@ -245,10 +245,10 @@ def test_partial_and_corrupt_workspaces(data, start_app, tmp_path: Path) -> None
     only_map.mkdir()
     shutil.copytree(data["ws"] / "map.zarr", only_map / "map.zarr")
     app = start_app(workspace=only_map)
-    status = app.gui["status"].content
+    status = app.gui.status.content
     assert "frames.zarr is missing" in status and "mapkit ingest" in status
     assert "cloud.ply is missing" in status and "mapkit fuse" in status
-    assert "/slice/plane" in app.nodes and "/cloud/points" not in app.nodes and "frame" not in app.gui
+    assert "/slice/plane" in app.nodes and "/cloud/points" not in app.nodes and app.gui.flight is None
 
     broken = tmp_path / "broken"
     shutil.copytree(data["ws"], broken)
@@ -258,7 +258,7 @@ def test_partial_and_corrupt_workspaces(data, start_app, tmp_path: Path) -> None
         if chunk.is_file():
             chunk.write_bytes(b"\x00garbage")  # every chunk of the distance grid damaged
     app = start_app(workspace=broken)
-    status = app.gui["status"].content
+    status = app.gui.status.content
     assert "cloud.ply cannot be read" in status and "truncated" in status
     assert "map.zarr cannot be sliced" in status and "esdf" in status
     assert "/flight/path" in app.nodes  # what is intact still shows

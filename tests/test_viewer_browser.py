@@ -83,8 +83,8 @@ def test_browser_shows_the_slice(tmp_path: Path, start_app) -> None:  # noqa: F8
 
     ws = sphere_workspace(tmp_path)
     app = start_app(workspace=ws, slice_axis="z", slice_position=1.0)
-    app.gui["show_cloud"].value = False  # the slice alone in the view
-    app.gui["slice_cmap"].value = "viridis"  # no white in it: nothing can pass for the page background
+    app.gui.layers.cloud.value = False  # the slice alone in the view
+    app.gui.slice.cmap.value = "viridis"  # no white in it: nothing can pass for the page background
     assert app.slice is not None and app.slice.axis == "z" and app.slice.cmap == "viridis"
 
     def slice_drawn(image: np.ndarray) -> bool:

@@ -17,6 +17,7 @@ from typing import Any, Callable
 import numpy as np
 
 from mapkit.errors import MapkitError
+from mapkit.viewer._panels import CloudPanel, EvalPanel, FlightPanel, Panels, PlanPanel, SlicePanel, built
 
 LAYERS = ("cloud", "slice", "flight", "plan", "corridor", "eval")
 _LAYER_LABELS = {
@@ -78,8 +79,8 @@ class ViewerApp:
     builds the scene and panel), interact (the ``gui`` handles' ``.value`` setters, :meth:`pick`),
     :meth:`stop`. Usable as a context manager.
 
-    Attributes for inspection (tests, other front ends): ``server`` (the ViserServer), ``gui`` (name
-    → GUI handle), ``nodes`` (name → scene handle), ``slice`` (the current
+    Attributes for inspection (tests, other front ends): ``server`` (the ViserServer), ``gui`` (the
+    panel's handles by folder, a :class:`Panels`), ``nodes`` (name → scene handle), ``slice`` (the current
     :class:`mapkit.viz.SliceTexture`), ``plan`` (the current plan, a dict), ``summary`` (start-up
     lines), ``notes`` (what is missing or broken, as shown in the panel).
     """
@@ -89,7 +90,7 @@ class ViewerApp:
 
         self.config = c = config
         self.server: Any = None
-        self.gui: dict[str, Any] = {}
+        self.gui = Panels()
         self.nodes: dict[str, Any] = {}
         self.notes: list[str] = []
         self.summary: list[str] = []
@@ -114,61 +115,25 @@ class ViewerApp:
                     f"workspace {str(c.workspace)!r} holds none of frames.zarr, cloud.ply, map.zarr; make them with "
                     f"`mapkit ingest`/`mapkit fuse`/`mapkit esdf -w {c.workspace}`"
                 )
-
-        # point cloud
         self.cloud: Any = None
         self._cloud_points: np.ndarray | None = None
-        if self.ws is not None and self.ws.cloud_path is not None:
-            try:
-                ply = viz.read_ply_points(self.ws.cloud_path)
-                self.cloud = viz.cloud_view(ply.points, max_points=c.max_points, color_by="height")
-                self._cloud_points = self.cloud.points_local.astype(np.float64) + self.cloud.origin
-                extra = f" (voxel {self.cloud.voxel_size:.3f} m)" if self.cloud.voxel_size else ""
-                self.summary.append(
-                    f"cloud.ply: {self.cloud.total_points:,} points, showing {self.cloud.shown_points:,}{extra}, "
-                    f"sent as {self.cloud.precision}"
-                )
-            except MapkitError as exc:
-                self.notes.append(f"cloud.ply cannot be read: {exc}")
-
-        # ESDF map
+        self._load_cloud()
         self.map = self.ws.esdf_map if self.ws is not None else None
         self.slicer = viz.MapSlicer(self.map, cache_bytes=c.cache_bytes) if self.map is not None else None
         if self.map is not None:
             nx, ny, nz = self.map.shape
             self.summary.append(f"map.zarr: {nx}×{ny}×{nz} voxels of {self.map.voxel_size:g} m ({nx * ny * nz / 1e6:.1f} M)")
-
-        # frames
         self.frames = self.ws.frames if self.ws is not None else None
         self._velocity_body: np.ndarray | None = None
-        if self.frames is not None:
-            n = len(self.frames)
-            span = (self.frames.stamp_ns[-1] - self.frames.stamp_ns[0]) * 1e-9
-            self.summary.append(f"frames.zarr: {n} frames of {self.frames.width}×{self.frames.height}, {span:.1f} s")
-            if c.frame is not None and not 0 <= c.frame < n:
-                raise ViewerError(f"--frame {c.frame}: frames.zarr has frames 0..{n - 1}")
-
-        # planner
+        self._check_frames()
         self.planner: Any = None
         self.robot_radius, self.softness = 0.3, 1.0
         self._default_corridor = 0.3 if c.corridor is None else float(c.corridor)
         if c.model is not None:
             self._load_planner(Path(c.model))
-
-        # evaluation
         self.eval: Any = None
         if c.eval_dir is not None:
-            if not Path(c.eval_dir).exists():
-                raise ViewerError(f"--eval {str(c.eval_dir)!r} does not exist; pass the folder `mapkit eval` wrote")
-            try:
-                self.eval = viz.load_eval(c.eval_dir)
-                self.notes += [f"evaluation: {n}" for n in self.eval.notes]
-                self.summary.append(
-                    f"evaluation: {len(self.eval.episodes)} episodes, worlds {', '.join(self.eval.worlds)}, "
-                    f"methods {', '.join(self.eval.methods)}"
-                )
-            except MapkitError as exc:
-                self.notes.append(f"evaluation cannot be shown: {exc}")
+            self._load_eval(Path(c.eval_dir))
         self.summary += [f"note: {n}" for n in self.notes]
         self.timings["load_s"] = time.perf_counter() - t0
 
@@ -246,6 +211,51 @@ class ViewerApp:
         return invert_transform(fr.T_world_body[i]) @ fr.T_world_camera[i]
 
     # ---------------------------------------------------------------------------------- loading
+    def _load_cloud(self) -> None:
+        """Read cloud.ply (downsampled to ``max_points``); an unreadable one becomes a note."""
+        from mapkit import viz
+
+        if self.ws is None or self.ws.cloud_path is None:
+            return
+        try:
+            ply = viz.read_ply_points(self.ws.cloud_path)
+            self.cloud = viz.cloud_view(ply.points, max_points=self.config.max_points, color_by="height")
+            self._cloud_points = self.cloud.points_local.astype(np.float64) + self.cloud.origin
+            extra = f" (voxel {self.cloud.voxel_size:.3f} m)" if self.cloud.voxel_size else ""
+            self.summary.append(
+                f"cloud.ply: {self.cloud.total_points:,} points, showing {self.cloud.shown_points:,}{extra}, "
+                f"sent as {self.cloud.precision}"
+            )
+        except MapkitError as exc:
+            self.notes.append(f"cloud.ply cannot be read: {exc}")
+
+    def _check_frames(self) -> None:
+        """Summarise frames.zarr; raise :class:`ViewerError` when ``--frame`` is not one of its frames."""
+        if self.frames is None:
+            return
+        c = self.config
+        n = len(self.frames)
+        span = (self.frames.stamp_ns[-1] - self.frames.stamp_ns[0]) * 1e-9
+        self.summary.append(f"frames.zarr: {n} frames of {self.frames.width}×{self.frames.height}, {span:.1f} s")
+        if c.frame is not None and not 0 <= c.frame < n:
+            raise ViewerError(f"--frame {c.frame}: frames.zarr has frames 0..{n - 1}")
+
+    def _load_eval(self, eval_dir: Path) -> None:
+        """Open a ``mapkit eval`` folder; a missing one raises, an unreadable one becomes a note."""
+        from mapkit import viz
+
+        if not eval_dir.exists():
+            raise ViewerError(f"--eval {str(self.config.eval_dir)!r} does not exist; pass the folder `mapkit eval` wrote")
+        try:
+            self.eval = viz.load_eval(self.config.eval_dir)
+            self.notes += [f"evaluation: {n}" for n in self.eval.notes]
+            self.summary.append(
+                f"evaluation: {len(self.eval.episodes)} episodes, worlds {', '.join(self.eval.worlds)}, "
+                f"methods {', '.join(self.eval.methods)}"
+            )
+        except MapkitError as exc:
+            self.notes.append(f"evaluation cannot be shown: {exc}")
+
     def _load_planner(self, run: Path) -> None:
         import json
 
@@ -293,14 +303,14 @@ class ViewerApp:
         s, g = self.server.scene, self.server.gui
         for layer in LAYERS:
             self.nodes[f"/{layer}"] = s.add_frame(f"/{layer}", show_axes=False)
-        self.gui["status"] = g.add_markdown(self._status_markdown(), order=_ORDER["status"])
-        self.gui["message"] = g.add_markdown("", order=_ORDER["message"])
+        self.gui.status = g.add_markdown(self._status_markdown(), order=_ORDER["status"])
+        self.gui.message = g.add_markdown("", order=_ORDER["message"])
         with g.add_folder("Layers", order=_ORDER["layers"]):
             for layer in LAYERS:
                 if self._layer_available(layer):
                     cb = g.add_checkbox(_LAYER_LABELS[layer], initial_value=True)
                     cb.on_update(self._guard(lambda _e, layer=layer: self._toggle(layer)))
-                    self.gui[f"show_{layer}"] = cb
+                    setattr(self.gui.layers, layer, cb)
         if self.cloud is not None:
             self._build_cloud()
         if self.slicer is not None:
@@ -321,7 +331,7 @@ class ViewerApp:
         }[layer]
 
     def _toggle(self, layer: str) -> None:
-        self.nodes[f"/{layer}"].visible = bool(self.gui[f"show_{layer}"].value)
+        self.nodes[f"/{layer}"].visible = bool(built(self.gui.layers.of(layer)).value)
 
     def _guard(self, fn: Callable[[Any], None]) -> Callable[[Any], None]:
         """Callbacks run one at a time; a library error goes to the status line, not a traceback."""
@@ -336,8 +346,8 @@ class ViewerApp:
         return run
 
     def _message(self, text: str) -> None:
-        if "message" in self.gui:
-            self.gui["message"].content = f"**{text}**" if text else ""
+        if self.gui.message is not None:
+            self.gui.message.content = f"**{text}**" if text else ""
 
     def _status_markdown(self) -> str:
         lines = [f"- {s}" for s in self.summary if not s.startswith("note: ")]
@@ -356,7 +366,7 @@ class ViewerApp:
             lo, hi = p.min(axis=0) - 2.0, p.max(axis=0) + 2.0
         elif self.eval is not None and self.eval.episodes:
             # the flights, not the world's floor quad (which spans its whole bounds)
-            ends = np.array([e[k] for e in self.eval.episodes_of(self.gui["eval_world"].value) for k in ("start", "goal")],
+            ends = np.array([e[k] for e in self.eval.episodes_of(built(self.gui.eval).world.value) for k in ("start", "goal")],
                             dtype=np.float64).reshape(-1, 3)
             if len(ends):
                 lo, hi = ends.min(axis=0) - 3.0, ends.max(axis=0) + 3.0
@@ -376,27 +386,29 @@ class ViewerApp:
         g = self.server.gui
         with g.add_folder("Point cloud", expand_by_default=False, order=_ORDER["cloud"]):
             options = ["height"] + (["ESDF"] if self.map is not None else [])
-            self.gui["cloud_color"] = g.add_dropdown("colour by", options, initial_value="height")
-            self.gui["cloud_size"] = g.add_slider("point size (m)", 0.005, 0.2, 0.005, 0.03)
-        self.gui["cloud_color"].on_update(self._guard(lambda _e: self._recolor_cloud()))
-        self.gui["cloud_size"].on_update(self._guard(lambda _e: self._resize_cloud()))
+            panel = self.gui.cloud = CloudPanel(
+                color=g.add_dropdown("colour by", options, initial_value="height"),
+                size=g.add_slider("point size (m)", 0.005, 0.2, 0.005, 0.03),
+            )
+        panel.color.on_update(self._guard(lambda _e: self._recolor_cloud()))
+        panel.size.on_update(self._guard(lambda _e: self._resize_cloud()))
         self._draw_cloud(self.cloud)
 
     def _draw_cloud(self, cv: Any) -> None:
         self.nodes["/cloud/points"] = self.server.scene.add_point_cloud(
-            "/cloud/points", cv.points_local, cv.colors, point_size=float(self.gui["cloud_size"].value),
+            "/cloud/points", cv.points_local, cv.colors, point_size=float(built(self.gui.cloud).size.value),
             precision=cv.precision, position=tuple(cv.origin), point_shape="rounded",
         )
 
     def _recolor_cloud(self) -> None:
         from mapkit import viz
 
-        by = "esdf" if self.gui["cloud_color"].value == "ESDF" else "height"
+        by = "esdf" if built(self.gui.cloud).color.value == "ESDF" else "height"
         cv = viz.cloud_view(self._cloud_points, max_points=self.config.max_points, color_by=by, esdf_map=self.map)
         self.nodes["/cloud/points"].colors = cv.colors
 
     def _resize_cloud(self) -> None:
-        self.nodes["/cloud/points"].point_size = float(self.gui["cloud_size"].value)
+        self.nodes["/cloud/points"].point_size = float(built(self.gui.cloud).size.value)
 
     # ------------------------------------------------------------------------------------ slice
     def _build_slice(self) -> None:
@@ -412,31 +424,34 @@ class ViewerApp:
             pos = 0.5 * (lo + hi)
         pos = self.slicer.snap(axis, min(max(pos, lo), hi))
         with g.add_folder("ESDF slice", order=_ORDER["slice"]):
-            self.gui["slice_axis"] = g.add_dropdown("axis", ("x", "y", "z"), initial_value=axis)
-            self.gui["slice_position"] = g.add_slider("position (m)", lo, hi, step, pos)
-            self.gui["slice_position"].precision = _decimals(step)
-            self.gui["slice_value"] = g.add_dropdown("value", tuple(_VALUE_MODES), initial_value="signed distance [m]")
-            self.gui["slice_cmap"] = g.add_dropdown("colour map", SLICE_CMAPS, initial_value="RdBu")
-            self.gui["slice_raw"] = g.add_checkbox("unsmoothed (esdf_raw)", initial_value=False)
-            self.gui["slice_vmin"] = g.add_number("min", -1.0, step=0.05)
-            self.gui["slice_vmax"] = g.add_number("max", 1.0, step=0.05)
-            self.gui["slice_auto"] = g.add_button("auto range")
-            self.gui["slice_colorbar"] = g.add_image(np.full((90, 320, 3), 255, np.uint8), label=None, format="png")
-            self.gui["slice_info"] = g.add_markdown("")
+            axis_handle = g.add_dropdown("axis", ("x", "y", "z"), initial_value=axis)
+            position = g.add_slider("position (m)", lo, hi, step, pos)
+            position.precision = _decimals(step)
+            panel = self.gui.slice = SlicePanel(
+                axis=axis_handle, position=position,
+                value=g.add_dropdown("value", tuple(_VALUE_MODES), initial_value="signed distance [m]"),
+                cmap=g.add_dropdown("colour map", SLICE_CMAPS, initial_value="RdBu"),
+                raw=g.add_checkbox("unsmoothed (esdf_raw)", initial_value=False),
+                vmin=g.add_number("min", -1.0, step=0.05),
+                vmax=g.add_number("max", 1.0, step=0.05),
+                auto=g.add_button("auto range"),
+                colorbar=g.add_image(np.full((90, 320, 3), 255, np.uint8), label=None, format="png"),
+                info=g.add_markdown(""),
+            )
         self._slice_range_auto = True
-        self.gui["slice_axis"].on_update(self._guard(lambda _e: self._on_slice_axis()))
-        self.gui["slice_position"].on_update(self._guard(lambda _e: self.update_slice()))
-        self.gui["slice_value"].on_update(self._guard(lambda _e: self._auto_range()))
-        self.gui["slice_cmap"].on_update(self._guard(lambda _e: self.update_slice(colorbar=True)))
-        self.gui["slice_raw"].on_update(self._guard(lambda _e: self.update_slice()))
-        self.gui["slice_vmin"].on_update(self._guard(lambda _e: self._on_range()))
-        self.gui["slice_vmax"].on_update(self._guard(lambda _e: self._on_range()))
-        self.gui["slice_auto"].on_click(self._guard(lambda _e: self._auto_range()))
+        panel.axis.on_update(self._guard(lambda _e: self._on_slice_axis()))
+        panel.position.on_update(self._guard(lambda _e: self.update_slice()))
+        panel.value.on_update(self._guard(lambda _e: self._auto_range()))
+        panel.cmap.on_update(self._guard(lambda _e: self.update_slice(colorbar=True)))
+        panel.raw.on_update(self._guard(lambda _e: self.update_slice()))
+        panel.vmin.on_update(self._guard(lambda _e: self._on_range()))
+        panel.vmax.on_update(self._guard(lambda _e: self._on_range()))
+        panel.auto.on_click(self._guard(lambda _e: self._auto_range()))
         try:
             self._auto_range()
         except MapkitError as exc:  # a corrupt map shows its error; the rest of the viewer works
             self.notes.append(f"map.zarr cannot be sliced: {exc}")
-            self.gui["status"].content = self._status_markdown()
+            built(self.gui.status).content = self._status_markdown()
 
     def _flight_slice_height(self) -> float:
         """Half a metre below the flight's median height: the distances the drone flies through,
@@ -444,9 +459,10 @@ class ViewerApp:
         return float(np.median(self.frames.T_world_body[:, 2, 3])) - 0.5
 
     def _on_slice_axis(self) -> None:
-        axis = self.gui["slice_axis"].value
+        panel = built(self.gui.slice)
+        axis = panel.axis.value
         lo, hi, step = self.slicer.positions(axis)
-        sl = self.gui["slice_position"]
+        sl = panel.position
         centre = self.slicer.snap(axis, 0.5 * (lo + hi))
         if self.slice is not None and axis == "z" and self.frames is not None:
             centre = self.slicer.snap(axis, self._flight_slice_height())
@@ -468,11 +484,12 @@ class ViewerApp:
         self.update_slice(colorbar=True)
 
     def _slice_style(self) -> dict[str, Any]:
-        mode = _VALUE_MODES[self.gui["slice_value"].value]
-        style: dict[str, Any] = dict(mode=mode, cmap=self.gui["slice_cmap"].value,
+        panel = built(self.gui.slice)
+        mode = _VALUE_MODES[panel.value.value]
+        style: dict[str, Any] = dict(mode=mode, cmap=panel.cmap.value,
                                      robot_radius=self.robot_radius, softness=self.softness)
         if not self._slice_range_auto:
-            style.update(vmin=float(self.gui["slice_vmin"].value), vmax=float(self.gui["slice_vmax"].value))
+            style.update(vmin=float(panel.vmin.value), vmax=float(panel.vmax.value))
         return style
 
     def update_slice(self, *, colorbar: bool = False) -> None:
@@ -482,17 +499,18 @@ class ViewerApp:
         from mapkit import viz
 
         t0 = time.perf_counter()
-        axis = self.gui["slice_axis"].value
-        position = float(self.gui["slice_position"].value)
-        sl = self.slicer.slice(axis, position, raw=bool(self.gui["slice_raw"].value))
+        panel = built(self.gui.slice)
+        axis = panel.axis.value
+        position = float(panel.position.value)
+        sl = self.slicer.slice(axis, position, raw=bool(panel.raw.value))
         tex = viz.slice_texture(sl, axis=axis, pixels_per_voxel=viz.texture_scale(sl.values.shape),
                                 **self._slice_style())
         t_slice = time.perf_counter() - t0
         if self._slice_range_auto:
             self._setting_range = True
             try:
-                self.gui["slice_vmin"].value = round(float(tex.norm.vmin), 3)
-                self.gui["slice_vmax"].value = round(float(tex.norm.vmax), 3)
+                panel.vmin.value = round(float(tex.norm.vmin), 3)
+                panel.vmax.value = round(float(tex.norm.vmax), 3)
             finally:
                 self._setting_range = False
             self._slice_range_auto = False  # the range stays put while sliding; "auto range" recomputes
@@ -512,13 +530,13 @@ class ViewerApp:
                 node.wxyz, node.position = wxyz, tuple(tex.centre_world)
         self.slice = tex
         if colorbar:
-            self.gui["slice_colorbar"].image = viz.colorbar_image(tex.cmap, tex.norm, label=tex.label)
+            panel.colorbar.image = viz.colorbar_image(tex.cmap, tex.norm, label=tex.label)
         a = "xyz".index(axis)
         k = int(round((tex.position - self.map.origin[a]) / self.map.voxel_size))
         unobserved = 100.0 * float(np.mean(~tex.observed))
         self.timings["slice_ms"] = 1e3 * (time.perf_counter() - t0)
         self.timings["slice_compute_ms"] = 1e3 * t_slice
-        self.gui["slice_info"].content = (
+        panel.info.content = (
             f"{axis} = {tex.position:.2f} m (voxel {k} of {self.map.shape[a]}), {tex.values.shape[0]}×{tex.values.shape[1]} "
             f"voxels, {unobserved:.0f} % unobserved (hatched); {self.timings['slice_ms']:.0f} ms"
         )
@@ -538,15 +556,17 @@ class ViewerApp:
             self.nodes["/flight/path"] = s.add_line_segments("/flight/path", seg, _COLORS["flight_path"], thickness=0.03)
         start = self.config.frame if self.config.frame is not None else n // 2
         with g.add_folder("Flight", order=_ORDER["flight"]):
-            self.gui["frame"] = g.add_slider("frame", 0, max(n - 1, 1), 1, start, disabled=n < 2)
-            self.gui["play"] = g.add_checkbox("play", initial_value=False)
-            self.gui["fps"] = g.add_slider("frames per second", 1, 30, 1, 10)
-            self.gui["frustum_every"] = g.add_slider("frustum every N frames", 1, max(1, min(200, n)), 1,
-                                                     min(self.config.frustum_every, max(1, n)))
-            self.gui["depth"] = g.add_image(np.zeros((fr.height, fr.width, 3), np.uint8), label="depth (m)", format="png")
-            self.gui["frame_info"] = g.add_markdown("")
-        self.gui["frame"].on_update(self._guard(lambda _e: self.update_frame()))
-        self.gui["frustum_every"].on_update(self._guard(lambda _e: self._draw_frustums()))
+            panel = self.gui.flight = FlightPanel(
+                frame=g.add_slider("frame", 0, max(n - 1, 1), 1, start, disabled=n < 2),
+                play=g.add_checkbox("play", initial_value=False),
+                fps=g.add_slider("frames per second", 1, 30, 1, 10),
+                frustum_every=g.add_slider("frustum every N frames", 1, max(1, min(200, n)), 1,
+                                           min(self.config.frustum_every, max(1, n))),
+                depth=g.add_image(np.zeros((fr.height, fr.width, 3), np.uint8), label="depth (m)", format="png"),
+                info=g.add_markdown(""),
+            )
+        panel.frame.on_update(self._guard(lambda _e: self.update_frame()))
+        panel.frustum_every.on_update(self._guard(lambda _e: self._draw_frustums()))
         self._draw_frustums()
         try:
             self.update_frame(replan=False)
@@ -557,7 +577,7 @@ class ViewerApp:
         from mapkit import viz
 
         fr = self.frames
-        every = max(1, int(self.gui["frustum_every"].value))
+        every = max(1, int(built(self.gui.flight).frustum_every.value))
         seg = viz.frustum_segments(fr.K, fr.width, fr.height, fr.T_world_camera[::every], depth=self.config.frustum_depth)
         self.nodes["/flight/frustums"] = self.server.scene.add_line_segments(
             "/flight/frustums", seg, _COLORS["frustum"], thickness=0.012)
@@ -569,7 +589,8 @@ class ViewerApp:
         from mapkit import viz
 
         fr = self.frames
-        i = int(self.gui["frame"].value)
+        panel = built(self.gui.flight)
+        i = int(panel.frame.value)
         T_wb, T_wc = fr.T_world_body[i], fr.T_world_camera[i]
         s = self.server.scene
         seg = viz.frustum_segments(fr.K, fr.width, fr.height, T_wc, depth=2.5 * self.config.frustum_depth)
@@ -578,13 +599,13 @@ class ViewerApp:
             "/flight/body", axes_length=0.4, axes_radius=0.02,
             wxyz=vtf.SO3.from_matrix(T_wb[:3, :3]).wxyz, position=tuple(T_wb[:3, 3]))
         depth = self._depth(i)
-        self.gui["depth"].image = viz.depth_image(depth)
+        panel.depth.image = viz.depth_image(depth)
         valid = np.isfinite(depth) & (depth > 0)
         t = (fr.stamp_ns[i] - fr.stamp_ns[0]) * 1e-9
         v = float(np.linalg.norm(self._velocity_body[i]))
         rng = f"{np.nanmin(depth[valid]):.2f}..{np.nanmax(depth[valid]):.2f} m" if valid.any() else "no valid pixel"
         x, y, z = T_wb[:3, 3]
-        self.gui["frame_info"].content = (
+        panel.info.content = (
             f"frame {i} of {len(fr)}, t = {t:.2f} s; body at ({x:.2f}, {y:.2f}, {z:.2f}) m, {v:.2f} m/s; "
             f"depth {rng}, {100 * valid.mean():.0f} % valid"
         )
@@ -603,39 +624,42 @@ class ViewerApp:
     def _play_loop(self) -> None:
         while not self._stop_event.is_set():
             fps = 10.0
+            flight = self.gui.flight
             try:
-                playing = "play" in self.gui and bool(self.gui["play"].value)
-                fps = float(self.gui["fps"].value) if playing else fps
-                if playing:
-                    sl = self.gui["frame"]
+                playing = flight is not None and bool(flight.play.value)
+                if flight is not None and playing:
+                    fps = float(flight.fps.value)
+                    sl = flight.frame
                     nxt = (int(sl.value) + 1) % len(self.frames)
                     sl.value = nxt  # fires update_frame through the slider's callback
             except Exception as exc:  # noqa: BLE001 - keep the player alive; report in the panel
                 self._message(f"playback stopped: {type(exc).__name__}: {exc}")
-                if "play" in self.gui:
-                    self.gui["play"].value = False
+                if flight is not None:
+                    flight.play.value = False
             self._stop_event.wait(1.0 / max(fps, 1.0))
 
     # ------------------------------------------------------------------------------------- plan
     def _build_plan(self) -> None:
         g = self.server.gui
         fr = self.frames
-        i = int(self.gui["frame"].value)
+        i = int(built(self.gui.flight).frame.value)
         T_wb = fr.T_world_body[i]
         ahead = T_wb[:3, 3] + T_wb[:3, :3] @ np.array([6.0, 0.0, 0.0])
         initial = self.config.goal if self.config.goal is not None else tuple(float(v) for v in ahead)
         with g.add_folder("Plan (live)", order=_ORDER["plan"]):
             g.add_markdown("Click the slice (or the map) to set a goal for the selected frame, or type X Y Z (world, m).")
-            self.gui["click_goal"] = g.add_checkbox("click sets goal", initial_value=True)
-            self.gui["goal"] = g.add_vector3("goal (world, m)", tuple(round(float(v), 2) for v in initial), step=0.1)
-            self.gui["corridor_width"] = g.add_number("corridor half-width (m), 0 = off", round(self._default_corridor, 3),
-                                                      min=0.0, step=0.05)
-            self.gui["plan_button"] = g.add_button("plan")
-            self.gui["plan_info"] = g.add_markdown("no plan yet")
-            self.gui["speed_colorbar"] = g.add_image(np.full((90, 320, 3), 255, np.uint8), format="png", visible=False)
-        self.gui["goal"].on_update(self._guard(lambda _e: self.plan_to(self.gui["goal"].value)))
-        self.gui["corridor_width"].on_update(self._guard(lambda _e: self._replan()))
-        self.gui["plan_button"].on_click(self._guard(lambda _e: self.plan_to(self.gui["goal"].value)))
+            panel = self.gui.plan = PlanPanel(
+                click_goal=g.add_checkbox("click sets goal", initial_value=True),
+                goal=g.add_vector3("goal (world, m)", tuple(round(float(v), 2) for v in initial), step=0.1),
+                corridor_width=g.add_number("corridor half-width (m), 0 = off", round(self._default_corridor, 3),
+                                            min=0.0, step=0.05),
+                button=g.add_button("plan"),
+                info=g.add_markdown("no plan yet"),
+                speed_colorbar=g.add_image(np.full((90, 320, 3), 255, np.uint8), format="png", visible=False),
+            )
+        panel.goal.on_update(self._guard(lambda _e: self.plan_to(panel.goal.value)))
+        panel.corridor_width.on_update(self._guard(lambda _e: self._replan()))
+        panel.button.on_click(self._guard(lambda _e: self.plan_to(panel.goal.value)))
         self.server.scene.on_click()(self._on_scene_click)
         if self.config.goal is not None:
             try:
@@ -648,7 +672,7 @@ class ViewerApp:
             self.plan_to(self.plan["goal_world"])
 
     def _on_scene_click(self, event: Any) -> None:
-        if not bool(self.gui["click_goal"].value):
+        if not bool(built(self.gui.plan).click_goal.value):
             return
         with self._lock:
             try:
@@ -669,31 +693,33 @@ class ViewerApp:
             return None
         self._message(f"goal from the {how}: ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m")
         goal = tuple(round(float(v), 3) for v in p)
-        if tuple(self.gui["goal"].value) == goal:
+        goal_handle = built(self.gui.plan).goal
+        if tuple(goal_handle.value) == goal:
             self.plan_to(goal)
         else:
-            self.gui["goal"].value = goal  # fires plan_to
+            goal_handle.value = goal  # fires plan_to
         return p
 
     def plan_to(self, goal_world: Any) -> dict[str, Any]:
         """Plan from the selected frame to a world goal (3,) and draw key-points, the trajectory
         coloured by speed and the corridor prisms."""
         from mapkit import viz
-        from mapkit.geometry import invert_transform
+        from mapkit.planning import plan_from_frame
         from mapkit.trajopt import TrajoptWarning
 
         fr, s = self.frames, self.server.scene
-        i = int(self.gui["frame"].value)
+        panel = built(self.gui.plan)
+        i = int(built(self.gui.flight).frame.value)
         T_wb = fr.T_world_body[i]
         goal_w = np.asarray(goal_world, dtype=np.float64).reshape(3)
-        goal_b = viz.transform_points(invert_transform(T_wb), goal_w)
-        W = float(self.gui["corridor_width"].value)
+        W = float(panel.corridor_width.value)
         corridor = W if W > 0 else None
         depth = self._depth(i)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", TrajoptWarning)
-            result = self.planner.plan(depth, goal_b, velocity_body=self._velocity_body[i], corridor=corridor,
-                                       K=self.frames.K, T_body_camera=self._T_body_camera(i))
+            planned = plan_from_frame(self.planner, depth, T_wb, fr.T_world_camera[i], fr.K, goal_w, goal_frame="world",
+                                      velocity_body=self._velocity_body[i], corridor=corridor)
+        goal_b, result = planned.goal_body, planned.result
         infeasible = any(issubclass(w.category, TrajoptWarning) for w in caught)
         traj_w = viz.transform_points(T_wb, result.samples_body)
         kp_w = viz.transform_points(T_wb, result.keypoints)
@@ -726,15 +752,15 @@ class ViewerApp:
         if infeasible:
             solve = f"corridor ±{W:g} m infeasible: shown through the key-points; widen it"
         gb = goal_b
-        self.gui["plan_info"].content = (
+        panel.info.content = (
             f"frame {i}; goal in body frame ({gb[0]:.2f}, {gb[1]:.2f}, {gb[2]:.2f}) m\n\n"
             f"**η = {result.eta:.3f}** → {verdict}; latency **{result.latency_ms:.1f} ms**\n\n"
             f"{len(result.keypoints)} key-points; segment times {np.round(result.durations.astype(float), 2).tolist()} s "
             f"(total {float(result.durations.sum()):.2f} s); peak speed {speed.max():.2f} m/s; "
             f"control effort {result.control_effort:.1f} m²/s⁷\n\n{solve}"
         )
-        self.gui["speed_colorbar"].image = viz.colorbar_image("turbo", norm, label="speed [m/s]", unobserved=False)
-        self.gui["speed_colorbar"].visible = True
+        panel.speed_colorbar.image = viz.colorbar_image("turbo", norm, label="speed [m/s]", unobserved=False)
+        panel.speed_colorbar.visible = True
         return self.plan
 
     # ------------------------------------------------------------------------------------- eval
@@ -747,16 +773,15 @@ class ViewerApp:
         self._method_colors = viz.method_colors(ev.methods)
         with g.add_folder("Evaluation", order=_ORDER["eval"]):
             g.add_markdown("Simulated evaluation worlds (not this workspace's map).")
-            self.gui["eval_world"] = g.add_dropdown("world", worlds, initial_value=worlds[0])
-            self.gui["eval_pair"] = g.add_dropdown("pair", self._pair_options(worlds[0]), initial_value="all")
+            world = g.add_dropdown("world", worlds, initial_value=worlds[0])
+            pair = g.add_dropdown("pair", self._pair_options(worlds[0]), initial_value="all")
             legend = "".join(
                 f'<div style="font-size:0.8em"><span style="display:inline-block;width:0.9em;height:0.9em;'
                 f'background:rgb{c};margin-right:0.4em"></span>{m}</div>' for m, c in self._method_colors.items())
             legend += ('<div style="font-size:0.8em">● red: collision point, ● green: start, ● gold: goal</div>')
-            self.gui["eval_legend"] = g.add_html(legend)
-            self.gui["eval_table"] = g.add_markdown("")
-        self.gui["eval_world"].on_update(self._guard(lambda _e: self._on_eval_world()))
-        self.gui["eval_pair"].on_update(self._guard(lambda _e: self.update_eval()))
+            panel = self.gui.eval = EvalPanel(world=world, pair=pair, legend=g.add_html(legend), table=g.add_markdown(""))
+        panel.world.on_update(self._guard(lambda _e: self._on_eval_world()))
+        panel.pair.on_update(self._guard(lambda _e: self.update_eval()))
         try:
             self.update_eval()
         except MapkitError as exc:
@@ -766,10 +791,11 @@ class ViewerApp:
         return ("all",) + tuple(str(p) for p in self.eval.pairs(world))
 
     def _on_eval_world(self) -> None:
-        opts = self._pair_options(self.gui["eval_world"].value)
-        self.gui["eval_pair"].options = opts
-        if self.gui["eval_pair"].value != "all":
-            self.gui["eval_pair"].value = "all"  # fires update_eval
+        panel = built(self.gui.eval)
+        opts = self._pair_options(panel.world.value)
+        panel.pair.options = opts
+        if panel.pair.value != "all":
+            panel.pair.value = "all"  # fires update_eval
         else:
             self.update_eval()
 
@@ -778,8 +804,9 @@ class ViewerApp:
         from mapkit import viz
 
         ev, s = self.eval, self.server.scene
-        world = self.gui["eval_world"].value
-        pv = self.gui["eval_pair"].value
+        panel = built(self.gui.eval)
+        world = panel.world.value
+        pv = panel.pair.value
         pair = None if pv == "all" else int(pv)
         for name in [n for n in self.nodes if n.startswith("/eval/")]:
             self.nodes.pop(name).remove()
@@ -828,7 +855,7 @@ class ViewerApp:
             rows.append(f"| {method} | {outs.count('success')} | {outs.count('collision')} | {outs.count('timeout')} |")
         if missing:
             rows.append(f"\n{missing} executed path(s) missing from trajectories.npz")
-        self.gui["eval_table"].content = "\n".join(rows)
+        panel.table.content = "\n".join(rows)
 
 
 def _decimals(step: float) -> int:

@@ -8,7 +8,9 @@ needs it), clipping far goals to the planner's range, and writing the plan's fil
 the viewer).
 """
 
+from mapkit.planning._frame import GOAL_FRAMES, FramePlan, GoalFrame, goal_in_body, plan_from_frame
 from mapkit.planning._planner import Planner, PlanningError, PlanResult, write_plan_outputs
 from mapkit.planning._pretrained import PRETRAINED, pretrained_dir, resolve_model
 
-__all__ = ["PRETRAINED", "PlanResult", "Planner", "PlanningError", "pretrained_dir", "resolve_model", "write_plan_outputs"]
+__all__ = ["GOAL_FRAMES", "FramePlan", "GoalFrame", "PRETRAINED", "PlanResult", "Planner", "PlanningError",
+           "goal_in_body", "plan_from_frame", "pretrained_dir", "resolve_model", "write_plan_outputs"]
