@@ -144,6 +144,7 @@ def test_a_full_disk_is_one_line_naming_the_place_and_keeps_what_was_there(small
     assert r.exit_code == 1 and "No space left on device" in r.output and not (disk / "ws" / "map.zarr").exists(), r.output
 
 
+@pytest.mark.slow
 def test_kill_9_at_any_point_leaves_every_store_readable(tmp_path):
     """kill -9 of ingest / fuse / esdf / export --overwrite at several moments: every output still
     opens with its reader and fuse's files match fuse.json; the next run clears what was left."""

@@ -32,6 +32,7 @@ def test_world_specs_are_varied_and_deterministic() -> None:
     assert world_specs(DatasetConfig(worlds=20))[:12] == a
 
 
+@pytest.mark.slow
 def test_build_resume_and_split(tmp_path: Path) -> None:
     root = tmp_path / "ds"
     s = build_dataset(root, small(), progress=False)
@@ -50,6 +51,7 @@ def test_build_resume_and_split(tmp_path: Path) -> None:
         split_worlds(root, 2)
 
 
+@pytest.mark.slow
 def test_bad_requests_are_one_line_errors(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="GB free"):
         build_dataset(tmp_path / "huge", DatasetConfig(worlds=200000), progress=False, dry_run=True)

@@ -62,6 +62,7 @@ def _truth(m: EsdfMap, world: World) -> np.ndarray:
     return world.signed_distance(np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)).reshape(m.shape)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene", list(SCENES))
 def test_esdf_matches_exact_distance(workspaces: dict, scene: str) -> None:
     ws, world = workspaces[scene]
@@ -81,6 +82,7 @@ def test_esdf_matches_exact_distance(workspaces: dict, scene: str) -> None:
     assert np.unique(np.round(esdf[near], 3)).size > 15
 
 
+@pytest.mark.slow
 def test_obstacles_are_solid_and_unknown_policy(workspaces: dict) -> None:
     ws, world = workspaces["box"]
     build_esdf(ws, EsdfConfig(voxel=0.1, sigma=0.0, unknown="occupied"), overwrite=True, progress=False)
@@ -95,6 +97,7 @@ def test_obstacles_are_solid_and_unknown_policy(workspaces: dict) -> None:
     assert m.attrs["unknown_policy"] == "free"
 
 
+@pytest.mark.slow
 def test_smoothing_keeps_signs_and_grid_convention(workspaces: dict) -> None:
     ws, _ = workspaces["sphere"]
     build_esdf(ws, EsdfConfig(voxel=0.1, sigma=0.2), overwrite=True, progress=False)
@@ -126,6 +129,7 @@ def test_esdf_bad_inputs(workspaces: dict, tmp_path: Path) -> None:
     assert (tmp_path / "s.png").stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_large_grids_run_chunked(workspaces: dict, monkeypatch: pytest.MonkeyPatch) -> None:
     """When the dense grid would not fit, the ESDF is computed chunk by chunk into the store."""
     import mapkit.esdf._build as build

@@ -300,6 +300,7 @@ def small_config(**kw: object) -> EvalConfig:
                       **kw)
 
 
+@pytest.mark.slow
 def test_same_seed_gives_identical_results_json(tiny_run: Path, tmp_path: Path):
     a = evaluate(tiny_run, tmp_path / "a", small_config(), progress=False)
     b = evaluate(tiny_run, tmp_path / "b", small_config(workers=2), progress=False)
@@ -324,6 +325,7 @@ def test_same_seed_gives_identical_results_json(tiny_run: Path, tmp_path: Path):
     assert b.summary["success"]["oracle"]["office"]["success_rate"] == 1.0
 
 
+@pytest.mark.slow
 def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
     r = CliRunner().invoke(main, ["eval", "--model", str(tiny_run), "--world", "office", "--pairs", "1", "--seed", "3",
                                   "--methods", "straight,oracle", "-o", str(tmp_path / "ev")])
@@ -392,6 +394,7 @@ def test_refuses_the_seed_of_a_training_world(tmp_path: Path):
     assert r.exit_code == 1 and "48x48" in r.output and "36x48" in r.output, r.output
 
 
+@pytest.mark.slow
 def test_a_candidate_model_flies_with_the_rendered_camera_and_its_recorded_provenance(tmp_path: Path):
     """A model that checks its candidates against the depth image gets the loop camera's calibration;
     a run whose workspaces are gone (the shipped model) still names its camera and training worlds."""
@@ -525,6 +528,7 @@ def test_open_direction_points_through_the_doorway_and_none_when_walled_in():
     assert open_direction(np.full((h, w), 2.0, dtype=np.float32), camera, np.array([6.0, 0.0, 0.0]), max_depth=10.0) is None
 
 
+@pytest.mark.slow
 def test_a_learned_method_carries_nothing_from_one_flight_to_the_next():
     """The same flight twice with one method instance (as a worker flies pair after pair): identical
     episodes, so the depth memory and the way-out subgoal start empty every flight."""

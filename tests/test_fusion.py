@@ -134,6 +134,7 @@ def test_fuse_outputs_are_one_unit(tmp_path: Path, box_flight: Path, monkeypatch
     assert code == 1 and "no complete fused map" in out and "Traceback" not in out
 
 
+@pytest.mark.slow
 def test_fuse_then_esdf_as_typed_in_a_fresh_directory(tmp_path: Path, box_flight: Path,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     """`mapkit fuse flight.mcap` then `mapkit esdf --voxel 0.1`: no -w, the current directory."""

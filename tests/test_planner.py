@@ -61,6 +61,7 @@ def _inputs(B: int, cfg: PlannerConfig, seed: int = 0):
 
 
 # ----------------------------------------------------------------------------- network shapes
+@pytest.mark.slow
 @pytest.mark.parametrize("preset", ["cpu", "paper"])
 def test_preset_shapes(preset):
     torch.manual_seed(0)
@@ -165,6 +166,7 @@ def test_untrained_keypoints_near_straight_line_and_plan():
     assert torch.allclose(tr.position(tr.total_time.unsqueeze(-1))[:, 0], p.keypoints[:, -1], atol=1e-3)
 
 
+@pytest.mark.slow
 def test_seeded_determinism(box_map):
     def run():
         torch.manual_seed(123)
@@ -184,6 +186,7 @@ def test_seeded_determinism(box_map):
 
 
 # ------------------------------------------------------------------------------- gradients
+@pytest.mark.slow
 def test_gradients_reach_every_parameter_group(box_map):
     torch.manual_seed(0)
     cfg = planner_preset("cpu")
@@ -409,6 +412,7 @@ def test_anchors_detour_both_ways_and_end_at_the_goal():
     assert torch.equal(out.keypoints, out.candidates[torch.arange(2), out.chosen])
 
 
+@pytest.mark.slow
 def test_candidate_loss_with_one_path_is_the_paper_loss(box_map):
     torch.manual_seed(1)
     net = PlannerNet(planner_preset("cpu"))
@@ -427,6 +431,7 @@ def test_candidate_loss_with_one_path_is_the_paper_loss(box_map):
         torch.testing.assert_close(terms[key], ref_terms[key], msg=key)
 
 
+@pytest.mark.slow
 def test_winner_takes_all_keeps_the_detour_that_wins(box_map):
     """A pillar right on the line: the straight candidate collides, a detour does not; the loss
     trains the score towards a free detour and the chosen path clears the pillar after training."""

@@ -12,6 +12,7 @@ from mapkit.ingest import open_frames
 from mapkit.sim import SimConfig, render_flight, simulate
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("world", ["forest", "office", "garage"])
 @pytest.mark.parametrize("fmt,encoding", [("mcap", "16UC1"), ("ros2", "32FC1"), ("ros1", "16UC1"), ("mcap", "compressedDepth")])
 def test_simulate_then_ingest_recovers_truth(tmp_path: Path, world: str, fmt: str, encoding: str) -> None:

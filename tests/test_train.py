@@ -39,6 +39,7 @@ def tiny(name: str, **kw: object):
                   val_batches=2, planner=kw.pop("planner", TINY), **kw)
 
 
+@pytest.mark.slow
 def test_smoke_run_writes_the_run_directory(workspace: Path, tmp_path: Path) -> None:
     s = train([workspace], tiny("smoke"), runs_dir=tmp_path, progress=False)
     run = tmp_path / "smoke"
@@ -56,6 +57,7 @@ def test_smoke_run_writes_the_run_directory(workspace: Path, tmp_path: Path) -> 
         assert torch.equal(value, again["state_dict"][key]), key
 
 
+@pytest.mark.slow
 def test_resume_continues_after_the_last_epoch(workspace: Path, tmp_path: Path) -> None:
     train([workspace], tiny("r", epochs=1, max_steps=None), runs_dir=tmp_path, progress=False)
     with open(tmp_path / "r" / "metrics.jsonl", "a") as f:  # killed after epoch 2's row, before its checkpoint
@@ -70,6 +72,7 @@ def test_resume_continues_after_the_last_epoch(workspace: Path, tmp_path: Path) 
         train([workspace], tiny("r"), runs_dir=tmp_path, progress=False)
 
 
+@pytest.mark.slow
 def test_init_starts_from_another_models_weights(workspace: Path, tmp_path: Path) -> None:
     train([workspace], tiny("a"), runs_dir=tmp_path, progress=False)
     train([workspace], tiny("b", max_steps=1, lr=1e-12, seed=1, init=str(tmp_path / "a")), runs_dir=tmp_path,
@@ -87,6 +90,7 @@ def test_init_starts_from_another_models_weights(workspace: Path, tmp_path: Path
     assert r.exit_code == 1 and "no model.pt" in r.output, r.output
 
 
+@pytest.mark.slow
 def test_only_tan_trains_the_time_allocation_and_nothing_else(workspace: Path, tmp_path: Path) -> None:
     # The init model's TAN has no boundary inputs; the new one does (its weights start fresh).
     train([workspace], tiny("base", planner={**TINY, "tan_boundary": False}), runs_dir=tmp_path, progress=False)
@@ -114,6 +118,7 @@ def test_cli_bad_inputs(workspace: Path, tmp_path: Path) -> None:
     assert result.exit_code == 1 and "--lr" in result.output
 
 
+@pytest.mark.slow
 def test_gradients_reach_every_parameter_group(workspace: Path) -> None:
     from mapkit.esdf import EsdfMap
     from mapkit.planner import LossConfig, PlannerConfig, PlannerNet, candidate_loss
@@ -137,6 +142,7 @@ def test_gradients_reach_every_parameter_group(workspace: Path) -> None:
         assert grads and any(float(g.abs().sum()) > 0 for g in grads), name
 
 
+@pytest.mark.slow
 def test_two_process_ddp_with_gloo(workspace: Path, tmp_path: Path) -> None:
     """The documented multi-process command, with 2 CPU processes (gloo)."""
     env = {**os.environ, "MAPKIT_DDP_BACKEND": "gloo", "OMP_NUM_THREADS": "1"}
@@ -151,6 +157,7 @@ def test_two_process_ddp_with_gloo(workspace: Path, tmp_path: Path) -> None:
     assert lines[-1]["epoch"] == 1 and lines[-1]["step"] == 2
 
 
+@pytest.mark.slow
 def test_corridor_training_step(workspace: Path, tmp_path: Path) -> None:
     s = train([workspace], tiny("corr", corridor=0.2), runs_dir=tmp_path, progress=False)
     assert s.steps == 2 and (tmp_path / "corr" / "model.pt").exists()
@@ -223,6 +230,7 @@ def test_a_file_system_error_is_one_line_naming_the_path(tmp_path: Path) -> None
     assert result.output.strip() == f"error: Permission denied: {tmp_path / 'locked'}"
 
 
+@pytest.mark.slow
 def test_held_out_worlds_validate_and_select_the_model(workspace: Path, tmp_path: Path) -> None:
     import shutil
 

@@ -102,6 +102,7 @@ def test_float32_agrees_with_float64_and_keeps_waypoints_within_1mm():
     assert (t32.position(knots) - w.float()).abs().max() <= 1e-3
 
 
+@pytest.mark.slow
 def test_gradients_equality_path_gradcheck():
     w, T = random_problem(2, 3, seed=11)
     start = 0.3 * torch.randn(2, 3, 3, dtype=F64, generator=torch.Generator().manual_seed(0))

@@ -145,6 +145,7 @@ def test_corridor_gradients_vs_central_differences():
     _fd_check(f_T, T, [(0, i) for i in range(5)])
 
 
+@pytest.mark.slow
 def test_corridor_and_limits_gradcheck():
     w, T = random_problem(2, 3, seed=6)
     width = torch.tensor([[0.05, 0.08, 0.06], [0.1, 0.04, 0.07]], dtype=F64)

@@ -78,6 +78,7 @@ def palette_match(region: np.ndarray, texture: np.ndarray, *, tol: int = 30, sam
     return float((dist <= tol).mean())
 
 
+@pytest.mark.slow
 def test_browser_shows_the_slice(tmp_path: Path, start_app) -> None:  # noqa: F811
     from PIL import Image
 
