@@ -111,6 +111,7 @@ def test_smoothing_keeps_signs_and_grid_convention(workspaces: dict) -> None:
     assert d[0] == pytest.approx(float(esdf[i, j, k]), abs=1e-6)
 
 
+@pytest.mark.slow
 def test_esdf_bad_inputs(workspaces: dict, tmp_path: Path) -> None:
     ws, _ = workspaces["box"]
     with pytest.raises(EsdfBuildError, match="larger than the map"):

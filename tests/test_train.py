@@ -165,6 +165,7 @@ def test_corridor_training_step(workspace: Path, tmp_path: Path) -> None:
         train([workspace], tiny("bad", corridor=-1.0), runs_dir=tmp_path, progress=False)
 
 
+@pytest.mark.slow
 def test_plan_from_a_recorded_frame(workspace: Path, tmp_path: Path) -> None:
     from mcap.reader import make_reader
 
