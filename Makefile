@@ -1,9 +1,9 @@
-# make demo | make test | make bench — each sets up .venv first when needed.
+# make demo | make test | make lint | make bench — each sets up .venv first when needed.
 VENV ?= .venv
 PY := $(VENV)/bin/python
 DEMO_WS ?= demo_ws
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test lint bench clean
 
 setup:
 	@bash scripts/setup_env.sh
@@ -13,6 +13,9 @@ demo: setup
 
 test: setup
 	$(PY) -m pytest -q
+
+lint: setup
+	@VENV=$(VENV) bash scripts/lint.sh
 
 bench: setup
 	@bash scripts/bench.sh

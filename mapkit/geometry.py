@@ -73,10 +73,12 @@ def slerp_xyzw(q0: NDArray[np.float64], q1: NDArray[np.float64], s: float) -> ND
         q1, dot = -q1, -dot
     if dot > 0.9995:  # nearly parallel: normalised lerp is exact to float precision here
         q = q0 + s * (q1 - q0)
-        return q / np.linalg.norm(q)
+        q_unit: NDArray[np.float64] = q / np.linalg.norm(q)
+        return q_unit
     theta = np.arccos(dot)
     sin_theta = np.sin(theta)
-    return (np.sin((1.0 - s) * theta) * q0 + np.sin(s * theta) * q1) / sin_theta
+    q_arc: NDArray[np.float64] = (np.sin((1.0 - s) * theta) * q0 + np.sin(s * theta) * q1) / sin_theta
+    return q_arc
 
 
 def interpolate_transform(

@@ -5,11 +5,13 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mapkit._resources import available_memory
+from mapkit.esdf._distance import Backend
 from mapkit.esdf._errors import EsdfError
 from mapkit.fusion import CLOUD, TSDF, FusionError, check_fused
 from mapkit.fusion._occupancy import Grid, carve_free_space, fill_unknown, occupancy_from_tsdf
@@ -48,7 +50,7 @@ class EsdfConfig:
     along the sensor's rays, counts as solid (object interiors, the ground under the floor)."""
     max_dist: float | None = None
     """Clamp |distance| to this (metres); required for chunked computation of large maps."""
-    backend: str = "edt"
+    backend: Backend = "edt"
     """Exact EDT implementation for --no-subvoxel: 'edt' (fastest measured) or 'scipy'."""
     subvoxel: bool = True
     """Measure distances to the fused surface points tied to each boundary voxel (sub-voxel zero
@@ -171,7 +173,7 @@ def drop_stray_obstacles(occupied: NDArray[np.bool_], surface: NDArray[np.float6
     return kept
 
 
-def plan_grid(workspace: Path, config: EsdfConfig) -> tuple[Grid, dict]:
+def plan_grid(workspace: Path, config: EsdfConfig) -> tuple[Grid, dict[str, Any]]:
     """The ESDF grid over the fused map's bounds plus padding; errors for impossible sizes."""
     try:
         meta = check_fused(workspace)
@@ -258,7 +260,7 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
         if config.subvoxel:
             import open3d as o3d
 
-            surface = np.asarray(o3d.io.read_point_cloud(str(workspace / CLOUD)).points)
+            surface = np.asarray(o3d.io.read_point_cloud(workspace / CLOUD).points)
             sensed = drop_stray_obstacles(occupied, surface, origin=grid.origin, voxel_size=config.voxel)
             # free: distances to what was sensed; occupied: to unseen space as well.
             anchor = sensed if config.unknown == "free" else sensed | (solid & ~occupied)

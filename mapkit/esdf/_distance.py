@@ -84,6 +84,7 @@ def _signed_distance_unchecked(
     occ: np.ndarray, vs: float, max_dist: float | None, backend: str, threads: int
 ) -> np.ndarray:
     """The transform without argument checks; single-label blocks give +-inf (clamped if max_dist)."""
+    d: np.ndarray
     if backend == "edt":
         import edt
 

@@ -17,10 +17,10 @@ from __future__ import annotations
 import ctypes
 import glob
 import os
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from functools import lru_cache
-from typing import Callable, Iterator
 
 import numpy as np
 
@@ -74,7 +74,7 @@ def _band(n: int, sigma_vox: float, radius: int) -> tuple[tuple[int, int, int, i
         lo, hi = max(a - radius, 0), min(b + radius, n)
         g = np.zeros((b - a, hi - lo), dtype=np.float64)
         rows = np.arange(b - a)
-        for t, wt in zip(range(-radius, radius + 1), w):
+        for t, wt in zip(range(-radius, radius + 1), w, strict=True):
             cols = np.clip(np.arange(a, b) + t, 0, n - 1) - lo
             np.add.at(g, (rows, cols), wt)
         g32 = g.astype(np.float32)

@@ -71,11 +71,11 @@ class EsdfMap:
         self.attrs: dict[str, Any] = dict(attrs or {})
         self.path = path
         self._dense: dict[str, np.ndarray] = {}
-        self._torch: dict[tuple[str, str, Any], "torch.Tensor"] = {}
+        self._torch: dict[tuple[str, str, Any], torch.Tensor] = {}
 
     # ------------------------------------------------------------------ opening
     @classmethod
-    def open(cls, path: str | Path) -> "EsdfMap":
+    def open(cls, path: str | Path) -> EsdfMap:
         """Open a map.zarr lazily. Raises :class:`EsdfError` if it is missing, corrupt or not a mapkit map."""
         import zarr
 
@@ -86,7 +86,7 @@ class EsdfMap:
             raise EsdfError(f"{str(p)!r} is not a zarr v3 store (no zarr.json); {_FIX}")
         try:
             root = zarr.open_group(p, mode="r", zarr_format=3)
-            attrs = dict(root.attrs)
+            attrs: dict[str, Any] = dict(root.attrs)  # JSON from the store, checked below and by the constructor
         except Exception as exc:  # noqa: BLE001 - zarr raises many kinds for damaged metadata
             raise EsdfError(f"{str(p)!r} cannot be read as a zarr group ({type(exc).__name__}: {exc}); it is corrupt or incomplete; {_FIX}") from None
         kind = attrs.get("kind")
@@ -141,18 +141,21 @@ class EsdfMap:
     def coords(self, axis: str) -> np.ndarray:
         """float64 [n]: voxel-centre coordinates along "x", "y" or "z"."""
         a = _axis_index(axis)
-        return self.origin[a] + self.voxel_size * np.arange(self.shape[a], dtype=np.float64)
+        centres: np.ndarray = self.origin[a] + self.voxel_size * np.arange(self.shape[a], dtype=np.float64)
+        return centres
 
     def voxel_centre(self, index: Any) -> np.ndarray:
         """World position(s) (..., 3) of voxel centre(s) with integer index (..., 3)."""
-        return self.origin + self.voxel_size * np.asarray(index, dtype=np.float64)
+        centres: np.ndarray = self.origin + self.voxel_size * np.asarray(index, dtype=np.float64)
+        return centres
 
     def world_to_voxel(self, points: Any) -> np.ndarray:
         """Continuous voxel coordinates (..., 3) of world points (..., 3); integers at voxel centres."""
-        return (np.asarray(points, dtype=np.float64) - self.origin) / self.voxel_size
+        ijk: np.ndarray = (np.asarray(points, dtype=np.float64) - self.origin) / self.voxel_size
+        return ijk
 
     # ------------------------------------------------------------------ data
-    def load(self) -> "EsdfMap":
+    def load(self) -> EsdfMap:
         """Read every grid into memory (numpy); returns self. Queries call this lazily per grid."""
         for name in FIELDS:
             if getattr(self, name) is not None:
@@ -180,7 +183,7 @@ class EsdfMap:
 
     def distance_at_voxel(self, i: int, j: int, k: int, *, raw: bool = False) -> float:
         """Stored signed distance (metres) of voxel [i, j, k] (reads one chunk if not loaded)."""
-        for v, n, ax in zip((i, j, k), self.shape, "xyz"):
+        for v, n, ax in zip((i, j, k), self.shape, "xyz", strict=True):
             if not 0 <= int(v) < n:
                 raise EsdfError(f"voxel index {ax}={v} is outside 0..{n - 1}")
         return float(self.read("esdf_raw" if raw else "esdf", (int(i), int(j), int(k))))
@@ -245,9 +248,9 @@ class EsdfMap:
             out = np.any((u < -_TOL) | (u > hi + _TOL), axis=-1)
             value[out] = np.nan
             grad[out] = np.nan
-        return value.reshape(lead), grad.reshape(lead + (3,))
+        return value.reshape(lead), grad.reshape((*lead, 3))
 
-    def query_torch(self, points: "torch.Tensor", *, raw: bool = False, outside: Outside = "nan") -> "torch.Tensor":
+    def query_torch(self, points: torch.Tensor, *, raw: bool = False, outside: Outside = "nan") -> torch.Tensor:
         """Differentiable trilinear signed distance at world points, as a torch tensor.
 
         Parameters

@@ -30,7 +30,8 @@ def _halved(fine: np.ndarray) -> np.ndarray:
     blocks = f.reshape(nx, 2, ny, 2, nz, 2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN blocks stay NaN
-        return np.nanmean(blocks, axis=(1, 3, 5)).astype(np.float32)
+        coarse: np.ndarray = np.nanmean(blocks, axis=(1, 3, 5)).astype(np.float32)
+    return coarse
 
 
 def _coarse_shapes(shape: tuple[int, ...]) -> list[tuple[int, ...]]:

@@ -17,11 +17,14 @@ The store is written under a temporary sibling name and renamed into place only 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import warnings
+from collections.abc import Sequence
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import Any, Sequence
+from types import TracebackType
+from typing import Any
 
 import numpy as np
 
@@ -69,7 +72,7 @@ def _json_attrs(name: str, value: Any) -> Any:
         raise EsdfError(f"{name} must be JSON-serialisable (numbers, strings, lists, dicts): {exc}") from None
 
 
-class MapWriter(AbstractContextManager):
+class MapWriter(AbstractContextManager["MapWriter"]):
     """A map.zarr being written. Fill :attr:`esdf`, :attr:`esdf_raw`, :attr:`observed` (zarr arrays
     [nx, ny, nz]; chunks 64^3, so write 64-aligned blocks), then :meth:`finalize` to publish it.
 
@@ -82,6 +85,8 @@ class MapWriter(AbstractContextManager):
 
         self.path = Path(path)
         self.shape = shape
+        self._voxel_size: float = attrs["voxel_size"]
+        self._origin: list[float] = attrs["origin"]
         if self.path.exists() and not overwrite:
             raise EsdfError(f"{str(self.path)!r} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
         self._ctx = atomic_output(self.path, overwrite=overwrite)
@@ -94,7 +99,7 @@ class MapWriter(AbstractContextManager):
             root = zarr.open_group(self.tmp_path, mode="w-", zarr_format=3)
             origin = np.asarray(attrs["origin"])
             vs = attrs["voxel_size"]
-            for axis, (name, n) in enumerate(zip(DIMS, shape)):
+            for axis, (name, n) in enumerate(zip(DIMS, shape, strict=True)):
                 coord = root.create_array(name, shape=(n,), chunks=(n,), dtype="float64", dimension_names=[name])
                 coord[:] = origin[axis] + vs * np.arange(n, dtype=np.float64)
                 coord.attrs.update({"units": "m", "long_name": f"{name} of voxel centres ({attrs['frame_id']})"})
@@ -127,7 +132,7 @@ class MapWriter(AbstractContextManager):
             if extra_attrs:
                 self._root.attrs.update(_json_attrs("extra_attrs", extra_attrs))
             levels = write_levels(self._root, self.esdf, _compressor(), CHUNK)
-            self._root.attrs["ome"] = multiscales(self._root.attrs["voxel_size"], self._root.attrs["origin"], levels)
+            self._root.attrs["ome"] = multiscales(self._voxel_size, self._origin, levels)
             with warnings.catch_warnings():
                 # zarr notes that consolidated metadata is not (yet) in the v3 spec; xarray relies on it
                 warnings.simplefilter("ignore")
@@ -145,12 +150,12 @@ class MapWriter(AbstractContextManager):
         if not self._done:
             self._done = True
             err = EsdfError("map writing aborted")
-            try:
+            with contextlib.suppress(EsdfError):
                 self._ctx.__exit__(EsdfError, err, None)
-            except EsdfError:
-                pass
 
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         if exc_type is not None:
             self.abort()
         elif not self._done:
@@ -162,7 +167,7 @@ def create_map(
     path: str | Path,
     *,
     shape: Sequence[int],
-    origin: Sequence[float],
+    origin: Sequence[float] | np.ndarray,
     voxel_size: float,
     frame_id: str,
     sigma: float,
@@ -208,7 +213,7 @@ def write_map(
     esdf: np.ndarray,
     esdf_raw: np.ndarray,
     observed: np.ndarray,
-    origin: Sequence[float],
+    origin: Sequence[float] | np.ndarray,
     voxel_size: float,
     frame_id: str,
     sigma: float,

@@ -11,7 +11,7 @@ All matrices are computed once in exact rational arithmetic and cached as float6
 from __future__ import annotations
 
 from fractions import Fraction
-from functools import lru_cache
+from functools import cache
 from math import factorial
 
 import numpy as np
@@ -36,11 +36,11 @@ def _invert(mat: list[list[Fraction]]) -> list[list[Fraction]]:
         for r in range(n):
             if r != col and aug[r][col] != 0:
                 f = aug[r][col]
-                aug[r] = [a - f * b for a, b in zip(aug[r], aug[col])]
+                aug[r] = [a - f * b for a, b in zip(aug[r], aug[col], strict=True)]
     return [row[n:] for row in aug]
 
 
-@lru_cache(maxsize=None)
+@cache
 def boundary_inverse(r: int) -> np.ndarray:
     """``Ainv`` (2r, 2r): coefficients = Ainv @ [s-derivatives 0..r-1 at s=0; at s=1].
 
@@ -49,7 +49,7 @@ def boundary_inverse(r: int) -> np.ndarray:
     return np.array([[float(v) for v in row] for row in _exact_boundary_inverse(r)], dtype=np.float64)
 
 
-@lru_cache(maxsize=None)
+@cache
 def cost_matrix(r: int) -> np.ndarray:
     """``Qhat`` (2r, 2r): ``integral_0^1 (d^r p / ds^r)^2 ds = c^T Qhat c``."""
     n = 2 * r
@@ -60,7 +60,7 @@ def cost_matrix(r: int) -> np.ndarray:
     return q
 
 
-@lru_cache(maxsize=None)
+@cache
 def knot_cost_matrix(r: int) -> np.ndarray:
     """``R = Ainv^T Qhat Ainv`` (2r, 2r): the cost as a quadratic form in boundary s-derivatives."""
     ainv = _exact_boundary_inverse(r)
@@ -80,7 +80,7 @@ def knot_cost_matrix(r: int) -> np.ndarray:
     return out
 
 
-@lru_cache(maxsize=None)
+@cache
 def _exact_boundary_inverse(r: int) -> tuple[tuple[Fraction, ...], ...]:
     n = 2 * r
     a = [[Fraction(0)] * n for _ in range(n)]
@@ -91,7 +91,7 @@ def _exact_boundary_inverse(r: int) -> tuple[tuple[Fraction, ...], ...]:
     return tuple(tuple(row) for row in _invert(a))
 
 
-@lru_cache(maxsize=None)
+@cache
 def _exact_cost(r: int) -> tuple[tuple[Fraction, ...], ...]:
     n = 2 * r
     rows = []

@@ -5,10 +5,11 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from mapkit.trajopt import _qp
 from mapkit.trajopt._errors import TrajoptError
@@ -25,13 +26,18 @@ from mapkit.trajopt._trajectory import Trajectory
 
 _WORK = torch.float64  # internal precision: float32 cannot hold the ill-conditioned KKT
 
+_Rows = tuple[torch.Tensor, np.ndarray, torch.Tensor, torch.Tensor]
+"""Constraint rows (B, m, 3, 8) on one segment's coefficients, their segments (m,), bounds lo and hi (B, m)."""
+_Solved = tuple[torch.Tensor, np.ndarray, list[str], dict[str, Any]]
+"""Knot vectors (B, N, 3), ok mask (B,), per-element statuses and the ``Trajectory.info`` of a QP solve."""
+
 
 class TrajoptWarning(UserWarning):
     """Some batch elements of a constrained problem could not be solved (see ``Trajectory.solved``)."""
 
 
 # ---------------------------------------------------------------------------------------- inputs
-def _as_tensor(x, name: str, like: torch.Tensor) -> torch.Tensor:
+def _as_tensor(x: torch.Tensor | ArrayLike, name: str, like: torch.Tensor) -> torch.Tensor:
     """``x`` as a tensor on ``like``'s device (non-tensors in ``like``'s dtype)."""
     if isinstance(x, torch.Tensor):
         return x.to(device=like.device)
@@ -41,7 +47,7 @@ def _as_tensor(x, name: str, like: torch.Tensor) -> torch.Tensor:
         raise TrajoptError(f"{name} must be a number or a tensor, got {type(x).__name__}") from exc
 
 
-def _batch_param(x, name: str, B: int, tail: tuple[int, ...], like: torch.Tensor) -> torch.Tensor:
+def _batch_param(x: torch.Tensor | ArrayLike, name: str, B: int, tail: tuple[int, ...], like: torch.Tensor) -> torch.Tensor:
     """Broadcast x to (B, *tail) in the work precision, naming the accepted shapes on error."""
     t = _as_tensor(x, name, like).to(_WORK)
     if t.shape == (B, *tail):
@@ -60,7 +66,7 @@ def _check_finite(t: torch.Tensor, name: str) -> None:
 
 
 # ------------------------------------------------------------------------------- constraints
-def _corridor_rows(w: torch.Tensor, T: torch.Tensor, half_width: torch.Tensor, n_samples: int):
+def _corridor_rows(w: torch.Tensor, T: torch.Tensor, half_width: torch.Tensor, n_samples: int) -> _Rows:
     """Local rows (B, m, 3, 8), their segment (m,) and bounds lo/hi (B, m): the perpendicular
     deviation of every sample from its segment's key-point line, per world axis, lies within
     +-half_width (the corridor of Mellinger & Kumar 2011), and its position along the line lies
@@ -110,7 +116,7 @@ def _corridor_rows(w: torch.Tensor, T: torch.Tensor, half_width: torch.Tensor, n
     return rows, seg_of_row, torch.cat([centre - hw, a_lo], dim=1), torch.cat([centre + hw, a_hi], dim=1)
 
 
-def _limit_rows(T: torch.Tensor, q: int, limit: torch.Tensor, n_samples: int):
+def _limit_rows(T: torch.Tensor, q: int, limit: torch.Tensor, n_samples: int) -> _Rows:
     """Local rows (B, m, 3, 8), segments (m,) and bounds: |q-th derivative| <= limit per axis at
     the samples (segment starts except the first, and n_samples interior points of every segment)."""
     B, M = T.shape
@@ -177,7 +183,7 @@ class _PositionQp:
         idx = np.zeros((B, k), dtype=np.int64)
         msk = np.zeros((B, k), dtype=bool)
         upm = np.zeros((B, k), dtype=bool)
-        for b, (a, u) in enumerate(zip(active, upper)):
+        for b, (a, u) in enumerate(zip(active, upper, strict=True)):
             idx[b, : a.size] = a
             msk[b, : a.size] = True
             upm[b, : a.size] = u
@@ -204,7 +210,8 @@ class _PositionQp:
         return (~torch.isfinite(zd).all(-1)) | (viol.amax(-1) > 0)
 
 
-def _inequality_rows(w, T, corridor, corridor_samples, v_max, a_max):
+def _inequality_rows(w: torch.Tensor, T: torch.Tensor, corridor: torch.Tensor | None, corridor_samples: int,
+                     v_max: torch.Tensor | None, a_max: torch.Tensor | None) -> _Rows:
     """Rows (B, m, 3, 8), their segments (m,) and bounds lo/hi (B, m) of the corridor and limits given."""
     row_sets = []
     if corridor is not None:
@@ -220,7 +227,9 @@ def _inequality_rows(w, T, corridor, corridor_samples, v_max, a_max):
     return local, seg_np, lo, hi
 
 
-def _position_qp(w, T, start, end, *, corridor, corridor_samples, v_max, a_max) -> _PositionQp:
+def _position_qp(w: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, *,
+                 corridor: torch.Tensor | None, corridor_samples: int, v_max: torch.Tensor | None,
+                 a_max: torch.Tensor | None) -> _PositionQp:
     """Set up the position QP: snap objective on the free knot values and the inequality rows."""
     B, M = T.shape
     lay = layout(M, 4, corridor is not None)
@@ -263,8 +272,9 @@ def _scaled(qp: _PositionQp) -> tuple[np.ndarray, ...]:
 
 
 def _solve_position_qp(
-    w, T, start, end, *, corridor, corridor_samples, v_max, a_max, solver
-):
+    w: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, *, corridor: torch.Tensor | None,
+    corridor_samples: int, v_max: torch.Tensor | None, a_max: torch.Tensor | None, solver: str,
+) -> _Solved:
     """Knot vectors (B, N, 3), ok mask (B,) numpy, statuses and info for the inequality path."""
     qp = _position_qp(w, T, start, end, corridor=corridor, corridor_samples=corridor_samples, v_max=v_max,
                       a_max=a_max)
@@ -294,7 +304,7 @@ def _solve_position_qp(
             status[b] = "the active-set KKT solve did not reproduce a feasible solution"
     z = torch.where(torch.as_tensor(ok, device=w.device).unsqueeze(-1), z, torch.zeros_like(z))
     X = qp.X0.index_copy(1, qp.fi, z.reshape(qp.B, 3, qp.nf).transpose(1, 2))
-    info = {
+    info: dict[str, Any] = {
         "path": "qp",
         "solver": solver,
         "solver_seconds": res.seconds,
@@ -305,14 +315,15 @@ def _solve_position_qp(
     return X, ok, status, info
 
 
-def _correct_active_set(P, q, C, lo, hi, act, up):
+def _correct_active_set(P: np.ndarray, q: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                        act: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Repair an inexact active set (numpy, scaled problem): re-solve with DAQP, an exact dual
     active-set method, warm-started from the guess. Returns the guess unchanged if DAQP fails."""
     act = np.asarray(act, dtype=np.int64)
     sense = np.zeros(C.shape[0], dtype=np.int32)
     sense[act] = np.where(np.asarray(up, dtype=bool), 1, 3)  # ACTIVE (| LOWER)
-    z, lam, st = _qp._solve_daqp(P, q, C, lo, hi, sense=sense)
-    if z is None:
+    z, lam, _status = _qp._solve_daqp(P, q, C, lo, hi, sense=sense)
+    if z is None or lam is None:
         return act, np.asarray(up, dtype=bool)
     a, u = _qp._active_from_duals(lam, C, z, lo, hi, True)
     kept = _independent(C, a)
@@ -331,7 +342,9 @@ def _independent(C: np.ndarray, act: np.ndarray) -> np.ndarray:
     return np.sort(act[piv[:rank]])
 
 
-def _tighten_limits(X, ok, status, info, w, T, start_t, end_t, corr, corridor_samples, vm, am, solver):
+def _tighten_limits(X: torch.Tensor, ok: np.ndarray, status: list[str], info: dict[str, Any], w: torch.Tensor,
+                    T: torch.Tensor, start_t: torch.Tensor, end_t: torch.Tensor, corr: torch.Tensor | None,
+                    corridor_samples: int, vm: torch.Tensor | None, am: torch.Tensor | None, solver: str) -> _Solved:
     """Re-solve with limits scaled down by the excess found on a dense grid, until the solution
     keeps ``vm``/``am`` between the QP's samples too (a few rounds; the excess shrinks fast)."""
     vm0, am0 = vm, am
@@ -339,7 +352,7 @@ def _tighten_limits(X, ok, status, info, w, T, start_t, end_t, corr, corridor_sa
         traj = Trajectory(coefficients(X, T, 4), T)
         scale = torch.ones(w.shape[0], dtype=_WORK, device=w.device)
         for limit, limit0, order in ((vm, vm0, 1), (am, am0, 2)):
-            if limit is None:
+            if limit is None or limit0 is None:  # both or neither
                 continue
             peak = traj._dense(order, 256).detach().abs().amax(dim=(1, 2, 3))
             scale = torch.minimum(scale, torch.where(peak > limit0 * (1 + 1e-9), limit0 / peak, torch.ones_like(peak)))
@@ -435,7 +448,7 @@ def min_snap(
         X = solve_knots(T, knot_values(w, start_t, end_t, 4), layout(M, 4, False))
         solved = torch.ones(B, dtype=torch.bool, device=w.device)
         messages: tuple[str, ...] = ()
-        info: dict = {"path": "closed_form"}
+        info: dict[str, Any] = {"path": "closed_form"}
     else:
         X, solved, messages, info = _solve_constrained(w, T, start_t, end_t, corr, corridor_samples, vm, am, solver,
                                                        limits_everywhere, on_infeasible)
@@ -460,7 +473,7 @@ def _work_waypoints(waypoints: torch.Tensor) -> tuple[torch.Tensor, bool]:
     return (waypoints if batched else waypoints.unsqueeze(0)).to(_WORK), batched
 
 
-def _durations(durations, out_dtype: torch.dtype, w: torch.Tensor, M: int) -> torch.Tensor:
+def _durations(durations: torch.Tensor | ArrayLike, out_dtype: torch.dtype, w: torch.Tensor, M: int) -> torch.Tensor:
     """(B, M) durations as given (dtype kept for the trajectory), broadcast over the batch."""
     if not isinstance(durations, torch.Tensor):
         durations = torch.as_tensor(np.asarray(durations, dtype=np.float64), dtype=out_dtype, device=w.device)
@@ -477,7 +490,7 @@ def _check_positive_durations(T: torch.Tensor) -> None:
         raise TrajoptError("durations must all be > 0 seconds; got a zero or negative duration")
 
 
-def _boundary(value, name: str, B: int, w: torch.Tensor) -> torch.Tensor:
+def _boundary(value: torch.Tensor | ArrayLike | None, name: str, B: int, w: torch.Tensor) -> torch.Tensor:
     """(B, 3, 3) velocity, acceleration and jerk at one end (zeros when not given)."""
     if value is None:
         return torch.zeros(B, 3, 3, dtype=_WORK, device=w.device)
@@ -494,7 +507,10 @@ def _check_options(corridor_samples: int, solver: str, on_infeasible: str) -> No
         raise TrajoptError(f"on_infeasible must be 'warn', 'raise' or 'ignore', got {on_infeasible!r}")
 
 
-def _inequalities(corridor, v_max, a_max, B: int, M: int, w: torch.Tensor):
+def _inequalities(
+    corridor: float | torch.Tensor | None, v_max: float | torch.Tensor | None, a_max: float | torch.Tensor | None,
+    B: int, M: int, w: torch.Tensor,
+) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
     """Corridor half-widths (B, M), speed and acceleration limits (B,), each None when not given; checked > 0."""
     corr = None
     if corridor is not None:
@@ -513,7 +529,11 @@ def _inequalities(corridor, v_max, a_max, B: int, M: int, w: torch.Tensor):
     return corr, vm, am
 
 
-def _solve_constrained(w, T, start_t, end_t, corr, corridor_samples, vm, am, solver, limits_everywhere, on_infeasible):
+def _solve_constrained(
+    w: torch.Tensor, T: torch.Tensor, start_t: torch.Tensor, end_t: torch.Tensor, corr: torch.Tensor | None,
+    corridor_samples: int, vm: torch.Tensor | None, am: torch.Tensor | None, solver: str, limits_everywhere: bool,
+    on_infeasible: str,
+) -> tuple[torch.Tensor, torch.Tensor, tuple[str, ...], dict[str, Any]]:
     """The inequality path: (X, solved mask, messages, info); unsolved elements fall back to the
     closed form with a warning or an error as ``on_infeasible`` says."""
     X, ok, status, info = _solve_position_qp(
@@ -534,7 +554,10 @@ def _solve_constrained(w, T, start_t, end_t, corr, corridor_samples, vm, am, sol
     return X, solved, messages, info
 
 
-def _fall_back_where_unsolved(X, ok, status, w, T, start_t, end_t):
+def _fall_back_where_unsolved(
+    X: torch.Tensor, ok: np.ndarray, status: list[str], w: torch.Tensor, T: torch.Tensor, start_t: torch.Tensor,
+    end_t: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, tuple[str, ...], str]:
     """Unsolved elements take the closed-form solution through the key-points: (X, solved mask,
     one message per failed element, the text to warn or raise with)."""
     B, M = T.shape
@@ -552,7 +575,7 @@ def _fall_back_where_unsolved(X, ok, status, w, T, start_t, end_t):
     return X, ok_t, messages, text
 
 
-def _yaw_coefficients(yaw, w: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+def _yaw_coefficients(yaw: torch.Tensor, w: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
     """Cubic yaw-spline coefficients from (B, M+1) or (M+1,) yaw key-points, in the work precision."""
     B, M1 = w.shape[0], w.shape[1]
     y = _as_tensor(yaw, "yaw", w).to(_WORK)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -58,7 +59,9 @@ def _active_from_duals(lam: np.ndarray, C: np.ndarray, z: np.ndarray, lo: np.nda
     return act, up
 
 
-def _solve_daqp(P, q, C, lo, hi, sense=None):
+def _solve_daqp(P: np.ndarray, q: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                sense: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+    """Solution z, multipliers and "optimal", or (None, None, the reason) when DAQP fails."""
     import daqp
 
     lo_d = np.where(np.isfinite(lo), lo, -1e30)
@@ -79,14 +82,16 @@ def _solve_daqp(P, q, C, lo, hi, sense=None):
 
 # Settings of the qpsolvers backends (the active-set KKT polish supplies the last digits, so
 # these only need to identify the active set reliably).
-_KW: dict[str, dict] = {
+_KW: dict[str, dict[str, Any]] = {  # keyword options of each backend's own solve
     "proxqp": dict(eps_abs=1e-9, eps_rel=0.0),
     "clarabel": dict(),
     "piqp": dict(),
 }
 
 
-def _solve_qpsolvers(name, P, q, C, lo, hi):
+def _solve_qpsolvers(name: str, P: np.ndarray, q: np.ndarray, C: np.ndarray, lo: np.ndarray,
+                     hi: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+    """Solution z, multipliers and "optimal", or (None, None, the reason) when backend ``name`` fails."""
     from qpsolvers import Problem, solve_problem
 
     fin_hi = np.isfinite(hi)
@@ -112,7 +117,9 @@ def solve_batch(P: np.ndarray, q: np.ndarray, C: np.ndarray, lo: np.ndarray, hi:
     B, n = q.shape
     zs = np.zeros((B, n))
     ok = np.zeros(B, dtype=bool)
-    active, upper, status = [], [], []
+    active: list[np.ndarray] = []
+    upper: list[np.ndarray] = []
+    status: list[str] = []
     t0 = time.perf_counter()
     for b in range(B):
         if solver == "daqp":
@@ -120,7 +127,7 @@ def solve_batch(P: np.ndarray, q: np.ndarray, C: np.ndarray, lo: np.ndarray, hi:
         else:
             z, lam, st = _solve_qpsolvers(solver, P[b], q[b], C[b], lo[b], hi[b])
         status.append(st)
-        if z is None:
+        if z is None or lam is None:
             active.append(np.zeros(0, dtype=np.int64))
             upper.append(np.zeros(0, dtype=bool))
             continue
@@ -141,7 +148,7 @@ def kkt_solve(P: torch.Tensor, q: torch.Tensor, Ca: torch.Tensor, ba: torch.Tens
     and unit-norm rows (detached, so an exact reformulation), by LU; autograd through that solve is
     the implicit derivative of the QP solution at this active set.
     """
-    B, n = q.shape
+    _, n = q.shape
     dt = q.dtype
     k = Ca.shape[1]
     d = torch.rsqrt(torch.diagonal(P, dim1=-2, dim2=-1)).detach()
@@ -149,7 +156,8 @@ def kkt_solve(P: torch.Tensor, q: torch.Tensor, Ca: torch.Tensor, ba: torch.Tens
     qs = q * d
     if k == 0:
         y = torch.linalg.solve(Ps, -qs.unsqueeze(-1)).squeeze(-1)
-        return y * d
+        z_free: torch.Tensor = y * d
+        return z_free
     mf = mask.to(dt)
     Cs = Ca * d.unsqueeze(1)
     rn = Cs.detach().norm(dim=-1).clamp_min(1e-300)
@@ -160,4 +168,5 @@ def kkt_solve(P: torch.Tensor, q: torch.Tensor, Ca: torch.Tensor, ba: torch.Tens
     K = torch.cat([top, bot], dim=1)
     rhs = torch.cat([-qs, bs], dim=1).unsqueeze(-1)
     sol = torch.linalg.solve(K, rhs).squeeze(-1)
-    return sol[:, :n] * d
+    z: torch.Tensor = sol[:, :n] * d
+    return z

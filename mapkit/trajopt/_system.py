@@ -11,7 +11,7 @@ either fixed (boundary conditions, key-points) or free; the free ones are the de
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import torch
@@ -33,7 +33,7 @@ class Layout:
         return self.r * (self.M + 1)
 
 
-@lru_cache(maxsize=None)
+@cache
 def layout(M: int, r: int, free_positions: bool) -> Layout:
     """Free entries: interior derivatives 1..r-1, plus interior positions when ``free_positions``."""
     free, fixed = [], []
@@ -48,7 +48,7 @@ def layout(M: int, r: int, free_positions: bool) -> Layout:
     return Layout(M, r, np.array(free, dtype=np.int64), np.array(fixed, dtype=np.int64))
 
 
-@lru_cache(maxsize=None)
+@cache
 def _scatter_index(M: int, r: int) -> np.ndarray:
     """Flat indices into an (N, N) matrix of every entry of the M local (2r, 2r) blocks."""
     N = r * (M + 1)
@@ -60,10 +60,11 @@ def _scatter_index(M: int, r: int) -> np.ndarray:
     return out.reshape(-1)
 
 
-_CONST_CACHE: dict = {}
+_CONST_CACHE: dict[tuple[object, ...], torch.Tensor] = {}
 
 
 def _const(name: str, r: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """Constant ``name`` ("R", "Ainv" or "idx<M>") of order ``r``, made once per dtype and device."""
     key = (name, r, dtype, str(device))
     t = _CONST_CACHE.get(key)
     if t is None:
@@ -86,6 +87,7 @@ def _const(name: str, r: int, dtype: torch.dtype, device: torch.device) -> torch
 
 
 def index_tensor(arr: np.ndarray, device: torch.device) -> torch.Tensor:
+    """``arr`` as an index tensor on ``device``, made once per content and device."""
     key = ("index", arr.tobytes(), str(device))
     t = _CONST_CACHE.get(key)
     if t is None:
@@ -118,7 +120,7 @@ def hessian(T: torch.Tensor, r: int) -> torch.Tensor:
     return H.reshape(B, N, N)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _perm_scatter_index(M: int, r: int, free_positions: bool) -> np.ndarray:
     """Like _scatter_index, into the knot vector reordered as [free entries, fixed entries]."""
     lay = layout(M, r, free_positions)
@@ -191,7 +193,7 @@ def knot_values(
 
 def coefficients(X: torch.Tensor, T: torch.Tensor, r: int) -> torch.Tensor:
     """Polynomial coefficients (B, M, A, 2r) from the full knot vector X (B, N, A)."""
-    B, N, A = X.shape
+    B, _, A = X.shape
     M = T.shape[1]
     K = X.reshape(B, M + 1, r, A)
     d = torch.cat([K[:, :-1], K[:, 1:]], dim=2)  # (B, M, 2r, A)

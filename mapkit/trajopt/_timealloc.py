@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal, overload
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 from torch import nn
 
 from mapkit.trajopt._basis import knot_cost_matrix
@@ -25,7 +26,8 @@ _POLY5_VPEAK = 15.0 / 8.0
 _POLY5_APEAK = 10.0 / math.sqrt(3.0)
 
 
-def _prep(waypoints) -> tuple[torch.Tensor, bool]:
+def _prep(waypoints: torch.Tensor | ArrayLike) -> tuple[torch.Tensor, bool]:
+    """(B, M+1, 3) key-points as a tensor and whether the input was batched; checks dtype and shape."""
     if not isinstance(waypoints, torch.Tensor):
         waypoints = torch.as_tensor(np.asarray(waypoints, dtype=np.float64))
     if not waypoints.is_floating_point():
@@ -40,7 +42,8 @@ def _prep(waypoints) -> tuple[torch.Tensor, bool]:
 
 def _lengths(w: torch.Tensor) -> torch.Tensor:
     """(B, M) segment lengths of key-points (B, M+1, 3)."""
-    return (w[:, 1:] - w[:, :-1]).norm(dim=-1)
+    lengths: torch.Tensor = (w[:, 1:] - w[:, :-1]).norm(dim=-1)
+    return lengths
 
 
 def _trapezoid_time(length: torch.Tensor, v_max: float, a_max: float) -> torch.Tensor:
@@ -103,6 +106,21 @@ def _min_duration(total: torch.Tensor, M: int) -> torch.Tensor:
     return 0.02 * total / M
 
 
+@overload
+def snap_cost_of_times(
+    waypoints: torch.Tensor, durations: torch.Tensor, *, start: torch.Tensor | None = ...,
+    end: torch.Tensor | None = ..., with_grad: Literal[False] = ...,
+) -> torch.Tensor: ...
+@overload
+def snap_cost_of_times(
+    waypoints: torch.Tensor, durations: torch.Tensor, *, start: torch.Tensor | None = ...,
+    end: torch.Tensor | None = ..., with_grad: Literal[True],
+) -> tuple[torch.Tensor, torch.Tensor]: ...
+@overload
+def snap_cost_of_times(
+    waypoints: torch.Tensor, durations: torch.Tensor, *, start: torch.Tensor | None = ...,
+    end: torch.Tensor | None = ..., with_grad: bool,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]: ...
 def snap_cost_of_times(
     waypoints: torch.Tensor,
     durations: torch.Tensor,
@@ -158,7 +176,7 @@ class _SnapTimeProblem:
     """(B,) fixed total time (k_T None)."""
     t_min: torch.Tensor
     """(B, M) smallest durations."""
-    solve_options: dict | None
+    solve_options: dict[str, Any] | None
     """Passed to :func:`min_snap` (constrained J); None or empty: the closed form."""
 
     @property
@@ -166,10 +184,14 @@ class _SnapTimeProblem:
         """The sum of the durations is held at :attr:`total`."""
         return self.k_T is None
 
+    @overload
+    def cost(self, Tc: torch.Tensor, need_grad: Literal[True]) -> tuple[torch.Tensor, torch.Tensor]: ...
+    @overload
+    def cost(self, Tc: torch.Tensor, need_grad: Literal[False]) -> tuple[torch.Tensor, None]: ...
     def cost(self, Tc: torch.Tensor, need_grad: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
         """(B,) objective and, with ``need_grad``, its gradient (B, M); a failed solve costs +inf."""
         if self.solve_options:
-            J, g = self._constrained_snap(Tc, need_grad)
+            J, g = self._constrained_snap(Tc, need_grad, self.solve_options)
         elif need_grad:
             J, g = snap_cost_of_times(self.w, Tc, start=self.start, end=self.end, with_grad=True)
         else:
@@ -178,18 +200,18 @@ class _SnapTimeProblem:
             return J, g
         return J + self.k_T * Tc.sum(-1), (None if g is None else g + self.k_T)
 
-    def _constrained_snap(self, Tc: torch.Tensor, need_grad: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def _constrained_snap(self, Tc: torch.Tensor, need_grad: bool,
+                          solve_options: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor | None]:
         """J(T) of the constrained optimum (:func:`min_snap` with ``solve_options``) and its autograd gradient."""
         from mapkit.trajopt._minsnap import min_snap
 
         Tv = Tc.clone().requires_grad_(need_grad)
         with torch.enable_grad() if need_grad else torch.no_grad():
-            tr = min_snap(self.w, Tv, start=self.start, end=self.end, on_infeasible="ignore", **self.solve_options)
+            tr = min_snap(self.w, Tv, start=self.start, end=self.end, on_infeasible="ignore", **solve_options)
             J = tr.snap_cost()
+            g: torch.Tensor | None = None
             if need_grad:
                 (g,) = torch.autograd.grad(J.sum(), Tv)
-            else:
-                g = None
         return torch.where(tr.solved & torch.isfinite(J), J.detach(), torch.full_like(J, math.inf)), g
 
     def project(self, Tc: torch.Tensor) -> torch.Tensor:
@@ -198,6 +220,7 @@ class _SnapTimeProblem:
         if not self.fixed_total:
             return torch.maximum(Tc, t_min)
         # Euclidean projection onto {T >= t_min, sum T = total} (sort-based simplex projection).
+        assert self.total is not None  # a fixed total is always given (_gradient_allocation)
         M = Tc.shape[-1]
         y = Tc - t_min
         s = (self.total - t_min.sum(-1)).unsqueeze(-1)
@@ -242,11 +265,11 @@ def _gradient_allocation(
     *,
     k_T: float | None,
     total: torch.Tensor | None,
-    start,
-    end,
+    start: torch.Tensor | None,
+    end: torch.Tensor | None,
     max_iters: int,
     rel_tol: float,
-    solve_options: dict | None,
+    solve_options: dict[str, Any] | None,
     min_duration: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Projected gradient descent with Armijo backtracking, batched over problems (float64)."""
@@ -300,8 +323,8 @@ def allocate_times(
     initial: torch.Tensor | None = None,
     max_iters: int = 100,
     rel_tol: float = 1e-6,
-    solve_options: dict | None = None,
-    net: "TimeAllocationNet | None" = None,
+    solve_options: dict[str, Any] | None = None,
+    net: TimeAllocationNet | None = None,
     min_duration: float | torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Segment durations (B, M) — or (M,) for unbatched (M+1, 3) waypoints — in seconds.
@@ -335,7 +358,7 @@ def allocate_times(
     if method == "net":
         if net is None:
             raise TrajoptError("method='net' needs net=TimeAllocationNet(...)")
-        T = net(w.to(next(net.parameters()).dtype), total_time=None if tot is None else tot)
+        T: torch.Tensor = net(w.to(next(net.parameters()).dtype), total_time=None if tot is None else tot)
         return (T if batched else T[0]).to(out_dtype)
 
     w64 = w.to(_WORK)
@@ -383,8 +406,9 @@ def _rule_times(method: str, lengths: torch.Tensor, tot: torch.Tensor | None, v_
 
 
 def _gradient_times(w64: torch.Tensor, lengths: torch.Tensor, tot: torch.Tensor | None, *, v_max: float,
-                    a_max: float, k_T: float | None, start, end, initial, max_iters: int, rel_tol: float,
-                    solve_options: dict | None, min_duration) -> torch.Tensor:
+                    a_max: float, k_T: float | None, start: torch.Tensor | None, end: torch.Tensor | None,
+                    initial: torch.Tensor | None, max_iters: int, rel_tol: float,
+                    solve_options: dict[str, Any] | None, min_duration: float | torch.Tensor | None) -> torch.Tensor:
     """(B, M) durations of the "gradient" method: checks its options, starts from ``initial`` or
     the trapezoid rule and runs :func:`_gradient_allocation`."""
     B, M = lengths.shape
@@ -429,7 +453,7 @@ class TimeAllocationNetConfig:
     """The net also reads the boundary conditions: start velocity (÷ ``v_max``) and acceleration
     (÷ ``a_max``), and the end speed (÷ ``v_max``; 0 = rest at the last key-point). The best split
     of a plan that starts at cruise speed and passes its end is not that of a rest-to-rest plan."""
-    extra: dict = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
     """Free-form notes stored with the config (ignored by the module)."""
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -109,7 +110,7 @@ class Trajectory:
         solved: torch.Tensor | None = None,
         messages: tuple[str, ...] = (),
         batched: bool = True,
-        info: dict | None = None,
+        info: dict[str, Any] | None = None,
     ) -> None:
         if coeffs.ndim != 4 or coeffs.shape[2] != 3:
             raise TrajoptError(f"coeffs must have shape (B, M, 3, n), got {tuple(coeffs.shape)}")
@@ -350,7 +351,7 @@ class Trajectory:
             tilt_max=self._out(tilt),
         )
 
-    def to(self, dtype: torch.dtype) -> "Trajectory":
+    def to(self, dtype: torch.dtype) -> Trajectory:
         """A copy with coefficients and durations cast to ``dtype``."""
         return Trajectory(
             self._coeffs.to(dtype),
