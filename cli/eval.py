@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from mapkit._choices import ON_REJECT
+from mapkit._choices import ON_REJECT, OnReject
 from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 
 
@@ -50,7 +50,7 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int,
-             replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: str, corridor: float,
+             replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
              corridor_check: bool, v_max: float, a_max: float, memory: float, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
              overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""

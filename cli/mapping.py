@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from mapkit.cli.ingest import build_config, ingest_options
 from mapkit.cli.main import COUNT, FINITE, NONNEGATIVE, POSITIVE, library_call, main, workspace_option
+
+if TYPE_CHECKING:
+    from mapkit.esdf import Backend
 
 WORKSPACE = workspace_option("Workspace directory.")
 OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
@@ -62,7 +65,7 @@ def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float, trunc: flo
 @OVERWRITE
 @library_call
 def esdf(workspace: Path, voxel: float, padding: float, sigma: float, unknown: str, solid_depth: float,
-         max_dist: float | None, backend: str, overwrite: bool) -> None:
+         max_dist: float | None, backend: Backend, overwrite: bool) -> None:
     """Signed, Gaussian-smoothed ESDF of the fused map → WS/map.zarr."""
     from mapkit.esdf import EsdfConfig, build_esdf
 

@@ -42,7 +42,7 @@ def view_cmd(workspace: Path | None, run_dir: Path | None, eval_dir: Path | None
 
     config = ViewerConfig(
         workspace=workspace, model=run_dir, eval_dir=eval_dir, host=host, port=port, max_points=max_points,
-        frame=frame_index, goal=tuple(goal) if goal else None, corridor=corridor,
+        frame=frame_index, goal=goal or None, corridor=corridor,
         slice_axis=slice_spec[0] if slice_spec else "z", slice_position=slice_spec[1] if slice_spec else None,
     )
     t0 = time.perf_counter()

@@ -66,6 +66,11 @@ def check_fields(values: dict[str, Any], cls: type, option: str, error: type[Exc
 
 
 def _example(cls: type, name: str) -> Any:
-    default = next(f for f in dataclasses.fields(cls) if f.name == name)
-    value = default.default if default.default is not dataclasses.MISSING else default.default_factory()  # type: ignore[misc]  # one of the two is set
+    field = next(f for f in dataclasses.fields(cls) if f.name == name)
+    if field.default is not dataclasses.MISSING:
+        value = field.default
+    elif field.default_factory is not dataclasses.MISSING:
+        value = field.default_factory()
+    else:
+        raise TypeError(f"{cls.__name__}.{name} has no default")
     return list(value) if isinstance(value, tuple) else value

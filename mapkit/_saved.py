@@ -23,4 +23,4 @@ def load_saved(path: Path, what: str, error: type[MapkitError], keys: tuple[str,
     if missing:
         raise error(f"{path} is not a {what} (damaged, truncated, or not written by mapkit); use the file "
                     "`mapkit train` wrote, or train again")
-    return saved  # type: ignore[return-value]
+    return saved

@@ -65,7 +65,7 @@ def clean_stale(directory: Path) -> list[Path]:
     """Remove what killed mapkit commands left in ``directory`` (``.NAME.partial-PID`` outputs of
     processes that are gone) and put back ``.NAME.old-PID`` when NAME itself is missing (a kill
     between the two renames of :func:`atomic_output`); logs each. Returns the paths handled."""
-    handled = []
+    handled: list[Path] = []
     try:
         entries = list(directory.iterdir())
     except OSError:

@@ -127,10 +127,11 @@ class BagRecorder:
         self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent))
         tmp_out = self._tmpdir / self.path.name
         if self.format == "mcap":
-            from mcap.writer import CompressionType, Writer
+            from mcap.writer import CompressionType
+            from mcap.writer import Writer as McapWriter
 
-            self._file = open(tmp_out, "wb")
-            self._writer = Writer(
+            self._file = open(tmp_out, "wb")  # noqa: SIM115 - held open across calls, closed by close()/abort()
+            self._writer = McapWriter(
                 self._file,
                 compression=CompressionType.ZSTD if self.compression else CompressionType.NONE,
             )
@@ -139,16 +140,17 @@ class BagRecorder:
             self._writer.start(profile="ros2", library=f"mapkit-{__version__}")
             self._schemas: dict[str, int] = {}
         elif self.format == "ros2":
-            from rosbags.rosbag2 import StoragePlugin, Writer
+            from rosbags.rosbag2 import StoragePlugin
+            from rosbags.rosbag2 import Writer as Rosbag2Writer
 
-            self._writer = Writer(tmp_out, version=8, storage_plugin=StoragePlugin.SQLITE3)
+            self._writer = Rosbag2Writer(tmp_out, version=8, storage_plugin=StoragePlugin.SQLITE3)
             self._writer.open()
         else:
-            from rosbags.rosbag1 import Writer
+            from rosbags.rosbag1 import Writer as Rosbag1Writer
 
-            self._writer = Writer(tmp_out)
+            self._writer = Rosbag1Writer(tmp_out)
             if self.compression:
-                self._writer.set_compression(Writer.CompressionFormat.LZ4)
+                self._writer.set_compression(Rosbag1Writer.CompressionFormat.LZ4)
             self._writer.open()
 
     def close(self) -> None:

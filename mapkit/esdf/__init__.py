@@ -19,7 +19,7 @@ Large grids: :func:`signed_distance_chunked` streams chunk by chunk into :func:`
 
 from mapkit.esdf._build import MAP, EsdfBuildError, EsdfConfig, EsdfSummary, build_esdf
 from mapkit.esdf._chunked import ChunkedSummary, chunk_halo, signed_distance_chunked
-from mapkit.esdf._distance import BACKENDS, signed_distance, smooth
+from mapkit.esdf._distance import BACKENDS, Backend, signed_distance, smooth
 from mapkit.esdf._errors import EsdfError
 from mapkit.esdf._map import OUTSIDE_POLICIES, EsdfMap
 from mapkit.esdf._slice import Slice, render_slices, slice_plane
@@ -32,6 +32,7 @@ __all__ = [
     "EsdfSummary",
     "build_esdf",
     "BACKENDS",
+    "Backend",
     "OUTSIDE_POLICIES",
     "UNKNOWN_POLICIES",
     "ChunkedSummary",

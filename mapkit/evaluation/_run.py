@@ -539,7 +539,7 @@ def _collect(config: EvalConfig, pairs: dict[str, list[Pair]],
 def _results_doc(config: EvalConfig, context: _ModelContext, pairs: dict[str, list[Pair]],
                  summary: dict, episodes: list[EpisodeRecord]) -> dict[str, Any]:
     """results.json's content (key order is the file's)."""
-    doc = {
+    doc: dict[str, Any] = {
         "format": EVAL_FORMAT,
         "versions": _versions(),
         "model": context.model_info,
@@ -570,7 +570,7 @@ def _write_outputs(out_dir: Path, doc: dict[str, Any], lat: dict, alloc: dict, w
         (tmp / "latency.json").write_text(json.dumps(
             {"format": EVAL_FORMAT, "device": platform.processor() or platform.machine(), "torch_threads": 1,
              "workers": workers, "latency": lat, "allocation": alloc}, indent=1) + "\n")
-        np.savez_compressed(tmp / "trajectories.npz", **paths)
+        np.savez_compressed(tmp / "trajectories.npz", **paths)  # type: ignore[arg-type]  # numpy's stub: a key might be allow_pickle
         write_report(tmp, doc, lat, worlds, alloc)
 
 

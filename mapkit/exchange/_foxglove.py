@@ -140,7 +140,7 @@ def _log_cloud(path: Path, world: str, ns: int, channel: Any) -> None:
     import open3d as o3d
     from foxglove.messages import PointCloud
 
-    points = np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64)
+    points = np.asarray(o3d.io.read_point_cloud(path).points, dtype=np.float64)
     if not len(points):
         raise ExchangeError(f"{path} has no points; re-run `mapkit fuse --overwrite`")
     packed = np.zeros(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgba", "u1", 4)])

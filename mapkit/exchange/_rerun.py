@@ -84,7 +84,7 @@ def _log_maps(rec: Any, workspace: Path, frames: Any) -> list[str]:
 
     logged = []
     if (workspace / CLOUD).exists():
-        points = np.asarray(o3d.io.read_point_cloud(str(workspace / CLOUD)).points)
+        points = np.asarray(o3d.io.read_point_cloud(workspace / CLOUD).points)
         rec.log("/world/cloud", rr.Points3D(points, colors=_height_colours(points[:, 2])), static=True)
         logged.append("/world/cloud")
     if (workspace / MAP).exists():

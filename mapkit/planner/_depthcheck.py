@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -33,7 +34,8 @@ class CameraInput:
     """(B, 4, 4) body (FLU) → optical camera frame."""
 
     @classmethod
-    def from_calibration(cls, K: torch.Tensor, width: int, height: int, T_body_camera: torch.Tensor) -> "CameraInput":
+    def from_calibration(cls, K: torch.Tensor | np.ndarray, width: int, height: int,
+                         T_body_camera: torch.Tensor | np.ndarray) -> "CameraInput":
         """From K (B, 3, 3) or (3, 3) pixels, the image size and T_body_camera (B, 4, 4) or (4, 4)."""
         K = torch.as_tensor(K, dtype=torch.float64)
         T = torch.as_tensor(T_body_camera, dtype=torch.float64)

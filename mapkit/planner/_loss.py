@@ -384,9 +384,14 @@ def candidate_loss(
     logits = out.candidate_eta_logits if out.candidate_eta_logits is not None else out.eta_logit[:, None]
     B, M, K, _ = cand.shape
     goal = torch.as_tensor(goal, dtype=cand.dtype, device=cand.device)
-    rep = lambda t: None if t is None else torch.as_tensor(t).repeat_interleave(M, dim=0)  # noqa: E731
-    plan = net.trajectory(cand.reshape(B * M, K, 3), start_velocity=rep(start_velocity), end_speed=rep(end_speed),
-                          corridor=corridor)
+
+    def rep(t: torch.Tensor) -> torch.Tensor:
+        """``t`` once per candidate (sample-major)."""
+        return torch.as_tensor(t).repeat_interleave(M, dim=0)
+
+    plan = net.trajectory(cand.reshape(B * M, K, 3),
+                          start_velocity=None if start_velocity is None else rep(start_velocity),
+                          end_speed=None if end_speed is None else rep(end_speed), corridor=corridor)
     pts_body = sample_trajectory(plan.trajectory, samples_per_second=cfg.samples_per_second, min_samples=cfg.min_samples)
     pts_world = body_to_world(pts_body, rep(T_world_body))
     goal_m = rep(goal)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
@@ -139,13 +139,13 @@ class PlannerConfig:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict) -> "PlannerConfig":
+    def from_dict(cls, data: dict[str, Any]) -> "PlannerConfig":
         """Build a config from :meth:`to_dict` output; unknown keys raise :class:`PlannerError`."""
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - names)
         if unknown:
             raise PlannerError(f"unknown PlannerConfig fields {unknown}; known: {sorted(names)}")
-        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items()}
+        kw: dict[str, Any] = {k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items()}
         return cls(**kw)
 
     def anchors(self) -> tuple[tuple[float, float], ...]:
@@ -339,6 +339,9 @@ class PlannerNet(nn.Module):
     (so a goal inside an obstacle or behind a wall need not be reached).
     """
 
+    anchor_peaks: torch.Tensor
+    """(M, 2) buffer: :meth:`PlannerConfig.anchors` (not saved in the state dict)."""
+
     def __init__(self, config: PlannerConfig | None = None) -> None:
         super().__init__()
         self.config = config or PlannerConfig()
@@ -368,6 +371,7 @@ class PlannerNet(nn.Module):
         self.register_buffer("anchor_peaks", torch.tensor(c.anchors(), dtype=torch.float32), persistent=False)
         with torch.no_grad():
             last = self.keypoint_mlp[-1]
+            assert isinstance(last, nn.Linear)  # _mlp ends with a Linear layer
             last.weight.mul_(c.keypoint_init_scale)
             last.bias.zero_()
         self.tan = TimeAllocationNet(TimeAllocationNetConfig(num_segments=K, hidden=tuple(c.tan_hidden),
@@ -452,6 +456,7 @@ class PlannerNet(nn.Module):
         candidates = self.anchor_paths(goal) + offsets
         pyramid = None
         if self.judge_mlp is None:
+            assert self.eta_mlp is not None  # one candidate: an η head instead of a judge (__init__)
             logits = self.eta_mlp(flat).reshape(B, M)
             scores = None
             chosen = torch.zeros(B, dtype=torch.long, device=x.device)
@@ -462,6 +467,7 @@ class PlannerNet(nn.Module):
                 pyramid = nearest_depth_pyramid(x)  # once per image, then shared by its goals
                 if image_index is not None:
                     pyramid = pyramid[image_index]
+                assert camera is not None  # required with depth_check and several candidates (checked above)
                 cam = camera.expand(B).to(x.device)
                 parts.append(depth_margins(candidates.detach(), x, cam, max_depth=c.max_depth,
                                            pyramid=pyramid).to(x.dtype))

@@ -25,7 +25,8 @@ def scaled_channels(width: float) -> tuple[int, int, int, int]:
     """Stage channels for a width factor: ``max(8, round(c * width))`` for c in 64/128/256/512."""
     if not width > 0:
         raise PlannerError(f"encoder width must be > 0, got {width}")
-    return tuple(max(8, int(round(c * width))) for c in BASE_CHANNELS)  # type: ignore[return-value]
+    c1, c2, c3, c4 = (max(8, int(round(c * width))) for c in BASE_CHANNELS)
+    return c1, c2, c3, c4
 
 
 class BasicBlock(nn.Module):
@@ -63,6 +64,12 @@ class ResNet18(nn.Module):
         width: channel scale factor; 1.0 is the standard 64/128/256/512 network (the only width that
             can load torchvision weights), e.g. 0.25 gives 16/32/64/128 for the CPU preset.
     """
+
+    layer1: nn.Sequential
+    layer2: nn.Sequential
+    layer3: nn.Sequential
+    layer4: nn.Sequential
+    """The four stages, set by name in ``__init__`` (torchvision's names, so its weights load)."""
 
     def __init__(self, *, in_channels: int = 1, width: float = 1.0) -> None:
         super().__init__()

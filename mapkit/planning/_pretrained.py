@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 PRETRAINED = "pretrained"
@@ -14,7 +15,7 @@ def pretrained_dir() -> Path:
     return Path(__file__).resolve().parent / "pretrained"
 
 
-def resolve_model(model: str | Path) -> Path:
+def resolve_model(model: str | os.PathLike[str]) -> Path:
     """A run directory for ``model``: the shipped model's directory for "pretrained", else the path."""
     if str(model) == PRETRAINED:
         return pretrained_dir()

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Sequence, TypedDict
 
 import numpy as np
 import torch
 
 from mapkit.errors import MapkitError
 from mapkit.planner._depthcheck import CameraInput
+
+if TYPE_CHECKING:
+    import zarr
 
 
 class TrainDataError(MapkitError):
@@ -27,8 +30,8 @@ class TupleStore:
     velocity_body: np.ndarray
     T_world_body: np.ndarray
     split: np.ndarray
-    attrs: dict
-    T_body_camera: np.ndarray | None = None
+    attrs: dict[str, Any]
+    T_body_camera: np.ndarray
     """(n, 4, 4) camera (optical) → body per tuple."""
     goal_blocked: np.ndarray | None = None
     """(n, G) uint8: the goal's straight line is blocked in the map (stores exported before the goal
@@ -47,13 +50,35 @@ class TupleStore:
             attrs = dict(root.attrs)
             if attrs.get("kind") != "mapkit.tuples":
                 raise KeyError("kind")
-            blocked = root["goal_blocked"][:] if "goal_blocked" in root else None
-            T_wb = root["T_world_body"][:]
-            T_bc = np.linalg.inv(T_wb) @ root["T_world_camera"][:]
-            return cls(ws, root["depth"], root["goals_body"][:], root["velocity_body"][:], T_wb,
-                       root["split"][:], attrs, T_bc, blocked)
+            blocked = _whole(root, "goal_blocked") if "goal_blocked" in root else None
+            T_wb = _whole(root, "T_world_body")
+            T_bc = np.linalg.inv(T_wb) @ _whole(root, "T_world_camera")
+            return cls(ws, root["depth"], _whole(root, "goals_body"), _whole(root, "velocity_body"), T_wb,
+                       _whole(root, "split"), attrs, T_bc, blocked)
         except Exception as exc:
             raise TrainDataError(f"{path} is not a mapkit tuples store ({type(exc).__name__}: {exc}); re-run `mapkit export --overwrite`") from None
+
+
+def _whole(root: zarr.Group, name: str) -> np.ndarray:
+    """Array ``name`` of ``root`` read into memory."""
+    import zarr
+
+    array = root[name]
+    if not isinstance(array, zarr.Array):
+        raise KeyError(f"{name} is a group, not an array")
+    return np.asarray(array[:])
+
+
+class Batch(TypedDict):
+    """One training batch (:meth:`TupleSamples.load`)."""
+
+    depth: torch.Tensor
+    image_index: torch.Tensor
+    goal: torch.Tensor
+    velocity: torch.Tensor
+    T_world_body: torch.Tensor
+    camera: CameraInput
+    blocked: torch.Tensor
 
 
 class TupleSamples:
@@ -106,7 +131,7 @@ class TupleSamples:
             batches = [batches[i] for i in generator.permutation(len(batches))]
         yield from batches[rank::world_size]
 
-    def load(self, store_index: int, part: np.ndarray, device: torch.device) -> dict[str, torch.Tensor]:
+    def load(self, store_index: int, part: np.ndarray, device: torch.device) -> Batch:
         """Tensors of one batch: depth (U,H,W) metres with NaN of the U distinct tuples, image_index (B,)
         (each sample's depth image), goal (B,3), velocity (B,3), T_world_body (B,4,4),
         camera (:class:`mapkit.planner.CameraInput` per sample), blocked (B,) bool (all False for stores

@@ -10,7 +10,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import torch
@@ -21,6 +21,9 @@ from mapkit._version import __version__
 from mapkit.train._config import TrainConfig, TrainConfigError
 from mapkit.train._data import TrainDataError, TupleSamples, TupleStore
 from mapkit.train._provenance import simulated_worlds, workspace_camera
+
+if TYPE_CHECKING:
+    from mapkit.planner import PlannerNet
 
 METRIC_KEYS = ("total", "obstacle", "goal", "smoothness", "escape", "time", "score", "collision_rate",
                "winner_collision_rate", "score_accuracy")
@@ -50,7 +53,7 @@ class TrainSummary:
 class _Step(nn.Module):
     """The network's forward behind one module, so DistributedDataParallel sees (and syncs) it."""
 
-    def __init__(self, net: nn.Module) -> None:
+    def __init__(self, net: PlannerNet) -> None:
         super().__init__()
         self.net = net
 
@@ -108,7 +111,7 @@ def _distributed() -> tuple[int, int]:
     return dist.get_rank(), dist.get_world_size()
 
 
-def _active_fraction(net: nn.Module) -> tuple[list[Any], dict[int, torch.Tensor]]:
+def _active_fraction(net: PlannerNet) -> tuple[list[Any], dict[int, torch.Tensor]]:
     """Hooks recording, per hidden ReLU of the key-point MLP, which units were ever positive."""
     seen: dict[int, torch.Tensor] = {}
     hooks = []
@@ -133,7 +136,7 @@ def _end_speeds(planner: Any, count: int, rng: np.random.Generator | None, devic
     return torch.from_numpy(cruise * planner.cruise_speed).to(device)
 
 
-def _straight_output(net: nn.Module, goal: torch.Tensor) -> Any:
+def _straight_output(net: PlannerNet, goal: torch.Tensor) -> Any:
     from mapkit.planner import PlannerOutput
 
     line = net.straight_line(goal)
@@ -141,7 +144,7 @@ def _straight_output(net: nn.Module, goal: torch.Tensor) -> Any:
     return PlannerOutput(keypoints=line, eta=zero + 0.5, eta_logit=zero)
 
 
-def validate(net: nn.Module, samples: TupleSamples, maps: list[Any], loss_config: Any, device: torch.device, *,
+def validate(net: PlannerNet, samples: TupleSamples, maps: list[Any], loss_config: Any, device: torch.device, *,
              straight: bool = False, max_batches: int | None = None, batch_size: int = 16,
              corridor: float | None = None) -> dict[str, float]:
     """Mean loss terms over a split (the chosen candidate's), with straight=True for key-points on
@@ -273,7 +276,7 @@ _TAN_FIELDS = frozenset({"tan_boundary", "tan_hidden", "accel", "min_segment_tim
 """PlannerConfig fields that only change the time allocation (may differ from --init's with --only tan)."""
 
 
-def _load_init(net: nn.Module, init: str, *, tan_fresh: bool = False) -> None:
+def _load_init(net: PlannerNet, init: str, *, tan_fresh: bool = False) -> None:
     """Weights of the model ``init`` (run directory, model.pt or "pretrained") into ``net``; with
     ``tan_fresh`` its TAN options may differ and the TAN keeps its new initial weights."""
     from mapkit.planning import resolve_model
@@ -619,7 +622,7 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     if run.writer is not None:
         run.writer.close()
     seconds = time.perf_counter() - t_start
-    last = next((m for m in reversed(run.metrics) if "train" in m), {})
+    last: dict[str, Any] = next((m for m in reversed(run.metrics) if "train" in m), {})
     rate = samples_seen * world / train_seconds if train_seconds > 0 else math.nan
     return TrainSummary(run_dir, epoch, run.step, seconds, rate, last, baseline, run.best_epoch,
                         data.train_set.blocked_count(), threads)

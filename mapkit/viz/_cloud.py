@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -31,6 +31,16 @@ class PlyPoints:
     """uint8 (N, 3) red, green, blue when the file has them."""
 
 
+@dataclass
+class _PlyElement:
+    """One ``element`` line of a PLY header and the ``property`` lines under it."""
+
+    name: str
+    count: int
+    properties: list[tuple[str, str | None]] = field(default_factory=list)
+    """(name, numpy type code), the code None for a list property."""
+
+
 def read_ply_points(path: str | Path) -> PlyPoints:
     """Read the vertex positions (and colours) of a PLY file (binary little/big endian or ASCII), as
     Open3D writes ``cloud.ply``; other elements (faces) are ignored when they follow the vertices.
@@ -42,7 +52,8 @@ def read_ply_points(path: str | Path) -> PlyPoints:
         with open(p, "rb") as f:
             if f.readline().strip() != b"ply":
                 raise VizError(f"{str(p)!r} is not a PLY file (no 'ply' magic); {_FIX}")
-            fmt, elements = None, []  # [name, count, [(prop name, dtype)]]
+            fmt: str | None = None
+            elements: list[_PlyElement] = []
             while True:
                 line = f.readline()
                 if not line:
@@ -55,12 +66,12 @@ def read_ply_points(path: str | Path) -> PlyPoints:
                 if words[0] == "format" and len(words) >= 2:
                     fmt = words[1]
                 elif words[0] == "element" and len(words) == 3:
-                    elements.append([words[1], int(words[2]), []])
+                    elements.append(_PlyElement(words[1], int(words[2])))
                 elif words[0] == "property" and elements:
                     if words[1] == "list":
-                        elements[-1][2].append((words[-1], None))
+                        elements[-1].properties.append((words[-1], None))
                     elif len(words) == 3 and words[1] in _PLY_TYPES:
-                        elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+                        elements[-1].properties.append((words[2], _PLY_TYPES[words[1]]))
                     else:
                         raise VizError(f"{str(p)!r}: PLY property line {line.strip()!r} is not understood; {_FIX}")
             body = f.read()
@@ -70,9 +81,9 @@ def read_ply_points(path: str | Path) -> PlyPoints:
         raise VizError(f"{str(p)!r}: malformed PLY header ({exc}); {_FIX}") from None
     if fmt not in ("binary_little_endian", "binary_big_endian", "ascii"):
         raise VizError(f"{str(p)!r}: PLY format {fmt!r} is not supported (binary or ascii)")
-    if not elements or elements[0][0] != "vertex":
-        raise VizError(f"{str(p)!r}: the first PLY element must be 'vertex' (got {[e[0] for e in elements]}); {_FIX}")
-    _, n, props = elements[0]
+    if not elements or elements[0].name != "vertex":
+        raise VizError(f"{str(p)!r}: the first PLY element must be 'vertex' (got {[e.name for e in elements]}); {_FIX}")
+    n, props = elements[0].count, elements[0].properties
     names = [name for name, _ in props]
     if not {"x", "y", "z"} <= set(names) or any(t is None for _, t in props):
         raise VizError(f"{str(p)!r}: PLY vertices need scalar x, y, z properties (have {names}); {_FIX}")
@@ -86,7 +97,7 @@ def read_ply_points(path: str | Path) -> PlyPoints:
         col = {name: table[:, i] for i, name in enumerate(names)}
     else:
         order = "<" if fmt == "binary_little_endian" else ">"
-        dtype = np.dtype([(name, order + t) for name, t in props])
+        dtype = np.dtype([(name, order + t) for name, t in props if t is not None])  # no lists: checked above
         if len(body) < n * dtype.itemsize:
             raise VizError(
                 f"{str(p)!r}: PLY declares {n} vertices ({n * dtype.itemsize} bytes) but holds {len(body)} bytes; "

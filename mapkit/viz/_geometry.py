@@ -231,7 +231,7 @@ def ray_surface(esdf_map: Any, origin: np.ndarray, direction: np.ndarray, *, max
     box first."""
     o = np.asarray(origin, dtype=np.float64).reshape(3)
     d = np.asarray(direction, dtype=np.float64).reshape(3)
-    d = d / max(np.linalg.norm(d), 1e-12)
+    d = d / max(float(np.linalg.norm(d)), 1e-12)
     lo, hi = esdf_map.bounds
     with np.errstate(divide="ignore", invalid="ignore"):
         t0 = np.where(d != 0, (lo - o) / d, -np.inf)
@@ -272,7 +272,7 @@ def pick_point(
     "slice", "surface", "none".
     """
     d = np.asarray(direction, dtype=np.float64).reshape(3)
-    d = d / max(np.linalg.norm(d), 1e-12)
+    d = d / max(float(np.linalg.norm(d)), 1e-12)
     if plane is not None:
         axis, position, corners = plane
         p = ray_plane(origin, d, axis=axis, position=position)
