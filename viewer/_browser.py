@@ -111,73 +111,96 @@ def screenshot(
     `ready` holds is kept), or raises :class:`BrowserError` after `timeout`
     (the last capture is then saved at `path` for inspection).
     """
-    from PIL import Image
-
     exe = chromium or find_chromium()
     if exe is None:
         raise BrowserError("no Chromium found; install Debian's `chromium` (apt-get install chromium) or set MAPKIT_CHROMIUM")
     out = Path(path)
     tmp = Path(tempfile.mkdtemp(prefix="mapkit-chromium-"))
+    proc, log = _launch_chromium(exe, tmp, width, height)
+    cdp = None
+    try:
+        deadline = time.monotonic() + timeout
+        cdp = _connect(exe, proc, tmp, deadline)
+        cdp.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
+        cdp.call("Page.navigate", url=url)
+        return _capture_when_ready(cdp, url, out, deadline=deadline, timeout=timeout, min_wait=min_wait, ready=ready,
+                                   settle=settle)
+    finally:
+        _close_chromium(cdp, proc, log, tmp)
+
+
+def _launch_chromium(exe: str, tmp: Path, width: int, height: int) -> tuple[subprocess.Popen, Any]:
+    """Start headless Chromium on about:blank with its profile and log in ``tmp`` → (process, open log file)."""
     args = [exe, *CHROMIUM_FLAGS, f"--window-size={width},{height}", f"--user-data-dir={tmp / 'profile'}",
             "--remote-debugging-port=0", "about:blank"]
     if hasattr(os, "geteuid") and os.geteuid() == 0:
         args.insert(1, "--no-sandbox")  # Chromium's sandbox refuses to run as root (CI containers)
     log = open(tmp / "chromium.log", "wb")
     proc = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
-    cdp = None
-    try:
-        deadline = time.monotonic() + timeout
-        port_file = tmp / "profile" / "DevToolsActivePort"
-        while not (port_file.is_file() and port_file.read_text().strip()):
-            if proc.poll() is not None or time.monotonic() > deadline:
-                raise BrowserError(f"Chromium did not start ({exe}); see {tmp / 'chromium.log'}")
-            time.sleep(0.1)
-        port = int(port_file.read_text().split()[0])
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as resp:
-            pages = [t for t in json.load(resp) if t.get("type") == "page"]
-        if not pages:
-            raise BrowserError("Chromium opened no page")
-        cdp = _Cdp(pages[0]["webSocketDebuggerUrl"])
-        cdp.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
-        cdp.call("Page.navigate", url=url)
-        started = time.monotonic()
-        previous: np.ndarray | None = None
-        while True:
-            time.sleep(0.5)
-            if time.monotonic() > deadline:
-                kept = ""
-                if previous is not None:  # keep the last capture: it shows what went wrong
-                    out.parent.mkdir(parents=True, exist_ok=True)
-                    Image.fromarray(previous).save(out)
-                    kept = f"; the last capture is in {out}"
-                raise BrowserError(f"the page at {url} did not settle into a ready scene within {timeout:.0f} s{kept}")
-            if time.monotonic() - started < min_wait:
-                continue
-            cdp.call("Runtime.evaluate", expression=_DISMISS_JS)
-            shot = cdp.call("Page.captureScreenshot", format="png", timeout=60.0)
-            png = base64.b64decode(shot["data"])
-            image = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
-            settled = not settle or (previous is not None and np.array_equal(image, previous))
-            if (ready is None or ready(image)) and settled:
+    return proc, log
+
+
+def _connect(exe: str, proc: subprocess.Popen, tmp: Path, deadline: float) -> _Cdp:
+    """A DevTools connection to Chromium's first page, once its debugging port is up (by ``deadline``)."""
+    port_file = tmp / "profile" / "DevToolsActivePort"
+    while not (port_file.is_file() and port_file.read_text().strip()):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            raise BrowserError(f"Chromium did not start ({exe}); see {tmp / 'chromium.log'}")
+        time.sleep(0.1)
+    port = int(port_file.read_text().split()[0])
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as resp:
+        pages = [t for t in json.load(resp) if t.get("type") == "page"]
+    if not pages:
+        raise BrowserError("Chromium opened no page")
+    return _Cdp(pages[0]["webSocketDebuggerUrl"])
+
+
+def _capture_when_ready(cdp: _Cdp, url: str, out: Path, *, deadline: float, timeout: float, min_wait: float,
+                        ready: Callable[[np.ndarray], bool] | None, settle: bool) -> Path:
+    """Capture every half second after ``min_wait`` until ``ready`` holds on a settled capture; save it at ``out``."""
+    from PIL import Image
+
+    started = time.monotonic()
+    previous: np.ndarray | None = None
+    while True:
+        time.sleep(0.5)
+        if time.monotonic() > deadline:
+            kept = ""
+            if previous is not None:  # keep the last capture: it shows what went wrong
                 out.parent.mkdir(parents=True, exist_ok=True)
-                out.write_bytes(png)
-                return out
-            previous = image
-    finally:
-        if cdp is not None:
-            try:
-                cdp.call("Browser.close", timeout=5.0)
-            except Exception:  # noqa: BLE001 - the browser may already be gone
-                pass
-            cdp.close()
+                Image.fromarray(previous).save(out)
+                kept = f"; the last capture is in {out}"
+            raise BrowserError(f"the page at {url} did not settle into a ready scene within {timeout:.0f} s{kept}")
+        if time.monotonic() - started < min_wait:
+            continue
+        cdp.call("Runtime.evaluate", expression=_DISMISS_JS)
+        shot = cdp.call("Page.captureScreenshot", format="png", timeout=60.0)
+        png = base64.b64decode(shot["data"])
+        image = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
+        settled = not settle or (previous is not None and np.array_equal(image, previous))
+        if (ready is None or ready(image)) and settled:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_bytes(png)
+            return out
+        previous = image
+
+
+def _close_chromium(cdp: _Cdp | None, proc: subprocess.Popen, log: Any, tmp: Path) -> None:
+    """Close the browser (politely, then by force), the log, and remove ``tmp``."""
+    if cdp is not None:
+        try:
+            cdp.call("Browser.close", timeout=5.0)
+        except Exception:  # noqa: BLE001 - the browser may already be gone
+            pass
+        cdp.close()
+    try:
+        proc.wait(timeout=5)
+    except subprocess.TimeoutExpired:
+        proc.terminate()
         try:
             proc.wait(timeout=5)
         except subprocess.TimeoutExpired:
-            proc.terminate()
-            try:
-                proc.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=5)
-        log.close()
-        shutil.rmtree(tmp, ignore_errors=True)
+            proc.kill()
+            proc.wait(timeout=5)
+    log.close()
+    shutil.rmtree(tmp, ignore_errors=True)
