@@ -33,7 +33,13 @@ def quat_xyzw_from_matrix(R: ArrayLike) -> NDArray[np.float64]:
     """Unit quaternion (x, y, z, w), w >= 0, of a rotation: a 3x3 matrix or the rotation block of a 4x4.
 
     scipy's conversion, because every recording :class:`mapkit.bags.BagRecorder` writes carries its
-    bytes (a hand-written Shepperd's method differs in the last bit for most rotations)."""
+    bytes (a hand-written Shepperd's method differs in the last bit for most rotations).
+
+    >>> quat_xyzw_from_matrix(np.diag([-1.0, -1.0, 1.0]))  # 180° about z
+    array([0., 0., 1., 0.])
+    >>> quat_xyzw_from_matrix(transform_from_pose([1.0, 2.0, 0.5], [0.0, 0.0, 0.6, 0.8])).round(12)
+    array([0. , 0. , 0.6, 0.8])
+    """
     from scipy.spatial.transform import Rotation
 
     q: NDArray[np.float64] = Rotation.from_matrix(np.asarray(R, dtype=np.float64)[:3, :3]).as_quat()
@@ -56,7 +62,17 @@ def pose_from_transform(T: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.f
 
 
 def invert_transform(T: ArrayLike) -> NDArray[np.float64]:
-    """Inverse of a rigid 4x4 transform (or a stack [..., 4, 4])."""
+    """Inverse of a rigid 4x4 transform (or a stack [..., 4, 4]).
+
+    A body at (1, 2, 0.5) m yawed 90° (x forward, so its front is world +y); the world point
+    (1, 3, 0.5) lies 1 m in front of it:
+
+    >>> T_world_body = transform_from_pose([1.0, 2.0, 0.5], [0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)])
+    >>> (invert_transform(T_world_body) @ [1.0, 3.0, 0.5, 1.0]).round(12) + 0.0
+    array([1., 0., 0., 1.])
+    >>> np.allclose(invert_transform(T_world_body) @ T_world_body, np.eye(4))
+    True
+    """
     T = np.asarray(T, dtype=np.float64)
     R_t = np.swapaxes(T[..., :3, :3], -1, -2)
     out = np.zeros_like(T)

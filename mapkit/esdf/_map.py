@@ -205,6 +205,16 @@ class EsdfMap:
         -------
         distance float64 (N,), gradient float64 (N, 3) in metres per metre: the exact gradient of the
         trilinear interpolant (piecewise; on a cell face the cell on the upper side is used).
+
+        Example: the field of a wall at x = 1 m is linear, so interpolation gives it exactly; a point
+        outside the grid gets NaN:
+
+        >>> x = 0.5 + 0.1 * np.arange(20)  # voxel-centre x of a 20 × 10 × 10 grid
+        >>> wall = np.broadcast_to(x[:, None, None] - 1.0, (20, 10, 10)).astype(np.float32)
+        >>> m = EsdfMap(esdf=wall, voxel_size=0.1, origin=(0.5, 0.0, 0.0))
+        >>> distance, gradient = m.query([[1.23, 0.45, 0.5], [9.0, 0.0, 0.0]])
+        >>> distance.round(6), gradient.round(6) + 0.0
+        (array([0.23,  nan]), array([[ 1.,  0.,  0.], [nan, nan, nan]]))
         """
         _check_outside(outside)
         p = np.asarray(points, dtype=np.float64)

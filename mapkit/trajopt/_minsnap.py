@@ -431,6 +431,20 @@ def min_snap(
     Returns:
         A :class:`Trajectory` in the dtype and on the device of ``waypoints``; unbatched inputs
         give an unbatched trajectory.
+
+    Example: from rest to rest over d metres in T seconds, the minimum-snap trajectory is the
+    7th-order smoothstep d (35 s⁴ − 84 s⁵ + 70 s⁶ − 20 s⁷), s = t/T: its snap cost is 100800 d²/T⁷,
+    and it is half-way at T/2 at the speed 35/16 d/T.
+
+    >>> import torch
+    >>> d, T = 2.0, 1.0
+    >>> traj = min_snap(torch.tensor([[0.0, 0.0, 0.0], [d, 0.0, 0.0]], dtype=torch.float64),
+    ...                 torch.tensor([T], dtype=torch.float64))
+    >>> round(traj.snap_cost().item(), 6), 100800 * d**2 / T**7
+    (403200.0, 403200.0)
+    >>> t = torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64) * T
+    >>> traj.position(t)[:, 0].round(decimals=9).tolist(), traj.derivative(t, 1)[:, 0].round(decimals=9).tolist()
+    ([0.0, 1.0, 2.0], [0.0, 4.375, 0.0])
     """
     w, batched = _work_waypoints(waypoints)
     out_dtype = waypoints.dtype
