@@ -41,11 +41,11 @@ def speed(tmp: Path, frames: int) -> None:
 
 
 def accuracy(tmp: Path, world_kind: str, frames: int, width: int) -> dict[str, float]:
-    from mapkit.esdf import EsdfMap
-    from mapkit.esdf import EsdfConfig, build_esdf
+    import open3d as o3d
+
+    from mapkit.esdf import EsdfConfig, EsdfMap, build_esdf
     from mapkit.fusion import FuseConfig, fuse
     from mapkit.sim import SimConfig, simulate
-    import open3d as o3d
 
     config = SimConfig(world=world_kind, seed=11, duration=frames / 30.0, width=width, height=width * 3 // 4)
     result = simulate(config, tmp / world_kind, progress=False)

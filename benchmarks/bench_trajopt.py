@@ -46,7 +46,7 @@ def _peer_worker(inp: str, out: str, repeats: int, cvx_count: int, threads: int)
         from qpth.qp import QPFunction
     except Exception as exc:  # noqa: BLE001
         meta["qpth_error"] = repr(exc)
-        QPFunction = None  # noqa: N806
+        QPFunction = None
     for tag in ("eq", "corr"):
         Q = torch.as_tensor(data[f"{tag}_Q"])
         p = torch.as_tensor(data[f"{tag}_p"])
@@ -278,8 +278,7 @@ def main() -> None:
 
     import torch
 
-    from mapkit.trajopt import SOLVERS, TimeAllocationNet, TimeAllocationNetConfig, allocate_times, min_snap
-    from mapkit.trajopt import _qp
+    from mapkit.trajopt import SOLVERS, TimeAllocationNet, TimeAllocationNetConfig, _qp, allocate_times, min_snap
 
     torch.set_num_threads(args.threads)
     reps = 3 if args.quick else args.repeats
@@ -288,7 +287,6 @@ def main() -> None:
     steps = torch.randn(B, M, 3, generator=g, dtype=torch.float64) * 0.6 + torch.tensor([1.0, 0.2, 0.0], dtype=torch.float64)
     w = torch.cat([torch.zeros(B, 1, 3, dtype=torch.float64), torch.cumsum(steps, 1)], 1)
     T = allocate_times(w, "trapezoid", v_max=2.0, a_max=2.0)
-    rows: list[tuple[str, str, str, str, str]] = []  # (what, ours, peer, ratio, accuracy)
 
     def fwd_bwd(**kw):
         wv = w.clone().requires_grad_(True)
@@ -366,8 +364,8 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as td:
             inp = os.path.join(td, "problems.npz")
             outp = os.path.join(td, "peers.npz")
-            np.savez(inp, **{f"eq_{k}": v for k, v in zip("QpAbGh", eq_qp)},
-                     **{f"corr_{k}": v for k, v in zip("QpAbGh", cor_qp)})
+            np.savez(inp, **{f"eq_{k}": v for k, v in zip("QpAbGh", eq_qp, strict=True)},
+                     **{f"corr_{k}": v for k, v in zip("QpAbGh", cor_qp, strict=True)})
             cmd = [str(PEER_PY), __file__, "--peer-worker", inp, outp, "--repeats", str(max(1, reps // 2)),
                    "--cvx-count", str(args.cvx_count), "--threads", str(args.threads)]
             proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1800)

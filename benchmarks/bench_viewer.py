@@ -105,11 +105,11 @@ def slice_rows(ws: Path) -> None:
     ppv = texture_scale((N, N))
     MapSlicer(m).texture("z", 1.0)  # first call imports matplotlib's colormaps: keep it out of the rows
     for a in "xyz":
-        for fn, cold_d, hot_d in ((lambda s, x: s.texture(a, x, pixels_per_voxel=ppv), lib_cold, lib_hot),
-                                  (lambda s, x: s.slice(a, x), read_cold, read_hot)):
+        for fn, cold_d, hot_d in ((lambda s, x, a=a: s.texture(a, x, pixels_per_voxel=ppv), lib_cold, lib_hot),
+                                  (lambda s, x, a=a: s.slice(a, x), read_cold, read_hot)):
             slicer = MapSlicer(m)
             cold, hot = [], []
-            for p, q in zip(planes[a], again[a]):
+            for p, q in zip(planes[a], again[a], strict=False):
                 t = time.perf_counter()
                 fn(slicer, p)
                 cold.append(time.perf_counter() - t)
@@ -127,7 +127,7 @@ def slice_rows(ws: Path) -> None:
             app.gui.slice.axis.value = a
             app.slicer.cache.clear()
             cold, hot = [], []
-            for p, q in zip(planes[a], again[a]):
+            for p, q in zip(planes[a], again[a], strict=False):
                 app.gui.slice.position.value = p
                 cold.append(app.timings["slice_ms"] / 1e3)
                 app.gui.slice.position.value = q

@@ -7,14 +7,14 @@ import functools
 import logging
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import click
 
 from mapkit import __version__
 from mapkit.errors import MapkitError
-
 
 _OUTPUTS = ("output", "out", "workspace")
 """Command arguments naming where a command writes: an OSError without a file name (a full disk

@@ -111,8 +111,7 @@ def slice_cmd(workspace: Path, output: Path, raw: bool, positions: tuple[str, ..
 
     Example: mapkit slice -w WS --z 1.0 2.5 3.5 -o slices.png
     """
-    from mapkit.esdf import EsdfMap, render_slices
-    from mapkit.esdf import MAP
+    from mapkit.esdf import MAP, EsdfMap, render_slices
 
     axes = _parse_slices(positions)
     path = render_slices(EsdfMap.open(workspace / MAP), z=axes["z"], x=axes["x"], y=axes["y"], path=output, raw=raw)

@@ -7,9 +7,9 @@ from pathlib import Path
 from typing import Any
 
 import click
-from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, library_call, main
 
 from mapkit._choices import PRESET_NAMES, TRAINED_WEIGHTS
+from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, library_call, main
 
 
 def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:

@@ -13,10 +13,10 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from mcap.reader import make_reader  # noqa: E402
-from mcap_protobuf.decoder import DecoderFactory  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
 
 REPO = Path(__file__).resolve().parent.parent
 

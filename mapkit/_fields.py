@@ -33,7 +33,7 @@ def _matches(value: Any, hint: Any) -> bool:
             return False
         if len(args) == 2 and args[1] is Ellipsis:
             return all(_matches(v, args[0]) for v in value)
-        return len(value) == len(args) and all(_matches(v, a) for v, a in zip(value, args))
+        return len(value) == len(args) and all(_matches(v, a) for v, a in zip(value, args, strict=True))
     if hint is dict or origin is dict:
         return isinstance(value, dict)
     return True  # a type this check does not know: the dataclass's own validation decides

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any, Iterator
+from collections.abc import Iterator
+from typing import Any
 
 
 def prefetch(iterator: Iterator[Any], depth: int = 8) -> Iterator[Any]:
@@ -30,7 +31,7 @@ def prefetch(iterator: Iterator[Any], depth: int = 8) -> Iterator[Any]:
                 if stop.is_set():
                     return
             items.put((done, None))
-        except BaseException as exc:  # handed to the consumer
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer, who re-raises it
             items.put((done, exc))
 
     thread = threading.Thread(target=produce, daemon=True, name="mapkit-prefetch")

@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mapkit.geometry import invert_transform
 from mapkit.bags import BagRecorder
+from mapkit.geometry import invert_transform
 
 T0 = 1_700_000_000_000_000_000
 FPS = 30.0

@@ -180,7 +180,7 @@ def test_kill_9_at_any_point_leaves_every_store_readable(tmp_path):
 
     killed = 0
     env = {**os.environ, "PYTHONPATH": str(__import__("pathlib").Path(__file__).parent)}
-    for name, args in commands.items():
+    for args in commands.values():
         for delay in (0.8, 2.0):
             proc = subprocess.Popen([sys.executable, "-m", "mapkit.cli", *args, "-w", str(ws), "--overwrite"],
                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)

@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from recordings import T0, write_recording
 
 from mapkit import __version__
-from mapkit.cli.main import main
 from mapkit.bags import BagRecorder
-from recordings import T0, write_recording
+from mapkit.cli.main import main
 
 
 def run(*args: str) -> tuple[int, str]:

@@ -10,7 +10,15 @@ import pytest
 from click.testing import CliRunner
 
 from mapkit.cli.main import main
-from mapkit.dataset import DONE, DatasetConfig, DatasetError, build_dataset, dataset_workspaces, split_worlds, world_specs
+from mapkit.dataset import (
+    DONE,
+    DatasetConfig,
+    DatasetError,
+    build_dataset,
+    dataset_workspaces,
+    split_worlds,
+    world_specs,
+)
 from mapkit.export import ExportConfig
 
 
@@ -61,5 +69,5 @@ def test_bad_requests_are_one_line_errors(tmp_path: Path) -> None:
         build_dataset(tmp_path / "t", small(tilt_deg=(0.0, float("nan"))), progress=False)
     result = CliRunner().invoke(main, ["dataset", "-o", str(tmp_path / "d"), "--worlds", "0"])
     assert result.exit_code == 2 and "'--worlds': 0 must be >= 1" in result.output and "Traceback" not in result.output
-    with pytest.raises(DatasetError, match="holds no dataset.json"):
+    with pytest.raises(DatasetError, match=r"holds no dataset.json"):
         dataset_workspaces(tmp_path)

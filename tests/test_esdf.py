@@ -188,7 +188,7 @@ def test_smooth_matches_gaussian_filter_and_copies_at_zero_sigma():
     assert guarded.any()
     same, zero = smooth(raw, voxel_size=0.1, sigma=0.0)
     assert zero == 0 and np.array_equal(same, raw) and same is not raw
-    with pytest.raises(EsdfError, match="sigma=-0.1"):
+    with pytest.raises(EsdfError, match=r"sigma=-0.1"):
         smooth(raw, voxel_size=0.1, sigma=-0.1)
 
 
@@ -249,9 +249,9 @@ def test_chunked_streams_into_a_map_store(tmp_path):
 
 def test_create_map_aborts_cleanly_and_refuses_to_overwrite(tmp_path):
     target = tmp_path / "map.zarr"
-    with pytest.raises(RuntimeError):
-        with create_map(target, shape=(4, 4, 4), origin=(0, 0, 0), voxel_size=0.1, frame_id="world", sigma=0, unknown_policy="free"):
-            raise RuntimeError("killed")
+    with pytest.raises(RuntimeError), create_map(target, shape=(4, 4, 4), origin=(0, 0, 0), voxel_size=0.1,
+                                                 frame_id="world", sigma=0, unknown_policy="free"):
+        raise RuntimeError("killed")
     assert list(tmp_path.iterdir()) == []
     small_map(tmp_path)
     with pytest.raises(EsdfError, match="overwrite"):
@@ -329,7 +329,7 @@ def test_damaged_chunks_are_one_line_for_every_reader(tmp_path):
             chunk.write_bytes(b"\x00garbage")
     m = EsdfMap.open(path)
     for read in (lambda: m.distance_at_voxel(0, 0, 0), lambda: m.query(np.zeros((1, 3)))):
-        with pytest.raises(EsdfError, match="cannot read 'esdf' of map .* re-run `mapkit esdf --overwrite`"):
+        with pytest.raises(EsdfError, match=r"cannot read 'esdf' of map .* re-run `mapkit esdf --overwrite`"):
             read()
     z = float(m.origin[2])
     r = CliRunner().invoke(main, ["slice", "-w", str(tmp_path), "-o", str(tmp_path / "s.png"), "--z", str(z)])
@@ -349,7 +349,7 @@ def test_query_at_voxel_centre_returns_the_voxel_exactly():
     field = rng.normal(size=(9, 8, 7)).astype(np.float32)
     m = EsdfMap(esdf=field, voxel_size=0.2, origin=(1.0, -2.0, 0.5))
     idx = np.stack([rng.integers(0, n, 50) for n in field.shape], axis=-1)
-    d, g = m.query(m.voxel_centre(idx))
+    d, _ = m.query(m.voxel_centre(idx))
     np.testing.assert_array_equal(d, field[idx[:, 0], idx[:, 1], idx[:, 2]])
     assert m.distance_at_voxel(3, 2, 1) == float(field[3, 2, 1])
     np.testing.assert_allclose(m.world_to_voxel(m.voxel_centre([3, 2, 1])), [3, 2, 1], atol=1e-12)
@@ -429,7 +429,7 @@ def test_outside_policy_nan_and_clamp():
 
 # ----------------------------------------------------------------------------- slices
 def test_slice_plane_snaps_and_reads_the_plane(tmp_path):
-    path, occ, raw, esdf, observed = small_map(tmp_path)
+    path, _, raw, esdf, observed = small_map(tmp_path)
     m = EsdfMap.open(path)
     s = slice_plane(m, axis="z", position=0.25 + 5 * 0.1 + 0.03)
     assert s.position == pytest.approx(0.25 + 0.5)

@@ -7,13 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from scenes import box_world, orbit_poses, record_scene, sphere_world
 
 from mapkit.cli.main import main
-from mapkit.esdf import EsdfMap
-from mapkit.esdf import EsdfBuildError, EsdfConfig, build_esdf
+from mapkit.esdf import EsdfBuildError, EsdfConfig, EsdfMap, build_esdf
 from mapkit.fusion import FuseConfig, fuse
 from mapkit.sim import HalfSpace, World
-from scenes import box_world, orbit_poses, record_scene, sphere_world
 
 
 def plane_world() -> World:
@@ -84,7 +83,7 @@ def test_esdf_matches_exact_distance(workspaces: dict, scene: str) -> None:
 
 @pytest.mark.slow
 def test_obstacles_are_solid_and_unknown_policy(workspaces: dict) -> None:
-    ws, world = workspaces["box"]
+    ws, _ = workspaces["box"]
     build_esdf(ws, EsdfConfig(voxel=0.1, sigma=0.0, unknown="occupied"), overwrite=True, progress=False)
     m = EsdfMap.open(ws / "map.zarr")
     centre = np.array([[0.0, 0.0, 0.5]])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 
@@ -172,7 +173,7 @@ def test_a_replanned_reference_is_C3_across_the_switch(latency: float):
     ep = run_episode(empty_world(), START, START + np.array([12.0, 0.0, 0.0]), method, loop)
     assert ep.plans == 6 and ep.outcome == "timeout"
     lag = np.ceil(latency * loop.control_rate - 1e-9) / loop.control_rate
-    for k, (old, new) in enumerate(zip(method.plans, method.plans[1:]), start=1):
+    for k, (old, new) in enumerate(itertools.pairwise(method.plans), start=1):
         assert new.t0 == pytest.approx(k * loop.replan_interval + lag)
         # Position … jerk of the new plan at its start equal the old plan's there.
         assert np.abs(old.state(new.t0) - new.state(new.t0)).max() < 1e-6

@@ -10,6 +10,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 from click.testing import CliRunner
+from scenes import box_world, orbit_poses, record_scene
 from scipy.spatial.transform import Rotation
 
 from mapkit.cli.main import main
@@ -18,7 +19,6 @@ from mapkit.exchange import ExchangeError, FoxgloveConfig, export_foxglove
 from mapkit.fusion import FuseConfig, fuse
 from mapkit.geometry import invert_transform
 from mapkit.ingest import open_frames_store
-from scenes import box_world, orbit_poses, record_scene
 
 
 @pytest.fixture(scope="module")

@@ -97,5 +97,5 @@ def test_export_bad_inputs(workspace: tuple[Path, World], tmp_path: Path) -> Non
     meta = other / "map.zarr" / "zarr.json"
     text = meta.read_text().replace('"frame_id": "world"', '"frame_id": "map"')
     meta.write_text(text)
-    with pytest.raises(ExportError, match="map.zarr is in frame 'map' but frames.zarr in 'world'"):
+    with pytest.raises(ExportError, match=r"map.zarr is in frame 'map' but frames.zarr in 'world'"):
         export_tuples(other, progress=False)

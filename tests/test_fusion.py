@@ -8,11 +8,11 @@ import numpy as np
 import open3d as o3d
 import pytest
 from click.testing import CliRunner
+from scenes import box_world, orbit_poses, record_scene, sphere_world
 
 from mapkit.cli.main import main
 from mapkit.fusion import FuseConfig, FusionError, estimate_blocks, fuse
 from mapkit.ingest import open_frames_store
-from scenes import box_world, orbit_poses, record_scene, sphere_world
 
 
 @pytest.fixture(scope="module")
@@ -83,7 +83,7 @@ def test_cli_fuse_and_bad_inputs(tmp_path: Path, box_flight: Path) -> None:
 
 
 def test_no_depth_in_range_is_an_error(tmp_path: Path, box_flight: Path) -> None:
-    with pytest.raises(FusionError, match="depth within --max-depth 0.3 m is needed"):
+    with pytest.raises(FusionError, match=r"depth within --max-depth 0.3 m is needed"):
         fuse([box_flight], tmp_path, FuseConfig(voxel=0.05, max_depth=0.3), progress=False)
     assert not (tmp_path / "cloud.ply").exists()
 

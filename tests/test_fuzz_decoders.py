@@ -96,7 +96,7 @@ def test_mutated_images(data: st.DataObject, encoding: str) -> None:
 def test_odometry_bytes_parse_or_fall_back(buf: bytes) -> None:
     out = parse_odometry(buf)
     if out is not None:
-        stamp, parent, child, t, q = out
+        stamp, parent, _, t, q = out
         assert isinstance(stamp, int) and isinstance(parent, str) and t.shape == (3,) and q.shape == (4,)
 
 

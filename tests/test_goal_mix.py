@@ -8,13 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
+from scenes import record_scene
 
 from mapkit.esdf import EsdfConfig, EsdfMap, build_esdf
 from mapkit.export import FUTURE, HIDDEN, RANDOM, ExportConfig, ExportError, blocked_lines, export_tuples
 from mapkit.fusion import FuseConfig, fuse
 from mapkit.sim import Box, HalfSpace, World
-
-from scenes import record_scene
 
 
 def wall_world() -> World:
@@ -72,7 +71,7 @@ def test_mix_fractions_and_hidden_goals_really_hidden(wall_workspace: tuple[Path
     lines = starts[:, None] + frac[None, :, None] * (hidden - starts)[:, None]
     closest = world.signed_distance(lines.reshape(-1, 3)).reshape(len(hidden), -1).min(axis=1)
     assert (closest < 0.3 + 0.1).all()
-    t_hit = np.array([world.raycast(a, (g - a)[None])[0] for a, g in zip(starts, hidden)])
+    t_hit = np.array([world.raycast(a, (g - a)[None])[0] for a, g in zip(starts, hidden, strict=True)])
     assert (t_hit < 1.0).mean() > 0.6
     # On the far side of the wall from the body, and free with clearance in the exact world.
     assert (np.sign(hidden[:, 0] - 3.0) != np.sign(starts[:, 0] - 3.0)).mean() > 0.95

@@ -8,17 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
+from recordings import T0, T_BODY_CAMERA, K, write_recording
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from mapkit.geometry import rotation_angle
 from mapkit.ingest import IngestConfig, IngestError, ingest, open_frames, open_frames_store
-from recordings import K, T_BODY_CAMERA, T0, write_recording
 
 
 def assert_matches(frames, rec, *, depth_tol: float = 1e-6) -> None:
     assert len(frames) == len(rec.stamps_ns)
-    for f, s, T_wc, T_wb, d in zip(frames, rec.stamps_ns, rec.T_world_camera, rec.T_world_body, rec.depth):
+    for f, s, T_wc, T_wb, d in zip(frames, rec.stamps_ns, rec.T_world_camera, rec.T_world_body, rec.depth, strict=True):
         assert f.stamp_ns == s
         assert np.abs(f.T_world_camera[:3, 3] - T_wc[:3, 3]).max() < 1e-6
         assert rotation_angle(f.T_world_camera[:3, :3].T @ T_wc[:3, :3]) < 1e-6
@@ -105,7 +105,7 @@ def test_interpolation_gap_and_coverage(tmp_path: Path) -> None:
     frames = list(stream)
     assert len(frames) == 12
     # Between samples: linear translation / slerp of the bracketing samples, close to truth.
-    err = max(np.abs(f.T_world_body[:3, 3] - T[:3, 3]).max() for f, T in zip(frames, rec.T_world_body))
+    err = max(np.abs(f.T_world_body[:3, 3] - T[:3, 3]).max() for f, T in zip(frames, rec.T_world_body, strict=False))
     assert 0 < err < 0.01
 
     late = write_recording(tmp_path / "late", "mcap", n=12, pose_offset_s=0.2)

@@ -181,7 +181,7 @@ def test_seeded_determinism(box_map):
         return out.keypoints.detach(), out.eta.detach(), loss.detach(), net.encoder.conv1.weight.grad.clone()
 
     a, b = run(), run()
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         assert torch.equal(x, y)
 
 
@@ -333,7 +333,7 @@ def _torchvision_keys_and_shapes() -> dict[str, tuple[int, ...]]:
     shapes["conv1.weight"] = (64, 3, 7, 7)
     bn("bn1", 64)
     prev = 64
-    for layer, c in zip((1, 2, 3, 4), (64, 128, 256, 512)):
+    for layer, c in zip((1, 2, 3, 4), (64, 128, 256, 512), strict=True):
         for block in (0, 1):
             p = f"layer{layer}.{block}"
             cin = prev if block == 0 else c
@@ -384,7 +384,7 @@ def test_torchvision_key_mapping():
         load_torchvision_state_dict(ResNet18(), bad)
     bad = dict(sd)
     bad["layer1.0.conv2.weight"] = torch.zeros(64, 64, 5, 5)
-    with pytest.raises(PlannerError, match="layer1.0.conv2.weight"):
+    with pytest.raises(PlannerError, match=r"layer1.0.conv2.weight"):
         load_torchvision_state_dict(ResNet18(), bad)
 
 

@@ -157,16 +157,14 @@ def test_existing_output_and_failure_leave_no_partial(tmp_path: Path) -> None:
     before = path.read_bytes()
     with pytest.raises(BagError, match="exists"):
         BagRecorder(tmp_path / "rec", "mcap")
-    with pytest.raises(RuntimeError):
-        with BagRecorder(tmp_path / "rec", "mcap", overwrite=True) as rec:
-            rec.write_depth("/d", STAMP, _depth(), frame_id="cam")
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError), BagRecorder(tmp_path / "rec", "mcap", overwrite=True) as rec:
+        rec.write_depth("/d", STAMP, _depth(), frame_id="cam")
+        raise RuntimeError("boom")
     assert path.read_bytes() == before  # the old output survives a failed overwrite
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.mcap"]
-    with pytest.raises(RuntimeError):
-        with BagRecorder(tmp_path / "other", "ros2") as rec:
-            rec.write_depth("/d", STAMP, _depth(), frame_id="cam")
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError), BagRecorder(tmp_path / "other", "ros2") as rec:
+        rec.write_depth("/d", STAMP, _depth(), frame_id="cam")
+        raise RuntimeError("boom")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.mcap"]
 
 

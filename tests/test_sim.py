@@ -141,9 +141,9 @@ def test_range_limits_give_nan() -> None:
 def test_render_backprojects_onto_surface(kind: str) -> None:
     """No noise: every valid pixel back-projected with K, T_world_camera lies on the surface."""
     cfg = SimConfig(world=kind, seed=1, width=96, height=72, duration=1.0, rate=5.0)
-    world, stamps, T_wb, T_wc, K, depths = render_flight(cfg)
+    world, stamps, _, T_wc, K, depths = render_flight(cfg)
     n_valid = 0
-    for depth, T in zip(depths, T_wc):
+    for depth, T in zip(depths, T_wc, strict=True):
         pts = _backproject(depth, K, T)
         n_valid += len(pts)
         assert np.abs(world.signed_distance(pts)).max() < 1e-4
@@ -160,7 +160,7 @@ def test_render_matches_open3d_raycast_on_mesh() -> None:
     import open3d as o3d
 
     cfg = SimConfig(world="office", seed=2, width=80, height=60, duration=0.2, rate=5.0)
-    world, _, _, T_wc, K, depths = render_flight(cfg)
+    world, _, _, T_wc, _, depths = render_flight(cfg)
     depth = next(iter(depths))
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(world.mesh()))
@@ -178,7 +178,7 @@ def test_realsense_noise_is_seeded_and_plausible() -> None:
     exact = list(render_flight(SimConfig(**base)).depths)
     noisy = list(render_flight(SimConfig(**base, noise="realsense")).depths)
     again = list(render_flight(SimConfig(**base, noise="realsense")).depths)
-    for e, n, a in zip(exact, noisy, again):
+    for e, n, a in zip(exact, noisy, again, strict=True):
         np.testing.assert_array_equal(n, a)
         both = np.isfinite(e) & np.isfinite(n)
         assert np.isnan(n).sum() > np.isnan(e).sum()
@@ -285,7 +285,7 @@ def test_simulate_deterministic_and_exact_16uc1(tmp_path: Path) -> None:
     np.testing.assert_array_equal(a.T_world_camera, b.T_world_camera)
     ma, mb = _read_topics(a.bag_path), _read_topics(b.bag_path)
     exact = list(render_flight(cfg).depths)
-    for (_, ia), (_, ib), d in zip(ma["/camera/depth/image_rect_raw"], mb["/camera/depth/image_rect_raw"], exact):
+    for (_, ia), (_, ib), d in zip(ma["/camera/depth/image_rect_raw"], mb["/camera/depth/image_rect_raw"], exact, strict=False):
         assert bytes(ia.data) == bytes(ib.data)
         mm = np.frombuffer(bytes(ia.data), "<u2").reshape(36, 48)
         np.testing.assert_array_equal(mm == 0, np.isnan(d))

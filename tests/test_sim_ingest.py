@@ -24,7 +24,7 @@ def test_simulate_then_ingest_recovers_truth(tmp_path: Path, world: str, fmt: st
     assert len(frames) == len(truth.stamps_ns) and not stream.dropped
     # 16UC1 quantises to millimetres (half a millimetre rounding); 32FC1 is exact.
     tol = 0.0 if encoding == "32FC1" else 0.5e-3 + 1e-6
-    for frame, stamp, T_wc, T_wb, depth in zip(frames, truth.stamps_ns, truth.T_world_camera, truth.T_world_body, truth.depths):
+    for frame, stamp, T_wc, T_wb, depth in zip(frames, truth.stamps_ns, truth.T_world_camera, truth.T_world_body, truth.depths, strict=True):
         assert frame.stamp_ns == stamp
         assert np.abs(frame.T_world_camera[:3, 3] - T_wc[:3, 3]).max() <= 1e-6
         assert rotation_angle(frame.T_world_camera[:3, :3].T @ T_wc[:3, :3]) <= 1e-6

@@ -184,8 +184,9 @@ def test_plan_from_a_recorded_frame(workspace: Path, tmp_path: Path) -> None:
         schemas = {s.name for s in make_reader(f).get_summary().schemas.values()}
     assert "nav_msgs/msg/Path" in schemas
     # Stamps exact to the nanosecond: frame stamp + round(t · 1e9), in TUM, JSON and every MCAP pose.
-    from mapkit.ingest import open_frames_store
     from mcap_ros2.decoder import DecoderFactory
+
+    from mapkit.ingest import open_frames_store
 
     stamp = int(open_frames_store(workspace).stamp_ns[3])
     expected = [stamp + round(t * 1e9) for t in data["t"]]

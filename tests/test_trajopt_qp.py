@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import itertools
 
 import numpy as np
 import pytest
@@ -304,7 +305,7 @@ def test_corridor_is_bounded_along_each_segment():
     corner = torch.tensor([[16.0, 1.5, 1.6], [15.5, 3.0, 1.6], [7.5, 7.25, 1.35], [7.5, 8.25, 1.35],
                            [2.25, 13.25, 2.1]], dtype=F64)
     pts = [corner[0]]
-    for a, b in zip(corner[:-1], corner[1:]):
+    for a, b in itertools.pairwise(corner):
         k = int(torch.ceil((b - a).norm() / 3.0))
         pts += [a + (b - a) * j / k for j in range(1, k + 1)]
     w = torch.stack(pts)[None]

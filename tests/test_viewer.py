@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
+from test_viz import write_fake_eval
 
 from mapkit.cli.main import main
 from mapkit.esdf import EsdfConfig, EsdfMap, build_esdf
@@ -28,7 +29,6 @@ from mapkit.planner import PlannerNet, planner_preset
 from mapkit.sim import SimConfig, simulate
 from mapkit.viewer import ViewerApp, ViewerConfig, ViewerError
 from mapkit.viz import HATCH_RGB, apply_colormap, depth_image, frustum_segments
-from test_viz import write_fake_eval
 
 TINY = {"input_size": [32, 48], "encoder_width": 0.125}
 

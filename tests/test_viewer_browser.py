@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_viewer import start_app  # noqa: F401 - the fixture checks threads and the port
 
 from mapkit.esdf import write_map
 from mapkit.viewer import find_chromium, screenshot
-from test_viewer import start_app  # noqa: F401 - the fixture checks threads and the port
 
 pytestmark = pytest.mark.skipif(
     find_chromium() is None, reason="no Chromium on this machine; `apt-get install chromium` (CI installs it)"

@@ -459,5 +459,5 @@ def test_load_eval(tmp_path: Path) -> None:
     (tmp_path / "nonpz" / "results.json").write_text("{not json")
     with pytest.raises(VizError, match="not readable JSON"):
         load_eval(tmp_path / "nonpz")
-    with pytest.raises(VizError, match="no results.json"):
+    with pytest.raises(VizError, match=r"no results.json"):
         load_eval(tmp_path)

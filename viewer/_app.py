@@ -10,14 +10,18 @@ import socket
 import threading
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from mapkit.errors import MapkitError
 from mapkit.viewer._panels import CloudPanel, EvalPanel, FlightPanel, Panels, PlanPanel, SlicePanel, built
+
+if TYPE_CHECKING:
+    from mapkit.viz import MapSlicer
 
 LAYERS = ("cloud", "slice", "flight", "plan", "corridor", "eval")
 _LAYER_LABELS = {
@@ -124,7 +128,8 @@ class ViewerApp:
             nx, ny, nz = self.map.shape
             self.summary.append(f"map.zarr: {nx}×{ny}×{nz} voxels of {self.map.voxel_size:g} m ({nx * ny * nz / 1e6:.1f} M)")
         self.frames = self.ws.frames if self.ws is not None else None
-        self._velocity_body: np.ndarray | None = None
+        self._velocity_body = np.zeros((0, 3))
+        """(N, 3) body-frame velocity at each frame (filled with the flight panel)."""
         self._check_frames()
         self.planner: Any = None
         self.robot_radius, self.softness = 0.3, 1.0
@@ -138,7 +143,7 @@ class ViewerApp:
         self.timings["load_s"] = time.perf_counter() - t0
 
     # ------------------------------------------------------------------------------- lifecycle
-    def __enter__(self) -> "ViewerApp":
+    def __enter__(self) -> ViewerApp:
         self.start()
         return self
 
@@ -203,11 +208,30 @@ class ViewerApp:
         with contextlib.redirect_stdout(io.StringIO()):
             server.stop()
 
+    # The flight panel and planning exist only with frames.zarr, the slice panel only with map.zarr.
+    def _need_frames(self) -> Any:
+        """frames.zarr, for the parts of the viewer that exist only when the workspace has it."""
+        if self.frames is None:
+            raise ViewerError("this workspace has no frames.zarr")
+        return self.frames
+
+    def _need_map(self) -> Any:
+        """map.zarr, for the parts of the viewer that exist only when the workspace has it."""
+        if self.map is None:
+            raise ViewerError("this workspace has no map.zarr")
+        return self.map
+
+    def _need_slicer(self) -> MapSlicer:
+        """The slicer of map.zarr (see :meth:`_need_map`)."""
+        if self.slicer is None:
+            raise ViewerError("this workspace has no map.zarr")
+        return self.slicer
+
     def _T_body_camera(self, i: int) -> np.ndarray:
         """(4, 4) optical camera → body at frame i (what the planner needs to check its paths)."""
         from mapkit.geometry import invert_transform
 
-        fr = self.frames
+        fr = self._need_frames()
         return invert_transform(fr.T_world_body[i]) @ fr.T_world_camera[i]
 
     # ---------------------------------------------------------------------------------- loading
@@ -247,7 +271,7 @@ class ViewerApp:
         if not eval_dir.exists():
             raise ViewerError(f"--eval {str(self.config.eval_dir)!r} does not exist; pass the folder `mapkit eval` wrote")
         try:
-            self.eval = viz.load_eval(self.config.eval_dir)
+            self.eval = viz.load_eval(eval_dir)
             self.notes += [f"evaluation: {n}" for n in self.eval.notes]
             self.summary.append(
                 f"evaluation: {len(self.eval.episodes)} episodes, worlds {', '.join(self.eval.worlds)}, "
@@ -309,7 +333,11 @@ class ViewerApp:
             for layer in LAYERS:
                 if self._layer_available(layer):
                     cb = g.add_checkbox(_LAYER_LABELS[layer], initial_value=True)
-                    cb.on_update(self._guard(lambda _e, layer=layer: self._toggle(layer)))
+
+                    def toggle(_event: Any, layer: str = layer) -> None:
+                        self._toggle(layer)
+
+                    cb.on_update(self._guard(toggle))
                     setattr(self.gui.layers, layer, cb)
         if self.cloud is not None:
             self._build_cloud()
@@ -333,7 +361,7 @@ class ViewerApp:
     def _toggle(self, layer: str) -> None:
         self.nodes[f"/{layer}"].visible = bool(built(self.gui.layers.of(layer)).value)
 
-    def _guard(self, fn: Callable[[Any], None]) -> Callable[[Any], None]:
+    def _guard(self, fn: Callable[[Any], object]) -> Callable[[Any], None]:
         """Callbacks run one at a time; a library error goes to the status line, not a traceback."""
 
         def run(event: Any) -> None:
@@ -370,7 +398,7 @@ class ViewerApp:
                             dtype=np.float64).reshape(-1, 3)
             if len(ends):
                 lo, hi = ends.min(axis=0) - 3.0, ends.max(axis=0) + 3.0
-        if lo is None:
+        if lo is None or hi is None:
             return
         centre = 0.5 * (lo + hi)
         if self.slice is not None and self.slice.axis == "z":
@@ -403,7 +431,8 @@ class ViewerApp:
     def _recolor_cloud(self) -> None:
         from mapkit import viz
 
-        by = "esdf" if built(self.gui.cloud).color.value == "ESDF" else "height"
+        by: Literal["height", "esdf"] = "esdf" if built(self.gui.cloud).color.value == "ESDF" else "height"
+        assert self._cloud_points is not None  # the cloud panel exists only with a cloud
         cv = viz.cloud_view(self._cloud_points, max_points=self.config.max_points, color_by=by, esdf_map=self.map)
         self.nodes["/cloud/points"].colors = cv.colors
 
@@ -415,14 +444,14 @@ class ViewerApp:
         g = self.server.gui
         c = self.config
         axis = c.slice_axis if c.slice_axis in ("x", "y", "z") else "z"
-        lo, hi, step = self.slicer.positions(axis)
+        lo, hi, step = self._need_slicer().positions(axis)
         if c.slice_position is not None:
             pos = c.slice_position
         elif axis == "z" and self.frames is not None:
             pos = self._flight_slice_height()
         else:
             pos = 0.5 * (lo + hi)
-        pos = self.slicer.snap(axis, min(max(pos, lo), hi))
+        pos = self._need_slicer().snap(axis, min(max(pos, lo), hi))
         with g.add_folder("ESDF slice", order=_ORDER["slice"]):
             axis_handle = g.add_dropdown("axis", ("x", "y", "z"), initial_value=axis)
             position = g.add_slider("position (m)", lo, hi, step, pos)
@@ -456,19 +485,19 @@ class ViewerApp:
     def _flight_slice_height(self) -> float:
         """Half a metre below the flight's median height: the distances the drone flies through,
         with the flight and plans drawn just above the plane instead of inside it."""
-        return float(np.median(self.frames.T_world_body[:, 2, 3])) - 0.5
+        return float(np.median(self._need_frames().T_world_body[:, 2, 3])) - 0.5
 
     def _on_slice_axis(self) -> None:
         panel = built(self.gui.slice)
         axis = panel.axis.value
-        lo, hi, step = self.slicer.positions(axis)
+        lo, hi, step = self._need_slicer().positions(axis)
         sl = panel.position
-        centre = self.slicer.snap(axis, 0.5 * (lo + hi))
+        centre = self._need_slicer().snap(axis, 0.5 * (lo + hi))
         if self.slice is not None and axis == "z" and self.frames is not None:
-            centre = self.slicer.snap(axis, self._flight_slice_height())
+            centre = self._need_slicer().snap(axis, self._flight_slice_height())
         sl.min, sl.max, sl.step, sl.precision = lo, hi, step, _decimals(step)
         before = sl.value
-        sl.value = centre
+        sl.value = centre  # type: ignore[misc]  # viser: mypy misses value's setter
         if sl.value == before:  # no change event fired
             self.update_slice()
 
@@ -502,15 +531,15 @@ class ViewerApp:
         panel = built(self.gui.slice)
         axis = panel.axis.value
         position = float(panel.position.value)
-        sl = self.slicer.slice(axis, position, raw=bool(panel.raw.value))
+        sl = self._need_slicer().slice(axis, position, raw=bool(panel.raw.value))
         tex = viz.slice_texture(sl, axis=axis, pixels_per_voxel=viz.texture_scale(sl.values.shape),
                                 **self._slice_style())
         t_slice = time.perf_counter() - t0
         if self._slice_range_auto:
             self._setting_range = True
             try:
-                panel.vmin.value = round(float(tex.norm.vmin), 3)
-                panel.vmax.value = round(float(tex.norm.vmax), 3)
+                panel.vmin.value = round(float(tex.norm.vmin), 3)  # type: ignore[misc]  # viser: mypy misses value's setter
+                panel.vmax.value = round(float(tex.norm.vmax), 3)  # type: ignore[misc]  # viser: mypy misses value's setter
             finally:
                 self._setting_range = False
             self._slice_range_auto = False  # the range stays put while sliding; "auto range" recomputes
@@ -532,12 +561,12 @@ class ViewerApp:
         if colorbar:
             panel.colorbar.image = viz.colorbar_image(tex.cmap, tex.norm, label=tex.label)
         a = "xyz".index(axis)
-        k = int(round((tex.position - self.map.origin[a]) / self.map.voxel_size))
+        k = int(round((tex.position - self._need_map().origin[a]) / self._need_map().voxel_size))
         unobserved = 100.0 * float(np.mean(~tex.observed))
         self.timings["slice_ms"] = 1e3 * (time.perf_counter() - t0)
         self.timings["slice_compute_ms"] = 1e3 * t_slice
         panel.info.content = (
-            f"{axis} = {tex.position:.2f} m (voxel {k} of {self.map.shape[a]}), {tex.values.shape[0]}×{tex.values.shape[1]} "
+            f"{axis} = {tex.position:.2f} m (voxel {k} of {self._need_map().shape[a]}), {tex.values.shape[0]}×{tex.values.shape[1]} "
             f"voxels, {unobserved:.0f} % unobserved (hatched); {self.timings['slice_ms']:.0f} ms"
         )
 
@@ -547,7 +576,7 @@ class ViewerApp:
         from mapkit.export import body_velocities
 
         g, s = self.server.gui, self.server.scene
-        fr = self.frames
+        fr = self._need_frames()
         n = len(fr)
         self._velocity_body = body_velocities(fr.stamp_ns, fr.T_world_body, fr.source_index)
         p = fr.T_world_body[:, :3, 3]
@@ -576,7 +605,7 @@ class ViewerApp:
     def _draw_frustums(self) -> None:
         from mapkit import viz
 
-        fr = self.frames
+        fr = self._need_frames()
         every = max(1, int(built(self.gui.flight).frustum_every.value))
         seg = viz.frustum_segments(fr.K, fr.width, fr.height, fr.T_world_camera[::every], depth=self.config.frustum_depth)
         self.nodes["/flight/frustums"] = self.server.scene.add_line_segments(
@@ -588,7 +617,7 @@ class ViewerApp:
 
         from mapkit import viz
 
-        fr = self.frames
+        fr = self._need_frames()
         panel = built(self.gui.flight)
         i = int(panel.frame.value)
         T_wb, T_wc = fr.T_world_body[i], fr.T_world_camera[i]
@@ -616,7 +645,7 @@ class ViewerApp:
         from mapkit.viz import VizError
 
         try:
-            return np.asarray(self.frames.depth[i], dtype=np.float32)
+            return np.asarray(self._need_frames().depth[i], dtype=np.float32)
         except Exception as exc:  # noqa: BLE001 - a damaged chunk surfaces as many exception types
             raise VizError(f"frames.zarr: cannot read the depth of frame {i} ({type(exc).__name__}: {exc}); "
                            "re-run `mapkit ingest --overwrite`") from None
@@ -630,18 +659,18 @@ class ViewerApp:
                 if flight is not None and playing:
                     fps = float(flight.fps.value)
                     sl = flight.frame
-                    nxt = (int(sl.value) + 1) % len(self.frames)
-                    sl.value = nxt  # fires update_frame through the slider's callback
+                    nxt = (int(sl.value) + 1) % len(self._need_frames())
+                    sl.value = nxt  # type: ignore[misc]  # viser: mypy misses value's setter; fires update_frame through the slider's callback
             except Exception as exc:  # noqa: BLE001 - keep the player alive; report in the panel
                 self._message(f"playback stopped: {type(exc).__name__}: {exc}")
                 if flight is not None:
-                    flight.play.value = False
+                    flight.play.value = False  # type: ignore[misc]  # viser: mypy misses value's setter
             self._stop_event.wait(1.0 / max(fps, 1.0))
 
     # ------------------------------------------------------------------------------------- plan
     def _build_plan(self) -> None:
         g = self.server.gui
-        fr = self.frames
+        fr = self._need_frames()
         i = int(built(self.gui.flight).frame.value)
         T_wb = fr.T_world_body[i]
         ahead = T_wb[:3, 3] + T_wb[:3, :3] @ np.array([6.0, 0.0, 0.0])
@@ -692,12 +721,13 @@ class ViewerApp:
             self._message("the click hit neither the slice nor the map; type the goal X Y Z instead")
             return None
         self._message(f"goal from the {how}: ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m")
-        goal = tuple(round(float(v), 3) for v in p)
+        gx, gy, gz = (round(float(v), 3) for v in p)
+        goal = (gx, gy, gz)
         goal_handle = built(self.gui.plan).goal
         if tuple(goal_handle.value) == goal:
             self.plan_to(goal)
         else:
-            goal_handle.value = goal  # fires plan_to
+            goal_handle.value = goal  # type: ignore[misc]  # fires plan_to; viser's setter is hidden from mypy
         return p
 
     def plan_to(self, goal_world: Any) -> dict[str, Any]:
@@ -707,7 +737,7 @@ class ViewerApp:
         from mapkit.planning import plan_from_frame
         from mapkit.trajopt import TrajoptWarning
 
-        fr, s = self.frames, self.server.scene
+        fr, s = self._need_frames(), self.server.scene
         panel = built(self.gui.plan)
         i = int(built(self.gui.flight).frame.value)
         T_wb = fr.T_world_body[i]
@@ -747,7 +777,7 @@ class ViewerApp:
                      "keypoints_world": kp_w, "speed": speed, "corridor": geo, "corridor_width": corridor,
                      "infeasible": infeasible}
         verdict = "execute" if result.execute else "do NOT execute (η ≥ 0.5)"
-        solve = (f"min-snap in a ±{W:g} m corridor ({geo.num_segments} prisms)" if corridor is not None
+        solve = (f"min-snap in a ±{W:g} m corridor ({geo.num_segments} prisms)" if geo is not None
                  else "min-snap through the key-points (as `mapkit plan`)")
         if infeasible:
             solve = f"corridor ±{W:g} m infeasible: shown through the key-points; widen it"
@@ -795,7 +825,7 @@ class ViewerApp:
         opts = self._pair_options(panel.world.value)
         panel.pair.options = opts
         if panel.pair.value != "all":
-            panel.pair.value = "all"  # fires update_eval
+            panel.pair.value = "all"  # type: ignore[misc]  # viser: mypy misses value's setter; fires update_eval
         else:
             self.update_eval()
 

@@ -8,6 +8,7 @@ runs on SwiftShader, Chromium's CPU renderer, so no GPU or display is needed.
 from __future__ import annotations
 
 import base64
+import contextlib
 import io
 import json
 import os
@@ -16,8 +17,9 @@ import subprocess
 import tempfile
 import time
 import urllib.request
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -135,7 +137,7 @@ def _launch_chromium(exe: str, tmp: Path, width: int, height: int) -> tuple[subp
             "--remote-debugging-port=0", "about:blank"]
     if hasattr(os, "geteuid") and os.geteuid() == 0:
         args.insert(1, "--no-sandbox")  # Chromium's sandbox refuses to run as root (CI containers)
-    log = open(tmp / "chromium.log", "wb")
+    log = open(tmp / "chromium.log", "wb")  # noqa: SIM115 - the browser's output until _close_chromium
     proc = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     return proc, log
 
@@ -188,10 +190,8 @@ def _capture_when_ready(cdp: _Cdp, url: str, out: Path, *, deadline: float, time
 def _close_chromium(cdp: _Cdp | None, proc: subprocess.Popen, log: Any, tmp: Path) -> None:
     """Close the browser (politely, then by force), the log, and remove ``tmp``."""
     if cdp is not None:
-        try:
+        with contextlib.suppress(Exception):  # the browser may already be gone
             cdp.call("Browser.close", timeout=5.0)
-        except Exception:  # noqa: BLE001 - the browser may already be gone
-            pass
         cdp.close()
     try:
         proc.wait(timeout=5)

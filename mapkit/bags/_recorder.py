@@ -18,13 +18,15 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import shutil
 import struct
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Literal, Sequence
+from typing import Any, Literal
 
 import numpy as np
 
@@ -112,7 +114,7 @@ class BagRecorder:
         self._file: Any = None
 
     # ------------------------------------------------------------------ lifecycle
-    def __enter__(self) -> "BagRecorder":
+    def __enter__(self) -> BagRecorder:
         self.open()
         return self
 
@@ -184,10 +186,8 @@ class BagRecorder:
                 if self.format == "mcap":
                     self._file.close()
                 else:
-                    try:
+                    with contextlib.suppress(Exception):  # the partial output is deleted anyway
                         self._writer.close()
-                    except Exception:  # the partial output is deleted anyway
-                        pass
         finally:
             self._writer = None
             if self._tmpdir is not None:

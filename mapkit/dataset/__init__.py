@@ -12,8 +12,8 @@ from mapkit.dataset._build import (
     build_dataset,
     build_world,
     dataset_workspaces,
-    split_worlds,
     estimate,
+    split_worlds,
     world_specs,
 )
 

@@ -111,7 +111,7 @@ def signed_distance_chunked(
     prevented = 0
     try:
         for corner in product(*starts):
-            core = tuple(slice(c, min(c + chunk, n)) for c, n in zip(corner, shape))
+            core = tuple(slice(c, min(c + chunk, n)) for c, n in zip(corner, shape, strict=True))
             field, raw_core, k = _chunk_field(occupied, core, shape, halo, vs, md, sg, tr, n_threads,
                                               want_raw=out_raw is not None)
             prevented += k
@@ -147,7 +147,7 @@ def _check_destination(name: str, arr: Any, shape: tuple[int, int, int], chunk: 
         raise EsdfError(f"{name} has dtype {arr.dtype}; the signed distance is float32, create it as float32")
     arr_chunks = getattr(arr, "chunks", None)
     if isinstance(arr_chunks, tuple) and len(arr_chunks) == 3 and all(isinstance(c, int) for c in arr_chunks):
-        bad = [c for c, s in zip(arr_chunks, shape) if chunk % c and c < s]
+        bad = [c for c, s in zip(arr_chunks, shape, strict=True) if chunk % c and c < s]
         if bad:
             raise EsdfError(
                 f"chunk={chunk} is not a multiple of {name}'s zarr chunk shape {arr_chunks}; "
@@ -160,11 +160,11 @@ def _chunk_field(occupied: Any, core: tuple[slice, ...], shape: tuple[int, int, 
                  want_raw: bool) -> tuple[np.ndarray, np.ndarray | None, int]:
     """One chunk's (field, raw field or None, sign flips prevented), computed on the chunk plus its halo."""
     blk_lo = tuple(max(c.start - halo, 0) for c in core)
-    blk_hi = tuple(min(c.stop + halo, n) for c, n in zip(core, shape))
-    block = np.asarray(occupied[tuple(slice(a, b) for a, b in zip(blk_lo, blk_hi))])
+    blk_hi = tuple(min(c.stop + halo, n) for c, n in zip(core, shape, strict=True))
+    block = np.asarray(occupied[tuple(slice(a, b) for a, b in zip(blk_lo, blk_hi, strict=True))])
     if block.dtype != np.bool_:
         raise EsdfError(f"occupied returned dtype {block.dtype} for a chunk; it must be bool")
-    inner = tuple(slice(c.start - la, c.stop - la) for c, la in zip(core, blk_lo))
+    inner = tuple(slice(c.start - la, c.stop - la) for c, la in zip(core, blk_lo, strict=True))
     raw = _signed_distance_unchecked(np.ascontiguousarray(block), vs, md, "edt", n_threads)
     del block
     if sg > 0:
@@ -183,7 +183,7 @@ class _ChunkWriter:
 
     def __init__(self, out: Any, out_raw: Any) -> None:
         self.out, self.out_raw = out, out_raw
-        self.jobs: "queue.Queue[tuple[tuple[slice, ...], np.ndarray, np.ndarray | None] | None]" = queue.Queue(maxsize=2)
+        self.jobs: queue.Queue[tuple[tuple[slice, ...], np.ndarray, np.ndarray | None] | None] = queue.Queue(maxsize=2)
         self.errors: list[BaseException] = []
         self.thread = threading.Thread(target=self._run, name="esdf-chunk-writer", daemon=True)
         self.thread.start()

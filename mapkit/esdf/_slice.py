@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NamedTuple, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -116,12 +117,11 @@ def _slice_figure(
     fig = Figure(figsize=(4.6 * cols + 1.2, 4.2 * rows + 0.6), layout="constrained")
     axes = fig.subplots(rows, cols, squeeze=False)
     grey = ListedColormap([(0.5, 0.5, 0.5, 0.6)])
-    image = None
-    for panel, (axis, s) in zip(axes.flat, slices):
-        image = _draw_slice(panel, axis, s, cmap=cmap, norm=norm, unobserved_cmap=grey, voxel_size=map.voxel_size)
+    images = [_draw_slice(panel, axis, s, cmap=cmap, norm=norm, unobserved_cmap=grey, voxel_size=map.voxel_size)
+              for panel, (axis, s) in zip(axes.flat, slices, strict=False)]  # the last row may have spare panels
     for panel in list(axes.flat)[len(slices):]:
         panel.set_visible(False)
-    cbar = fig.colorbar(image, ax=axes.ravel().tolist(), shrink=0.9)
+    cbar = fig.colorbar(images[-1], ax=axes.ravel().tolist(), shrink=0.9)
     cbar.set_label("signed distance [m]")
     handles = [Patch(facecolor=(0.55, 0.55, 0.55), hatch="///", label="unobserved"),
                Patch(facecolor="white", edgecolor="k", label="surface (d = 0)")]

@@ -16,7 +16,6 @@ Reading results.json: :class:`EpisodeRecord` (one row of ``episodes``), :data:`O
 """
 
 from mapkit._formats import EVAL_FORMAT, OUTCOMES, EpisodeRecord, Outcome
-
 from mapkit.evaluation._loop import Episode, LoopConfig, MethodPlan, Observation, level_pose, run_episode
 from mapkit.evaluation._methods import METHODS, Execution, LearnedMethod, OracleMethod, StraightMethod, make_methods
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs

@@ -94,7 +94,7 @@ class Pieces:
         after[-1, 0] = before[-1, 0]
         return self.knots[1:], before, after
 
-    def splice(self, other: "Pieces", t_from: float) -> "Pieces":
+    def splice(self, other: Pieces, t_from: float) -> Pieces:
         """This reference from ``t_from`` (cut inside its segment; the past dropped) until
         ``other.t0``, then ``other``. A reference that has ended holds its end position until then.
         ``other`` planned from this reference's state at its ``t0`` makes the result C³ there."""
@@ -125,7 +125,7 @@ class Pieces:
         if self.degree < 4 or tb <= ta:
             return 0.0
         total = 0.0
-        for i, T in enumerate(self.durations):
+        for i, _ in enumerate(self.durations):
             a, b = max(ta, self.knots[i]), min(tb, self.knots[i + 1])
             if b <= a:
                 continue

@@ -301,7 +301,7 @@ def _speed_figure(path: Path, doc: dict, episodes: list[EpisodeRecord], flights:
     keys = [k for k, v in reached.items() if v >= set(methods)] or sorted(reached, key=lambda k: -len(reached[k]))
     keys = keys[:flights]
     fig, axes = plt.subplots(1, max(1, len(keys)), figsize=(5 * max(1, len(keys)), 3.2), squeeze=False)
-    for ax, (world, pair) in zip(axes[0], keys):
+    for ax, (world, pair) in zip(axes[0], keys, strict=False):
         for m in methods:
             p = paths.get(f"{world}/{pair:03d}/{m}")
             if p is None or len(p) < 3 or m not in reached[(world, pair)]:
@@ -333,7 +333,7 @@ def _bars_figure(path: Path, doc: dict, latency: dict) -> Path:
     width = 0.8 / len(methods)
     x = np.arange(len(groups))
     for i, m in enumerate(methods):
-        col = METHOD_COLOURS.get(m, None)
+        col = METHOD_COLOURS.get(m)
         succ = [100 * (s[m][g]["success_rate"] or 0) for g in groups]
         eff = [s[m][g]["control_effort"].get("median") or np.nan for g in groups]
         lat = [latency[m][g]["mean_ms"] or np.nan for g in groups]

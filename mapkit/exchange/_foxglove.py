@@ -16,9 +16,10 @@ stamped with the recording's own time (int64 ns):
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -309,8 +310,15 @@ def export_foxglove(workspace: str | Path, output: str | Path, config: FoxgloveC
     """Write the workspace's flight, cloud, ESDF (and plans, evaluation paths) to ``output`` (.mcap),
     atomically; see the module docstring for the topics."""
     import foxglove
-    from foxglove.channels import (CameraCalibrationChannel, FrameTransformsChannel, GridChannel, PointCloudChannel,
-                                   RawImageChannel, SceneUpdateChannel, VoxelGridChannel)
+    from foxglove.channels import (
+        CameraCalibrationChannel,
+        FrameTransformsChannel,
+        GridChannel,
+        PointCloudChannel,
+        RawImageChannel,
+        SceneUpdateChannel,
+        VoxelGridChannel,
+    )
 
     from mapkit.esdf import MAP, EsdfMap
     from mapkit.fusion import CLOUD

@@ -25,8 +25,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mapkit.exchange._foxglove import (_OUTCOME_COLOURS, ExchangeError, FoxgloveConfig, _height_colours, _plan_results,
-                                       missing_layers, open_inputs)
+from mapkit.exchange._foxglove import (
+    _OUTCOME_COLOURS,
+    ExchangeError,
+    FoxgloveConfig,
+    _height_colours,
+    _plan_results,
+    missing_layers,
+    open_inputs,
+)
 from mapkit.geometry import invert_transform, quat_xyzw_from_matrix
 
 RerunConfig = FoxgloveConfig
@@ -152,7 +159,7 @@ def _blueprint() -> Any:
         column_shares=[3, 2]))
 
 
-def export_rerun(workspace: str | Path, output: str | Path, config: RerunConfig = RerunConfig()) -> RerunSummary:
+def export_rerun(workspace: str | Path, output: str | Path, config: RerunConfig = RerunConfig()) -> RerunSummary:  # noqa: B008 - a frozen dataclass
     """Write the workspace's flight, cloud, ESDF (and plans, evaluation paths) to ``output`` (.rrd),
     atomically; see the module docstring for the entities."""
     import rerun as rr

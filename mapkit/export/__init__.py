@@ -1,15 +1,15 @@
 """Training tuples: frames.zarr + map.zarr → tuples.zarr (depth, poses, velocities, goals, split)."""
 
 from mapkit.export._tuples import (
+    FUTURE,
     GOAL_KIND_NAMES,
     HIDDEN,
-    blocked_lines,
-    FUTURE,
     RANDOM,
     TUPLES,
     ExportConfig,
     ExportError,
     ExportSummary,
+    blocked_lines,
     body_velocities,
     export_tuples,
     map_digest,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import time
 from dataclasses import asdict, dataclass, field
@@ -200,7 +201,7 @@ def _future_goals(i: int, count: int, *, frames_T_wb: NDArray[np.float64], stamp
         return []
     pts = frames_T_wb[rng.choice(future, size=min(len(future), count), replace=False), :3, 3]
     d, _ = esdf.query(pts, outside="nan")
-    return [(p, float(di)) for p, di in zip(pts, d) if np.isfinite(di) and di >= config.clearance]
+    return [(p, float(di)) for p, di in zip(pts, d, strict=True) if np.isfinite(di) and di >= config.clearance]
 
 
 def _visible_goals(count: int, *, T_world_camera: NDArray[np.float64], depth: NDArray[np.float32],
@@ -226,7 +227,7 @@ def _visible_goals(count: int, *, T_world_camera: NDArray[np.float64], depth: ND
         pts = (T_world_camera[:3, :3] @ (ray * r[:, None]).T).T + T_world_camera[:3, 3]
         d, _ = esdf.query(pts, outside="nan")
         ok = front & np.isfinite(d) & (d >= config.clearance) & esdf.observed_at(pts)
-        out.extend((p, float(di)) for p, di in zip(pts[ok][:need], d[ok][:need]))
+        out.extend((p, float(di)) for p, di in zip(pts[ok][:need], d[ok][:need], strict=True))
     return out
 
 
@@ -251,7 +252,7 @@ def _hidden_goals(count: int, *, T_world_body: NDArray[np.float64], esdf: _Obser
         ok = np.isfinite(d) & (d >= config.clearance) & esdf.observed_at(pts)
         pts, d = pts[ok], d[ok]
         hit = blocked_lines(p0, pts, esdf, threshold=config.blocked_distance)
-        out.extend((p, float(di)) for p, di in zip(pts[hit][:need], d[hit][:need]))
+        out.extend((p, float(di)) for p, di in zip(pts[hit][:need], d[hit][:need], strict=True))
     return out
 
 
@@ -433,14 +434,14 @@ def _summary(target: Path, goals: _Goals, split: NDArray[np.uint8], *, n_indices
     kinds = np.stack(goals.kinds)
     distance = np.linalg.norm(np.stack(goals.goals_body), axis=-1)
     counts, _ = np.histogram(distance, bins=_DISTANCE_BINS)
-    labels = [f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">{lo:g}" for lo, hi in zip(_DISTANCE_BINS[:-1], _DISTANCE_BINS[1:])]
+    labels = [f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">{lo:g}" for lo, hi in itertools.pairwise(_DISTANCE_BINS)]
     n = len(goals.frame_index)
     return ExportSummary(
         target, n, int((split == 0).sum()), int((split == 1).sum()), int(kinds.size),
         int((kinds == FUTURE).sum()), n_indices - n, seconds,
         kind_counts={name: int((kinds == code).sum()) for code, name in GOAL_KIND_NAMES.items()},
         blocked_fraction=float(np.stack(goals.blocked).mean()),
-        distance_histogram={k: int(v) for k, v in zip(labels, counts)},
+        distance_histogram={k: int(v) for k, v in zip(labels, counts, strict=True)},
     )
 
 

@@ -27,7 +27,7 @@ class Grid:
     shape: tuple[int, int, int]
 
     @classmethod
-    def covering(cls, lo: NDArray[np.float64], hi: NDArray[np.float64], voxel_size: float) -> "Grid":
+    def covering(cls, lo: NDArray[np.float64], hi: NDArray[np.float64], voxel_size: float) -> Grid:
         """The grid whose voxel centres cover [lo, hi]; centres on multiples of voxel_size so that a
         TSDF voxel size dividing voxel_size puts TSDF samples exactly on ESDF centres."""
         origin = np.floor(np.asarray(lo, float) / voxel_size) * voxel_size
@@ -73,7 +73,7 @@ def occupancy_from_tsdf(
         raise FusionError(f"{tsdf_path} does not exist; run `mapkit fuse` first")
     try:
         vbg = o3d.t.geometry.VoxelBlockGrid.load(str(tsdf_path))
-    except Exception as exc:
+    except Exception as exc:  # noqa: BLE001 - Open3D raises RuntimeError or others for a bad file: one message
         raise FusionError(f"{tsdf_path} is not a readable TSDF ({exc}); re-run `mapkit fuse --overwrite`") from None
     tsdf_m = np.full(grid.shape, np.nan, dtype=np.float32)
     half = 0.5 * tsdf_voxel + 1e-6

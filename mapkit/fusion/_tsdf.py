@@ -6,16 +6,17 @@ import json
 import logging
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from mapkit._version import __version__
 from mapkit._resources import available_memory
 from mapkit._threads import prefetch
+from mapkit._version import __version__
 from mapkit.errors import MapkitError
 from mapkit.geometry import invert_transform
 from mapkit.ingest import FramesStore, IngestConfig, ingest, open_frames_store
@@ -119,7 +120,7 @@ def _o3d_depth(depth: NDArray[np.float32], device: Any, *, ready: bool = False) 
     import open3d as o3d
     import open3d.core as o3c
 
-    return o3d.t.geometry.Image(o3c.Tensor(depth if ready else _o3d_ready(depth))).to(device)
+    return o3d.t.geometry.Image(o3c.Tensor(depth if ready else _o3d_ready(depth))).to(device)  # type: ignore[call-overload]  # stub: dtype, device required; they default
 
 
 def _o3d_intrinsics(K: NDArray[np.float64]) -> Any:
@@ -135,7 +136,7 @@ def _o3d_intrinsics(K: NDArray[np.float64]) -> Any:
     K = np.array(K, dtype=np.float64)
     K[0, 2] += 0.5
     K[1, 2] += 0.5
-    return o3c.Tensor(K, o3c.float64)
+    return o3c.Tensor(K, o3c.float64)  # type: ignore[call-overload]  # stub: dtype, device required; they default
 
 
 def _touched_blocks(vbg: Any, image: Any, K: Any, extrinsic: Any, config: FuseConfig) -> Any:
@@ -161,7 +162,7 @@ def estimate_blocks(store: FramesStore, config: FuseConfig, *, sample: int = 24)
     n = len(store)
     idx = np.unique(np.linspace(0, n - 1, min(sample, n)).round().astype(int))
     probe = o3d.t.geometry.VoxelBlockGrid(
-        ("tsdf", "weight"), (o3c.float32, o3c.float32), ((1), (1)),
+        ("tsdf", "weight"), (o3c.float32, o3c.float32), ((1), (1)),  # type: ignore[arg-type]  # stub wants SizeVector; ints convert
         voxel_size=config.voxel, block_resolution=BLOCK_RESOLUTION, block_count=1000,
     )
     K = _o3d_intrinsics(store.K)
@@ -172,7 +173,7 @@ def estimate_blocks(store: FramesStore, config: FuseConfig, *, sample: int = 24)
         if not np.any(depth <= config.max_depth):
             continue
         touched = _touched_blocks(probe, _o3d_depth(depth, o3c.Device("CPU:0")), K,
-                                  o3c.Tensor(invert_transform(store.T_world_camera[int(i)]), o3c.float64), config)
+                                  o3c.Tensor(invert_transform(store.T_world_camera[int(i)]), o3c.float64), config)  # type: ignore[call-overload]  # stub: dtype, device required; they default
         if touched is None:
             continue
         coords = touched.numpy()
@@ -228,14 +229,14 @@ def _write_outputs(workspace: Path, cloud: Any, vbg: Any, config: FuseConfig, me
     try:
         staged[CLOUD] = workspace / f".{CLOUD}{tag}.ply"
         legacy = cloud.to_legacy()
-        _written(staged[CLOUD], o3d.io.write_point_cloud(str(staged[CLOUD]), legacy, write_ascii=False), "cloud",
-                 len(legacy.points), lambda p: len(o3d.io.read_point_cloud(str(p)).points))
+        _written(staged[CLOUD], o3d.io.write_point_cloud(staged[CLOUD], legacy, write_ascii=False), "cloud",
+                 len(legacy.points), lambda p: len(o3d.io.read_point_cloud(p).points))
         if config.mesh:
             staged[MESH] = workspace / f".{MESH}{tag}.ply"
             mesh = vbg.extract_triangle_mesh(weight_threshold=config.weight_threshold).cpu().to_legacy()
             mesh.compute_vertex_normals()
-            _written(staged[MESH], o3d.io.write_triangle_mesh(str(staged[MESH]), mesh, write_ascii=False), "mesh",
-                     len(mesh.triangles), lambda p: len(o3d.io.read_triangle_mesh(str(p)).triangles))
+            _written(staged[MESH], o3d.io.write_triangle_mesh(staged[MESH], mesh, write_ascii=False), "mesh",
+                     len(mesh.triangles), lambda p: len(o3d.io.read_triangle_mesh(p).triangles))
         staged[TSDF] = workspace / f".{TSDF}{tag}.npz"
         vbg.cpu().save(str(staged[TSDF]))
         _written(staged[TSDF], True, "TSDF", 1, lambda p: int(np.load(p).files != []))
@@ -320,7 +321,7 @@ def _voxel_grid(store: FramesStore, config: FuseConfig, device: Any) -> Any:
             f"{have / 2**30:.1f} GiB is available; use --voxel {fits:.3f} or larger"
         )
     return o3d.t.geometry.VoxelBlockGrid(
-        ("tsdf", "weight"), (o3c.float32, o3c.float32), ((1), (1)),
+        ("tsdf", "weight"), (o3c.float32, o3c.float32), ((1), (1)),  # type: ignore[arg-type]  # stub wants SizeVector; ints convert
         voxel_size=config.voxel, block_resolution=BLOCK_RESOLUTION, block_count=blocks, device=device,
     )
 
@@ -346,14 +347,14 @@ def _integrate(vbg: Any, store: FramesStore, indices: range, config: FuseConfig,
     bar = tqdm(total=len(indices), unit="frame", desc="fuse", disable=not progress, dynamic_ncols=True)
     # zarr decompression and conversion in a second thread overlap Open3D's integration.
     for chunk, depths in prefetch(_depth_batches(store, indices, config), depth=2):
-        for i, (depth, in_range) in zip(chunk, depths):
+        for i, (depth, in_range) in zip(chunk, depths, strict=True):
             bar.update(1)
             if not in_range:  # Open3D aborts on a frame that touches no block
                 skipped += 1
                 continue
             t = time.perf_counter()
             image = _o3d_depth(depth, device, ready=True)
-            extrinsic = o3c.Tensor(invert_transform(store.T_world_camera[i]), o3c.float64)
+            extrinsic = o3c.Tensor(invert_transform(store.T_world_camera[i]), o3c.float64)  # type: ignore[call-overload]  # stub: dtype, device required; they default
             coords = _touched_blocks(vbg, image, K, extrinsic, config)
             if coords is None:
                 skipped += 1

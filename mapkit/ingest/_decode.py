@@ -92,7 +92,7 @@ def _decode_compressed_depth(msg: Any, *, topic: str) -> NDArray[np.float32]:
     try:
         png = Image.open(io.BytesIO(data[12:]))
         png.load()
-    except Exception as exc:
+    except Exception as exc:  # noqa: BLE001 - Pillow raises many kinds for a broken PNG
         raise IngestError(f"topic {topic}: compressedDepth PNG does not decode ({exc}); corrupted message") from None
     if not png.mode.startswith("I"):  # 8-bit grey or colour would read as millimetres silently
         raise IngestError(f"topic {topic}: compressedDepth PNG is mode {png.mode}, not a 16-bit greyscale image; "
@@ -118,7 +118,7 @@ def camera_intrinsics(msg: Any, *, topic: str) -> tuple[NDArray[np.float64], int
     """(K 3x3, width, height) from a CameraInfo (ROS1 field K, ROS2 field k)."""
     k = getattr(msg, "k", None)
     if k is None:
-        k = getattr(msg, "K")
+        k = msg.K
     K = np.asarray(k, dtype=np.float64).reshape(3, 3)
     if not (K[0, 0] > 0 and K[1, 1] > 0) or not np.all(np.isfinite(K)):
         raise IngestError(

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 from mapkit.ingest._errors import IngestError
 from mapkit.ingest._reader import IngestConfig, SourcePlan, plan_source

@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import logging
 from collections import Counter, deque
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from mapkit._threads import prefetch
 from mapkit.geometry import transform_from_pose
 from mapkit.ingest._decode import (
     ACCEPTED,
@@ -29,7 +31,6 @@ from mapkit.ingest._decode import (
 )
 from mapkit.ingest._errors import IngestError
 from mapkit.ingest._fastcdr import parse_image, parse_odometry
-from mapkit._threads import prefetch
 from mapkit.ingest._sources import BagSummary, Source, normalize_topic
 from mapkit.ingest._tf import NO_POSE, POSE_GAP, EdgeSeries, NoPose, TfTree
 
@@ -323,12 +324,12 @@ class _PoseFeed:
         self.dropped_poses = 0
 
     @classmethod
-    def for_planning(cls, roles: Roles, config: IngestConfig) -> "_PoseFeed":
+    def for_planning(cls, roles: Roles, config: IngestConfig) -> _PoseFeed:
         """A feed that learns the frames: every tf topic, the pose topic's frames not known yet."""
         return cls(roles.pose.topic, roles.tf_topics, config)
 
     @classmethod
-    def for_plan(cls, plan: SourcePlan, config: IngestConfig) -> "_PoseFeed":
+    def for_plan(cls, plan: SourcePlan, config: IngestConfig) -> _PoseFeed:
         """A feed for streaming a planned recording: the pose topic pinned to world → body, the
         ``--extrinsic`` pinned to body → camera, /tf only when the plan needs it."""
         tf = [t for t in plan.tf_topics if plan.needs_dynamic_tf or "static" in t]
@@ -519,7 +520,7 @@ class FrameStream:
         return min(n, self.config.max_frames) if self.config.max_frames else n
 
     def __iter__(self) -> Iterator[Frame]:
-        for index, (path, plan) in enumerate(zip(self.paths, self.plans)):
+        for index, (path, plan) in enumerate(zip(self.paths, self.plans, strict=True)):
             for frame in self._iter_source(index, path, plan):
                 if self.config.max_frames and self.used >= self.config.max_frames:
                     return

@@ -8,10 +8,12 @@ before the cut.
 
 from __future__ import annotations
 
+import itertools
 import logging
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any
 
 from mapkit._threads import prefetch
 from mapkit.ingest._errors import IngestError
@@ -121,7 +123,7 @@ class Source:
         self._backend: Any = None
         self.summary: BagSummary
 
-    def __enter__(self) -> "Source":
+    def __enter__(self) -> Source:
         self.open()
         return self
 
@@ -158,7 +160,7 @@ class Source:
                 return
             except IngestError:
                 raise
-            except Exception as exc:  # damaged chunk/record: name the file and where
+            except Exception as exc:  # noqa: BLE001 - damaged chunk/record: name the file and where
                 raise IngestError(
                     f"{str(self.path)!r} is damaged after message {count} ({type(exc).__name__}: {exc}); "
                     "re-export the recording or repair it (for MCAP: `mcap recover`)"
@@ -169,7 +171,7 @@ class Source:
     def deserialize(self, msg: RawMessage) -> Any:
         try:
             return self._backend.deserialize(msg)
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - a deserializer raises many kinds for a malformed message
             raise IngestError(
                 f"{str(self.path)!r}: a {msg.msgtype} message on {msg.topic} at log time "
                 f"{msg.log_time_ns} ns does not deserialise ({exc}); the recording is damaged"
@@ -185,7 +187,7 @@ class _Rosbags:
         reader = AnyReader([path], default_typestore=_default_typestore(kind))
         try:
             reader.open()
-        except Exception as exc:  # rosbags raises several unrelated types for damaged files
+        except Exception as exc:  # noqa: BLE001 - rosbags raises several unrelated types for damaged files
             why = " ".join(str(exc).split())  # YAML errors span several lines
             if kind == "ros1" and "index" in why.lower():
                 why += ("; the index at the end of the bag is missing or cut off (was the recorder killed?): rebuild "
@@ -211,7 +213,7 @@ class _Rosbags:
                 yield RawMessage(normalize_topic(conn.topic), conn.msgtype, int(stamp), data)
 
     def deserialize(self, msg: RawMessage) -> Any:
-        return self._reader.deserialize(msg.data, msg.msgtype)
+        return self._reader.deserialize(msg.data, msg.msgtype)  # type: ignore[arg-type]  # its own messages: bytes
 
 
 class _NoSummary(Exception):
@@ -241,16 +243,17 @@ class _McapIndexed:
         from mcap.reader import make_reader
 
         self.path = path
-        self._file = open(path, "rb")
+        self._file = open(path, "rb")  # noqa: SIM115 - held until close()
         try:
             self._reader = make_reader(self._file)
             summary = self._reader.get_summary()
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - any failure to read the summary: fall back to a linear scan
             self._file.close()
             raise _NoSummary(str(exc)) from None
         if summary is None or summary.statistics is None or not summary.chunk_indexes:
             self._file.close()
             raise _NoSummary("no summary section")
+        self._summary = summary
         self._names = {sid: _ros2_typename(s.name) for sid, s in summary.schemas.items()}
         self.typestore = _typestore_from_schemas(path, summary.schemas.values())
         counts = summary.statistics.channel_message_counts
@@ -266,16 +269,18 @@ class _McapIndexed:
         self._file.close()
 
     def messages(self, wanted: set[str]) -> Iterator[RawMessage]:
-        summary = self._reader.get_summary()
+        summary = self._summary
         channels = {cid: ch for cid, ch in summary.channels.items() if normalize_topic(ch.topic) in wanted}
         if not channels:
             return
         chunks = sorted(summary.chunk_indexes, key=lambda c: (c.message_start_time, c.chunk_start_offset))
-        overlapping = any(b.message_start_time < a.message_end_time for a, b in zip(chunks, chunks[1:]))
+        overlapping = any(b.message_start_time < a.message_end_time for a, b in itertools.pairwise(chunks))
         if overlapping or any(c.compression not in ("", "zstd", "lz4") for c in chunks):
             # Interleaved chunks need the mcap package's merge by log time.
             names = [ch.topic for ch in channels.values()]
             for schema, channel, message in self._reader.iter_messages(topics=names, log_time_order=True):
+                if schema is None:  # every channel kept above has one (its schema named the type)
+                    raise IngestError(f"{str(self.path)!r}: channel {channel.topic!r} has no schema")
                 yield RawMessage(normalize_topic(channel.topic), self._names[schema.id], int(message.log_time), message.data)
             return
         topics = {cid: (normalize_topic(ch.topic), self._names[ch.schema_id]) for cid, ch in channels.items()}
@@ -332,6 +337,7 @@ class _McapStream:
             log.info(warnings[-1])
         if n == 0:
             raise IngestError(f"{str(path)!r} holds no readable messages (MCAP damaged or truncated before the first message)")
+        assert start is not None and end is not None  # set by the first message
         self.summary = BagSummary(path, "mcap", int(start), int(end), topics, warnings)
 
     def _records(self) -> Iterator[Any]:
@@ -345,7 +351,7 @@ class _McapStream:
                     record = next(it)
                 except StopIteration:
                     return
-                except Exception as exc:  # EndOfFile, bad CRC, bad opcode: the damaged tail
+                except Exception as exc:  # noqa: BLE001 - EndOfFile, bad CRC, bad opcode: the damaged tail
                     yield from _partial_chunk_records(self.path, record_start)
                     yield _cut_marker(record_start, f"{type(exc).__name__}: {exc}".rstrip(": "))
                     return
@@ -414,13 +420,13 @@ def _partial_chunk_records(path: Path, offset: int) -> Iterator[Any]:
             records = lz4.frame.LZ4FrameDecompressor().decompress(payload)
         else:
             return
-    except Exception:  # the cut fell inside the compressed frame's header: nothing to save
+    except Exception:  # noqa: BLE001 - the cut fell inside the compressed frame's header: nothing to save
         return
     it = StreamReader(io.BytesIO(records), skip_magic=True).records
     while True:
         try:
             record = next(it)
-        except Exception:  # StopIteration or the cut record
+        except Exception:  # noqa: BLE001 - StopIteration or the cut record
             return
         yield record
 

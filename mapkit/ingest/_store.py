@@ -6,14 +6,16 @@ import json
 import queue
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mapkit._version import __version__
+from mapkit._zarr import read_whole
 from mapkit.ingest._errors import IngestError
 from mapkit.ingest._reader import Frame, FrameStream, IngestConfig, open_frames
 from mapkit.workspace import FRAMES, atomic_output, check_writable
@@ -58,7 +60,7 @@ def _compressor() -> Any:
     return BloscCodec(cname="lz4", clevel=1, shuffle="bitshuffle")
 
 
-def _writer_thread(depth_array: Any, jobs: "queue.Queue[tuple[int, NDArray[np.float32]] | None]", errors: list[BaseException]) -> None:
+def _writer_thread(depth_array: Any, jobs: queue.Queue[tuple[int, NDArray[np.float32]] | None], errors: list[BaseException]) -> None:
     """Write (start, block) jobs into ``depth_array`` until None; the first failure goes to ``errors``."""
     while (job := jobs.get()) is not None:
         if errors:
@@ -66,7 +68,7 @@ def _writer_thread(depth_array: Any, jobs: "queue.Queue[tuple[int, NDArray[np.fl
         start, block = job
         try:
             depth_array[start : start + len(block)] = block
-        except BaseException as exc:  # surfaced in the main thread
+        except BaseException as exc:  # noqa: BLE001 - surfaced in the main thread
             errors.append(exc)
 
 
@@ -200,7 +202,7 @@ def _stream_frames(stream: FrameStream, depth: _DepthWriter, *, progress: bool) 
 def _sources_attrs(stream: FrameStream) -> list[dict[str, Any]]:
     """Per input recording: its fingerprint, format and the topics read (the ``sources`` attribute)."""
     sources = []
-    for path, plan in zip(stream.paths, stream.plans):
+    for path, plan in zip(stream.paths, stream.plans, strict=True):
         sources.append(
             {
                 **_source_fingerprint(path),
@@ -305,12 +307,13 @@ def open_frames_store(workspace: str | Path) -> FramesStore:
         if attrs.get("kind") != "mapkit.frames":
             raise KeyError("kind")
         return FramesStore(
-            path, root["depth"], root["stamp_ns"][:], root["T_world_camera"][:], root["T_world_body"][:],
-            root["source_index"][:], np.asarray(attrs["K"], dtype=np.float64), attrs,
+            path, root["depth"], read_whole(root, "stamp_ns"), read_whole(root, "T_world_camera"),
+            read_whole(root, "T_world_body"), read_whole(root, "source_index"), np.asarray(attrs["K"], dtype=np.float64),
+            attrs,
         )
     except IngestError:
         raise
-    except Exception as exc:
+    except Exception as exc:  # noqa: BLE001 - zarr raises many kinds for a damaged or foreign store
         raise IngestError(
             f"{str(path)!r} is not a mapkit frames store ({type(exc).__name__}: {exc}); re-run `mapkit ingest --overwrite`"
         ) from None

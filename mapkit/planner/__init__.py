@@ -33,17 +33,17 @@ from mapkit.planner._errors import PlannerError
 from mapkit.planner._loss import (
     LossConfig,
     body_to_world,
+    candidate_loss,
     collision_labels,
     escape_cost,
     goal_cost,
     obstacle_cost,
     obstacle_penalty,
-    candidate_loss,
     planner_loss,
     sample_trajectory,
     smoothness_cost,
-    time_cost,
     time_allocation_loss,
+    time_cost,
     time_targets,
 )
 from mapkit.planner._model import (
@@ -57,8 +57,8 @@ from mapkit.planner._model import (
     planner_preset,
     preprocess_depth,
 )
-from mapkit.planner._timing import Allocation, Timing, plan_timing, total_time
 from mapkit.planner._resnet import ResNet18, load_torchvision_state_dict, torchvision_resnet18_keys
+from mapkit.planner._timing import Allocation, Timing, plan_timing, total_time
 
 __all__ = [
     "Allocation",

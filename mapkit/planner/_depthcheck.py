@@ -35,7 +35,7 @@ class CameraInput:
 
     @classmethod
     def from_calibration(cls, K: torch.Tensor | np.ndarray, width: int, height: int,
-                         T_body_camera: torch.Tensor | np.ndarray) -> "CameraInput":
+                         T_body_camera: torch.Tensor | np.ndarray) -> CameraInput:
         """From K (B, 3, 3) or (3, 3) pixels, the image size and T_body_camera (B, 4, 4) or (4, 4)."""
         K = torch.as_tensor(K, dtype=torch.float64)
         T = torch.as_tensor(T_body_camera, dtype=torch.float64)
@@ -46,7 +46,7 @@ class CameraInput:
                             (K[:, 1, 2] + 0.5) / height], dim=1)
         return cls(intrinsics=intr.float(), T_camera_body=torch.linalg.inv(T).float())
 
-    def expand(self, batch: int) -> "CameraInput":
+    def expand(self, batch: int) -> CameraInput:
         """The same camera for ``batch`` samples (a single calibration is broadcast)."""
         if self.intrinsics.shape[0] == batch:
             return self
@@ -54,7 +54,7 @@ class CameraInput:
             raise PlannerError(f"camera has {self.intrinsics.shape[0]} calibrations for a batch of {batch}")
         return CameraInput(self.intrinsics.expand(batch, 4), self.T_camera_body.expand(batch, 4, 4))
 
-    def to(self, device: torch.device | str) -> "CameraInput":
+    def to(self, device: torch.device | str) -> CameraInput:
         return CameraInput(self.intrinsics.to(device), self.T_camera_body.to(device))
 
 
@@ -102,8 +102,8 @@ def depth_margins(candidates: torch.Tensor, x: torch.Tensor, camera: CameraInput
     around it (from a pyramid of window sizes: at 1 m the disc spans tens of pixels, at 8 m a few).
     Pixels without a return count as far (no surface seen there). ``pyramid``: the candidates' own
     :func:`nearest_depth_pyramid` rows when already computed (several goals share an image)."""
-    B, M, K, _ = candidates.shape
-    h, w = x.shape[-2:]
+    B, M, _, _ = candidates.shape
+    _, w = x.shape[-2:]
     pts = path_points(candidates)  # (B, M, P, 3)
     T = camera.T_camera_body.to(pts.dtype)
     pc = pts @ T[:, None, :3, :3].transpose(-1, -2) + T[:, None, None, :3, 3]

@@ -159,7 +159,7 @@ def obstacle_penalty(distance: torch.Tensor, *, robot_radius: float, softness: f
 
 def obstacle_cost(
     points: torch.Tensor,
-    esdf_map: "EsdfMap",
+    esdf_map: EsdfMap,
     *,
     robot_radius: float = 0.3,
     softness: float = 1.0,
@@ -204,7 +204,7 @@ def smoothness_cost(points: torch.Tensor, start: torch.Tensor, goal: torch.Tenso
 
 @torch.no_grad()
 def collision_labels(
-    points: torch.Tensor, esdf_map: "EsdfMap", *, threshold: float, raw: bool = False
+    points: torch.Tensor, esdf_map: EsdfMap, *, threshold: float, raw: bool = False
 ) -> torch.Tensor:
     """(B,) bool: some world point of (B, N, 3) has ESDF distance < ``threshold`` metres (from
     ``esdf_raw`` when ``raw`` and the map has it). Outside the grid: nearest grid point. No gradient."""
@@ -282,7 +282,7 @@ def planner_loss(
     *,
     goal: torch.Tensor,
     T_world_body: torch.Tensor,
-    esdf_map: "EsdfMap",
+    esdf_map: EsdfMap,
     eta: torch.Tensor | None = None,
     eta_logit: torch.Tensor | None = None,
     target_shares: torch.Tensor | None = None,
@@ -360,7 +360,7 @@ def candidate_loss(
     *,
     goal: torch.Tensor,
     T_world_body: torch.Tensor,
-    esdf_map: "EsdfMap",
+    esdf_map: EsdfMap,
     start_velocity: torch.Tensor | None = None,
     end_speed: torch.Tensor | None = None,
     corridor: float | None = None,

@@ -139,7 +139,7 @@ class PlannerConfig:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "PlannerConfig":
+    def from_dict(cls, data: dict[str, Any]) -> PlannerConfig:
         """Build a config from :meth:`to_dict` output; unknown keys raise :class:`PlannerError`."""
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - names)

@@ -83,7 +83,7 @@ class ResNet18(nn.Module):
         self.relu = nn.ReLU(inplace=True)
         self.maxpool = nn.MaxPool2d(3, stride=2, padding=1)
         prev = ch[0]
-        for i, (c, n) in enumerate(zip(ch, BLOCKS)):
+        for i, (c, n) in enumerate(zip(ch, BLOCKS, strict=True)):
             stride = 1 if i == 0 else 2
             blocks = [BasicBlock(prev, c, stride)] + [BasicBlock(c, c, 1) for _ in range(n - 1)]
             setattr(self, f"layer{i + 1}", nn.Sequential(*blocks))

@@ -44,7 +44,7 @@ def end_state(waypoints: torch.Tensor, end_speed: torch.Tensor) -> torch.Tensor:
 
 
 @torch.no_grad()
-def total_time(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.Tensor, config: "PlannerConfig") -> torch.Tensor:
+def total_time(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.Tensor, config: PlannerConfig) -> torch.Tensor:
     """(B,) seconds: the speed profile over the key-point path (:func:`mapkit.trajopt.profile_time`:
     from the start speed along the first segment to ``cruise_speed`` at ``accel``, then to
     ``end_speed``), at least ``min_total_time`` and M × ``min_segment_time``, at most
@@ -75,8 +75,8 @@ def shares_from_durations(durations: torch.Tensor, min_segment: float) -> torch.
     return torch.where(free > 1e-9, (durations - min_segment) / free.clamp_min(1e-9), torch.full_like(durations, 1.0 / M))
 
 
-def plan_timing(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.Tensor, config: "PlannerConfig", *,
-                allocation: Allocation = "tan", tan: "TimeAllocationNet | None" = None,
+def plan_timing(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.Tensor, config: PlannerConfig, *,
+                allocation: Allocation = "tan", tan: TimeAllocationNet | None = None,
                 gradient_iters: int = 30) -> Timing:
     """Segment times for waypoints (B, M+1, 3) from ``start`` (B, 3, 3) (velocity, acceleration,
     jerk) to ``end_speed`` (B,) m/s; ``tan`` is needed for ``allocation="tan"``; its shares keep

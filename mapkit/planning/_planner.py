@@ -37,7 +37,7 @@ class PlanResult:
     """∫‖snap‖² dt, m²/s⁷."""
     latency_ms: float
     """Depth → trajectory, wall clock."""
-    goal_body: np.ndarray | None = None
+    goal_body: np.ndarray
     """(3,) the goal planned to: the one asked for, or the local goal on its way (``goal_clipped``)."""
     goal_clipped: bool = False
     """True when the goal asked for lay beyond :data:`LOCAL_GOAL_RANGE` and the plan went to the point that
@@ -67,7 +67,7 @@ class Planner:
         return bool(c.depth_check and c.num_candidates > 1)
 
     @classmethod
-    def load(cls, run_dir: str | Path, *, device: str = "cpu") -> "Planner":
+    def load(cls, run_dir: str | Path, *, device: str = "cpu") -> Planner:
         """Load runs/NAME/model.pt (state dict + planner config; nothing pickled but tensors);
         ``run_dir="pretrained"`` loads the model shipped with mapkit."""
         from mapkit._saved import load_saved
@@ -86,7 +86,7 @@ class Planner:
         try:
             net = PlannerNet(PlannerConfig.from_dict(saved["planner_config"]))
             net.load_state_dict(saved["state_dict"])
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - a foreign state dict fails in many ways: one message
             raise PlanningError(f"{path} is not a mapkit planner ({type(exc).__name__}: {exc})") from None
         return cls(net, torch.device(device))
 
@@ -163,18 +163,18 @@ def write_plan_outputs(result: PlanResult, T_world_body: np.ndarray, stamp_ns: i
         "keypoints_body": result.keypoints.tolist(), "durations": result.durations.tolist(),
         "control_effort_m2_s7": result.control_effort, "latency_ms": result.latency_ms,
         "t": np.asarray(result.samples_t, dtype=np.float64).tolist(), "stamps_ns": t_ns.tolist(),
-        "goal_body": None if result.goal_body is None else result.goal_body.tolist(), "goal_clipped": result.goal_clipped,
+        "goal_body": result.goal_body.tolist(), "goal_clipped": result.goal_clipped,
         "positions_world": world.tolist(),
     }, indent=1))
     tum_path = out_dir / f"{stem}.tum"
     tum_path.write_text("".join(f"{t // 10**9}.{t % 10**9:09d} {x:.6f} {y:.6f} {z:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n"
-                                for t, (x, y, z) in zip(t_ns.tolist(), world)))
+                                for t, (x, y, z) in zip(t_ns.tolist(), world, strict=True)))
     mcap_path = out_dir / f"{stem}.mcap"
     with BagRecorder(mcap_path, "mcap", overwrite=True) as bag:
         Path_ = bag.typestore.types["nav_msgs/msg/Path"]
         PoseStamped = bag.typestore.types["geometry_msgs/msg/PoseStamped"]
         poses = []
-        for t, pos in zip(t_ns.tolist(), world):
+        for t, pos in zip(t_ns.tolist(), world, strict=True):
             T = np.eye(4)
             T[:3, :3] = R
             T[:3, 3] = pos

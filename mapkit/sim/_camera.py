@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
 import numpy as np
 
 from mapkit.sim._errors import SimError
@@ -111,7 +112,7 @@ def render_depth(world: World, T_world_camera: np.ndarray, camera: CameraModel, 
     d_world = d_cam @ R.T
     W, H = camera.width, camera.height
     K = camera.K
-    depth = np.full(H * W, np.inf)
+    depth: np.ndarray = np.full(H * W, np.inf)  # flat while rays are cast, (H, W) at the end
     # A hit at depth <= max_range lies within this distance of the camera.
     reach = camera.max_range * float(np.sqrt((d_cam ** 2).sum(axis=1)).max())
     R_cw = R.T

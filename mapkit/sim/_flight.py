@@ -19,8 +19,10 @@ How a flight is made:
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
+
 import numpy as np
 from scipy import ndimage
 from scipy.interpolate import BSpline
@@ -103,7 +105,7 @@ def _poses(p: np.ndarray, yaw: np.ndarray) -> np.ndarray:
 def _resample(poly: np.ndarray, spacing: float) -> np.ndarray:
     """Points along a polyline every <= spacing metres (vertices kept)."""
     pts = [poly[0]]
-    for a, b in zip(poly[:-1], poly[1:]):
+    for a, b in itertools.pairwise(poly):
         n = max(1, int(math.ceil(np.linalg.norm(b - a) / spacing)))
         for k in range(1, n + 1):
             pts.append(a + (b - a) * k / n)

@@ -10,8 +10,9 @@
 
 from __future__ import annotations
 
+import functools
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -109,7 +110,7 @@ def _office(rng: np.random.Generator, X: float, Y: float, Z: float, density: flo
             edges += [xd - 0.5 * width, xd + 0.5 * width]
             prims.append(Box((xd, y, 0.5 * (door_h + Z)), (0.5 * width + 0.01, 0.5 * t, 0.5 * (Z - door_h) + 0.05)))
         edges.append(x1)
-        for s0, s1 in zip(edges[0::2], edges[1::2]):
+        for s0, s1 in zip(edges[0::2], edges[1::2], strict=False):
             if s1 - s0 > 1e-3:
                 prims.append(Box((0.5 * (s0 + s1), y, 0.5 * Z), (0.5 * (s1 - s0), 0.5 * t, 0.5 * Z + 0.05)))
 
@@ -119,14 +120,14 @@ def _office(rng: np.random.Generator, X: float, Y: float, Z: float, density: flo
             edges += [yd - 0.5 * width, yd + 0.5 * width]
             prims.append(Box((x, yd, 0.5 * (door_h + Z)), (0.5 * t, 0.5 * width + 0.01, 0.5 * (Z - door_h) + 0.05)))
         edges.append(y1)
-        for s0, s1 in zip(edges[0::2], edges[1::2]):
+        for s0, s1 in zip(edges[0::2], edges[1::2], strict=False):
             if s1 - s0 > 1e-3:
                 prims.append(Box((x, 0.5 * (s0 + s1), 0.5 * Z), (0.5 * t, 0.5 * (s1 - s0), 0.5 * Z + 0.05)))
 
     def door_positions(length: float, n: int, width: float) -> list[float]:
         slots = np.linspace(0.0, length, n + 2)[1:-1]
         jitter = rng.uniform(-0.25, 0.25, size=n) * length / (n + 1)
-        return [float(np.clip(s + j, width, length - width)) for s, j in zip(slots, jitter)]
+        return [float(np.clip(s + j, width, length - width)) for s, j in zip(slots, jitter, strict=True)]
 
     # A corridor wall along x splits the floor; cross walls make rooms on both sides.
     y_split = float(rng.uniform(0.4, 0.6) * Y)
@@ -164,7 +165,7 @@ def _office(rng: np.random.Generator, X: float, Y: float, Z: float, density: flo
     # on outer walls but keep clear of inner walls so doorways stay open.
     for _ in range(max(1, int(round(X * Y / 80.0)))):
         r = float(rng.uniform(0.2, 0.3))
-        try_place(lambda r=r: _pillar(rng, X, Y, Z, r), 1.6, outer_and_inner)
+        try_place(functools.partial(_pillar, rng, X, Y, Z, r), 1.6, outer_and_inner)
     for i in range(int(round(density * X * Y))):
         if i % 3 == 2:
             try_place(lambda: _shelf(rng, X, Y), 1.2, inner)

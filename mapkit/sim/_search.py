@@ -10,7 +10,7 @@ planner, and by :func:`~mapkit.sim.plan_flight` for the legs of a simulated flig
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from scipy import ndimage, sparse

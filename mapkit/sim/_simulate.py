@@ -6,9 +6,10 @@ import math
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -289,7 +290,7 @@ def _write_recording(bag: Path, truth: tuple[Path, Path, Path], plan: _Plan, con
             if bar is not None:
                 bar.close()
             # Ground truth goes into place just before the bag is renamed (all or nothing).
-            for src, dst in zip(tmp_truth, truth):
+            for src, dst in zip(tmp_truth, truth, strict=True):
                 os.replace(src, dst)
     except BaseException:
         for dst in truth:  # a failed run leaves no ground truth for a recording that is not there
@@ -306,7 +307,7 @@ def _write_truth(paths: list[Path], plan: _Plan, T_world_body: np.ndarray, T_wor
     import open3d as o3d
 
     plan.world.to_json(paths[0])
-    o3d.io.write_triangle_mesh(str(paths[1]), plan.world.mesh(), write_ascii=False, compressed=True)
+    o3d.io.write_triangle_mesh(paths[1], plan.world.mesh(), write_ascii=False, compressed=True)
     cam = plan.camera
     np.savez(paths[2], stamps_ns=plan.depth_stamps, T_world_body=T_world_body, T_world_camera=T_world_camera,
              K=cam.K, width=cam.width, height=cam.height)

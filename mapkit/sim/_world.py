@@ -23,9 +23,10 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Union
+from typing import Any
 
 import numpy as np
 
@@ -116,7 +117,7 @@ class HalfSpace:
         return {"type": "halfspace", "normal": list(self.normal), "offset": self.offset}
 
 
-Primitive = Union[Box, Cylinder, Capsule, HalfSpace]
+Primitive = Box | Cylinder | Capsule | HalfSpace
 
 
 def _t3(x: Iterable[float]) -> tuple[float, float, float]:
@@ -198,7 +199,7 @@ def _ray_box(o: np.ndarray, d: np.ndarray, box: Box) -> np.ndarray:
     tmax = np.full(len(d), np.inf)
     # Slabs per axis; a ray parallel to a slab gets +-inf (or NaN exactly on its face: a miss).
     with np.errstate(divide="ignore", invalid="ignore"):
-        for dli, oli, hi in zip(dl, ol, box.half_extents):
+        for dli, oli, hi in zip(dl, ol, box.half_extents, strict=True):
             inv = 1.0 / dli
             t1 = (-hi - oli) * inv
             t2 = (hi - oli) * inv
@@ -355,7 +356,7 @@ class World:
             raise SimError(f"points must have shape (N, 3), got {p.shape}")
         out = np.full(len(p), np.inf)
         packed = self._pack()
-        funcs = {"box": _sdf_boxes, "cylinder": _sdf_cylinders, "capsule": _sdf_capsules,
+        funcs: dict[str, Callable[..., np.ndarray]] = {"box": _sdf_boxes, "cylinder": _sdf_cylinders, "capsule": _sdf_capsules,
                  "halfspace": _sdf_halfspaces}
         for start in range(0, len(p), _CHUNK):
             blk = p[start:start + _CHUNK]
@@ -392,7 +393,7 @@ class World:
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "World":
+    def from_dict(cls, d: dict[str, Any]) -> World:
         return cls(
             primitives=[primitive_from_dict(p) for p in d["primitives"]],
             bounds=np.asarray(d["bounds"], dtype=np.float64),
@@ -407,7 +408,7 @@ class World:
         Path(path).write_text(json.dumps(self.to_dict(), indent=1))
 
     @classmethod
-    def from_json(cls, path: str | os.PathLike[str]) -> "World":
+    def from_json(cls, path: str | os.PathLike[str]) -> World:
         """Read a world written by :meth:`to_json`; ``signed_distance`` is restored exactly."""
         try:
             data = json.loads(Path(path).read_text())

@@ -78,7 +78,7 @@ class TrainConfig:
         return json.loads(json.dumps(data))
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "TrainConfig":
+    def from_dict(cls, data: dict[str, Any]) -> TrainConfig:
         """Build a config from :meth:`to_dict`'s form (config.json, a preset with overrides);
         ``planner`` / ``loss`` may be dicts of fields or config objects. Unknown options and
         ill-typed nested fields raise :class:`TrainConfigError` naming them."""

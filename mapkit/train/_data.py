@@ -2,18 +2,17 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator, Sequence, TypedDict
+from typing import Any, TypedDict
 
 import numpy as np
 import torch
 
+from mapkit._zarr import read_whole
 from mapkit.errors import MapkitError
 from mapkit.planner._depthcheck import CameraInput
-
-if TYPE_CHECKING:
-    import zarr
 
 
 class TrainDataError(MapkitError):
@@ -38,7 +37,7 @@ class TupleStore:
     mix lack it: None)."""
 
     @classmethod
-    def open(cls, workspace: str | Path) -> "TupleStore":
+    def open(cls, workspace: str | Path) -> TupleStore:
         import zarr
 
         ws = Path(workspace)
@@ -50,23 +49,13 @@ class TupleStore:
             attrs = dict(root.attrs)
             if attrs.get("kind") != "mapkit.tuples":
                 raise KeyError("kind")
-            blocked = _whole(root, "goal_blocked") if "goal_blocked" in root else None
-            T_wb = _whole(root, "T_world_body")
-            T_bc = np.linalg.inv(T_wb) @ _whole(root, "T_world_camera")
-            return cls(ws, root["depth"], _whole(root, "goals_body"), _whole(root, "velocity_body"), T_wb,
-                       _whole(root, "split"), attrs, T_bc, blocked)
-        except Exception as exc:
+            blocked = read_whole(root, "goal_blocked") if "goal_blocked" in root else None
+            T_wb = read_whole(root, "T_world_body")
+            T_bc = np.linalg.inv(T_wb) @ read_whole(root, "T_world_camera")
+            return cls(ws, root["depth"], read_whole(root, "goals_body"), read_whole(root, "velocity_body"), T_wb,
+                       read_whole(root, "split"), attrs, T_bc, blocked)
+        except Exception as exc:  # noqa: BLE001 - zarr raises many kinds for a damaged or foreign store
             raise TrainDataError(f"{path} is not a mapkit tuples store ({type(exc).__name__}: {exc}); re-run `mapkit export --overwrite`") from None
-
-
-def _whole(root: zarr.Group, name: str) -> np.ndarray:
-    """Array ``name`` of ``root`` read into memory."""
-    import zarr
-
-    array = root[name]
-    if not isinstance(array, zarr.Array):
-        raise KeyError(f"{name} is a group, not an array")
-    return np.asarray(array[:])
 
 
 class Batch(TypedDict):
@@ -105,7 +94,7 @@ class TupleSamples:
 
     def blocked_count(self) -> int | None:
         """Samples whose goal is blocked in the map (None when no store records it)."""
-        counts = [int(s.goal_blocked[i[:, 0], i[:, 1]].sum()) for s, i in zip(self.stores, self.index)
+        counts = [int(s.goal_blocked[i[:, 0], i[:, 1]].sum()) for s, i in zip(self.stores, self.index, strict=True)
                   if s.goal_blocked is not None]
         return sum(counts) if counts else None
 

@@ -162,7 +162,7 @@ class MapSlicer:
         """The plane of voxels nearest to ``axis = position`` (see :func:`mapkit.esdf.slice_plane`)."""
         return slice_plane(self._view, axis=axis, position=position, raw=raw)
 
-    def texture(self, axis: str, position: float, *, raw: bool = False, **style: Any) -> "SliceTexture":
+    def texture(self, axis: str, position: float, *, raw: bool = False, **style: Any) -> SliceTexture:
         """:meth:`slice` coloured by :func:`slice_texture` (keyword `style` options are its own)."""
         return slice_texture(self.slice(axis, position, raw=raw), axis=axis, **style)
 
@@ -270,7 +270,7 @@ def slice_texture(
         raise VizError(f"pixels_per_voxel={pixels_per_voxel!r} must be a positive integer")
     p = int(pixels_per_voxel)
     dist = np.asarray(sl.values, dtype=np.float32)
-    nu, nv = dist.shape
+    nu, _ = dist.shape
     u0, u1, v0, v1 = sl.extent
     voxel = (u1 - u0) / nu
     if mode == "cost":
