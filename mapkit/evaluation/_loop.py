@@ -15,8 +15,9 @@ simulates this loop; the vehicle's body is level and it heads toward where its r
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 from scipy.linalg import expm
@@ -327,7 +328,10 @@ def _replan(f: _Flight, world: World, goal: np.ndarray, method: Method, config: 
     g_body = T_wb[:3, :3].T @ to_goal
     n = float(np.linalg.norm(g_body))
     local = g_body * min(1.0, config.horizon / n) if n > 0 else g_body
-    depth = render(T_wb) if method.needs_depth else None
+    depth = None
+    if method.needs_depth:
+        assert render is not None  # given whenever the method needs depth
+        depth = render(T_wb)
     t_take = f.t + lag
     obs = Observation(t=t_take, T_world_body=T_wb, state_world=f.ref.state(t_take), goal_world=goal,
                       local_goal_body=local, depth=depth, goal_clipped=n > config.horizon, reference=f.ref)
@@ -459,7 +463,7 @@ def _jumps(ref: Pieces) -> list[tuple[float, np.ndarray]]:
     """Knot times where the reference's position … jerk jump, with the jump (4, 3)."""
     times, before, after = ref.limits_at_knots()
     out = []
-    for tk, b, a in zip(times, before, after):
+    for tk, b, a in zip(times, before, after, strict=True):
         j = a - b
         j[np.abs(j) < _JUMP_TOL] = 0.0
         if j.any():

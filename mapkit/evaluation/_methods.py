@@ -25,9 +25,11 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -126,7 +128,7 @@ def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
     dense grid). An infeasible QP never leaves the plan without a reference: with the limits it falls
     back to the corridor alone, with the corridor to the trajectory through the key-points."""
     with torch.no_grad():
-        kw = {} if corridor is None else {"corridor": corridor}
+        kw: dict[str, Any] = {} if corridor is None else {"corridor": corridor}
         traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", **kw)
         if not bool(traj.solved.all()):
             return min_snap(wp, T, start=start, end=end)
@@ -195,7 +197,7 @@ class _Checker:
 
 
 def _execute(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, how: Execution,
-             check: "_Checker | None" = None) -> Trajectory:
+             check: _Checker | None = None) -> Trajectory:
     """The reference a plan flies: the widest corridor of ``how`` that ``check`` does not find
     closer to what the camera sees than the trajectory through the key-points."""
     if how.corridor is None:
@@ -313,9 +315,10 @@ class _Memory:
         return near.reshape(pts.shape[:2]).sum(axis=1)
 
 
-def _reference_no_safer(obs: Observation, plan, check: "_Checker") -> bool:
+def _reference_no_safer(obs: Observation, plan, check: _Checker) -> bool:
     """True when the reference being flown, over as long as the new plan from the takeover, has at
     least as many points closer to seen surfaces than the robot's size as the plan itself."""
+    assert obs.reference is not None  # the caller checks
     total = float(plan.durations.sum())
     t = obs.t + np.linspace(total / 24, total, 24)
     world = obs.reference.derivative(t, 0)
@@ -396,10 +399,13 @@ class LearnedMethod:
         choice when its first ``blocked_within`` seconds keep clear of them, else the best-scored
         candidate that does, else ``blocked``."""
         memory, how = self._memory, self.execution
+        assert memory is not None  # called only with a memory
         T = obs.T_world_body
         if attempt.traj is None or memory.conflicts(_samples(attempt.traj, within=how.blocked_within)[0], T)[0] == 0:
             return attempt
         out = attempt.out
+        # a network pass: a model with a memory judges several candidates
+        assert out is not None and out.candidates is not None and out.candidate_eta_logits is not None
         M = out.candidates.shape[1]
         wp = torch.cat([torch.from_numpy(start[:1]).expand(M, 1, 3), out.candidates[0].double()], dim=1)
         st = torch.from_numpy(np.ascontiguousarray(start[1:]))[None].expand(M, 3, 3)
@@ -456,6 +462,7 @@ class LearnedMethod:
             coeffs, durations = _clamped_spline(np.concatenate([start[:1], attempt.kp]), start[1],
                                                 timing.end[0, 0].numpy(), float(timing.total[0]))
         else:
+            assert attempt.traj is not None  # executed unless a spline
             coeffs, durations = attempt.traj.coeffs[0].numpy(), attempt.timing.durations[0].numpy()
         overrides = False
         if attempt.eta >= 0.5 and attempt.check is not None and obs.reference is not None:
@@ -552,7 +559,7 @@ def _split_long(poly: np.ndarray, max_len: float) -> np.ndarray:
     """Insert points so no polyline segment is longer than ``max_len`` metres (keeps the corridor,
     which bounds the deviation from each segment's line, tight on long straight legs)."""
     out = [poly[0]]
-    for a, b in zip(poly[:-1], poly[1:]):
+    for a, b in itertools.pairwise(poly):
         n = max(1, int(np.ceil(np.linalg.norm(b - a) / max_len)))
         out.extend(a + (b - a) * k / n for k in range(1, n + 1))
     return np.array(out)
@@ -565,16 +572,19 @@ def make_methods(names: list[str], net: PlannerNet | None, world: World, graph: 
     ``camera`` by models that check their paths against the depth image; ``execution`` how the
     learned allocations fly their key-points)."""
     cfg = net.config if net is not None else None
-    out = []
+    out: list[LearnedMethod | StraightMethod | OracleMethod] = []
     for name in names:
         if name in LEARNED_ALLOCATIONS:
+            assert net is not None  # evaluate() refuses learned methods without a model
             out.append(LearnedMethod(name, net, allocation=LEARNED_ALLOCATIONS[name], camera=camera,
                                      execution=execution))
         elif name == "iplanner-style":
+            assert net is not None  # likewise
             out.append(LearnedMethod(name, net, spline=True, camera=camera))
         elif name == "straight":
             out.append(StraightMethod(cfg))
         elif name == "oracle":
+            assert graph is not None  # built whenever the oracle runs
             out.append(OracleMethod(graph, corridor=oracle_corridor, v_max=cfg.cruise_speed if cfg is not None else 2.0,
                                     clearance=robot_radius + 0.05))
         else:
