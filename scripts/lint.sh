@@ -4,6 +4,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$PWD
 VENV=${VENV:-.venv}
+case $VENV in /*) ;; *) VENV=$root/$VENV ;; esac
 
 status=0
 "$VENV/bin/ruff" check . || status=1
@@ -18,6 +19,6 @@ for entry in mapkit/*; do ln -s "$root/$entry" "$tree/mapkit/"; done
 ln -s "$root/cli" "$tree/mapkit/cli"
 ln -s "$root/viewer" "$tree/mapkit/viewer"
 cd "$tree"
-"$root/$VENV/bin/mypy" --config-file "$root/pyproject.toml" --cache-dir "$root/build/mypy_cache" -p mapkit \
+"$VENV/bin/mypy" --config-file "$root/pyproject.toml" --cache-dir "$root/build/mypy_cache" -p mapkit \
   | sed -e 's#^mapkit/cli/#cli/#' -e 's#^mapkit/viewer/#viewer/#' || status=1
 exit $status
