@@ -133,13 +133,13 @@ def main(verbose: int) -> None:
 
 
 # Command modules register themselves on `main` when imported.
-from mapkit.cli import dataset as _dataset  # noqa: E402,F401
-from mapkit.cli import eval as _eval  # noqa: E402,F401
-from mapkit.cli import exchange as _exchange  # noqa: E402,F401
-from mapkit.cli import export as _export  # noqa: E402,F401
-from mapkit.cli import ingest as _ingest  # noqa: E402,F401
-from mapkit.cli import mapping as _mapping  # noqa: E402,F401
-from mapkit.cli import plan as _plan  # noqa: E402,F401
-from mapkit.cli import simulate as _simulate  # noqa: E402,F401
-from mapkit.cli import train as _train  # noqa: E402,F401
-from mapkit.cli import view as _view  # noqa: E402,F401
+from mapkit.cli import dataset as _dataset  # noqa: E402,F401 - registers its commands on main, defined above
+from mapkit.cli import eval as _eval  # noqa: E402,F401 - registers its commands on main, defined above
+from mapkit.cli import exchange as _exchange  # noqa: E402,F401 - registers its commands on main, defined above
+from mapkit.cli import export as _export  # noqa: E402,F401 - registers its commands on main, defined above
+from mapkit.cli import ingest as _ingest  # noqa: E402,F401 - registers its commands on main, defined above
+from mapkit.cli import mapping as _mapping  # noqa: E402,F401 - registers its commands on main, defined above
+from mapkit.cli import plan as _plan  # noqa: E402,F401 - registers its commands on main, defined above
+from mapkit.cli import simulate as _simulate  # noqa: E402,F401 - registers its commands on main, defined above
+from mapkit.cli import train as _train  # noqa: E402,F401 - registers its commands on main, defined above
+from mapkit.cli import view as _view  # noqa: E402,F401 - registers its commands on main, defined above

@@ -25,7 +25,7 @@ from mapkit.export import ExportConfig
 def small(**kw: object) -> DatasetConfig:
     base = dict(worlds=2, kinds=("forest", "office"), seed=500, duration=4.0, rate=3.0, workers=1,
                 export=ExportConfig(goals_per_frame=3, goal_mix=(0.0, 0.5, 0.5)))
-    return DatasetConfig(**{**base, **kw})  # type: ignore[arg-type]
+    return DatasetConfig(**{**base, **kw})  # type: ignore[arg-type]  # a dict of mixed field values
 
 
 def test_world_specs_are_varied_and_deterministic() -> None:

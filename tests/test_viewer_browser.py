@@ -79,7 +79,7 @@ def palette_match(region: np.ndarray, texture: np.ndarray, *, tol: int = 30, sam
 
 
 @pytest.mark.slow
-def test_browser_shows_the_slice(tmp_path: Path, start_app) -> None:  # noqa: F811
+def test_browser_shows_the_slice(tmp_path: Path, start_app) -> None:  # noqa: F811 - the fixture imported above
     from PIL import Image
 
     ws = sphere_workspace(tmp_path)

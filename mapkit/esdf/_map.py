@@ -102,7 +102,7 @@ class EsdfMap:
         for name in FIELDS:
             try:
                 arrays[name] = root[name]
-            except Exception:  # noqa: BLE001
+            except Exception:  # noqa: BLE001 - zarr raises many kinds for a missing or damaged array
                 raise EsdfError(f"map {str(p)!r} has no readable {name!r} array; it is incomplete; {_FIX}") from None
         expect = {"esdf": np.float32, "esdf_raw": np.float32, "observed": np.uint8}
         for name, arr in arrays.items():

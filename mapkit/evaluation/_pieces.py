@@ -100,7 +100,11 @@ class Pieces:
         ``other`` planned from this reference's state at its ``t0`` makes the result C³ there."""
         t_switch = other.t0
         n = max(self.coeffs.shape[-1], other.coeffs.shape[-1])
-        pad = lambda c: np.concatenate([c, np.zeros((*c.shape[:2], n - c.shape[-1]))], axis=-1)  # noqa: E731
+
+        def pad(c: np.ndarray) -> np.ndarray:
+            """Coefficients ``c`` padded with zero high orders to ``n``."""
+            return np.concatenate([c, np.zeros((*c.shape[:2], n - c.shape[-1]))], axis=-1)
+
         durations, coeffs = [], []
         a = min(t_from, t_switch)
         for i, T in enumerate(self.durations):

@@ -428,7 +428,11 @@ def candidate_loss(
     total = per.mean()
     chosen = out.chosen if out.chosen is not None else torch.zeros(B, dtype=torch.long, device=cand.device)
     coll_chosen = collided[rows, chosen]
-    f = lambda t: t.detach().to(total.dtype).mean()  # noqa: E731
+
+    def f(t: torch.Tensor) -> torch.Tensor:
+        """A term's batch mean, detached, in the loss's dtype."""
+        return t.detach().to(total.dtype).mean()
+
     terms = {
         "obstacle": f(u_o[rows, chosen]), "goal": f(u_g[rows, chosen]), "smoothness": f(u_s[rows, chosen]),
         "escape": f(u_e), "time": f(u_t), "score": f(u_score), "collision_rate": f(coll_chosen),
