@@ -8,6 +8,7 @@ frame with ``T_world_body`` (B, 4, 4) before every ESDF lookup.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -354,6 +355,16 @@ def planner_loss(
 
 
 # ------------------------------------------------------------------------------ several candidates
+def _per_candidate(t: torch.Tensor, M: int) -> torch.Tensor:
+    """``t`` (B, ...) once per candidate: (B·M, ...), sample-major."""
+    return torch.as_tensor(t).repeat_interleave(M, dim=0)
+
+
+def _batch_mean(t: torch.Tensor, *, dtype: torch.dtype) -> torch.Tensor:
+    """A loss term's batch mean, detached, in ``dtype``."""
+    return t.detach().to(dtype).mean()
+
+
 def candidate_loss(
     net: PlannerNet,
     out: PlannerOutput,
@@ -384,17 +395,12 @@ def candidate_loss(
     logits = out.candidate_eta_logits if out.candidate_eta_logits is not None else out.eta_logit[:, None]
     B, M, K, _ = cand.shape
     goal = torch.as_tensor(goal, dtype=cand.dtype, device=cand.device)
-
-    def rep(t: torch.Tensor) -> torch.Tensor:
-        """``t`` once per candidate (sample-major)."""
-        return torch.as_tensor(t).repeat_interleave(M, dim=0)
-
     plan = net.trajectory(cand.reshape(B * M, K, 3),
-                          start_velocity=None if start_velocity is None else rep(start_velocity),
-                          end_speed=None if end_speed is None else rep(end_speed), corridor=corridor)
+                          start_velocity=None if start_velocity is None else _per_candidate(start_velocity, M),
+                          end_speed=None if end_speed is None else _per_candidate(end_speed, M), corridor=corridor)
     pts_body = sample_trajectory(plan.trajectory, samples_per_second=cfg.samples_per_second, min_samples=cfg.min_samples)
-    pts_world = body_to_world(pts_body, rep(T_world_body))
-    goal_m = rep(goal)
+    pts_world = body_to_world(pts_body, _per_candidate(T_world_body, M))
+    goal_m = _per_candidate(goal, M)
     u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius, softness=cfg.obstacle_softness,
                         reduction=cfg.obstacle_reduction).reshape(B, M)
     u_g = goal_cost(plan.waypoints[:, -1], goal_m).reshape(B, M)
@@ -428,11 +434,7 @@ def candidate_loss(
     total = per.mean()
     chosen = out.chosen if out.chosen is not None else torch.zeros(B, dtype=torch.long, device=cand.device)
     coll_chosen = collided[rows, chosen]
-
-    def f(t: torch.Tensor) -> torch.Tensor:
-        """A term's batch mean, detached, in the loss's dtype."""
-        return t.detach().to(total.dtype).mean()
-
+    f = functools.partial(_batch_mean, dtype=total.dtype)
     terms = {
         "obstacle": f(u_o[rows, chosen]), "goal": f(u_g[rows, chosen]), "smoothness": f(u_s[rows, chosen]),
         "escape": f(u_e), "time": f(u_t), "score": f(u_score), "collision_rate": f(coll_chosen),
