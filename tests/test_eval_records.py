@@ -50,6 +50,6 @@ def test_viz_gives_the_rows_as_records(tmp_path: Path) -> None:
         "format": EVAL_FORMAT, "worlds": {"office": {"seed": 0, "world_json": "worlds/office.world.json"}},
         "methods": ["learned"], "episodes": [ROW, ROW | {"pair": 4, "outcome": "timeout"}]}))
     ev = load_eval(tmp_path)
-    assert [r.to_dict() for r in ev.records] == ev.episodes
-    assert [r.outcome for r in ev.records_of("office", 4)] == ["timeout"] and len(ev.records_of("office")) == 2
+    assert [r.to_dict() for r in ev.episodes] == json.loads((tmp_path / "results.json").read_text())["episodes"]
+    assert [r.outcome for r in ev.episodes_of("office", 4)] == ["timeout"] and len(ev.episodes_of("office")) == 2
     ev.close()

@@ -394,7 +394,7 @@ class ViewerApp:
             lo, hi = p.min(axis=0) - 2.0, p.max(axis=0) + 2.0
         elif self.eval is not None and self.eval.episodes:
             # the flights, not the world's floor quad (which spans its whole bounds)
-            ends = np.array([e[k] for e in self.eval.episodes_of(built(self.gui.eval).world.value) for k in ("start", "goal")],
+            ends = np.array([[e.start, e.goal] for e in self.eval.episodes_of(built(self.gui.eval).world.value)],
                             dtype=np.float64).reshape(-1, 3)
             if len(ends):
                 lo, hi = ends.min(axis=0) - 3.0, ends.max(axis=0) + 3.0
@@ -854,8 +854,8 @@ class ViewerApp:
         missing = 0
         for method in ev.methods:
             segs = []
-            for e in (e for e in episodes if e["method"] == method):
-                path = ev.path_of(world, int(e["pair"]), method)
+            for e in (e for e in episodes if e.method == method):
+                path = ev.path_of(world, int(e.pair), method)
                 if path is None:
                     missing += 1
                     continue
@@ -865,23 +865,23 @@ class ViewerApp:
                 name = f"/eval/paths/{method}"
                 self.nodes[name] = s.add_line_segments(name, np.concatenate(segs), self._method_colors[method],
                                                        thickness=0.04)
-        hits = np.array([e["collision_point"] for e in episodes
-                         if e.get("outcome") == "collision" and e.get("collision_point") is not None], dtype=np.float32)
+        hits = np.array([e.collision_point for e in episodes
+                         if e.outcome == "collision" and e.collision_point is not None], dtype=np.float32)
         if len(hits):
             self.nodes["/eval/collisions"] = s.add_point_cloud(
                 "/eval/collisions", hits.reshape(-1, 3), np.array(_COLORS["collision"], np.uint8), point_size=0.3,
                 point_shape="circle", precision="float32")
-        by_pair = {int(e["pair"]): e for e in episodes}
+        by_pair = {int(e.pair): e for e in episodes}
         if by_pair:
-            starts = np.array([e["start"] for e in by_pair.values()], np.float32)
-            goals = np.array([e["goal"] for e in by_pair.values()], np.float32)
+            starts = np.array([e.start for e in by_pair.values()], np.float32)
+            goals = np.array([e.goal for e in by_pair.values()], np.float32)
             self.nodes["/eval/starts"] = s.add_point_cloud("/eval/starts", starts, np.array(_COLORS["start"], np.uint8),
                                                            point_size=0.3, point_shape="circle", precision="float32")
             self.nodes["/eval/goals"] = s.add_point_cloud("/eval/goals", goals, np.array(_COLORS["eval_goal"], np.uint8),
                                                           point_size=0.3, point_shape="circle", precision="float32")
         rows = ["| method | success | collision | timeout |", "|---|---|---|---|"]
         for method in ev.methods:
-            outs = [e["outcome"] for e in episodes if e["method"] == method]
+            outs = [e.outcome for e in episodes if e.method == method]
             rows.append(f"| {method} | {outs.count('success')} | {outs.count('collision')} | {outs.count('timeout')} |")
         if missing:
             rows.append(f"\n{missing} executed path(s) missing from trajectories.npz")

@@ -22,26 +22,19 @@ class EvalResults:
     worlds: dict[str, dict[str, Any]]
     """name → {"seed": int, "world_json": path relative to :attr:`path`}."""
     methods: list[str]
-    episodes: list[dict[str, Any]]
-    """The rows of results.json as read: each with world, pair, method, outcome, start (3,), goal (3,),
-    collision_point (3,) or None, ... (the viewer reads these; typed: :attr:`records`)."""
-    records: list[EpisodeRecord] = field(default_factory=list)
-    """The same rows as typed records, in file order."""
+    episodes: list[EpisodeRecord]
+    """The rows of results.json as typed records, in file order."""
     notes: list[str] = field(default_factory=list)
     """Problems found that do not stop viewing (missing paths, unreadable worlds)."""
     _npz: Any = None
 
     def pairs(self, world: str) -> list[int]:
         """Sorted pair indices evaluated in `world`."""
-        return sorted({int(e["pair"]) for e in self.episodes if e["world"] == world})
+        return sorted({int(e.pair) for e in self.episodes if e.world == world})
 
-    def records_of(self, world: str, pair: int | None = None) -> list[EpisodeRecord]:
-        """Typed episodes of `world` (one pair, or all when `pair` is None), in file order."""
-        return [e for e in self.records if e.world == world and (pair is None or int(e.pair) == pair)]
-
-    def episodes_of(self, world: str, pair: int | None = None) -> list[dict[str, Any]]:
+    def episodes_of(self, world: str, pair: int | None = None) -> list[EpisodeRecord]:
         """Episodes of `world` (one pair, or all when `pair` is None), in file order."""
-        return [e for e in self.episodes if e["world"] == world and (pair is None or int(e["pair"]) == pair)]
+        return [e for e in self.episodes if e.world == world and (pair is None or int(e.pair) == pair)]
 
     def path_of(self, world: str, pair: int, method: str) -> np.ndarray | None:
         """float64 (N, 4) rows [t, x, y, z] (world frame) of an executed path, or None if absent."""
@@ -108,7 +101,7 @@ def load_eval(path: str | Path) -> EvalResults:
     else:
         notes.append("trajectories.npz is missing; executed paths are not shown")
     records = [EpisodeRecord.from_dict(e) for e in episodes]
-    return EvalResults(d, dict(worlds), [str(m) for m in methods], list(episodes), records, notes, npz)
+    return EvalResults(d, dict(worlds), [str(m) for m in methods], records, notes, npz)
 
 
 def world_mesh_arrays(world_json: str | Path, *, resolution: int = 24) -> tuple[np.ndarray, np.ndarray]:
