@@ -103,8 +103,9 @@ def test_a_large_esdf_becomes_slices_and_plans_and_eval_paths_are_scene_updates(
     path = np.array([[0.0, 0.0, 0.0, 1.0], [1.0, 1.0, 0.0, 1.0], [2.0, 2.0, 1.0, 1.0]])
     np.savez(evald / "trajectories.npz", **{"office/000/learned": path, "office/000/straight": path[:2]})
     (evald / "results.json").write_text(json.dumps({"episodes": [
-        {"world": "office", "pair": 0, "method": "learned", "outcome": "success"},
-        {"world": "office", "pair": 0, "method": "straight", "outcome": "collision"}]}))
+        {"world": "office", "pair": 0, "method": "learned", "outcome": "success", "start": [0, 0, 1], "goal": [2, 2, 1]},
+        {"world": "office", "pair": 0, "method": "straight", "outcome": "collision", "start": [0, 0, 1],
+         "goal": [2, 2, 1]}]}))
     out = tmp_path / "big.mcap"
     config = FoxgloveConfig(voxel_limit=10, slice_heights=(z,), model="pretrained", plan_count=3, goal_ahead=0.2,
                             eval_dir=evald)
@@ -128,11 +129,22 @@ def test_a_large_esdf_becomes_slices_and_plans_and_eval_paths_are_scene_updates(
     assert "/eval/straight" in topics
 
 
+def _eval_without_goals(tmp_path: Path) -> Path:
+    """An eval folder whose results.json rows lack a key every row has."""
+    evald = tmp_path / "eval_no_goal"
+    evald.mkdir()
+    np.savez(evald / "trajectories.npz", **{"office/000/learned": np.zeros((2, 4))})
+    (evald / "results.json").write_text(json.dumps({"episodes": [
+        {"world": "office", "pair": 0, "method": "learned", "outcome": "success", "start": [0, 0, 1]}]}))
+    return evald
+
+
 def test_bad_requests_are_one_line(workspace: Path, tmp_path: Path) -> None:
     runner = CliRunner()
     for args, needle in ((["-o", str(tmp_path / "x.txt")], "ending in .mcap"),
                          (["-o", str(tmp_path / "x.mcap"), "--model", str(tmp_path / "none")], "--model"),
-                         (["-o", str(tmp_path / "y.mcap"), "--eval", str(tmp_path)], "--eval")):
+                         (["-o", str(tmp_path / "y.mcap"), "--eval", str(tmp_path)], "--eval"),
+                         (["-o", str(tmp_path / "w.mcap"), "--eval", str(_eval_without_goals(tmp_path))], "KeyError: 'goal'")):
         r = runner.invoke(main, ["export-foxglove", "-w", str(workspace), *args])
         assert r.exit_code == 1 and needle in r.output and len(r.output.strip().splitlines()) == 1, r.output
     assert not (tmp_path / "x.mcap").exists() and not (tmp_path / "y.mcap").exists()

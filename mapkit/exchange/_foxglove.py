@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mapkit._formats import EpisodeRecord, Outcome
 from mapkit.errors import MapkitError
 from mapkit.geometry import invert_transform, quat_xyzw_from_matrix
 
@@ -277,21 +278,28 @@ def _log_plans(frames: Any, world: str, config: FoxgloveConfig, channel: Any) ->
 _OUTCOME_COLOURS = {"success": (0.1, 0.7, 0.2), "collision": (0.9, 0.1, 0.1), "timeout": (1.0, 0.6, 0.0)}
 
 
+def read_eval_paths(eval_dir: Path) -> tuple[dict[tuple[str, int, str], Outcome], Any]:
+    """The outcome of every (world, pair, method) of a `mapkit eval` folder, and its executed paths
+    (trajectories.npz, keys ``world/pair/method``)."""
+    import json
+
+    try:
+        rows = json.loads((eval_dir / "results.json").read_text()).get("episodes", [])
+        records = [EpisodeRecord.from_dict(row) for row in rows]
+        paths = np.load(eval_dir / "trajectories.npz")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise ExchangeError(f"--eval {eval_dir}: not a readable `mapkit eval` folder ({type(exc).__name__}: {exc}); "
+                            f"run `mapkit eval -o {eval_dir}` first") from None
+    return {(r.world, int(r.pair), r.method): r.outcome for r in records}, paths
+
+
 def _log_eval(eval_dir: Path, ns: int, channels: dict[str, Any], context: Any) -> int:
     """Every flown path of a `mapkit eval` folder: one topic per method, one entity per world, in
     frame ``eval/<world>`` (the evaluation's own simulated worlds, not the workspace's)."""
-    import json
-
     from foxglove.channels import SceneUpdateChannel
     from foxglove.messages import SceneEntity, SceneUpdate
 
-    try:
-        results = json.loads((eval_dir / "results.json").read_text())
-        paths = np.load(eval_dir / "trajectories.npz")
-    except (OSError, ValueError) as exc:
-        raise ExchangeError(f"--eval {eval_dir}: not a readable `mapkit eval` folder ({exc}); run `mapkit eval -o "
-                            f"{eval_dir}` first") from None
-    outcome = {(e["world"], int(e["pair"]), e["method"]): e["outcome"] for e in results.get("episodes", [])}
+    outcome, paths = read_eval_paths(eval_dir)
     lines: dict[str, dict[str, list[Any]]] = {}
     for key in paths.files:
         world, pair, method = key.split("/")

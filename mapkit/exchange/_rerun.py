@@ -16,7 +16,6 @@ A default blueprint shows the 3D world beside the depth camera and the ESDF tens
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +32,7 @@ from mapkit.exchange._foxglove import (
     _plan_results,
     missing_layers,
     open_inputs,
+    read_eval_paths,
 )
 from mapkit.geometry import invert_transform, quat_xyzw_from_matrix
 
@@ -132,13 +132,7 @@ def _log_plans(rec: Any, frames: Any, config: RerunConfig) -> int:
 def _log_eval(rec: Any, eval_dir: Path) -> int:
     import rerun as rr
 
-    try:
-        results = json.loads((eval_dir / "results.json").read_text())
-        paths = np.load(eval_dir / "trajectories.npz")
-    except (OSError, ValueError) as exc:
-        raise ExchangeError(f"--eval {eval_dir}: not a readable `mapkit eval` folder ({exc}); run `mapkit eval -o "
-                            f"{eval_dir}` first") from None
-    outcome = {(e["world"], int(e["pair"]), e["method"]): e["outcome"] for e in results.get("episodes", [])}
+    outcome, paths = read_eval_paths(eval_dir)
     groups: dict[tuple[str, str], list[tuple[NDArray[np.float64], tuple[int, ...]]]] = {}
     for key in paths.files:
         world, pair, method = key.split("/")
