@@ -643,3 +643,11 @@ def test_follow_moves_interior_key_points_toward_the_reference_by_the_fraction_w
     no_ref = Observation(t=0.5, T_world_body=T_wb, state_world=ref.state(0.5), goal_world=GOAL,
                          local_goal_body=np.zeros(3), depth=None)
     assert torch.equal(follow_reference(wp, durations, no_ref, 0.5, 1.0), wp)
+
+
+@pytest.mark.parametrize("follow", [-0.1, 1.5, float("nan")])
+def test_a_follow_fraction_outside_0_1_is_refused_by_name(follow: float):
+    from mapkit.evaluation import EvalError, Execution
+
+    with pytest.raises(EvalError, match="--follow must be in"):
+        EvalConfig(execution=Execution(follow=follow)).validate()

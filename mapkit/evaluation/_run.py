@@ -84,6 +84,8 @@ class EvalConfig:
         for name, value in (("blocked_within", ex.blocked_within), ("subgoal_time", ex.subgoal_time)):
             if not (math.isfinite(value) and value > 0):
                 raise EvalError(f"Execution.{name} must be a positive number of seconds, got {value}")
+        if not (math.isfinite(ex.follow) and 0 <= ex.follow <= 1):
+            raise EvalError(f"--follow must be in [0, 1] (the fraction of the way toward the reference), got {ex.follow}")
         if not (math.isfinite(loop.plan_latency) and 0 <= loop.plan_latency < loop.replan_interval):
             raise EvalError(f"--plan-latency must be in [0, replan interval {loop.replan_interval} s), got {loop.plan_latency}")
         if not (math.isfinite(loop.look_ahead) and loop.look_ahead >= 0):
