@@ -1,0 +1,108 @@
+"""Where Dask work runs: a local cluster sized to this machine, or an existing scheduler.
+
+Every stage that fans out over Dask (``mapkit batch``, the chunked ESDF, ``mapkit eval
+--scheduler``) gets its client here, so the rules are the same everywhere:
+
+- ``scheduler`` given (``tcp://HOST:8786``): connect to it;
+- else the Dask convention ``DASK_SCHEDULER_ADDRESS`` (Dask's own ``scheduler-address`` config);
+- else a :class:`distributed.LocalCluster` of one single-threaded worker process per available core
+  (the process's CPU affinity, not the machine's total), dashboard on a free port.
+
+A scheduler that cannot be reached is a :class:`SchedulerError` naming the address and the fix.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from mapkit.errors import MapkitError
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+log = logging.getLogger(__name__)
+
+CONNECT_TIMEOUT_S = 10.0
+
+
+class SchedulerError(MapkitError):
+    """A Dask scheduler that cannot be reached or used."""
+
+
+def available_cpus() -> int:
+    """CPU cores this process may run on (its affinity, not the machine's total)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+@dataclass(frozen=True)
+class ClusterInfo:
+    """What a connected client runs on, for progress lines and summaries."""
+
+    address: str
+    """The scheduler's address."""
+    dashboard: str | None
+    """The dashboard's URL, when the scheduler serves one."""
+    workers: int
+    """Workers connected when the client started."""
+    local: bool
+    """True for a cluster this process started (and stops)."""
+
+
+def scheduler_address(scheduler: str | None) -> str | None:
+    """The address to connect to: ``scheduler``, else ``DASK_SCHEDULER_ADDRESS``; None for a local cluster."""
+    if scheduler:
+        return scheduler
+    import dask
+
+    configured = dask.config.get("scheduler-address", default=None)
+    return str(configured) if configured else None
+
+
+@contextmanager
+def dask_client(scheduler: str | None = None, *, workers: int | None = None,
+                timeout_s: float = CONNECT_TIMEOUT_S) -> Iterator[tuple[Client, ClusterInfo]]:
+    """A Dask client for the block, and what it runs on; a local cluster started here is stopped after.
+
+    ``workers`` sizes a local cluster (default: one per available core); it is ignored when
+    connecting to an existing scheduler, whose workers are the cluster's business.
+    """
+    from distributed import Client, LocalCluster
+
+    address = scheduler_address(scheduler)
+    if address is None:
+        n = workers if workers is not None else available_cpus()
+        if n < 1:
+            raise SchedulerError(f"workers={n} must be at least 1")
+        # Single-threaded worker processes: the stages are numpy/torch code that holds the GIL in places
+        # and sets its own thread counts; processes also isolate a worker that dies.
+        with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
+                          silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+            yield client, _info(client, local=True)
+        return
+    try:
+        client = Client(address, timeout=f"{timeout_s}s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise SchedulerError(
+            f"cannot reach the Dask scheduler at {address!r} ({type(exc).__name__}); start one with "
+            "`dask scheduler` (and `dask worker ADDRESS`), or drop --scheduler / unset DASK_SCHEDULER_ADDRESS "
+            "to run on this machine") from None
+    with client:
+        yield client, _info(client, local=False)
+
+
+def _info(client: Client, *, local: bool) -> ClusterInfo:
+    """Address, dashboard and worker count of a connected client."""
+    try:
+        dashboard: str | None = client.dashboard_link
+    except (KeyError, AttributeError):  # a scheduler without the dashboard (no bokeh)
+        dashboard = None
+    workers = len(client.scheduler_info().get("workers", {}))
+    return ClusterInfo(address=str(client.scheduler.address), dashboard=dashboard, workers=workers, local=local)
