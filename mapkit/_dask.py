@@ -104,5 +104,6 @@ def _info(client: Client, *, local: bool) -> ClusterInfo:
         dashboard: str | None = client.dashboard_link
     except (KeyError, AttributeError):  # a scheduler without the dashboard (no bokeh)
         dashboard = None
-    workers = len(client.scheduler_info().get("workers", {}))
-    return ClusterInfo(address=str(client.scheduler.address), dashboard=dashboard, workers=workers, local=local)
+    scheduler = client.scheduler_info()
+    return ClusterInfo(address=str(scheduler.get("address", "")), dashboard=dashboard,
+                       workers=len(scheduler.get("workers", {})), local=local)
