@@ -85,19 +85,54 @@ INDEX = Number(0, integer=True)
 """An integer >= 0."""
 
 
-def workspace_option(help: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+class StorePath(click.ParamType):
+    """A local path (a :class:`~pathlib.Path`, as before) or an fsspec URL such as ``s3://bucket/ws``
+    (kept as text: click's path type would fold its ``//``)."""
+
+    name = "path_or_url"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        from mapkit._stores import is_url
+
+        if isinstance(value, Path) or not is_url(str(value)):
+            return Path(value)
+        return str(value)
+
+
+STORE_PATH = StorePath()
+"""A local path or an fsspec URL (docs/stores.md)."""
+
+
+def refuse_url(ctx: click.Context, option: str, value: Any, why: str) -> None:
+    """One line, exit 1, when a command that needs local files gets a URL for `option`."""
+    from mapkit._stores import is_url
+
+    if isinstance(value, str) and is_url(value):
+        raise click.ClickException(
+            f"{ctx.command_path}: {option} {value} is a URL, but this command needs a local folder ({why}); "
+            "run it in a local workspace and copy the stores over (mapkit._stores.copy_store; docs/stores.md)"
+        )
+
+
+def workspace_option(help: str, *, urls: bool = False,
+                     local_reason: str = "it reads or writes files outside the zarr stores"
+                     ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
     """``-w/--workspace``, by default the current directory (as git works in the one it is run in), so
     ``mapkit fuse flight.mcap`` then ``mapkit esdf --voxel 0.1`` work in sequence; the default is
-    announced on stderr."""
+    announced on stderr. With ``urls`` it may be an fsspec URL (docs/stores.md); otherwise a URL is
+    refused in one line giving `local_reason`."""
 
-    def resolve(ctx: click.Context, param: click.Parameter, value: Path | None) -> Path:
+    def resolve(ctx: click.Context, param: click.Parameter, value: Path | str | None) -> Path | str:
         if value is not None:
+            if not urls:
+                refuse_url(ctx, "-w/--workspace", value, local_reason)
             return value
         click.echo(f"workspace: {Path.cwd()} (the current directory; -w chooses another)", err=True)
         return Path(".")
 
-    return click.option("-w", "--workspace", type=click.Path(path_type=Path), default=None, callback=resolve,
-                        help=f"{help} Default: the current directory.")
+    more = " A local folder or an fsspec URL (s3://, gs://, memory://)." if urls else ""
+    return click.option("-w", "--workspace", type=STORE_PATH, default=None, callback=resolve,
+                        help=f"{help}{more} Default: the current directory.")
 
 
 class _Group(click.Group):
@@ -133,6 +168,7 @@ def main(verbose: int) -> None:
 
 
 # Command modules register themselves on `main` when imported.
+from mapkit.cli import batch as _batch  # noqa: E402,F401 - registers its commands on main, defined above
 from mapkit.cli import dataset as _dataset  # noqa: E402,F401 - registers its commands on main, defined above
 from mapkit.cli import eval as _eval  # noqa: E402,F401 - registers its commands on main, defined above
 from mapkit.cli import exchange as _exchange  # noqa: E402,F401 - registers its commands on main, defined above

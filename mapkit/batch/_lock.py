@@ -1,0 +1,76 @@
+"""One batch per root: a lock file naming its holder (pid, host), taken over only from a dead local pid."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from mapkit.batch._config import BatchError
+
+LOCK = ".mapkit-batch.lock"
+"""Lock file in the batch root while a batch runs."""
+
+log = logging.getLogger(__name__)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # another user's process
+    return True
+
+
+def _holder(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text())
+        return data if isinstance(data, dict) else {}
+    except (OSError, ValueError):
+        return {}  # being written, or damaged: treated as held by an unknown process
+
+
+def _try_create(path: Path, record: dict[str, Any]) -> bool:
+    """Create the lock file exclusively; False when it exists."""
+    try:
+        fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+    except FileExistsError:
+        return False
+    with os.fdopen(fd, "w") as f:
+        f.write(json.dumps(record))
+    return True
+
+
+@contextmanager
+def root_lock(root: Path) -> Iterator[None]:
+    """Hold ``root``'s batch lock for the block. Another live holder is a BatchError naming it; a lock
+    left by a dead process on this host is taken over with a warning."""
+    root.mkdir(parents=True, exist_ok=True)
+    path = root / LOCK
+    host = socket.gethostname()
+    record = {"pid": os.getpid(), "host": host, "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+    if not _try_create(path, record):
+        held = _holder(path)
+        pid, where = held.get("pid"), held.get("host")
+        if where == host and isinstance(pid, int) and not _alive(pid):
+            log.warning("taking over %s: its holder (pid %s on %s) is gone", path, pid, where)
+            path.unlink(missing_ok=True)
+        if not _try_create(path, record):
+            held = _holder(path) or held
+            raise BatchError(
+                f"{root} is in use by another `mapkit batch` (pid {held.get('pid', '?')} on {held.get('host', '?')}, "
+                f"since {held.get('since', '?')}); wait for it to finish, or delete {path} if that process is gone"
+            )
+    try:
+        yield
+    finally:
+        if _holder(path).get("pid") == os.getpid():
+            path.unlink(missing_ok=True)

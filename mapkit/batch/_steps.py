@@ -1,0 +1,207 @@
+"""One step of one recording, as a Dask task: skip it when its marker says it is up to date, else run
+the library function the single command runs, then write the marker last.
+
+A step's *key* digests what it depends on: its options, and the recording (ingest) or the product of
+the step before (later steps). Its *product* is the small file that identifies what it wrote
+(``frames.zarr/zarr.json``, ``fuse.json``, ``map.zarr/zarr.json``, ``tuples.zarr/zarr.json``; the
+stores are published whole by a rename, so this file is the complete store's). The marker
+``WS/.batch/<step>.json`` holds both; a step is skipped only when the key is the same and the product
+is still the one the marker saw.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+from mapkit.batch._config import BatchError, Step
+from mapkit.errors import MapkitError
+from mapkit.esdf import MAP, EsdfConfig
+from mapkit.export import TUPLES, ExportConfig
+from mapkit.fusion import FUSE_META, FuseConfig, check_fused
+from mapkit.ingest import IngestConfig
+from mapkit.workspace import FRAMES, atomic_output
+
+MARKERS = ".batch"
+"""Folder in each workspace holding one marker per step (written last, atomically)."""
+
+PRODUCTS: dict[Step, str] = {
+    "ingest": f"{FRAMES}/zarr.json",
+    "fuse": FUSE_META,
+    "esdf": f"{MAP}/zarr.json",
+    "export": f"{TUPLES}/zarr.json",
+}
+"""The file (relative to the workspace) whose bytes identify each step's complete output."""
+
+PREVIOUS: dict[Step, Step] = {"fuse": "ingest", "esdf": "fuse", "export": "esdf"}
+"""The step whose product each later step reads."""
+
+Status = Literal["done", "skipped", "failed"]
+
+
+@dataclass(frozen=True)
+class StepJob:
+    """What one task needs: the recording, its workspace, the step and that step's options."""
+
+    name: str
+    """The recording's workspace name."""
+    recording: Path
+    """The recording (absolute)."""
+    workspace: Path
+    """``ROOT/<name>`` (absolute)."""
+    step: Step
+    """The step to run."""
+    options: IngestConfig | FuseConfig | EsdfConfig | ExportConfig
+    """That step's options."""
+
+
+@dataclass(frozen=True)
+class StepOutcome:
+    """What a task did."""
+
+    name: str
+    """The recording's workspace name."""
+    step: Step
+    """The step (for a failure passed down the chain: the step that failed)."""
+    status: Status
+    """done (ran), skipped (up to date), failed (a MapkitError; ``reason`` says which)."""
+    reason: str = ""
+    """Why it ran (new, options or input changed, output changed) or the one-line error."""
+    seconds: float = 0.0
+    """Wall time of the task."""
+
+
+def run_step(job: StepJob, previous: StepOutcome | None = None) -> StepOutcome:
+    """The task: skip, or run the step and write its marker. A failed ``previous`` step is passed on.
+
+    A MapkitError is the recording's problem and comes back as a failed outcome (retrying would
+    not help); anything else raises, so Dask retries it and the batch reports it as unexpected.
+    """
+    if previous is not None and previous.status == "failed":
+        return previous
+    t0 = time.perf_counter()
+    _one_thread()
+    try:
+        key = step_key(job)
+        why = stale_reason(job, key)
+        if why is None:
+            return StepOutcome(job.name, job.step, "skipped", "up to date", time.perf_counter() - t0)
+        (job.workspace / MARKERS / f"{job.step}.json").unlink(missing_ok=True)
+        _RUNNERS[job.step](job)
+        _write_marker(job, key)
+    except MapkitError as exc:
+        return StepOutcome(job.name, job.step, "failed", " ".join(str(exc).split()), time.perf_counter() - t0)
+    return StepOutcome(job.name, job.step, "done", why, time.perf_counter() - t0)
+
+
+def _one_thread() -> None:
+    """One thread per worker process: each worker is one core (Dask's nanny also sets OMP_NUM_THREADS=1)."""
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _digest(payload: Any) -> str:
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _options(options: Any) -> Any:
+    """A step's options as plain JSON (arrays as lists), so the key changes exactly when they do."""
+    raw = options.to_attrs() if isinstance(options, IngestConfig) else asdict(options)
+    return json.loads(json.dumps(raw, default=lambda v: v.tolist()))
+
+
+def recording_fingerprint(path: Path) -> dict[str, Any]:
+    """Path, total bytes and latest mtime of a recording (a file, or every file of a rosbag2 folder)."""
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    stats = [p.stat() for p in files]
+    return {"path": str(path), "bytes": sum(s.st_size for s in stats), "mtime_ns": max((s.st_mtime_ns for s in stats), default=0)}
+
+
+def product_digest(workspace: Path, step: Step) -> str | None:
+    """sha256 of the step's product file, None when there is none (the step never completed)."""
+    try:
+        return hashlib.sha256((workspace / PRODUCTS[step]).read_bytes()).hexdigest()
+    except FileNotFoundError:
+        return None
+
+
+def step_key(job: StepJob) -> str:
+    """Digest of what the step's output depends on: its options and its input (see the module doc)."""
+    if job.step == "ingest":
+        if not job.recording.exists():
+            raise BatchError(f"recording {job.recording} does not exist (any more); check the path")
+        source: Any = recording_fingerprint(job.recording)
+    else:
+        source = product_digest(job.workspace, PREVIOUS[job.step])
+    return _digest({"step": job.step, "options": _options(job.options), "input": source})
+
+
+def stale_reason(job: StepJob, key: str) -> str | None:
+    """Why the step must run (new, options or input changed, output changed), None when it is up to date."""
+    marker = job.workspace / MARKERS / f"{job.step}.json"
+    try:
+        seen = json.loads(marker.read_text())
+    except FileNotFoundError:
+        return "new"
+    except ValueError:
+        return "marker unreadable"
+    if seen.get("key") != key:
+        return "options or input changed"
+    if seen.get("product") != product_digest(job.workspace, job.step):
+        return "output changed or missing"
+    if job.step == "fuse":
+        try:
+            check_fused(job.workspace)  # fuse.json is a file beside others: their sizes must still match
+        except MapkitError:
+            return "output incomplete"
+    return None
+
+
+def _write_marker(job: StepJob, key: str) -> None:
+    product = product_digest(job.workspace, job.step)
+    if product is None:
+        raise BatchError(f"{job.step} of {job.workspace} left no {PRODUCTS[job.step]}; report this")
+    marker = job.workspace / MARKERS / f"{job.step}.json"
+    record = {"step": job.step, "key": key, "product": product, "recording": str(job.recording),
+              "options": _options(job.options)}
+    with atomic_output(marker, overwrite=True) as tmp:
+        tmp.write_text(json.dumps(record, indent=2))
+
+
+# The same library calls as `mapkit ingest`, `mapkit fuse -w WS` (no recordings: fuse the workspace's
+# frames), `mapkit esdf` and `mapkit export`, each with --overwrite: the key said the output is stale.
+def _ingest(job: StepJob) -> None:
+    from mapkit.ingest import ingest
+
+    assert isinstance(job.options, IngestConfig)
+    ingest([job.recording], job.workspace, job.options, overwrite=True, progress=False)
+
+
+def _fuse(job: StepJob) -> None:
+    from mapkit.fusion import fuse
+
+    assert isinstance(job.options, FuseConfig)
+    fuse([], job.workspace, job.options, overwrite=True, progress=False)
+
+
+def _esdf(job: StepJob) -> None:
+    from mapkit.esdf import build_esdf
+
+    assert isinstance(job.options, EsdfConfig)
+    build_esdf(job.workspace, job.options, overwrite=True, progress=False)
+
+
+def _export(job: StepJob) -> None:
+    from mapkit.export import export_tuples
+
+    assert isinstance(job.options, ExportConfig)
+    export_tuples(job.workspace, job.options, overwrite=True, progress=False)
+
+
+_RUNNERS: dict[Step, Callable[[StepJob], None]] = {"ingest": _ingest, "fuse": _fuse, "esdf": _esdf, "export": _export}
