@@ -169,7 +169,7 @@ def _chunk_field(occupied: Any, core: tuple[slice, ...], shape: tuple[int, int, 
     del block
     if sg > 0:
         # the guard's interventions are counted inside the core only (the halo belongs to others)
-        sm, k = _smooth_unchecked(raw, vs, sg, tr, count_region=inner, threads=n_threads)
+        sm, k = _smooth_unchecked(raw, vs, sg, tr, count_region=inner, threads=n_threads, offset=blk_lo)
         field = np.ascontiguousarray(sm[inner])
         raw_core = np.ascontiguousarray(raw[inner]) if want_raw else None
         return field, raw_core, k

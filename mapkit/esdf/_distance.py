@@ -162,8 +162,10 @@ def _smooth_unchecked(
     truncate: float,
     count_region: tuple[slice, ...] | None = None,
     threads: int = 2,
+    offset: tuple[int, int, int] = (0, 0, 0),
 ) -> tuple[np.ndarray, int]:
-    """Smoothing without checks; guarded voxels are counted only inside `count_region` if given."""
+    """Smoothing without checks; guarded voxels are counted only inside `count_region` if given;
+    `offset` is the index of ``raw[0, 0, 0]`` in the grid `raw` is a block of (see :func:`gaussian_3d`)."""
     sigma_vox = sigma / vs
     radius = kernel_radius(sigma_vox, truncate)
     if radius == 0:
@@ -187,5 +189,5 @@ def _smooth_unchecked(
             if lo < hi:
                 counts.append(int(np.count_nonzero(bad[lo - x0 : hi - x0, count_region[1], count_region[2]])))
 
-    gaussian_3d(raw, sigma_vox, radius, out=out, slab_hook=guard, threads=threads)
+    gaussian_3d(raw, sigma_vox, radius, out=out, slab_hook=guard, threads=threads, offset=offset)
     return out, sum(counts)
