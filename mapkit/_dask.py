@@ -74,9 +74,30 @@ def dask_client(scheduler: str | None = None, *, workers: int | None = None,
     ``workers`` sizes a local cluster (default: one per available core); it is ignored when
     connecting to an existing scheduler, whose workers are the cluster's business.
     """
+    with _quiet_distributed():
+        yield from _client(scheduler_address(scheduler), workers, timeout_s)
+
+
+@contextmanager
+def _quiet_distributed() -> Iterator[None]:
+    """distributed logs its start, stop and connection churn at INFO (a shutdown even logs a traceback)
+    through the root handler the CLI installs; show them only when the root logger wants INFO (-v)."""
+    import distributed  # noqa: F401 - its import sets the levels this overrides
+
+    logger = logging.getLogger("distributed")
+    old = logger.level
+    if logging.getLogger().getEffectiveLevel() > logging.INFO:
+        logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(old)
+
+
+def _client(address: str | None, workers: int | None, timeout_s: float) -> Iterator[tuple[Client, ClusterInfo]]:
+    """The body of :func:`dask_client`."""
     from distributed import Client, LocalCluster
 
-    address = scheduler_address(scheduler)
     if address is None:
         n = workers if workers is not None else available_cpus()
         if n < 1:
