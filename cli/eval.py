@@ -21,7 +21,11 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @click.option("--methods", default="all", show_default=True,
               help="Comma list of: learned, learned+uniform, learned+poly5, learned+gradient, iplanner-style, "
                    "straight, oracle.")
-@click.option("--workers", type=COUNT, default=1, show_default=True, help="Processes running pairs in parallel.")
+@click.option("--workers", type=COUNT, default=1, show_default=True,
+              help="Processes running pairs in parallel (with --scheduler local: the local Dask cluster's size).")
+@click.option("--scheduler", metavar="ADDRESS", default=None,
+              help="Run every pair as a Dask task on the scheduler at ADDRESS (tcp://HOST:8786; its workers must read "
+                   "--model at the same path), or 'local' for a Dask cluster of --workers processes here. The same results.json.")
 @click.option("--replan-interval", type=FINITE, default=0.5, show_default=True, help="Seconds between plans.")
 @click.option("--horizon", type=FINITE, default=6.0, show_default=True, help="Local goal distance, metres.")
 @click.option("--min-distance", type=FINITE, default=8.0, show_default=True, help="Start-goal distance, metres.")
@@ -49,7 +53,7 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
               help="Seconds: the moving vehicle heads toward where its reference will be this much later (0: along the velocity).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
-def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int,
+def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
              corridor_check: bool, v_max: float, a_max: float, memory: float, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
              overwrite: bool) -> None:
@@ -59,7 +63,7 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
     worlds = WORLD_ORDER if world.strip() == "all" else tuple(w.strip() for w in world.split(",") if w.strip())
     names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
     config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
-                        workers=workers,
+                        workers=workers, scheduler=scheduler,
                         execution=Execution(corridor=corridor or None, check_corridor=corridor_check, v_max=v_max or None,
                                             a_max=a_max or None, memory=memory or None, follow=follow),
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,

@@ -9,11 +9,16 @@ import logging
 import math
 import os
 import platform
+import re
+import threading
+import uuid
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -24,11 +29,23 @@ from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, Execution, make_met
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
 from mapkit.workspace import atomic_output, check_writable
 
+if TYPE_CHECKING:
+    from distributed import Client
+    from tqdm import tqdm
+
+    from mapkit._dask import ClusterInfo
+
 log = logging.getLogger(__name__)
 
 WORLD_ORDER = ("office", "garage", "forest")
 """The paper's table order; ``--world all`` runs these."""
 PATH_RATE_HZ = 20.0
+LOCAL_SCHEDULER = "local"
+"""``EvalConfig.scheduler`` value that starts a Dask LocalCluster of ``workers`` processes here."""
+DASK_RETRIES = 1
+"""Dask re-runs a pair that raised once more (a model file briefly unreadable on shared storage); a
+worker that dies is the scheduler's business (``distributed.scheduler.allowed-failures``)."""
+_ADDRESS = re.compile(r"^([a-z][a-z0-9+]*://\S+|[^\s:/]+:\d+)$")
 
 
 @dataclass
@@ -52,7 +69,14 @@ class EvalConfig:
     execution: Execution = field(default_factory=Execution)
     """How the learned allocations fly their key-points (corridor, speed and acceleration limits)."""
     workers: int = 1
-    """Processes; pairs run in parallel. Results do not depend on it (one torch thread per process)."""
+    """Processes; pairs run in parallel. Results do not depend on it (one torch thread per process).
+    With ``scheduler="local"`` the size of the local Dask cluster; with a scheduler address it must
+    stay 1 (the cluster's workers run the pairs)."""
+    scheduler: str | None = None
+    """None: this machine, ``workers`` processes of a pool. A Dask scheduler address
+    (``tcp://HOST:8786``): every pair is a task on that cluster, whose workers must import mapkit and
+    read the model's run directory at the same path. ``"local"``: a Dask LocalCluster of ``workers``
+    processes here. Results do not depend on it."""
     loop: LoopConfig = field(default_factory=LoopConfig)
     """The closed loop (replan interval, goal radius, robot radius, horizon, time limit, tracker)."""
 
@@ -68,6 +92,7 @@ class EvalConfig:
             raise EvalError(f"--pairs must be >= 1, got {self.pairs}")
         if self.workers < 1:
             raise EvalError(f"--workers must be >= 1, got {self.workers}")
+        self._validate_scheduler()
         if not (math.isfinite(self.min_distance) and self.min_distance > 0):
             raise EvalError(f"--min-distance must be > 0 metres, got {self.min_distance}")
         ex, loop = self.execution, self.loop
@@ -99,6 +124,17 @@ class EvalConfig:
                             f"frames at {lc.depth_rate} Hz (e.g. 0.5)")
         if not self.pair_clearance > lc.robot_radius:
             raise EvalError(f"pair clearance {self.pair_clearance} m must exceed the robot radius {lc.robot_radius} m")
+
+    def _validate_scheduler(self) -> None:
+        if self.scheduler is None or self.scheduler == LOCAL_SCHEDULER:
+            return
+        if not _ADDRESS.match(self.scheduler):
+            raise EvalError(f"--scheduler {self.scheduler!r} is not a Dask scheduler address; use tcp://HOST:8786 "
+                            f"(what `dask scheduler` prints) or {LOCAL_SCHEDULER} for a cluster on this machine")
+        if self.workers != 1:
+            raise EvalError(f"--workers {self.workers} does nothing with --scheduler {self.scheduler}: that cluster's "
+                            f"workers run the pairs; drop --workers, or use --scheduler {LOCAL_SCHEDULER} --workers "
+                            f"{self.workers}")
 
 
 @dataclass
@@ -190,7 +226,10 @@ class _WorkerSetup:
     """What every worker process needs, sent once to each (picklable)."""
 
     model: str | None
-    """Run directory of the model, None when no method needs one."""
+    """Run directory of the model (absolute, or "pretrained": each worker's own shipped copy), None when
+    no method needs one."""
+    model_sha256: str | None
+    """model.pt's hash where the evaluation started: a Dask worker refuses another file at that path."""
     seed: int
     pair_clearance: float
     camera: CameraSpec
@@ -477,36 +516,148 @@ def _worlds_and_pairs(config: EvalConfig) -> tuple[dict[str, Any], dict[str, lis
     return worlds, pairs
 
 
-def _fly_all(setup: _WorkerSetup, tasks: list[tuple[str, dict]], workers: int,
-             progress: bool) -> dict[tuple[str, int], list[_EpisodeRun]]:
-    """Run every (world, pair) task, in this process or in ``workers`` spawned ones."""
+@dataclass(frozen=True)
+class _Flown:
+    """Every pair's episodes and how many processes flew them."""
+
+    results: dict[tuple[str, int], list[_EpisodeRun]]
+    """(world, pair index) → its episodes, one per method."""
+    workers: int
+    """Processes (or Dask workers, when the client connected) that ran the pairs."""
+
+
+def _fly_all(setup: _WorkerSetup, tasks: list[tuple[str, dict]], workers: int, progress: bool,
+             cluster: tuple[Client, ClusterInfo] | None = None) -> _Flown:
+    """Run every (world, pair) task: on the Dask ``cluster`` when given, else in this process or in
+    ``workers`` spawned ones."""
     from tqdm import tqdm
+
+    bar = tqdm(total=len(tasks), unit="pair", desc="eval", dynamic_ncols=True, disable=not progress)
+    try:
+        if cluster is not None:
+            return _Flown(_fly_on_dask(setup, tasks, cluster, bar), cluster[1].workers)
+        if workers == 1:
+            return _Flown(_fly_here(setup, tasks, bar), 1)
+        return _Flown(_fly_in_pool(setup, tasks, workers, bar), workers)
+    finally:
+        bar.close()
+
+
+def _fly_here(setup: _WorkerSetup, tasks: list[tuple[str, dict]],
+              bar: tqdm) -> dict[tuple[str, int], list[_EpisodeRun]]:
+    """Every task in this process (its torch thread count restored after)."""
+    import torch
 
     global _WORKER
     results: dict[tuple[str, int], list[_EpisodeRun]] = {}
-    bar = tqdm(total=len(tasks), unit="pair", desc="eval", dynamic_ncols=True, disable=not progress)
+    threads = torch.get_num_threads()
     try:
-        if workers == 1:
-            import torch
-
-            threads = torch.get_num_threads()
-            try:
-                _init_worker(setup)
-                for task in tasks:
-                    kind, idx, runs = _call(task)
-                    results[(kind, idx)] = runs
-                    bar.update(1)
-            finally:
-                torch.set_num_threads(threads)
-                _WORKER = None
-        else:
-            with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
-                                     initializer=_init_worker, initargs=(setup,)) as pool:
-                for kind, idx, runs in pool.map(_call, tasks):
-                    results[(kind, idx)] = runs
-                    bar.update(1)
+        _init_worker(setup)
+        for task in tasks:
+            kind, idx, runs = _call(task)
+            results[(kind, idx)] = runs
+            bar.update(1)
     finally:
-        bar.close()
+        torch.set_num_threads(threads)
+        _WORKER = None
+    return results
+
+
+def _fly_in_pool(setup: _WorkerSetup, tasks: list[tuple[str, dict]], workers: int,
+                 bar: tqdm) -> dict[tuple[str, int], list[_EpisodeRun]]:
+    """Every task in ``workers`` spawned processes, each set up once by :func:`_init_worker`."""
+    results: dict[tuple[str, int], list[_EpisodeRun]] = {}
+    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
+                             initializer=_init_worker, initargs=(setup,)) as pool:
+        for kind, idx, runs in pool.map(_call, tasks):
+            results[(kind, idx)] = runs
+            bar.update(1)
+    return results
+
+
+# ------------------------------------------------------------------------------------ Dask
+_DASK_LOCK = threading.Lock()
+"""One pair at a time per worker process: a world's methods keep state during a flight, so threads
+of one multi-threaded Dask worker must not share them."""
+
+
+def _dask_task(setup: _WorkerSetup, task: tuple[str, dict]) -> tuple[str, int, list[_EpisodeRun]]:
+    """One Dask task: a (world, pair) flown on this worker process. The process is set up (model,
+    one torch thread) on its first task of an evaluation and keeps the model and worlds for the next
+    ones; a task of another evaluation (another setup) sets it up again."""
+    global _WORKER
+    with _DASK_LOCK:
+        if _WORKER is None or _WORKER.setup != setup:
+            _check_worker_model(setup)
+            _init_worker(setup)
+        return _call(task)
+
+
+def _check_worker_model(setup: _WorkerSetup) -> None:
+    """Raise :class:`EvalError` when this (possibly remote) worker reads another model.pt than the one
+    the evaluation started with."""
+    from mapkit.planning import resolve_model
+
+    if setup.model is None or setup.model_sha256 is None:
+        return
+    path = resolve_model(setup.model) / "model.pt"
+    if path.exists() and _sha256(path) != setup.model_sha256:
+        raise EvalError(f"Dask worker {platform.node()} reads another {path} than the one evaluated "
+                        f"(sha256 {setup.model_sha256[:12]}…); put the run directory on storage every worker "
+                        "shares, at the same path")
+
+
+def _release_dask_worker(setup: _WorkerSetup) -> None:
+    """Drop this worker process's model and worlds when they are ``setup``'s (the evaluation ended)."""
+    global _WORKER
+    with _DASK_LOCK:
+        if _WORKER is not None and _WORKER.setup == setup:
+            _WORKER = None
+
+
+@contextmanager
+def _dask_cluster(config: EvalConfig) -> Iterator[tuple[Client, ClusterInfo] | None]:
+    """The Dask client of ``config.scheduler`` (None without one). ``local`` is always a LocalCluster
+    of ``config.workers`` processes here, whatever DASK_SCHEDULER_ADDRESS says."""
+    if config.scheduler is None:
+        yield None
+        return
+    import dask
+
+    from mapkit._dask import dask_client
+
+    if config.scheduler == LOCAL_SCHEDULER:
+        with dask.config.set({"scheduler-address": None}), dask_client(None, workers=config.workers) as cluster:
+            yield cluster
+    else:
+        with dask_client(config.scheduler) as cluster:
+            yield cluster
+
+
+def _fly_on_dask(setup: _WorkerSetup, tasks: list[tuple[str, dict]], cluster: tuple[Client, ClusterInfo],
+                 bar: tqdm) -> dict[tuple[str, int], list[_EpisodeRun]]:
+    """Every task as a Dask task on ``cluster``; results in completion order (the caller orders them)."""
+    from distributed import as_completed
+    from distributed.scheduler import KilledWorker
+
+    client, info = cluster
+    bar.write(f"dask: {info.workers} worker(s) at {info.address}"
+              + (f", dashboard {info.dashboard}" if info.dashboard else ""))
+    run_id = uuid.uuid4().hex[:8]
+    futures = {client.submit(_dask_task, setup, task, key=f"mapkit-eval-{run_id}-{task[0]}-{task[1]['pair']:03d}",
+                             retries=DASK_RETRIES): task for task in tasks}
+    results: dict[tuple[str, int], list[_EpisodeRun]] = {}
+    for future in as_completed(futures):
+        kind, pair = futures[future][0], futures[future][1]["pair"]
+        try:
+            _, idx, runs = future.result()
+        except KilledWorker:
+            raise EvalError(f"pair {pair} of {kind} killed every Dask worker that ran it; see the workers' logs "
+                            "(out of memory?) or run it here without --scheduler") from None
+        results[(kind, idx)] = runs
+        bar.update(1)
+    if not info.local:  # a long-lived cluster: free the model and worlds its workers hold
+        client.run(_release_dask_worker, setup)
     return results
 
 
@@ -554,7 +705,8 @@ def _results_doc(config: EvalConfig, context: _ModelContext, pairs: dict[str, li
         "summary": summary,
         "episodes": [e.to_dict() for e in episodes],
     }
-    del doc["config"]["workers"]  # does not change any result
+    del doc["config"]["workers"]  # neither changes any result
+    del doc["config"]["scheduler"]
     return doc
 
 
@@ -576,6 +728,16 @@ def _write_outputs(out_dir: Path, doc: dict[str, Any], lat: dict, alloc: dict, w
         write_report(tmp, doc, lat, worlds, alloc)
 
 
+def _model_for_workers(model: str | os.PathLike[str] | None, config: EvalConfig) -> str | None:
+    """The model as workers load it: "pretrained" stays a name (every installation ships it), a run
+    directory becomes absolute (workers start elsewhere); None when no method needs it."""
+    from mapkit.planning import PRETRAINED
+
+    if model is None or not any(m in NEEDS_MODEL for m in config.methods):
+        return None
+    return PRETRAINED if str(model) == PRETRAINED else str(Path(model).resolve())
+
+
 def evaluate(
     model: str | os.PathLike[str] | None,
     out_dir: str | os.PathLike[str],
@@ -593,32 +755,37 @@ def evaluate(
     Args:
         model: run directory with model.pt (None only when no method needs a model).
         out_dir: output folder (refused if it exists, unless ``overwrite``).
-        config: what to run.
-    """
-    from mapkit.planning import resolve_model
+        config: what to run; ``config.scheduler`` runs the pairs as Dask tasks (results.json and
+            trajectories.npz are the same as without it).
 
+    Raises:
+        EvalError: bad settings or model; SchedulerError: the scheduler cannot be reached.
+    """
     config = config or EvalConfig()
     out_dir = Path(out_dir)
     config.validate()
     check_writable(out_dir, overwrite=overwrite)
-    context = _model_context(model, config)
-    _refuse_training_seed(config, context.trained_worlds)
-    config = dataclasses.replace(config, loop=context.loop)
-    worlds, pairs = _worlds_and_pairs(config)
+    # Connect first: an unreachable scheduler is refused before the model and worlds are built.
+    with _dask_cluster(config) as cluster:
+        context = _model_context(model, config)
+        _refuse_training_seed(config, context.trained_worlds)
+        config = dataclasses.replace(config, loop=context.loop)
+        worlds, pairs = _worlds_and_pairs(config)
 
-    need_model = any(m in NEEDS_MODEL for m in config.methods)
-    setup = _WorkerSetup(model=None if model is None or not need_model else str(resolve_model(model)),
-                         seed=config.seed, pair_clearance=config.pair_clearance, camera=context.camera,
-                         methods=tuple(config.methods), oracle_corridor=config.oracle_corridor,
-                         execution=config.execution, loop=config.loop)
-    tasks = [(k, p.to_dict()) for k in config.worlds for p in pairs[k]]
-    collected = _collect(config, pairs, _fly_all(setup, tasks, config.workers, progress))
+        setup = _WorkerSetup(model=_model_for_workers(model, config),
+                             model_sha256=context.model_info["sha256"] if context.model_info else None,
+                             seed=config.seed, pair_clearance=config.pair_clearance, camera=context.camera,
+                             methods=tuple(config.methods), oracle_corridor=config.oracle_corridor,
+                             execution=config.execution, loop=config.loop)
+        tasks = [(k, p.to_dict()) for k in config.worlds for p in pairs[k]]
+        flown = _fly_all(setup, tasks, config.workers, progress, cluster)
+    collected = _collect(config, pairs, flown.results)
 
     worlds_list, methods = list(config.worlds), list(config.methods)
     summary = summarise(collected.episodes, worlds_list, methods)
     lat = latency_summary(collected.latencies, worlds_list, methods)
     alloc = latency_summary(collected.allocations, worlds_list, methods)
     doc = _results_doc(config, context, pairs, summary, collected.episodes)
-    _write_outputs(out_dir, doc, lat, alloc, worlds, collected.paths, config.workers, overwrite=overwrite)
+    _write_outputs(out_dir, doc, lat, alloc, worlds, collected.paths, flown.workers, overwrite=overwrite)
     files = sorted(p for p in out_dir.rglob("*") if p.is_file())
     return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat, "allocation": alloc}, files=files)
