@@ -10,7 +10,8 @@ from mapkit.cli.main import COUNT, POSITIVE, library_call, main, workspace_optio
 
 
 @main.command("export-foxglove")
-@workspace_option("Workspace to export (frames.zarr; cloud.ply and map.zarr when present).")
+@workspace_option("Workspace to export (frames.zarr; cloud.ply and map.zarr when present).",
+                  local_reason="it reads cloud.ply and writes a local file")
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="MCAP file to write (OUT.mcap).")
 @click.option("--model", default=None, help="Run directory or \"pretrained\": add plans at --plans frames.")
 @click.option("--eval", "eval_dir", type=click.Path(path_type=Path), default=None, help="A `mapkit eval` folder: add its flown paths.")
@@ -33,7 +34,8 @@ def export_foxglove_cmd(workspace: Path, output: Path, model: str | None, eval_d
 
 
 @main.command("export-rerun")
-@workspace_option("Workspace to export (frames.zarr; cloud.ply and map.zarr when present).")
+@workspace_option("Workspace to export (frames.zarr; cloud.ply and map.zarr when present).",
+                  local_reason="it reads cloud.ply and writes a local file")
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Rerun recording to write (OUT.rrd).")
 @click.option("--model", default=None, help="Run directory or \"pretrained\": add plans at --plans frames.")
 @click.option("--eval", "eval_dir", type=click.Path(path_type=Path), default=None, help="A `mapkit eval` folder: add its flown paths.")

@@ -10,7 +10,7 @@ from mapkit.cli.main import COUNT, INDEX, NONNEGATIVE, POSITIVE, library_call, m
 
 
 @main.command("export")
-@workspace_option("Workspace with frames.zarr and map.zarr.")
+@workspace_option("Workspace with frames.zarr and map.zarr.", urls=True)
 @click.option("--goals-per-frame", type=COUNT, default=5, show_default=True, help="Goals per frame, split by --goal-mix.")
 @click.option("--goal-mix", type=NONNEGATIVE, nargs=3, default=(0.2, 0.4, 0.4), show_default=True,
               help="Shares of FUTURE (poses the flight reached) VISIBLE (free space in view) HIDDEN (straight line blocked in the map) goals.")

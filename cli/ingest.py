@@ -92,7 +92,7 @@ def info(recordings: tuple[Path, ...], **kw: Any) -> None:
 
 @main.command("ingest")
 @RECORDINGS
-@workspace_option("Workspace directory.")
+@workspace_option("Workspace directory.", urls=True)
 @click.option("--overwrite", is_flag=True, help="Replace an existing frames.zarr.")
 @ingest_options
 @library_call

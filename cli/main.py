@@ -109,7 +109,7 @@ def refuse_url(ctx: click.Context, option: str, value: Any, why: str) -> None:
 
     if isinstance(value, str) and is_url(value):
         raise click.ClickException(
-            f"{ctx.command_path}: {option} {value} is a URL, but this command needs a local folder ({why}); "
+            f"mapkit {ctx.info_name}: {option} {value} is a URL, but this command needs a local folder ({why}); "
             "run it in a local workspace and copy the stores over (mapkit._stores.copy_store; docs/stores.md)"
         )
 

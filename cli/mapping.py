@@ -7,19 +7,22 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
+from mapkit._stores import Location
 from mapkit.cli.ingest import build_config, ingest_options
 from mapkit.cli.main import COUNT, FINITE, NONNEGATIVE, POSITIVE, library_call, main, workspace_option
 
 if TYPE_CHECKING:
     from mapkit.esdf import Backend
 
-WORKSPACE = workspace_option("Workspace directory.")
+FUSE_WORKSPACE = workspace_option("Workspace directory.", local_reason="open3d writes cloud.ply and mesh.ply to local files")
+ESDF_WORKSPACE = workspace_option("Workspace directory.", local_reason="it reads fuse's tsdf.npz and cloud.ply as local files")
+SLICE_WORKSPACE = workspace_option("Workspace with map.zarr.", urls=True)
 OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
 
 
 @main.command()
 @click.argument("recordings", nargs=-1, type=click.Path(path_type=Path))
-@WORKSPACE
+@FUSE_WORKSPACE
 @click.option("--voxel", type=FINITE, default=0.05, show_default=True, help="TSDF voxel size (m).")
 @click.option("--trunc", type=POSITIVE, default=4.0, show_default=True, help="TSDF truncation (voxels).")
 @click.option("--max-depth", type=POSITIVE, default=8.0, show_default=True, help="Ignore depth beyond this (m).")
@@ -52,7 +55,7 @@ def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float, trunc: flo
 
 
 @main.command()
-@WORKSPACE
+@ESDF_WORKSPACE
 @click.option("--voxel", type=FINITE, default=0.1, show_default=True, help="ESDF voxel size (m).")
 @click.option("--padding", type=NONNEGATIVE, default=1.0, show_default=True, help="Metres around the fused map.")
 @click.option("--sigma", type=NONNEGATIVE, default=0.1, show_default=True, help="Gaussian smoothing (m); 0 = none.")
@@ -101,12 +104,12 @@ def _parse_slices(tokens: tuple[str, ...]) -> dict[str, list[float]]:
 
 
 @main.command("slice", context_settings={"ignore_unknown_options": True})
-@WORKSPACE
+@SLICE_WORKSPACE
 @click.option("-o", "--output", type=click.Path(path_type=Path), default=Path("slices.png"), show_default=True, help="PNG to write.")
 @click.option("--raw", is_flag=True, help="Show the unsmoothed distance (esdf_raw).")
 @click.argument("positions", nargs=-1, type=click.UNPROCESSED, metavar="--z Z [Z ...] | --x X [X ...] | --y Y [Y ...]")
 @library_call
-def slice_cmd(workspace: Path, output: Path, raw: bool, positions: tuple[str, ...]) -> None:
+def slice_cmd(workspace: Path | str, output: Path, raw: bool, positions: tuple[str, ...]) -> None:
     """PNG of ESDF slices at the given heights / positions (m), with a colour bar and metric axes.
 
     Example: mapkit slice -w WS --z 1.0 2.5 3.5 -o slices.png
@@ -114,5 +117,5 @@ def slice_cmd(workspace: Path, output: Path, raw: bool, positions: tuple[str, ..
     from mapkit.esdf import MAP, EsdfMap, render_slices
 
     axes = _parse_slices(positions)
-    path = render_slices(EsdfMap.open(workspace / MAP), z=axes["z"], x=axes["x"], y=axes["y"], path=output, raw=raw)
+    path = render_slices(EsdfMap.open(Location.of(workspace) / MAP), z=axes["z"], x=axes["x"], y=axes["y"], path=output, raw=raw)
     click.echo(f"wrote {path}")

@@ -9,7 +9,7 @@ from typing import Any
 import click
 
 from mapkit._choices import PRESET_NAMES, TRAINED_WEIGHTS
-from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, library_call, main
+from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, STORE_PATH, library_call, main
 
 
 def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
@@ -26,18 +26,18 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
 
 
 @main.command("train")
-@click.option("-w", "--workspace", "workspaces", multiple=True, type=click.Path(path_type=Path),
-              help="Workspace with tuples.zarr and map.zarr; repeat to train on several.")
+@click.option("-w", "--workspace", "workspaces", multiple=True, type=STORE_PATH,
+              help="Workspace with tuples.zarr and map.zarr (a local folder or an fsspec URL); repeat to train on several.")
 @click.option("--dataset", "dataset_root", type=click.Path(path_type=Path), default=None,
               help="A `mapkit dataset` directory: train on its worlds (added to any -w).")
 @click.option("--val-worlds", type=INDEX, default=None,
               help="With --dataset: hold out the last N worlds whole for validation (default: an eighth, at least 1).")
-@click.option("--val-workspace", "val_workspaces", multiple=True, type=click.Path(path_type=Path),
+@click.option("--val-workspace", "val_workspaces", multiple=True, type=STORE_PATH,
               help="Held-out workspace for validation (repeatable); without one, each store's own split validates.")
 @click.option("--grad-clip", type=POSITIVE, default=None, help="Override the gradient-norm clip.")
 @click.option("--preset", default="cpu", show_default=True, type=click.Choice(PRESET_NAMES), help="Named configuration.")
 @click.option("--name", default=None, help="Run name (default: the preset's name).")
-@click.option("--runs-dir", type=click.Path(path_type=Path), default=None, help="Where runs go (default: first WS/runs).")
+@click.option("--runs-dir", type=STORE_PATH, default=None, help="Where runs go (default: first WS/runs).")
 @click.option("--epochs", type=COUNT, default=None, help="Override the preset's epochs.")
 @click.option("--batch-size", type=COUNT, default=None, help="Override the preset's batch size.")
 @click.option("--lr", type=FINITE, default=None, help="Override the preset's Adam learning rate.")
@@ -56,8 +56,9 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @click.option("--resume", is_flag=True, help="Continue the run after its last completed epoch.")
 @click.option("--overwrite", is_flag=True, help="Restart an existing run from scratch.")
 @library_call
-def train_cmd(workspaces: tuple[Path, ...], dataset_root: Path | None, val_worlds: int | None,
-              val_workspaces: tuple[Path, ...], grad_clip: float | None, preset: str, name: str | None, runs_dir: Path | None, epochs: int | None,
+def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val_worlds: int | None,
+              val_workspaces: tuple[Path | str, ...], grad_clip: float | None, preset: str, name: str | None,
+              runs_dir: Path | str | None, epochs: int | None,
               batch_size: int | None, lr: float | None, device: str, seed: int, max_steps: int | None,
               val_batches: int | None, weight_decay: float | None, corridor: float | None, planner_items: tuple[str, ...], loss_items: tuple[str, ...], init: str | None,
               only: str, resume: bool, overwrite: bool) -> None:
@@ -80,13 +81,14 @@ def train_cmd(workspaces: tuple[Path, ...], dataset_root: Path | None, val_world
     overrides["planner"] = _pairs(planner_items, "--planner")
     overrides["loss"] = _pairs(loss_items, "--loss")
     config = make_preset(preset, **overrides)
-    train_ws, val_ws = list(workspaces), list(val_workspaces)
+    train_ws: list[Path | str] = list(workspaces)
+    val_ws: list[Path | str] = list(val_workspaces)
     if dataset_root is not None:
         from mapkit.dataset import dataset_workspaces, split_worlds
 
         n_val = val_worlds if val_worlds is not None else max(1, len(dataset_workspaces(dataset_root)) // 8)
         more_train, more_val = split_worlds(dataset_root, n_val)
-        train_ws, val_ws = more_train + train_ws, val_ws + more_val
+        train_ws, val_ws = [*more_train, *train_ws], [*val_ws, *more_val]
     elif val_worlds is not None:
         raise click.UsageError("--val-worlds needs --dataset")
     if not train_ws:

@@ -7,11 +7,16 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli.main import FINITE, INDEX, library_call, main
+from mapkit.cli.main import FINITE, INDEX, STORE_PATH, library_call, main, refuse_url
+
+
+def _local_workspace(ctx: click.Context, param: click.Parameter, value: Path | str | None) -> Path | str | None:
+    refuse_url(ctx, "-w/--workspace", value, "the viewer reads cloud.ply and mesh.ply as local files")
+    return value
 
 
 @main.command("view")
-@click.option("-w", "--workspace", type=click.Path(path_type=Path), default=None,
+@click.option("-w", "--workspace", type=STORE_PATH, default=None, callback=_local_workspace,
               help="Workspace (frames.zarr, cloud.ply, map.zarr; whatever it holds is shown).")
 @click.option("--model", "run_dir", type=click.Path(path_type=Path), default=None,
               help="Run directory with model.pt (or \"pretrained\"): click a goal to plan from the selected frame.")

@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from mapkit._stores import Location, StoreError
 from mapkit.esdf import _checks
 from mapkit.esdf._errors import EsdfError
 from mapkit.esdf._store import FIELDS, KIND
@@ -47,7 +48,7 @@ class EsdfMap:
         sigma: float = 0.0,
         unknown_policy: str = "free",
         attrs: dict[str, Any] | None = None,
-        path: Path | None = None,
+        path: Path | str | None = None,
     ) -> None:
         self.voxel_size = _checks.positive("voxel_size", voxel_size)
         o = np.asarray(origin, dtype=np.float64).reshape(-1)
@@ -75,17 +76,24 @@ class EsdfMap:
 
     # ------------------------------------------------------------------ opening
     @classmethod
-    def open(cls, path: str | Path) -> EsdfMap:
-        """Open a map.zarr lazily. Raises :class:`EsdfError` if it is missing, corrupt or not a mapkit map."""
+    def open(cls, path: str | Path | Location) -> EsdfMap:
+        """Open a map.zarr (local path or fsspec URL) lazily. Raises :class:`EsdfError` if it is missing,
+        incomplete, corrupt or not a mapkit map."""
         import zarr
 
-        p = Path(path)
-        if not p.exists():
+        try:
+            loc = Location.of(path)
+            state = loc.state()
+            loc.require_complete("mapkit esdf --overwrite")
+        except StoreError as exc:
+            raise EsdfError(str(exc)) from None
+        p: Path | str = loc.local if loc.local is not None else loc.url
+        if state == "missing":
             raise EsdfError(f"no map at {str(p)!r}; create it with `mapkit esdf` (or check the workspace path)")
-        if not (p / "zarr.json").is_file():
+        if state != "complete" or (loc.local is not None and not (loc.local / "zarr.json").is_file()):
             raise EsdfError(f"{str(p)!r} is not a zarr v3 store (no zarr.json); {_FIX}")
         try:
-            root = zarr.open_group(p, mode="r", zarr_format=3)
+            root = zarr.open_group(loc.zarr_store(read_only=True), mode="r", zarr_format=3)
             attrs: dict[str, Any] = dict(root.attrs)  # JSON from the store, checked below and by the constructor
         except Exception as exc:  # noqa: BLE001 - zarr raises many kinds for damaged metadata
             raise EsdfError(f"{str(p)!r} cannot be read as a zarr group ({type(exc).__name__}: {exc}); it is corrupt or incomplete; {_FIX}") from None

@@ -12,7 +12,8 @@ Layout (zarr v3 group, consolidated metadata so ``xarray.open_zarr`` opens it qu
   ``ngff`` subgroup (:mod:`mapkit.esdf._ngff`), so NGFF viewers place the map in metres.
 
 The store is written under a temporary sibling name and renamed into place only when complete
-(:func:`mapkit.workspace.atomic_output`), so a killed run never leaves a map that opens.
+(:func:`mapkit.workspace.atomic_output`), so a killed run never leaves a map that opens. At an fsspec URL
+it is published with its root ``zarr.json`` last instead (:func:`mapkit._stores.publish_store`).
 """
 
 from __future__ import annotations
@@ -28,11 +29,12 @@ from typing import Any
 
 import numpy as np
 
+from mapkit._stores import Location, StoreError, check_store_writable, publish_store
 from mapkit._version import __version__
 from mapkit.esdf import _checks
 from mapkit.esdf._errors import EsdfError
 from mapkit.esdf._ngff import multiscales, write_levels
-from mapkit.workspace import WorkspaceError, atomic_output
+from mapkit.workspace import WorkspaceError
 
 KIND = "mapkit.map"
 CHUNK = 64
@@ -80,23 +82,31 @@ class MapWriter(AbstractContextManager["MapWriter"]):
     Until :meth:`finalize` the store lives under a hidden temporary name next to `path`.
     """
 
-    def __init__(self, path: Path, attrs: dict[str, Any], shape: tuple[int, int, int], overwrite: bool) -> None:
+    def __init__(self, path: Path | Location, attrs: dict[str, Any], shape: tuple[int, int, int], overwrite: bool) -> None:
         import zarr
 
-        self.path = Path(path)
+        self.location = Location.of(path)
+        """Where the map is published (a local path or an fsspec URL)."""
+        self.path: Path | str = self.location.local if self.location.local is not None else self.location.url
         self.shape = shape
         self._voxel_size: float = attrs["voxel_size"]
         self._origin: list[float] = attrs["origin"]
-        if self.path.exists() and not overwrite:
-            raise EsdfError(f"{str(self.path)!r} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
-        self._ctx = atomic_output(self.path, overwrite=overwrite)
         try:
-            self.tmp_path: Path = self._ctx.__enter__()
+            check_store_writable(self.location, overwrite=overwrite, option="overwrite=True (CLI: --overwrite)")
+        except StoreError as exc:
+            raise EsdfError(str(exc)) from None
+        except WorkspaceError:
+            raise EsdfError(f"{str(self.path)!r} already exists; pass overwrite=True (CLI: --overwrite) to replace it") from None
+        self._ctx = publish_store(self.location, overwrite=overwrite)
+        try:
+            self.tmp_location: Location = self._ctx.__enter__()
         except (WorkspaceError, OSError) as exc:
             raise EsdfError(f"cannot write map {str(self.path)!r}: {exc}") from None
+        self.tmp_path: Path | str = self.tmp_location.local if self.tmp_location.local is not None else self.tmp_location.url
         self._done = False
         try:
-            root = zarr.open_group(self.tmp_path, mode="w-", zarr_format=3)
+            self._store = self.tmp_location.zarr_store(read_only=False)
+            root = zarr.open_group(self._store, mode="w-", zarr_format=3)
             origin = np.asarray(attrs["origin"])
             vs = attrs["voxel_size"]
             for axis, (name, n) in enumerate(zip(DIMS, shape, strict=True)):
@@ -122,8 +132,9 @@ class MapWriter(AbstractContextManager["MapWriter"]):
         self.esdf_raw = arrays["esdf_raw"]
         self.observed = arrays["observed"]
 
-    def finalize(self, extra_attrs: dict[str, Any] | None = None) -> Path:
-        """Add `extra_attrs`, consolidate metadata and rename the store into place; returns its path."""
+    def finalize(self, extra_attrs: dict[str, Any] | None = None) -> Path | str:
+        """Add `extra_attrs`, consolidate metadata and publish the store (rename, or root metadata last
+        at a URL); returns its path (or URL)."""
         import zarr
 
         if self._done:
@@ -136,13 +147,16 @@ class MapWriter(AbstractContextManager["MapWriter"]):
             with warnings.catch_warnings():
                 # zarr notes that consolidated metadata is not (yet) in the v3 spec; xarray relies on it
                 warnings.simplefilter("ignore")
-                zarr.consolidate_metadata(self.tmp_path, zarr_format=3)
+                zarr.consolidate_metadata(self._store, zarr_format=3)
         except BaseException as exc:
             self._done = True
             self._ctx.__exit__(type(exc), exc, exc.__traceback__)
             raise
         self._done = True
-        self._ctx.__exit__(None, None, None)
+        try:
+            self._ctx.__exit__(None, None, None)
+        except StoreError as exc:
+            raise EsdfError(f"cannot publish map {str(self.path)!r}: {exc}") from None
         return self.path
 
     def abort(self) -> None:
@@ -164,7 +178,7 @@ class MapWriter(AbstractContextManager["MapWriter"]):
 
 
 def create_map(
-    path: str | Path,
+    path: str | Path | Location,
     *,
     shape: Sequence[int],
     origin: Sequence[float] | np.ndarray,
@@ -204,11 +218,11 @@ def create_map(
         "distance_convention": DISTANCE_CONVENTION,
         "parameters": _json_attrs("parameters", parameters or {}),
     }
-    return MapWriter(Path(path), attrs, shp, overwrite)
+    return MapWriter(Location.of(path), attrs, shp, overwrite)
 
 
 def write_map(
-    path: str | Path,
+    path: str | Path | Location,
     *,
     esdf: np.ndarray,
     esdf_raw: np.ndarray,
@@ -221,8 +235,8 @@ def write_map(
     parameters: dict[str, Any] | None = None,
     extra_attrs: dict[str, Any] | None = None,
     overwrite: bool = False,
-) -> Path:
-    """Write a complete map.zarr atomically from in-memory arrays; returns `path`.
+) -> Path | str:
+    """Write a complete map.zarr atomically from in-memory arrays; returns `path` (a URL stays a string).
 
     `esdf`, `esdf_raw`: float [nx, ny, nz] metres (stored float32); `observed`: bool or uint8
     [nx, ny, nz] (stored uint8 0/1). Other arguments as in :func:`create_map`.
@@ -247,5 +261,4 @@ def write_map(
             w.esdf[sl] = np.asarray(arrays["esdf"][sl], dtype=np.float32)
             w.esdf_raw[sl] = np.asarray(arrays["esdf_raw"][sl], dtype=np.float32)
             w.observed[sl] = np.asarray(obs[sl], dtype=np.uint8)
-        w.finalize(extra_attrs)
-    return Path(path)
+        return w.finalize(extra_attrs)

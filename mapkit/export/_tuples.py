@@ -13,10 +13,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mapkit._stores import Location, check_store_writable, publish_store, store_files
 from mapkit._version import __version__
 from mapkit.errors import MapkitError
 from mapkit.geometry import invert_transform
-from mapkit.workspace import FRAMES, atomic_output, check_writable
+from mapkit.workspace import FRAMES
 
 if TYPE_CHECKING:
     from mapkit.esdf import EsdfMap
@@ -97,7 +98,8 @@ class ExportConfig:
 
 @dataclass
 class ExportSummary:
-    path: Path
+    path: Path | str
+    """tuples.zarr: a local path, or the URL it was published at."""
     frames: int
     train: int
     val: int
@@ -124,12 +126,13 @@ class ExportSummary:
         return f"goals {kinds}; {100 * self.blocked_fraction:.0f} % blocked; distance m {hist}"
 
 
-def map_digest(map_path: Path) -> str:
-    """sha256 over the map store's files (names and bytes): the tuples' reference to their map."""
+def map_digest(map_path: str | Path | Location) -> str:
+    """sha256 over the map store's files (names and bytes): the tuples' reference to their map (the same
+    for a local map and its copy at a URL)."""
     h = hashlib.sha256()
-    for p in sorted(q for q in map_path.rglob("*") if q.is_file()):
-        h.update(str(p.relative_to(map_path)).encode())
-        h.update(p.read_bytes())
+    for rel, data in store_files(Location.of(map_path)):
+        h.update(rel.encode())
+        h.update(data)
     return h.hexdigest()
 
 
@@ -284,9 +287,9 @@ def export_tuples(workspace: str | Path, config: ExportConfig | None = None, *, 
 
     config = config or ExportConfig()
     config.validate()
-    ws = Path(workspace)
+    ws = Location.of(workspace)
     target = ws / TUPLES
-    check_writable(target, overwrite=overwrite)
+    check_store_writable(target, overwrite=overwrite)
     if not (ws / MAP).exists():
         raise ExportError(f"{ws / MAP} does not exist; run `mapkit fuse` and `mapkit esdf -w {ws}` before export")
     if not (ws / FRAMES).exists():
@@ -299,13 +302,13 @@ def export_tuples(workspace: str | Path, config: ExportConfig | None = None, *, 
     sel = np.asarray(goals.frame_index)
     split = split_segments(store.stamp_ns[sel], store.source_index[sel], config)
     digest = map_digest(ws / MAP)
-    with atomic_output(target, overwrite=overwrite) as tmp:
+    with publish_store(target, overwrite=overwrite) as tmp:
         root = _write_tuples(tmp, store, sel, velocity, goals, split, progress=progress)
         root.attrs.update(_tuples_attrs(ws, store, esdf, config, digest))
-    return _summary(target, goals, split, n_indices=len(indices), seconds=time.perf_counter() - t0)
+    return _summary(target.local if target.local is not None else target.url, goals, split, n_indices=len(indices), seconds=time.perf_counter() - t0)
 
 
-def _open_inputs(ws: Path) -> tuple[FramesStore, _ObservedMap]:
+def _open_inputs(ws: Location) -> tuple[FramesStore, _ObservedMap]:
     """frames.zarr and map.zarr of ``ws``; raises unless they share a frame and the cameras lie in the map."""
     from mapkit.esdf import MAP, EsdfMap
     from mapkit.ingest import open_frames_store
@@ -374,14 +377,14 @@ def _collect_goals(store: FramesStore, esdf: _ObservedMap, indices: NDArray[np.i
     return out
 
 
-def _write_tuples(path: Path, store: FramesStore, sel: NDArray[np.int64], velocity: NDArray[np.float64],
+def _write_tuples(path: Location, store: FramesStore, sel: NDArray[np.int64], velocity: NDArray[np.float64],
                   goals: _Goals, split: NDArray[np.uint8], *, progress: bool) -> Any:
     """The arrays of tuples.zarr at ``path``: the kept frames' depth (in batches of 32), poses, goals, split."""
     import zarr
     from tqdm import tqdm
     from zarr.codecs import BloscCodec
 
-    root = zarr.open_group(path, mode="w-", zarr_format=3)
+    root = zarr.open_group(path.zarr_store(read_only=False), mode="w-", zarr_format=3)
     H, W = store.height, store.width
     depth_out = root.create_array(
         "depth", shape=(len(sel), H, W), chunks=(1, H, W), dtype="float32", fill_value=float("nan"),
@@ -408,7 +411,12 @@ def _write_tuples(path: Path, store: FramesStore, sel: NDArray[np.int64], veloci
     return root
 
 
-def _tuples_attrs(ws: Path, store: FramesStore, esdf: _ObservedMap, config: ExportConfig, digest: str) -> dict[str, Any]:
+def _where(loc: Location) -> str:
+    """How tuples.zarr names its inputs: an absolute local path, or the URL."""
+    return str(loc.local.resolve()) if loc.local is not None else loc.url
+
+
+def _tuples_attrs(ws: Location, store: FramesStore, esdf: _ObservedMap, config: ExportConfig, digest: str) -> dict[str, Any]:
     """The attributes of tuples.zarr: version, camera, frames, the map it was made from, goal codes, parameters."""
     from mapkit.esdf import MAP
 
@@ -420,8 +428,8 @@ def _tuples_attrs(ws: Path, store: FramesStore, esdf: _ObservedMap, config: Expo
         "height": store.height,
         "world_frame": store.attrs.get("world_frame"),
         "body_frame": store.attrs.get("body_frame"),
-        "map": {"path": str((ws / MAP).resolve()), "sha256": digest, "voxel_size": esdf.map.voxel_size},
-        "frames": str((ws / FRAMES).resolve()),
+        "map": {"path": _where(ws / MAP), "sha256": digest, "voxel_size": esdf.map.voxel_size},
+        "frames": _where(ws / FRAMES),
         "goal_kinds": {name: code for code, name in GOAL_KIND_NAMES.items()},
         "split_values": {"train": 0, "val": 1},
         "parameters": json.loads(json.dumps(asdict(config))),
@@ -429,7 +437,7 @@ def _tuples_attrs(ws: Path, store: FramesStore, esdf: _ObservedMap, config: Expo
     }
 
 
-def _summary(target: Path, goals: _Goals, split: NDArray[np.uint8], *, n_indices: int, seconds: float) -> ExportSummary:
+def _summary(target: Path | str, goals: _Goals, split: NDArray[np.uint8], *, n_indices: int, seconds: float) -> ExportSummary:
     """Counts of tuples, splits and goals, the goal mix and the distance histogram."""
     kinds = np.stack(goals.kinds)
     distance = np.linalg.norm(np.stack(goals.goals_body), axis=-1)

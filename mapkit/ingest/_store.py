@@ -14,11 +14,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mapkit._stores import Location, StoreError, check_store_writable, publish_store
 from mapkit._version import __version__
 from mapkit._zarr import read_whole
 from mapkit.ingest._errors import IngestError
 from mapkit.ingest._reader import Frame, FrameStream, IngestConfig, open_frames
-from mapkit.workspace import FRAMES, atomic_output, check_writable
+from mapkit.workspace import FRAMES
 
 _BATCH = 16  # frames per zarr write: large enough to amortise zarr's per-call overhead
 
@@ -27,7 +28,8 @@ _BATCH = 16  # frames per zarr write: large enough to amortise zarr's per-call o
 class IngestSummary:
     """What `ingest` wrote and dropped."""
 
-    path: Path
+    path: Path | str
+    """frames.zarr: a local path, or the URL it was published at."""
     frames: int
     depth_messages: int
     dropped: dict[str, int]
@@ -157,13 +159,15 @@ class _FramePoses:
         small("source_index", np.asarray(self.source_index, dtype=np.int32), ["frame"])
 
 
-def write_frames(stream: FrameStream, store_path: Path, *, progress: bool = True) -> IngestSummary:
-    """Write every frame of `stream` into a new zarr v3 group at `store_path` (must not exist)."""
+def write_frames(stream: FrameStream, store_path: Path | Location, *, progress: bool = True) -> IngestSummary:
+    """Write every frame of `stream` into a new zarr v3 group at `store_path` (a local path or a
+    :class:`~mapkit._stores.Location`; must not exist)."""
     import zarr
 
     t0 = time.perf_counter()
     capacity = max(stream.expected_frames, 1)
-    root = zarr.open_group(store_path, mode="w-", zarr_format=3)
+    loc = Location.of(store_path)
+    root = zarr.open_group(loc.zarr_store(read_only=False), mode="w-", zarr_format=3)
     depth = _DepthWriter(root, capacity)
     poses = _stream_frames(stream, depth, progress=progress)
     depth.finish()
@@ -172,7 +176,7 @@ def write_frames(stream: FrameStream, store_path: Path, *, progress: bool = True
     dropped = {k: int(v) for k, v in sorted(stream.dropped.items())}
     root.attrs.update(_frames_attrs(stream, depth.width, depth.height, sources, dropped))
     return IngestSummary(
-        store_path, depth.count, stream.depth_messages, dropped, int(depth.width), int(depth.height),
+        loc.local if loc.local is not None else loc.url, depth.count, stream.depth_messages, dropped, int(depth.width), int(depth.height),
         time.perf_counter() - t0, sources, list(stream.warnings),
     )
 
@@ -246,15 +250,16 @@ def ingest(
     overwrite: bool = False,
     progress: bool = True,
 ) -> IngestSummary:
-    """Read recordings into ``workspace/frames.zarr`` (written atomically)."""
+    """Read recordings into ``workspace/frames.zarr`` (published atomically; `workspace` may be an
+    fsspec URL, see docs/stores.md)."""
     config = config or IngestConfig()
-    target = Path(workspace) / FRAMES
-    check_writable(target, overwrite=overwrite)
+    target = Location.of(workspace) / FRAMES
+    check_store_writable(target, overwrite=overwrite)
     t0 = time.perf_counter()
     stream = open_frames(paths, config)
-    with atomic_output(target, overwrite=overwrite) as tmp:
+    with publish_store(target, overwrite=overwrite) as tmp:
         summary = write_frames(stream, tmp, progress=progress)
-    summary.path = target
+    summary.path = target.local if target.local is not None else target.url
     summary.seconds = time.perf_counter() - t0
     return summary
 
@@ -263,7 +268,8 @@ def ingest(
 class FramesStore:
     """Read access to frames.zarr; depth is read lazily, one frame or slice at a time."""
 
-    path: Path
+    path: Path | str
+    """The store: a local path, or its URL."""
     depth: Any
     """zarr array [N, H, W] float32 metres, NaN invalid."""
     stamp_ns: NDArray[np.int64]
@@ -292,17 +298,22 @@ class FramesStore:
         return wanted == have and params == self.attrs.get("parameters")
 
 
-def open_frames_store(workspace: str | Path) -> FramesStore:
-    """Open ``workspace/frames.zarr`` (or a frames.zarr path) written by `ingest`."""
+def open_frames_store(workspace: str | Path | Location) -> FramesStore:
+    """Open ``workspace/frames.zarr`` (or a frames.zarr path or URL) written by `ingest`."""
     import zarr
 
-    path = Path(workspace)
-    if path.name != FRAMES:
-        path = path / FRAMES
-    if not path.exists():
-        raise IngestError(f"{str(path)!r} does not exist; run `mapkit ingest BAG... -w {path.parent}` first")
+    loc = Location.of(workspace)
+    if loc.name != FRAMES:
+        loc = loc / FRAMES
+    path: Path | str = loc.local if loc.local is not None else loc.url
     try:
-        root = zarr.open_group(path, mode="r")
+        if not loc.exists():
+            raise IngestError(f"{str(path)!r} does not exist; run `mapkit ingest BAG... -w {loc.parent}` first")
+        loc.require_complete(f"mapkit ingest BAG... -w {loc.parent} --overwrite")
+    except StoreError as exc:
+        raise IngestError(str(exc)) from None
+    try:
+        root = zarr.open_group(loc.zarr_store(read_only=True), mode="r")
         attrs = dict(root.attrs)
         if attrs.get("kind") != "mapkit.frames":
             raise KeyError("kind")

@@ -10,6 +10,7 @@ from typing import Any, TypedDict
 import numpy as np
 import torch
 
+from mapkit._stores import Location, StoreError
 from mapkit._zarr import read_whole
 from mapkit.errors import MapkitError
 from mapkit.planner._depthcheck import CameraInput
@@ -23,7 +24,8 @@ class TrainDataError(MapkitError):
 class TupleStore:
     """One workspace's tuples.zarr, with its arrays loaded except depth (read per batch)."""
 
-    workspace: Path
+    workspace: Location
+    """The workspace (a local path or an fsspec URL); ``workspace / "map.zarr"`` is its map."""
     depth: Any
     goals_body: np.ndarray
     velocity_body: np.ndarray
@@ -37,15 +39,20 @@ class TupleStore:
     mix lack it: None)."""
 
     @classmethod
-    def open(cls, workspace: str | Path) -> TupleStore:
+    def open(cls, workspace: str | Path | Location) -> TupleStore:
+        """``workspace/tuples.zarr`` (a local path or an fsspec URL, e.g. ``s3://bucket/ws``)."""
         import zarr
 
-        ws = Path(workspace)
+        ws = Location.of(workspace)
         path = ws / "tuples.zarr"
-        if not path.exists():
-            raise TrainDataError(f"{path} does not exist; run `mapkit export -w {ws}` first")
         try:
-            root = zarr.open_group(path, mode="r")
+            if not path.exists():
+                raise TrainDataError(f"{path} does not exist; run `mapkit export -w {ws}` first")
+            path.require_complete(f"mapkit export -w {ws} --overwrite")
+        except StoreError as exc:
+            raise TrainDataError(str(exc)) from None
+        try:
+            root = zarr.open_group(path.zarr_store(read_only=True), mode="r")
             attrs = dict(root.attrs)
             if attrs.get("kind") != "mapkit.tuples":
                 raise KeyError("kind")

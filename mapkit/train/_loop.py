@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from mapkit._saved import load_saved
+from mapkit._stores import Location
 from mapkit._version import __version__
 from mapkit.train._config import TrainConfig, TrainConfigError
 from mapkit.train._data import TrainDataError, TupleSamples, TupleStore
@@ -244,7 +245,7 @@ def _curves(metrics: list[dict[str, Any]], path: Path) -> None:
     os.replace(tmp, path)
 
 
-def _open_stores(workspaces: Sequence[str | Path]) -> tuple[list[TupleStore], list[Any]]:
+def _open_stores(workspaces: Sequence[str | Path | Location]) -> tuple[list[TupleStore], list[Any]]:
     """Tuple stores and their maps; a map changed since export is refused."""
     from mapkit.esdf import MAP, EsdfMap
     from mapkit.export import map_digest
@@ -362,12 +363,31 @@ class _Splits:
     val_maps: list[Any]
 
 
+def _where(workspace: str | Path | Location) -> str:
+    """A workspace as config.json records it: an absolute local path, or its URL."""
+    loc = Location.of(workspace)
+    return str(loc.local.resolve()) if loc.local is not None else loc.url
+
+
+def _run_dir(workspaces: Sequence[str | Path], runs_dir: str | Path | None, name: str) -> Path:
+    """runs_dir/NAME (default: first WS/runs/NAME); a run folder must be local (checkpoints, TensorBoard
+    and the curves are written through local files), while the workspaces may be URLs."""
+    where = runs_dir if runs_dir else Location.of(workspaces[0]) / "runs"
+    loc = Location.of(where)
+    if loc.local is None:
+        raise TrainConfigError(
+            f"mapkit train: the run folder {loc.url}/{name} would be at a URL, which training cannot write yet; "
+            "pass --runs-dir LOCAL_DIR (the workspaces may stay URLs) and copy the finished run to shared storage"
+        )
+    return loc.local / name
+
+
 def _check_inputs(workspaces: Sequence[str | Path], val_workspaces: Sequence[str | Path], config: TrainConfig) -> None:
     """Raise when the config is out of range, no workspace is given, or a workspace is in both splits."""
     config.validate()
     if not workspaces:
         raise TrainDataError("no workspace given; pass -w WS (repeatable)")
-    overlap = {Path(w).resolve() for w in workspaces} & {Path(w).resolve() for w in val_workspaces}
+    overlap = {_where(w) for w in workspaces} & {_where(w) for w in val_workspaces}
     if overlap:
         raise TrainDataError(f"{sorted(map(str, overlap))[0]} is both a training and a validation workspace; "
                              "hold out whole worlds")
@@ -446,8 +466,8 @@ def _start_run_dir(run: _Session, workspaces: Sequence[str | Path], val_workspac
         for stale in ("metrics.jsonl", "checkpoint.pt", "model.pt", "training_curves.png"):
             (run_dir / stale).unlink(missing_ok=True)
     _atomic_text(json.dumps(config.to_dict() | {"planner_resolved": config.planner.to_dict(),
-                                                "workspaces": [str(Path(w).resolve()) for w in workspaces],
-                                                "val_workspaces": [str(Path(w).resolve()) for w in val_workspaces],
+                                                "workspaces": [_where(w) for w in workspaces],
+                                                "val_workspaces": [_where(w) for w in val_workspaces],
                                                 "camera": _camera_or_none(workspaces[0]),
                                                 "training_worlds": sorted(map(list, simulated_worlds(
                                                     [*workspaces, *val_workspaces]))),
@@ -593,7 +613,7 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     device = _device(config.device)
     rank, world = _distributed()
     threads = set_threads(world) if device.type == "cpu" else torch.get_num_threads()
-    run_dir = (Path(runs_dir) if runs_dir else Path(workspaces[0]) / "runs") / config.name
+    run_dir = _run_dir(workspaces, runs_dir, config.name)
     state = _resume_state(run_dir, config, resume=resume, overwrite=overwrite)
     start_epoch = int(state["epoch"]) + 1 if state else 1
     torch.manual_seed(config.seed)
