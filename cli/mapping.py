@@ -65,21 +65,37 @@ def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float, trunc: flo
               help="With --unknown free: unseen space this far (m) behind measured surfaces is solid.")
 @click.option("--max-dist", type=POSITIVE, default=None, help="Clamp |distance| to this (m).")
 @click.option("--backend", type=click.Choice(["edt", "scipy"]), default="edt", show_default=True, help="Exact EDT implementation.")
+@click.option("--scheduler", metavar="ADDRESS",
+              help="Compute the chunked ESDF on this Dask scheduler (tcp://HOST:8786; default: DASK_SCHEDULER_ADDRESS); "
+                   "the workspace must be on storage the workers share.")
+@click.option("--workers", type=COUNT, default=None,
+              help="Compute the chunked ESDF on N local Dask worker processes (1 = in this process).")
 @OVERWRITE
 @library_call
 def esdf(workspace: Path, voxel: float, padding: float, sigma: float, unknown: str, solid_depth: float,
-         max_dist: float | None, backend: Backend, overwrite: bool) -> None:
-    """Signed, Gaussian-smoothed ESDF of the fused map → WS/map.zarr."""
+         max_dist: float | None, backend: Backend, scheduler: str | None, workers: int | None, overwrite: bool) -> None:
+    """Signed, Gaussian-smoothed ESDF of the fused map → WS/map.zarr.
+
+    Grids too large for memory, or any grid with --workers / --scheduler, are computed chunk by chunk
+    as a Dask graph (exact up to --max-dist, default 2 m there).
+    """
+    from mapkit._dask import scheduler_address
     from mapkit.esdf import EsdfConfig, build_esdf
 
     config = EsdfConfig(voxel=voxel, padding=padding, sigma=sigma, unknown=unknown, solid_depth=solid_depth,
                         max_dist=max_dist, backend=backend)
-    s = build_esdf(workspace, config, overwrite=overwrite, progress=True)
+    s = build_esdf(workspace, config, overwrite=overwrite, progress=True, scheduler=scheduler_address(scheduler),
+                   workers=workers)
     nx, ny, nz = s.shape
+    ran = ""
+    if s.chunked is not None:
+        c = s.chunked
+        ran = (f"; {c.chunks} chunks (halo {c.halo}) on {c.workers} Dask worker(s), peak memory per worker "
+               f"{c.peak_rss_bytes / 2**30:.2f} GiB")
     click.echo(
         f"wrote {s.path}: {nx}x{ny}x{nz} voxels of {s.voxel_size} m, origin {s.origin.round(3).tolist()}; "
         f"observed {100 * s.observed_fraction:.1f} %, obstacles {100 * s.occupied_fraction:.1f} %; "
-        f"smoothing sign flips prevented: {s.sign_flips_prevented}; {s.seconds:.1f} s"
+        f"smoothing sign flips prevented: {s.sign_flips_prevented}{ran}; {s.seconds:.1f} s"
     )
 
 

@@ -14,7 +14,8 @@ smoothing flip the sign away from the surface, and stored as map.zarr.
 >>> esdf, n_prevented = smooth(raw, voxel_size=0.1, sigma=0.2)
 
 From a fused workspace: :func:`build_esdf` (``mapkit esdf``) turns tsdf.npz + frames.zarr into map.zarr.
-Large grids: :func:`signed_distance_chunked` streams chunk by chunk into :func:`create_map`'s arrays.
+Large grids: :func:`signed_distance_chunked` runs a Dask graph of chunks with a halo (in this process or
+on a cluster) straight into :func:`create_map`'s arrays, bit for bit the whole-grid result up to max_dist.
 """
 
 from mapkit.esdf._build import MAP, EsdfBuildError, EsdfConfig, EsdfSummary, build_esdf

@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mapkit._resources import available_memory
+from mapkit.esdf._chunked import ChunkedSummary
 from mapkit.esdf._distance import Backend
 from mapkit.esdf._errors import EsdfError
 from mapkit.fusion import CLOUD, TSDF, FusionError, check_fused
@@ -18,12 +21,16 @@ from mapkit.fusion._occupancy import Grid, carve_free_space, fill_unknown, occup
 from mapkit.ingest import open_frames_store
 from mapkit.workspace import check_writable
 
+if TYPE_CHECKING:
+    from distributed import Client
+
 MAP = "map.zarr"
 # Measured peaks per voxel: the dense sub-voxel path holds the EDT's distances (float64), feature
 # indices and outputs; the chunked path only the masks and TSDF samples plus one chunk with halo.
 _DENSE_BYTES_PER_VOXEL = 48
 _CHUNKED_BYTES_PER_VOXEL = 8
 _CHUNKED_DEFAULT_MAX_DIST = 2.0
+_CHUNK = 128  # voxels per chunk edge of the chunked ESDF (a multiple of map.zarr's 64)
 
 
 class EsdfBuildError(EsdfError):
@@ -81,6 +88,8 @@ class EsdfSummary:
     occupied_fraction: float
     sign_flips_prevented: int
     seconds: float
+    chunked: ChunkedSummary | None = None
+    """What the chunked (Dask) computation did; None when the whole grid was computed at once."""
 
 
 def subvoxel_signed_distance(
@@ -203,24 +212,78 @@ def fits_dense(grid: Grid) -> bool:
     return grid.size * _DENSE_BYTES_PER_VOXEL < 0.5 * available_memory()
 
 
-def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overwrite: bool = False, progress: bool = True) -> EsdfSummary:
-    """Build ``workspace/map.zarr`` from ``workspace/tsdf.npz`` and ``workspace/frames.zarr``."""
+def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overwrite: bool = False,
+               progress: bool = True, scheduler: str | None = None, workers: int | None = None) -> EsdfSummary:
+    """Build ``workspace/map.zarr`` from ``workspace/tsdf.npz`` and ``workspace/frames.zarr``.
+
+    The whole grid is computed at once (sub-voxel distances) when it fits in memory. Otherwise, or
+    when `scheduler` or `workers` is given, the chunked ESDF runs as a Dask graph: with `workers`
+    local worker processes (1 = this process, synchronous scheduler; the default for a grid that
+    does not fit), or on the cluster at `scheduler` (``tcp://HOST:8786``; the workspace must be on
+    storage its workers share).
+    """
     config = config or EsdfConfig()
     config.validate()
+    if workers is not None and (isinstance(workers, bool) or workers < 1):
+        raise EsdfBuildError(f"--workers {workers} must be at least 1 (1 = this process)")
     workspace = Path(workspace)
     target = workspace / MAP
     check_writable(target, overwrite=overwrite)
     t0 = time.perf_counter()
     grid, meta = plan_grid(workspace, config)
-    from mapkit.esdf._chunked import signed_distance_chunked
-    from mapkit.esdf._distance import signed_distance, smooth
-    from mapkit.esdf._store import create_map, write_map
+    chunked = not fits_dense(grid) or scheduler is not None or workers is not None
+    # the cluster first: an unreachable scheduler fails before minutes of occupancy work
+    with _dask_runner(scheduler if chunked else None, workers if chunked else None) as runner:
+        fuse_cfg = meta["config"]
+        occupied, solid, observed, frame_id = _occupancy(workspace, grid, fuse_cfg, config, progress=progress)
+        parameters = {**asdict(config), "tsdf_voxel": fuse_cfg["voxel"]}
+        summary = None
+        if chunked:
+            del occupied
+            summary = _write_chunked(target, solid, observed, grid, config, parameters, frame_id, runner,
+                                     overwrite=overwrite, progress=progress)
+            prevented = summary.n_prevented
+        else:
+            prevented = _write_dense(workspace, target, occupied, solid, observed, grid, config, parameters, frame_id,
+                                     overwrite=overwrite)
+    return EsdfSummary(
+        target, grid.shape, grid.origin, config.voxel, float(observed.mean()), float(solid.mean()),
+        int(prevented), time.perf_counter() - t0, summary,
+    )
 
-    fuse_cfg = meta["config"]
+
+@dataclass(frozen=True)
+class _Runner:
+    """Where the chunked ESDF's tasks run."""
+
+    client: Client | None
+    """The Dask client; None = this process (synchronous scheduler)."""
+    threads: int
+    """CPU threads per chunk task."""
+
+
+@contextmanager
+def _dask_runner(scheduler: str | None, workers: int | None) -> Iterator[_Runner]:
+    """This process for one local worker (no cluster to start), else a local cluster or the scheduler's."""
+    from mapkit._dask import available_cpus, dask_client
+
+    if scheduler is None and (workers or 1) == 1:
+        yield _Runner(None, available_cpus())
+        return
+    with dask_client(scheduler, workers=workers) as (client, info):
+        # a local cluster splits this machine's cores between its workers; on a remote one each
+        # worker thread runs one single-threaded task
+        yield _Runner(client, max(1, available_cpus() // info.workers) if info.local else 1)
+
+
+def _occupancy(workspace: Path, grid: Grid, fuse_cfg: dict[str, Any], config: EsdfConfig, *,
+               progress: bool) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_], str]:
+    """(TSDF-occupied, solid after the unknown policy, observed, world frame id) on `grid`."""
     occupied, tsdf_m = occupancy_from_tsdf(
         workspace / TSDF, grid, tsdf_voxel=float(fuse_cfg["voxel"]), trunc_voxels=float(fuse_cfg["trunc"]),
     )
     seen = ~np.isnan(tsdf_m)
+    del tsdf_m
     store = open_frames_store(workspace)
     observed = seen.copy()
     behind = np.zeros(grid.shape, dtype=bool) if config.unknown == "free" else None
@@ -236,48 +299,60 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
             f"the occupancy grid has {what} ({int(observed.sum())} observed voxels); check the fused map "
             f"(mapkit fuse) and --unknown {config.unknown}"
         )
-    frame_id = str(store.attrs.get("world_frame", "world"))
-    parameters = {**asdict(config), "tsdf_voxel": fuse_cfg["voxel"]}
-    if not fits_dense(grid):
-        # Large site: exact up to max_dist (clamped beyond), one chunk plus halo at a time, written
-        # straight into the store; the half-voxel convention (no sub-voxel refinement) applies, and
-        # free-space distances count assumed-solid space (behind surfaces) as obstacles too.
-        del tsdf_m
-        max_dist = config.max_dist or _CHUNKED_DEFAULT_MAX_DIST
-        parameters.update(chunked=True, max_dist=max_dist)
-        with create_map(
-            target, shape=grid.shape, origin=grid.origin, voxel_size=config.voxel, frame_id=frame_id,
-            sigma=config.sigma, unknown_policy=config.unknown, parameters=parameters, overwrite=overwrite,
-        ) as writer:
-            result = signed_distance_chunked(
-                solid, writer.esdf, out_raw=writer.esdf_raw, voxel_size=config.voxel, max_dist=max_dist,
-                sigma=config.sigma, progress=progress,
-            )
-            writer.observed[:] = observed.astype(np.uint8)
-            writer.finalize()
-        prevented = result.n_prevented
-    else:
-        if config.subvoxel:
-            import open3d as o3d
+    return occupied, solid, observed, str(store.attrs.get("world_frame", "world"))
 
-            surface = np.asarray(o3d.io.read_point_cloud(workspace / CLOUD).points)
-            sensed = drop_stray_obstacles(occupied, surface, origin=grid.origin, voxel_size=config.voxel)
-            # free: distances to what was sensed; occupied: to unseen space as well.
-            anchor = sensed if config.unknown == "free" else sensed | (solid & ~occupied)
-            esdf_raw = subvoxel_signed_distance(
-                solid, surface, origin=grid.origin, voxel_size=config.voxel, max_dist=config.max_dist, anchor=anchor,
-            )
-            del sensed, anchor
-        else:
-            esdf_raw = signed_distance(solid, voxel_size=config.voxel, max_dist=config.max_dist, backend=config.backend)
-        del tsdf_m
-        esdf, prevented = smooth(esdf_raw, voxel_size=config.voxel, sigma=config.sigma)
-        write_map(
-            target, esdf=esdf, esdf_raw=esdf_raw, observed=observed.astype(np.uint8), origin=grid.origin,
-            voxel_size=config.voxel, frame_id=frame_id, sigma=config.sigma, unknown_policy=config.unknown,
-            parameters=parameters, overwrite=overwrite,
+
+def _write_chunked(target: Path, solid: NDArray[np.bool_], observed: NDArray[np.bool_], grid: Grid, config: EsdfConfig,
+                   parameters: dict[str, Any], frame_id: str, runner: _Runner, *, overwrite: bool,
+                   progress: bool) -> ChunkedSummary:
+    """The chunked ESDF on Dask, straight into map.zarr.
+
+    Large site: exact up to max_dist (clamped beyond), one chunk plus halo per task; the half-voxel
+    convention (no sub-voxel refinement) applies, and free-space distances count assumed-solid space
+    (behind surfaces) as obstacles too.
+    """
+    from mapkit.esdf._chunked import signed_distance_chunked
+    from mapkit.esdf._store import create_map
+
+    max_dist = config.max_dist or _CHUNKED_DEFAULT_MAX_DIST
+    parameters = {**parameters, "chunked": True, "max_dist": max_dist}
+    with create_map(
+        target, shape=grid.shape, origin=grid.origin, voxel_size=config.voxel, frame_id=frame_id,
+        sigma=config.sigma, unknown_policy=config.unknown, parameters=parameters, overwrite=overwrite,
+    ) as writer:
+        result = signed_distance_chunked(
+            solid, writer.esdf, out_raw=writer.esdf_raw, voxel_size=config.voxel, max_dist=max_dist,
+            sigma=config.sigma, chunk=_CHUNK, threads=runner.threads, client=runner.client, progress=progress,
         )
-    return EsdfSummary(
-        target, grid.shape, grid.origin, config.voxel, float(observed.mean()), float(solid.mean()),
-        int(prevented), time.perf_counter() - t0,
+        writer.observed[:] = observed.astype(np.uint8)
+        writer.finalize()
+    return result
+
+
+def _write_dense(workspace: Path, target: Path, occupied: NDArray[np.bool_], solid: NDArray[np.bool_],
+                 observed: NDArray[np.bool_], grid: Grid, config: EsdfConfig, parameters: dict[str, Any],
+                 frame_id: str, *, overwrite: bool) -> int:
+    """The whole-grid ESDF (sub-voxel distances unless disabled) → map.zarr; returns the sign flips prevented."""
+    from mapkit.esdf._distance import signed_distance, smooth
+    from mapkit.esdf._store import write_map
+
+    if config.subvoxel:
+        import open3d as o3d
+
+        surface = np.asarray(o3d.io.read_point_cloud(workspace / CLOUD).points)
+        sensed = drop_stray_obstacles(occupied, surface, origin=grid.origin, voxel_size=config.voxel)
+        # free: distances to what was sensed; occupied: to unseen space as well.
+        anchor = sensed if config.unknown == "free" else sensed | (solid & ~occupied)
+        esdf_raw = subvoxel_signed_distance(
+            solid, surface, origin=grid.origin, voxel_size=config.voxel, max_dist=config.max_dist, anchor=anchor,
+        )
+        del sensed, anchor
+    else:
+        esdf_raw = signed_distance(solid, voxel_size=config.voxel, max_dist=config.max_dist, backend=config.backend)
+    esdf, prevented = smooth(esdf_raw, voxel_size=config.voxel, sigma=config.sigma)
+    write_map(
+        target, esdf=esdf, esdf_raw=esdf_raw, observed=observed.astype(np.uint8), origin=grid.origin,
+        voxel_size=config.voxel, frame_id=frame_id, sigma=config.sigma, unknown_policy=config.unknown,
+        parameters=parameters, overwrite=overwrite,
     )
+    return prevented

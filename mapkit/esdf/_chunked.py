@@ -1,14 +1,14 @@
-"""Signed distance of grids too large for memory: chunk by chunk with a halo, exact up to max_dist."""
+"""Signed distance of grids too large for memory: a Dask graph of chunks with a halo, exact up to max_dist."""
 
 from __future__ import annotations
 
 import math
-import queue
-import threading
+import os
+import resource
 import time
 from dataclasses import dataclass
 from itertools import product
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -16,6 +16,9 @@ from mapkit.esdf import _checks
 from mapkit.esdf._distance import _signed_distance_unchecked, _smooth_unchecked
 from mapkit.esdf._errors import EsdfError
 from mapkit.esdf._gauss import kernel_radius
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 
 @dataclass(frozen=True)
@@ -32,6 +35,10 @@ class ChunkedSummary:
     """Voxels whose sign the smoothing guard kept (see :func:`smooth`); 0 without smoothing."""
     seconds: float
     """Wall time."""
+    workers: int = 1
+    """Processes that ran chunks (1: this process, on Dask's synchronous scheduler)."""
+    peak_rss_bytes: int = 0
+    """Largest peak resident memory of a process that ran chunks (``getrusage`` after each chunk)."""
 
     @property
     def voxels_per_second(self) -> float:
@@ -57,41 +64,50 @@ def signed_distance_chunked(
     out_raw: Any = None,
     threads: int = 2,
     progress: bool = True,
+    client: Client | None = None,
 ) -> ChunkedSummary:
-    """Signed distance (and optionally its smoothing) of a large grid, one chunk at a time.
+    """Signed distance (and optionally its smoothing) of a large grid, as a Dask graph of chunks.
+
+    One task per chunk: it reads the chunk plus a halo from `occupied`, computes the exact EDT and
+    the Gaussian there and writes the chunk's core straight into `out` (and `out_raw`). Without
+    `client` the graph runs in this process on Dask's synchronous scheduler (one chunk at a time);
+    with a :class:`distributed.Client` (see :func:`mapkit._dask.dask_client`) on its workers.
 
     Parameters
     ----------
     occupied
         bool [nx, ny, nz] occupancy; anything sliceable with ``occupied[x0:x1, y0:y1, z0:z1]`` that
-        returns a bool array (a zarr array, a numpy array or memmap). Only one chunk plus halo is read
-        at a time.
+        returns a bool array (a zarr array, a numpy array or memmap). Each task reads only its chunk
+        plus halo. On a cluster a zarr array on storage the workers share is read in place; a numpy
+        array is sent once to each worker.
     out
-        float32 [nx, ny, nz] destination (a zarr array or numpy array) for the field: smoothed when
-        ``sigma > 0``, else the raw signed distance. For a zarr array, `chunk` must be a multiple of
-        its chunk shape, so that every chunk is written once, whole.
+        float32 [nx, ny, nz] destination for the field: smoothed when ``sigma > 0``, else the raw
+        signed distance. A zarr array (on a cluster: on storage the workers share), or a numpy array
+        without `client`. For a zarr array `chunk` must be a multiple of its chunk shape, so that every
+        zarr chunk is written once, whole, by one task.
     voxel_size, max_dist
         Metres. Each chunk is computed with a halo of ``ceil(max_dist/voxel_size) + 1`` voxels (plus
         the Gaussian's radius), so the result equals :func:`signed_distance` with the same
-        `max_dist` (and :func:`smooth` of it) exactly: every distance up to `max_dist` is exact,
+        `max_dist` (and :func:`smooth` of it) bit for bit: every distance up to `max_dist` is exact,
         larger ones are clamped to +-max_dist.
     chunk
-        Edge, in voxels, of the cube computed at once. Peak memory is about
-        ``(chunk + 2*halo)**3 * 18`` bytes of work arrays plus up to three finished chunks
-        (``chunk**3 * 8`` bytes each) waiting for the writer thread; nothing grid-sized. Measured:
-        chunk 128 ~0.2 GB, chunk 256 ~0.6 GB above the baseline (halo 22); 256 is ~20 % faster.
+        Edge, in voxels, of the cube one task computes. Peak memory per task is about
+        ``(chunk + 2*halo)**3 * 18`` bytes of work arrays; nothing grid-sized. Measured: chunk 128
+        ~0.2 GB, chunk 256 ~0.6 GB above the baseline (halo 22); 256 is ~20 % faster.
     sigma, truncate
         Gaussian smoothing as in :func:`smooth` (metres; 0 = none).
     out_raw
         Optional float32 [nx, ny, nz] destination for the unsmoothed (clamped) field.
     threads
-        CPU threads for the EDT.
+        CPU threads each task uses for the EDT and the Gaussian.
     progress
-        Show a tqdm bar on stderr.
+        Show a tqdm bar on stderr (chunks done, rate, ETA).
+    client
+        A Dask distributed client to run on; None = this process.
 
     Returns
     -------
-    ChunkedSummary (shape, chunk count, halo, n_prevented, seconds).
+    ChunkedSummary (shape, chunk count, halo, n_prevented, seconds, workers, peak memory).
     """
     vs = _checks.positive("voxel_size", voxel_size)
     md = _checks.positive("max_dist", max_dist)
@@ -99,29 +115,79 @@ def signed_distance_chunked(
     tr = _checks.positive("truncate", truncate, unit="standard deviations")
     n_threads = _checks.threads(threads)
     chunk, shape = _check_grids(occupied, out, out_raw, chunk)
+    if client is not None:
+        for name, arr in (("out", out), ("out_raw", out_raw)):
+            if isinstance(arr, np.ndarray):
+                raise EsdfError(f"{name} is a numpy array, which Dask workers cannot write into; pass zarr arrays "
+                                "(create_map's esdf / esdf_raw) on storage the workers share, or run without a client")
     halo = chunk_halo(voxel_size=vs, max_dist=md, sigma=sg, truncate=tr)
+    t0 = time.perf_counter()
+    tasks = _chunk_tasks(occupied, out, out_raw, shape, chunk, halo, (vs, md, sg, tr), n_threads)
+    results = _run(tasks, client, progress)
+    peaks: dict[int, int] = {}
+    for _, pid, peak in results:
+        peaks[pid] = max(peaks.get(pid, 0), peak)
+    return ChunkedSummary(shape=shape, chunks=len(tasks), halo=halo, n_prevented=sum(r[0] for r in results),
+                          seconds=time.perf_counter() - t0, workers=len(peaks), peak_rss_bytes=max(peaks.values(), default=0))
 
+
+def _chunk_tasks(occupied: Any, out: Any, out_raw: Any, shape: tuple[int, int, int], chunk: int, halo: int,
+                 params: tuple[float, float, float, float], n_threads: int) -> list[Any]:
+    """One Dask task per chunk; the occupancy is one node of the graph, so a cluster ships it once per worker."""
+    import dask
+    from dask.base import tokenize
+
+    source = dask.delayed(occupied, name=f"esdf-occupancy-{tokenize(id(occupied), shape, time.time_ns())}")
+    run_chunk = dask.delayed(_chunk_task, pure=False)
+    starts = [range(0, n, chunk) for n in shape]
+    tasks = []
+    for corner in product(*starts):
+        core = tuple(slice(c, min(c + chunk, n)) for c, n in zip(corner, shape, strict=True))
+        tasks.append(run_chunk(source, out, out_raw, core, shape, halo, params, n_threads,
+                               dask_key_name=f"esdf-chunk-{'-'.join(map(str, corner))}-{source.key[-12:]}"))
+    return tasks
+
+
+def _run(tasks: list[Any], client: Client | None, progress: bool) -> list[tuple[int, int, int]]:
+    """Results of `tasks`, in this process (synchronous scheduler) or on the client's cluster, with a tqdm bar."""
     from tqdm import tqdm
 
-    starts = [range(0, n, chunk) for n in shape]
-    t0 = time.perf_counter()
-    total = math.prod(len(s) for s in starts)
-    bar = tqdm(total=total, unit="chunk", desc="esdf", disable=not progress, dynamic_ncols=True)
-    writer = _ChunkWriter(out, out_raw)
-    prevented = 0
+    bar = tqdm(total=len(tasks), unit="chunk", desc="esdf", disable=not progress, dynamic_ncols=True)
     try:
-        for corner in product(*starts):
-            core = tuple(slice(c, min(c + chunk, n)) for c, n in zip(corner, shape, strict=True))
-            field, raw_core, k = _chunk_field(occupied, core, shape, halo, vs, md, sg, tr, n_threads,
-                                              want_raw=out_raw is not None)
-            prevented += k
-            writer.put(core, field, raw_core)
-            bar.update(1)
+        if client is None:
+            import dask
+            from dask.callbacks import Callback
+
+            def done(key: Any, *_: Any) -> None:
+                if str(key).startswith("esdf-chunk-"):
+                    bar.update(1)
+
+            with Callback(posttask=done):  # type: ignore[no-untyped-call]  # dask and distributed are not annotated
+                return list(dask.compute(*tasks, scheduler="sync"))  # type: ignore[no-untyped-call]  # dask and distributed are not annotated
+        from distributed import as_completed
+
+        futures = client.compute(tasks)  # type: ignore[no-untyped-call]  # dask and distributed are not annotated
+        try:
+            for future in as_completed(futures):  # type: ignore[no-untyped-call]  # dask and distributed are not annotated
+                future.result()  # raises the chunk's error here, naming it
+                bar.update(1)
+        except BaseException:
+            client.cancel(futures)  # type: ignore[no-untyped-call]  # dask and distributed are not annotated
+            raise
+        return [f.result() for f in futures]
     finally:
-        writer.close()
         bar.close()
-    writer.raise_error()
-    return ChunkedSummary(shape=shape, chunks=total, halo=halo, n_prevented=prevented, seconds=time.perf_counter() - t0)
+
+
+def _chunk_task(occupied: Any, out: Any, out_raw: Any, core: tuple[slice, ...], shape: tuple[int, int, int],
+                halo: int, params: tuple[float, float, float, float], n_threads: int) -> tuple[int, int, int]:
+    """Compute one chunk and write its core; (sign flips prevented, process id, its peak RSS in bytes)."""
+    vs, md, sg, tr = params
+    field, raw_core, k = _chunk_field(occupied, core, shape, halo, vs, md, sg, tr, n_threads, want_raw=out_raw is not None)
+    out[core] = field
+    if out_raw is not None:
+        out_raw[core] = raw_core
+    return k, os.getpid(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
 def _check_grids(occupied: Any, out: Any, out_raw: Any, chunk: Any) -> tuple[int, tuple[int, int, int]]:
@@ -175,43 +241,3 @@ def _chunk_field(occupied: Any, core: tuple[slice, ...], shape: tuple[int, int, 
         return field, raw_core, k
     field = np.ascontiguousarray(raw[inner])
     return field, field if want_raw else None, 0
-
-
-class _ChunkWriter:
-    """Writes finished chunks into ``out`` (and ``out_raw``) from a background thread, at most two queued;
-    the first failure is kept and raised in the caller's thread."""
-
-    def __init__(self, out: Any, out_raw: Any) -> None:
-        self.out, self.out_raw = out, out_raw
-        self.jobs: queue.Queue[tuple[tuple[slice, ...], np.ndarray, np.ndarray | None] | None] = queue.Queue(maxsize=2)
-        self.errors: list[BaseException] = []
-        self.thread = threading.Thread(target=self._run, name="esdf-chunk-writer", daemon=True)
-        self.thread.start()
-
-    def _run(self) -> None:
-        """The thread: write jobs until None; after a failure, drain the queue without writing."""
-        while (job := self.jobs.get()) is not None:
-            if self.errors:
-                continue
-            core, field, raw_core = job
-            try:
-                self.out[core] = field
-                if raw_core is not None:
-                    self.out_raw[core] = raw_core
-            except BaseException as exc:  # noqa: BLE001 - surfaced in the caller's thread
-                self.errors.append(exc)
-
-    def put(self, core: tuple[slice, ...], field: np.ndarray, raw_core: np.ndarray | None) -> None:
-        """Queue one chunk (raises first what an earlier write failed with)."""
-        self.raise_error()
-        self.jobs.put((core, field, raw_core))
-
-    def close(self) -> None:
-        """Let the thread finish the queued chunks and stop."""
-        self.jobs.put(None)
-        self.thread.join()
-
-    def raise_error(self) -> None:
-        """Raise the first write failure, if any."""
-        if self.errors:
-            raise self.errors[0]
