@@ -85,12 +85,12 @@ def run_step(job: StepJob, previous: StepOutcome | None = None) -> StepOutcome:
     if previous is not None and previous.status == "failed":
         return previous
     t0 = time.perf_counter()
-    _one_thread()
     try:
         key = step_key(job)
         why = stale_reason(job, key)
         if why is None:
             return StepOutcome(job.name, job.step, "skipped", "up to date", time.perf_counter() - t0)
+        _one_thread()
         (job.workspace / MARKERS / f"{job.step}.json").unlink(missing_ok=True)
         _RUNNERS[job.step](job)
         _write_marker(job, key)
