@@ -10,6 +10,7 @@ import math
 import os
 import platform
 import re
+import sys
 import threading
 import uuid
 from collections.abc import Iterator
@@ -641,8 +642,9 @@ def _fly_on_dask(setup: _WorkerSetup, tasks: list[tuple[str, dict]], cluster: tu
     from distributed.scheduler import KilledWorker
 
     client, info = cluster
-    bar.write(f"dask: {info.workers} worker(s) at {info.address}"
-              + (f", dashboard {info.dashboard}" if info.dashboard else ""))
+    if not bar.disable:  # beside the bar, on stderr: the command's stdout stays its table
+        bar.write(f"dask: {info.workers} worker(s) at {info.address}"
+                  + (f", dashboard {info.dashboard}" if info.dashboard else ""), file=sys.stderr)
     run_id = uuid.uuid4().hex[:8]
     futures = {client.submit(_dask_task, setup, task, key=f"mapkit-eval-{run_id}-{task[0]}-{task[1]['pair']:03d}",
                              retries=DASK_RETRIES): task for task in tasks}
