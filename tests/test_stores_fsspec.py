@@ -210,6 +210,7 @@ def test_unknown_protocol_is_one_line() -> None:
 @pytest.fixture
 def offline_s3(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     """No AWS credentials anywhere, no instance metadata, one quick attempt per request."""
+    pytest.importorskip("s3fs", reason="s3fs (the s3:// backend of fsspec) is not installed")
     for name in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN", "AWS_PROFILE"):
         monkeypatch.delenv(name, raising=False)
     monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")
