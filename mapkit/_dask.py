@@ -18,7 +18,7 @@ import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from mapkit.errors import MapkitError
 
@@ -128,3 +128,41 @@ def _info(client: Client, *, local: bool) -> ClusterInfo:
     scheduler = client.scheduler_info()
     return ClusterInfo(address=str(scheduler.get("address", "")), dashboard=dashboard,
                        workers=len(scheduler.get("workers", {})), local=local)
+
+
+def compute_tasks(tasks: list[Any], client: Client | None, *, desc: str, unit: str, progress: bool) -> list[Any]:
+    """Results of Dask ``tasks`` (delayed objects) in order, with a tqdm bar (done, rate, ETA).
+
+    ``client`` None runs them in this process on Dask's synchronous scheduler (one at a time, no
+    cluster to start); else on the client's cluster. The first task that fails raises its own
+    exception here and the others are cancelled.
+    """
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(tasks), unit=unit, desc=desc, disable=not progress, dynamic_ncols=True)
+    try:
+        if client is None:
+            import dask
+            from dask.callbacks import Callback
+
+            keys = {task.key for task in tasks}
+
+            def done(key: Any, *_: Any) -> None:
+                if key in keys:
+                    bar.update(1)
+
+            with Callback(posttask=done):
+                return list(dask.compute(*tasks, scheduler="sync"))
+        from distributed import as_completed
+
+        futures = client.compute(tasks)
+        try:
+            for future in as_completed(futures):
+                future.result()  # the task's own exception, raised here
+                bar.update(1)
+        except BaseException:
+            client.cancel(futures)
+            raise
+        return [f.result() for f in futures]
+    finally:
+        bar.close()
