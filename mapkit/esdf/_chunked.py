@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from mapkit._dask import compute_tasks
 from mapkit.esdf import _checks
 from mapkit.esdf._distance import _signed_distance_unchecked, _smooth_unchecked
 from mapkit.esdf._errors import EsdfError
@@ -123,7 +124,7 @@ def signed_distance_chunked(
     halo = chunk_halo(voxel_size=vs, max_dist=md, sigma=sg, truncate=tr)
     t0 = time.perf_counter()
     tasks = _chunk_tasks(occupied, out, out_raw, shape, chunk, halo, (vs, md, sg, tr), n_threads)
-    results = _run(tasks, client, progress)
+    results = compute_tasks(tasks, client, desc="esdf", unit="chunk", progress=progress)
     peaks: dict[int, int] = {}
     for _, pid, peak in results:
         peaks[pid] = max(peaks.get(pid, 0), peak)
@@ -146,37 +147,6 @@ def _chunk_tasks(occupied: Any, out: Any, out_raw: Any, shape: tuple[int, int, i
         tasks.append(run_chunk(source, out, out_raw, core, shape, halo, params, n_threads,
                                dask_key_name=f"esdf-chunk-{'-'.join(map(str, corner))}-{source.key[-12:]}"))
     return tasks
-
-
-def _run(tasks: list[Any], client: Client | None, progress: bool) -> list[tuple[int, int, int]]:
-    """Results of `tasks`, in this process (synchronous scheduler) or on the client's cluster, with a tqdm bar."""
-    from tqdm import tqdm
-
-    bar = tqdm(total=len(tasks), unit="chunk", desc="esdf", disable=not progress, dynamic_ncols=True)
-    try:
-        if client is None:
-            import dask
-            from dask.callbacks import Callback
-
-            def done(key: Any, *_: Any) -> None:
-                if str(key).startswith("esdf-chunk-"):
-                    bar.update(1)
-
-            with Callback(posttask=done):  # type: ignore[no-untyped-call]  # dask and distributed are not annotated
-                return list(dask.compute(*tasks, scheduler="sync"))  # type: ignore[no-untyped-call]  # dask and distributed are not annotated
-        from distributed import as_completed
-
-        futures = client.compute(tasks)  # type: ignore[no-untyped-call]  # dask and distributed are not annotated
-        try:
-            for future in as_completed(futures):  # type: ignore[no-untyped-call]  # dask and distributed are not annotated
-                future.result()  # raises the chunk's error here, naming it
-                bar.update(1)
-        except BaseException:
-            client.cancel(futures)  # type: ignore[no-untyped-call]  # dask and distributed are not annotated
-            raise
-        return [f.result() for f in futures]
-    finally:
-        bar.close()
 
 
 def _chunk_task(occupied: Any, out: Any, out_raw: Any, core: tuple[slice, ...], shape: tuple[int, int, int],
