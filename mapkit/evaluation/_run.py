@@ -654,8 +654,9 @@ def _fly_on_dask(setup: _WorkerSetup, tasks: list[tuple[str, dict]], cluster: tu
         try:
             _, idx, runs = future.result()
         except KilledWorker:
-            raise EvalError(f"pair {pair} of {kind} killed every Dask worker that ran it; see the workers' logs "
-                            "(out of memory?) or run it here without --scheduler") from None
+            raise EvalError(f"pair {pair} of {kind}: the Dask workers running it died more than "
+                            "distributed.scheduler.allowed-failures times; see the workers' logs (out of memory?) "
+                            "or run it here without --scheduler") from None
         results[(kind, idx)] = runs
         bar.update(1)
     if not info.local:  # a long-lived cluster: free the model and worlds its workers hold
