@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -100,10 +101,12 @@ def run_step(job: StepJob, previous: StepOutcome | None = None) -> StepOutcome:
 
 
 def _one_thread() -> None:
-    """One thread per worker process: each worker is one core (Dask's nanny also sets OMP_NUM_THREADS=1)."""
-    import torch
-
-    torch.set_num_threads(1)
+    """One thread per worker process: each worker is one core. Dask's nanny starts workers with
+    OMP_NUM_THREADS=1 (numpy's BLAS, Open3D, torch read it); a torch already loaded is set here. The
+    steps never import torch: importing it only for this costs seconds per worker, at start and exit."""
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(1)
 
 
 def _digest(payload: Any) -> str:
