@@ -1,4 +1,4 @@
-"""`mapkit fuse`, `mapkit esdf` and `mapkit slice`."""
+"""`mapkit fuse`, `mapkit fuse-world`, `mapkit esdf` and `mapkit slice`."""
 
 from __future__ import annotations
 
@@ -52,6 +52,50 @@ def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float, trunc: flo
         f"integrate {s.integrate_frames_per_second:.0f} frames/s)"
     )
     click.echo("wrote " + ", ".join(str(p) for p in s.outputs))
+
+
+@main.command("fuse-world")
+@click.argument("workspaces", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
+              help="World directory: OUTPUT/world.zarr (then `mapkit esdf -w OUTPUT`).")
+@click.option("--voxel", type=FINITE, default=0.1, show_default=True, help="World grid (= ESDF) voxel size (m).")
+@click.option("--tsdf-voxel", type=FINITE, default=0.05, show_default=True, help="TSDF voxel size (m), as mapkit fuse --voxel.")
+@click.option("--trunc", type=POSITIVE, default=4.0, show_default=True, help="TSDF truncation (voxels).")
+@click.option("--max-depth", type=POSITIVE, default=8.0, show_default=True, help="Ignore depth beyond this (m).")
+@click.option("--frame-stride", "frame_stride", type=COUNT, default=1, show_default=True, help="Integrate every N-th frame.")
+@click.option("--padding", type=NONNEGATIVE, default=1.0, show_default=True, help="Metres around the bounds.")
+@click.option("--solid-depth", type=NONNEGATIVE, default=0.5, show_default=True,
+              help="Unseen space this far (m) behind measured surfaces is marked solid-behind (mapkit esdf --unknown free).")
+@click.option("--tile", type=COUNT, default=128, show_default=True, help="Voxels per tile edge (a multiple of 64); one Dask task each.")
+@click.option("--bounds", type=float, nargs=6, default=None, metavar="X0 Y0 Z0 X1 Y1 Z1",
+              help="World box (m); default: the flights' depth points.")
+@click.option("--scheduler", metavar="ADDRESS",
+              help="Dask scheduler (tcp://HOST:8786; default: DASK_SCHEDULER_ADDRESS); paths must be on storage the workers share.")
+@click.option("--workers", type=COUNT, default=None, help="N local Dask worker processes (default: 1, this process).")
+@OVERWRITE
+@library_call
+def fuse_world_cmd(workspaces: tuple[Path, ...], output: Path, voxel: float, tsdf_voxel: float, trunc: float,
+                   max_depth: float, frame_stride: int, padding: float, solid_depth: float, tile: int,
+                   bounds: tuple[float, ...] | None, scheduler: str | None, workers: int | None, overwrite: bool) -> None:
+    """Fuse the flights of WORKSPACES (each with frames.zarr, one world frame) into one world map,
+    tile by tile on Dask: OUTPUT/world.zarr, the chunked occupancy `mapkit esdf -w OUTPUT` reads.
+
+    With one workspace the result equals `mapkit fuse` + `mapkit esdf --workers 1` on the same grid.
+    """
+    from mapkit._dask import scheduler_address
+    from mapkit.fusion import FuseConfig, WorldConfig, fuse_world
+
+    box = None if bounds is None else ((bounds[0], bounds[1], bounds[2]), (bounds[3], bounds[4], bounds[5]))
+    config = WorldConfig(voxel=voxel, padding=padding, tile=tile, solid_depth=solid_depth, bounds=box,
+                         fuse=FuseConfig(voxel=tsdf_voxel, trunc=trunc, max_depth=max_depth, stride=frame_stride))
+    s = fuse_world(list(workspaces), output, config, overwrite=overwrite, progress=True,
+                   scheduler=scheduler_address(scheduler), workers=workers)
+    nx, ny, nz = s.shape
+    click.echo(
+        f"wrote {s.path}: {nx}x{ny}x{nz} voxels of {s.voxel_size} m, origin {s.origin.round(3).tolist()}; "
+        f"{s.tiles_fused} of {s.tiles} tiles reached by {s.frames} frames, on {s.workers} Dask worker(s), peak memory "
+        f"per worker {s.peak_rss_bytes / 2**30:.2f} GiB; {s.seconds:.1f} s"
+    )
 
 
 @main.command()

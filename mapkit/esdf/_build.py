@@ -16,7 +16,7 @@ from mapkit._resources import available_memory
 from mapkit.esdf._chunked import ChunkedSummary
 from mapkit.esdf._distance import Backend
 from mapkit.esdf._errors import EsdfError
-from mapkit.fusion import CLOUD, TSDF, FusionError, check_fused
+from mapkit.fusion import CLOUD, FUSE_META, TSDF, WORLD, FusionError, check_fused
 from mapkit.fusion._occupancy import Grid, carve_free_space, fill_unknown, occupancy_from_tsdf
 from mapkit.ingest import open_frames_store
 from mapkit.workspace import check_writable
@@ -214,7 +214,8 @@ def fits_dense(grid: Grid) -> bool:
 
 def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overwrite: bool = False,
                progress: bool = True, scheduler: str | None = None, workers: int | None = None) -> EsdfSummary:
-    """Build ``workspace/map.zarr`` from ``workspace/tsdf.npz`` and ``workspace/frames.zarr``.
+    """Build ``workspace/map.zarr`` from ``workspace/tsdf.npz`` and ``workspace/frames.zarr``, or from
+    ``workspace/world.zarr`` for a world directory of ``mapkit fuse-world`` (always chunked).
 
     The whole grid is computed at once (sub-voxel distances) when it fits in memory. Otherwise, or
     when `scheduler` or `workers` is given, the chunked ESDF runs as a Dask graph: with `workers`
@@ -227,6 +228,11 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
     if workers is not None and (isinstance(workers, bool) or workers < 1):
         raise EsdfBuildError(f"--workers {workers} must be at least 1 (1 = this process)")
     workspace = Path(workspace)
+    if (workspace / WORLD).exists() and not (workspace / FUSE_META).exists():
+        from mapkit.esdf._world import build_world_esdf
+
+        return build_world_esdf(workspace, config, overwrite=overwrite, progress=progress, scheduler=scheduler,
+                                workers=workers)
     target = workspace / MAP
     check_writable(target, overwrite=overwrite)
     t0 = time.perf_counter()

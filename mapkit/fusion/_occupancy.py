@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,6 +43,28 @@ class Grid:
         return tuple(self.origin[a] + self.voxel_size * np.arange(self.shape[a]) for a in range(3))
 
 
+@dataclass(frozen=True)
+class Window:
+    """A box of voxels [lo, hi) of a :class:`Grid` (a tile): arrays over it are indexed from `lo`."""
+
+    lo: tuple[int, int, int]
+    """First voxel index on each axis."""
+    hi: tuple[int, int, int]
+    """One past the last voxel index on each axis."""
+
+    @classmethod
+    def whole(cls, grid: Grid) -> Window:
+        return cls((0, 0, 0), grid.shape)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (self.hi[0] - self.lo[0], self.hi[1] - self.lo[1], self.hi[2] - self.lo[2])
+
+    @property
+    def slices(self) -> tuple[slice, slice, slice]:
+        return (slice(self.lo[0], self.hi[0]), slice(self.lo[1], self.hi[1]), slice(self.lo[2], self.hi[2]))
+
+
 def _tsdf_samples(vbg: Any, batch: int = _BLOCKS_PER_BATCH):
     """(positions (N,3), tsdf (N,), weight (N,)) of every voxel of a VoxelBlockGrid, in block batches."""
     import open3d.core as o3c
@@ -75,9 +98,21 @@ def occupancy_from_tsdf(
         vbg = o3d.t.geometry.VoxelBlockGrid.load(str(tsdf_path))
     except Exception as exc:  # noqa: BLE001 - Open3D raises RuntimeError or others for a bad file: one message
         raise FusionError(f"{tsdf_path} is not a readable TSDF ({exc}); re-run `mapkit fuse --overwrite`") from None
-    tsdf_m = np.full(grid.shape, np.nan, dtype=np.float32)
+    tsdf_m = sample_tsdf(vbg, grid, tsdf_voxel=tsdf_voxel, trunc_voxels=trunc_voxels, min_weight=min_weight)
+    return tsdf_m < 0, tsdf_m
+
+
+def sample_tsdf(vbg: Any, grid: Grid, *, tsdf_voxel: float, trunc_voxels: float, min_weight: float = 1.0,
+                window: Window | None = None) -> NDArray[np.float32]:
+    """The TSDF (metres, NaN = no sample) at the centres of `window`'s voxels of `grid` (default: all).
+
+    Sample positions are placed on the whole grid before the window is cut out, so a tile gets the
+    values the whole grid has there, bit for bit.
+    """
+    window = window or Window.whole(grid)
+    tsdf_m = np.full(window.shape, np.nan, dtype=np.float32)
     half = 0.5 * tsdf_voxel + 1e-6
-    shape = np.asarray(grid.shape)
+    lo, hi = np.asarray(window.lo), np.asarray(window.hi)
     trunc_m = trunc_voxels * tsdf_voxel
     for pos, tsdf, weight in _tsdf_samples(vbg):
         keep = weight >= min_weight
@@ -85,17 +120,18 @@ def occupancy_from_tsdf(
         rel = (pos - grid.origin) / grid.voxel_size
         idx = np.rint(rel).astype(np.int64)
         near = np.all(np.abs(rel - idx) * grid.voxel_size < half, axis=1)
-        inside = np.all((idx >= 0) & (idx < shape), axis=1)
+        inside = np.all((idx >= lo) & (idx < hi), axis=1)
         sel = near & inside
-        i, j, k = idx[sel].T
+        i, j, k = (idx[sel] - lo).T
         tsdf_m[i, j, k] = tsdf[sel] * trunc_m
-    return tsdf_m < 0, tsdf_m
+    return tsdf_m
 
 
 def carve_free_space(
     store: FramesStore, grid: Grid, observed: NDArray[np.bool_], *, max_depth: float,
     behind: NDArray[np.bool_] | None = None, solid_depth: float = 0.0,
-    max_frames: int = 120, progress: bool = False,
+    max_frames: int = 120, progress: bool = False, window: Window | None = None,
+    frames: Collection[int] | None = None,
 ) -> int:
     """Mark voxels that depth rays passed through as observed (in place); returns the frames used.
 
@@ -103,6 +139,10 @@ def carve_free_space(
     space), rays so that neighbours are about one voxel apart at the far range, and each ray is
     sampled every 0.8 voxel up to the measured surface. With `behind`, the
     voxels up to `solid_depth` beyond each measured surface (along the ray) are marked there.
+
+    `observed` and `behind` cover `window` of `grid` (default: all of it); ray samples are placed on
+    the whole grid first, so a tile gets exactly the whole grid's marks there. `frames`: only these
+    of the subsampled frames (those that can reach the window); the others mark nothing in it.
     """
     from tqdm import tqdm
 
@@ -114,8 +154,9 @@ def carve_free_space(
     v, u = np.mgrid[0:H:pix_step, 0:W:pix_step]
     rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, dtype=float)], -1).reshape(-1, 3)
     step = 0.8 * grid.voxel_size
-    shape = np.asarray(grid.shape)
-    strides = np.array([grid.shape[1] * grid.shape[2], grid.shape[2], 1])
+    window = window or Window.whole(grid)
+    lo, hi = np.asarray(window.lo), np.asarray(window.hi)
+    strides = np.array([window.shape[1] * window.shape[2], window.shape[2], 1])
     flat = observed.reshape(-1)
     used = 0
 
@@ -131,11 +172,12 @@ def carve_free_space(
         scaled_dirs = (dirs / grid.voxel_size).astype(np.float32)
         base = ((origin - grid.origin) / grid.voxel_size).astype(np.float32)
         idx = np.rint(base + scaled_dirs[ray_id] * z[:, None]).astype(np.int64)
-        inside = np.all((idx >= 0) & (idx < shape), axis=1)
-        target[idx[inside] @ strides] = True
+        inside = np.all((idx >= lo) & (idx < hi), axis=1)
+        target[(idx[inside] - lo) @ strides] = True
 
     focal = 0.5 * (K[0, 0] + K[1, 1]) / pix_step  # focal length in strided pixels
-    for i in tqdm(range(0, n, frame_step), desc="observed", unit="frame", disable=not progress):
+    chosen = [i for i in range(0, n, frame_step) if frames is None or i in frames]
+    for i in tqdm(chosen, desc="observed", unit="frame", disable=not progress):
         image = np.asarray(store.depth[i])[::pix_step, ::pix_step]
         depth = image.reshape(-1)
         ok = np.isfinite(depth)
