@@ -308,3 +308,13 @@ def test_config_validation(flights: list[Path], tmp_path: Path) -> None:
         BatchConfig(recordings=(rec, rec), root=tmp_path).validate()
     with pytest.raises(BatchError, match="no recordings"):
         BatchConfig(recordings=(), root=tmp_path).validate()
+
+
+def test_unexpected_task_errors_are_one_line() -> None:
+    from distributed import KilledWorker
+
+    from mapkit.batch._run import _unexpected
+
+    assert _unexpected(ValueError("bad\n  thing")) == "unexpected ValueError: bad thing; report this"
+    assert _unexpected(OSError(28, "No space left on device")) == "OSError: [Errno 28] No space left on device"
+    assert _unexpected(KilledWorker("batch-esdf-0-abc", "tcp://w", 3)).startswith("its worker died each time it ran")

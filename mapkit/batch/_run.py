@@ -140,9 +140,11 @@ def _result(recording: Recording, chain: list[Future]) -> RecordingResult:
     """One recording's result from its finished chain."""
     outcomes: list[StepOutcome] = []
     for future in chain:
-        if future.status == "error":
-            reason = f"{_step_of(future)}: {_unexpected(future.exception())}"
-            return RecordingResult(recording.name, recording.path, "failed", reason, tuple(outcomes))
+        if future.status != "finished":
+            why = (_unexpected(future.exception()) if future.status == "error" else
+                   f"{future.status} (the scheduler lost the task); rerun the batch to resume")
+            return RecordingResult(recording.name, recording.path, "failed", f"{_step_of(future)}: {why}",
+                                   tuple(outcomes))
         outcome: StepOutcome = future.result()
         if outcome.status == "failed":
             return RecordingResult(recording.name, recording.path, "failed", f"{outcome.step}: {outcome.reason}",
