@@ -164,6 +164,8 @@ def test_training_loader_reads_tuples_from_a_url_sharded_by_rank(local: tuple[Pa
     remote, here = TupleStore.open(mem), TupleStore.open(ws)
     assert remote.workspace.url == mem
     samples, reference = TupleSamples([remote], "train"), TupleSamples([here], "train")
+    everything = list(samples.batches(4, shuffle=True, generator=np.random.default_rng(7)))
+    assert len(everything) % 2 == 0, "the store should give an even batch count (see the next test)"
     shards = [list(samples.batches(4, shuffle=True, generator=np.random.default_rng(7), rank=r, world_size=2))
               for r in range(2)]
     seen = [{(int(t), int(g)) for _, part in shard for t, g in part} for shard in shards]
@@ -175,6 +177,23 @@ def test_training_loader_reads_tuples_from_a_url_sharded_by_rank(local: tuple[Pa
         a, b = samples.load(k, part, torch.device("cpu")), reference.load(k_ref, part_ref, torch.device("cpu"))
         for key in ("depth", "goal", "velocity", "T_world_body", "blocked", "image_index"):
             torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, equal_nan=True)
+
+
+@pytest.mark.parametrize("world_size", [2, 3, 5])
+def test_every_rank_takes_the_same_number_of_batches(local: tuple[Path, Path], world_size: int) -> None:
+    """Batches that do not share out evenly are completed with the first ones again, so DDP's
+    collectives stay in step; every sample is still in some rank's share."""
+    samples = TupleSamples([TupleStore.open(local[1])], "train")
+    for batch_size in (3, 4, 7, 11):
+        whole = list(samples.batches(batch_size, shuffle=True, generator=np.random.default_rng(3)))
+        shards = [list(samples.batches(batch_size, shuffle=True, generator=np.random.default_rng(3), rank=r,
+                                       world_size=world_size)) for r in range(world_size)]
+        assert len({len(shard) for shard in shards}) == 1
+        assert len(shards[0]) == -(-len(whole) // world_size)
+        seen = {(int(t), int(g)) for shard in shards for _, part in shard for t, g in part}
+        assert len(seen) == len(samples)
+        one = list(samples.batches(batch_size, shuffle=True, generator=np.random.default_rng(3), world_size=1))
+        assert [p.tolist() for _, p in one] == [p.tolist() for _, p in whole]
 
 
 def _one_line(args: list[str]) -> str:

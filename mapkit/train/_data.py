@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -108,7 +109,10 @@ class TupleSamples:
     def batches(self, batch_size: int, *, shuffle: bool, generator: np.random.Generator | None = None,
                 rank: int = 0, world_size: int = 1) -> Iterator[tuple[int, np.ndarray]]:
         """(store index, (b, 2) [tuple, goal]) batches; with world_size > 1 each rank takes every
-        world_size-th batch (same order on every rank, from the shared seed)."""
+        world_size-th batch (same order on every rank, from the shared seed), and when the batches do not
+        share out evenly the list is completed with its first batches again (as torch's
+        DistributedSampler pads), so every rank takes the same number of steps: DDP's collectives stay
+        in step. One process (world_size 1) gets every batch once, as before."""
         batches: list[tuple[int, np.ndarray]] = []
         for k, idx in enumerate(self.index):
             if self.goals_together:
@@ -125,6 +129,9 @@ class TupleSamples:
                     batches.append((k, part))
         if shuffle and generator is not None:
             batches = [batches[i] for i in generator.permutation(len(batches))]
+        if world_size > 1 and batches and len(batches) % world_size:
+            rounds = -(-len(batches) // world_size)
+            batches = list(itertools.islice(itertools.cycle(batches), rounds * world_size))
         yield from batches[rank::world_size]
 
     def load(self, store_index: int, part: np.ndarray, device: torch.device) -> Batch:
