@@ -4,7 +4,15 @@ never publishes; --overwrite; training's loader on memory:// with per-rank shard
 
 from __future__ import annotations
 
+import contextlib
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
 import threading
+import time
 import uuid
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -288,3 +296,46 @@ def test_s3_missing_bucket_is_one_line(local: tuple[Path, Path], offline_s3: Non
     finally:
         server.shutdown()
         server.server_close()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_two_gloo_ranks_train_on_tuples_over_http_with_uneven_batches(local: tuple[Path, Path], tmp_path: Path) -> None:
+    """`torchrun` with 2 CPU processes reads tuples.zarr and map.zarr through fsspec (http://, served by
+    `python -m http.server`) and finishes an epoch whose batch count is odd: the loader evens the ranks
+    out, so DDP's collectives stay in step."""
+    pytest.importorskip("aiohttp", reason="fsspec's http:// backend needs aiohttp")
+    ws = tmp_path / "serve" / "ws"
+    ws.mkdir(parents=True)
+    for name in ("frames.zarr", "map.zarr"):
+        shutil.copytree(local[1] / name, ws / name)
+    export_tuples(ws, ExportConfig(goals_per_frame=1, stride=6, seed=1), progress=False)
+    n = len(TupleSamples([TupleStore.open(ws)], "train"))
+    batch_size = next(b for b in range(2, n) if -(-n // b) % 2 == 1)  # an odd number of batches
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = subprocess.Popen([sys.executable, "-m", "http.server", str(port), "--bind", "127.0.0.1"],
+                              cwd=tmp_path / "serve", stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        url = f"http://127.0.0.1:{port}/ws"
+        for _ in range(100):
+            with contextlib.suppress(Exception):
+                if Location.of(url).fs.exists(f"{url}/tuples.zarr/zarr.json"):
+                    break
+            time.sleep(0.1)
+        env = {**os.environ, "MAPKIT_DDP_BACKEND": "gloo", "OMP_NUM_THREADS": "1"}
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", "29547",
+               "-m", "mapkit.cli", "train", "-w", url, "--name", "ddp", "--runs-dir", str(tmp_path / "runs"),
+               "--epochs", "1", "--batch-size", str(batch_size), "--val-batches", "1",
+               "--planner", "input_size=[32,48]", "--planner", "encoder_width=0.125"]
+        result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=540)
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
+    assert result.returncode == 0, result.stderr[-2000:]
+    rows = [json.loads(x) for x in (tmp_path / "runs" / "ddp" / "metrics.jsonl").read_text().splitlines()]
+    batches = -(-n // batch_size)
+    assert rows[-1]["epoch"] == 1 and rows[-1]["step"] == -(-batches // 2)  # each rank: half, rounded up
+    config = json.loads((tmp_path / "runs" / "ddp" / "config.json").read_text())
+    assert config["workspaces"] == [url]
