@@ -130,12 +130,13 @@ def _info(client: Client, *, local: bool) -> ClusterInfo:
                        workers=len(scheduler.get("workers", {})), local=local)
 
 
-def compute_tasks(tasks: list[Any], client: Client | None, *, desc: str, unit: str, progress: bool) -> list[Any]:
+def compute_tasks(tasks: list[Any], client: Client | None, *, desc: str, unit: str, progress: bool,
+                  local_threads: int = 1) -> list[Any]:
     """Results of Dask ``tasks`` (delayed objects) in order, with a tqdm bar (done, rate, ETA).
 
-    ``client`` None runs them in this process on Dask's synchronous scheduler (one at a time, no
-    cluster to start); else on the client's cluster. The first task that fails raises its own
-    exception here and the others are cancelled.
+    ``client`` None runs them in this process, no cluster to start: on Dask's synchronous scheduler
+    (``local_threads`` 1) or its threaded one with that many threads; else on the client's cluster.
+    The first task that fails raises its own exception here (the others are cancelled).
     """
     from tqdm import tqdm
 
@@ -152,6 +153,8 @@ def compute_tasks(tasks: list[Any], client: Client | None, *, desc: str, unit: s
                     bar.update(1)
 
             with Callback(posttask=done):
+                if local_threads > 1:
+                    return list(dask.compute(*tasks, scheduler="threads", num_workers=local_threads))
                 return list(dask.compute(*tasks, scheduler="sync"))
         from distributed import as_completed
 
