@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_esdf.py            # full table (~2-3 min on 2 cores)
     .venv/bin/python benchmarks/bench_esdf.py --quick    # smaller large-grid runs
+    .venv/bin/python benchmarks/bench_esdf.py --dask-only  # only the chunked-on-Dask section (~10 min)
 
 Scene: a forest-like occupancy (floor, vertical cylinders of random radius/height, random boxes;
 about 5 % occupied), voxel 0.1 m, Gaussian sigma 0.2 m (2 voxels, truncated at 3 sigma).
@@ -13,8 +14,18 @@ Rows:
 - scipy peer: ``distance_transform_edt(~occ) - distance_transform_edt(occ)`` then
   ``gaussian_filter`` (the straightforward numpy/scipy way), measured in the same run.
 - 512^3: in a fresh subprocess (cold = first run, warm = second), peak RSS from /proc VmHWM.
-- chunked: ``signed_distance_chunked`` into a map.zarr made by ``create_map`` (max_dist 1.5 m,
-  chunk 128 and 256), in a fresh subprocess; throughput, peak RSS and store size; the store is deleted.
+- chunked on Dask (issue 15): the same 768x768x256 zarr occupancy into a map.zarr made by
+  ``create_map`` (max_dist 1.5 m, chunk 128, as ``mapkit esdf``), each run in a fresh subprocess:
+  * peer: today's in-process chunked path before the Dask graph (benchmarks/peer_sequential_esdf.py:
+    a loop over the chunks in this process, 2 threads per chunk, a background writer thread), the
+    same chunk function as the Dask tasks;
+  * ours, 1 worker: ``signed_distance_chunked`` without a client (Dask's synchronous scheduler in
+    this process, 2 threads per chunk) -- what ``mapkit esdf`` runs for a grid too large for memory;
+  * ours, this process on Dask's threaded scheduler (2 chunks at once, 1 thread each);
+  * ours, LocalCluster of 1 and of 2 single-threaded worker processes (1 thread per chunk: how the
+    time scales with workers; ``mapkit esdf --workers 2`` on this machine), start-up timed apart;
+  peak memory per worker from getrusage in each task; speed-ups against the peer and against 1 worker;
+  then how the time grows with the grid (2 workers, three sizes).
 
 The machine is shared: the load average at start is printed; other processes on the two cores slow
 every row (ours and the peer alike).
@@ -23,6 +34,7 @@ every row (ours and the peer alike).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
@@ -31,6 +43,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -101,29 +114,64 @@ def _worker_dense(n: int) -> dict:
     return {"cold": cold, "warm": warm, "peak_gb": _peak_rss_gb(), "base_gb": base, "occupied": float(occ.mean())}
 
 
-def _worker_chunked(shape: tuple[int, int, int], max_dist: float, chunk: int) -> dict:
+def _cpu_seconds() -> float:
+    """User + system CPU seconds of this process and its reaped children (a cluster's worker processes)."""
+    import resource
+
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def _occupancy_zarr(path: Path, shape: tuple[int, int, int]) -> Any:
+    """The forest scene as a zarr occupancy written slab by slab (nothing grid-sized in memory)."""
     import zarr
 
+    occ_arr = zarr.open_array(path, mode="w", shape=shape, chunks=(128, 128, 128), dtype=bool, zarr_format=3)
+    slab = 128
+    for x0 in range(0, shape[0], slab):
+        occ_arr[x0 : x0 + slab] = forest((min(slab, shape[0] - x0), *shape[1:]), seed=x0)
+    return occ_arr
+
+
+def _worker_chunked(shape: tuple[int, int, int], max_dist: float, mode: str, workers: int) -> dict:
+    """One chunked run (mode: peer, sync or cluster) of the zarr forest into a fresh map.zarr."""
     from mapkit.esdf import create_map, signed_distance_chunked
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_esdf_"))
     try:
-        # the occupancy lives in a zarr store too: nothing grid-sized stays in memory
-        occ_arr = zarr.open_array(tmp / "occ.zarr", mode="w", shape=shape, chunks=(128, 128, 128), dtype=bool, zarr_format=3)
-        slab = 128
-        for x0 in range(0, shape[0], slab):
-            occ_arr[x0 : x0 + slab] = forest((min(slab, shape[0] - x0),) + shape[1:], seed=x0)
+        occ_arr = _occupancy_zarr(tmp / "occ.zarr", shape)
         base = _peak_rss_gb()
-        t0 = time.perf_counter()
-        with create_map(tmp / "map.zarr", shape=shape, origin=(0, 0, 0), voxel_size=VOXEL, frame_id="world",
-                        sigma=SIGMA, unknown_policy="free", parameters={"max_dist": max_dist}) as w:
-            s = signed_distance_chunked(occ_arr, w.esdf, out_raw=w.esdf_raw, voxel_size=VOXEL, max_dist=max_dist,
-                                        sigma=SIGMA, chunk=chunk, progress=False)
-            w.observed[...] = 1
-        seconds = time.perf_counter() - t0
+        cpu0 = _cpu_seconds()
+        startup = 0.0
+        with contextlib.ExitStack() as stack:
+            client = None
+            if mode == "cluster":
+                from mapkit._dask import dask_client
+
+                t = time.perf_counter()
+                client, _ = stack.enter_context(dask_client(None, workers=workers))
+                startup = time.perf_counter() - t
+            t0 = time.perf_counter()
+            with create_map(tmp / "map.zarr", shape=shape, origin=(0, 0, 0), voxel_size=VOXEL, frame_id="world",
+                            sigma=SIGMA, unknown_policy="free", parameters={"max_dist": max_dist}) as w:
+                kw = dict(out_raw=w.esdf_raw, voxel_size=VOXEL, max_dist=max_dist, sigma=SIGMA, chunk=128)
+                if mode == "peer":
+                    from peer_sequential_esdf import sequential_chunked
+
+                    sequential_chunked(occ_arr, w.esdf, threads=2, **kw)
+                    peak, n_workers = _peak_rss_gb(), 1
+                else:
+                    threads = 2 if mode == "sync" else 1
+                    local = 2 if mode == "threads" else 1
+                    s = signed_distance_chunked(occ_arr, w.esdf, threads=threads, client=client, local_workers=local,
+                                                progress=False, **kw)
+                    peak, n_workers = s.peak_rss_bytes / 1e9, s.workers
+                w.observed[...] = 1
+            seconds = time.perf_counter() - t0
+        cpu = _cpu_seconds() - cpu0  # after the cluster closed: its reaped processes count as children
         size = sum(f.stat().st_size for f in (tmp / "map.zarr").rglob("*") if f.is_file())
-        return {"seconds": seconds, "compute_seconds": s.seconds, "halo": s.halo, "chunks": s.chunks,
-                "peak_gb": _peak_rss_gb(), "base_gb": base, "store_gb": size / 1e9}
+        return {"seconds": seconds, "startup": startup, "peak_gb": peak, "base_gb": base, "workers": n_workers,
+                "store_gb": size / 1e9, "cpu": cpu}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -139,6 +187,7 @@ def _subprocess(args: list[str]) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="smaller large-grid runs")
+    ap.add_argument("--dask-only", action="store_true", help="only the chunked-on-Dask section")
     ap.add_argument("--worker-dense", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--worker-chunked", type=str, help=argparse.SUPPRESS)
     a = ap.parse_args()
@@ -147,7 +196,7 @@ def main() -> None:
         return
     if a.worker_chunked:
         spec = json.loads(a.worker_chunked)
-        print(json.dumps(_worker_chunked(tuple(spec["shape"]), spec["max_dist"], spec["chunk"])))
+        print(json.dumps(_worker_chunked(tuple(spec["shape"]), spec["max_dist"], spec["mode"], spec["workers"])))
         return
 
     import edt
@@ -161,6 +210,10 @@ def main() -> None:
           f"{os.cpu_count()} CPUs, load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     print(f"scene: forest (floor + trees + boxes), voxel {VOXEL} m, sigma {SIGMA} m ({SIGMA / VOXEL:g} voxels, truncate {TRUNCATE})")
     del edt
+    if a.dask_only:
+        _dask_section(a.quick)
+        print(f"\nbenchmark wall time {time.perf_counter() - t_start:.0f} s")
+        return
 
     n = 256
     occ = forest((n, n, n))
@@ -199,18 +252,47 @@ def main() -> None:
           f"goal <= 5 s -> {'MET' if min(cold[0] + cold[1], warm[0] + warm[1]) <= 5 else 'NOT MET'} (warm), "
           f"{'MET' if cold[0] + cold[1] <= 5 else 'NOT MET'} (cold)")
 
-    shape = (512, 512, 256) if a.quick else (768, 768, 256)
+    _dask_section(a.quick)
+    print(f"\nbenchmark wall time {time.perf_counter() - t_start:.0f} s")
+
+
+def _dask_section(quick: bool) -> None:
+    """Today's in-process chunked path against the Dask graph with 1 and 2 workers, same grid, same run."""
+    shape = (512, 512, 256) if quick else (768, 768, 256)
     nvox = shape[0] * shape[1] * shape[2]
     max_dist = 1.5
-    print(f"\n== chunked: {shape[0]}x{shape[1]}x{shape[2]} = {nvox / 1e6:.0f} M voxels, zarr occupancy -> map.zarr "
-          f"(esdf + esdf_raw, zstd), max_dist {max_dist} m, sigma {SIGMA} m, fresh subprocess ==")
-    print(f"{'chunk':>6s} {'halo':>5s} {'chunks':>6s} {'time':>8s} {'M vox/s':>8s} {'peak RSS':>9s} {'store':>8s}  800^3 (512 M voxels) at this rate")
-    for chunk in (128, 256):
-        c = _subprocess(["--worker-chunked", json.dumps({"shape": shape, "max_dist": max_dist, "chunk": chunk})])
-        rate = nvox / c["seconds"]
-        print(f"{chunk:6d} {c['halo']:5d} {c['chunks']:6d} {c['seconds']:7.1f}s {rate / 1e6:8.1f} {c['peak_gb']:7.2f}GB "
-              f"{c['store_gb']:6.2f}GB  ~{512e6 / rate:.0f} s")
-    print(f"\nbenchmark wall time {time.perf_counter() - t_start:.0f} s")
+    print(f"\n== chunked on Dask: {shape[0]}x{shape[1]}x{shape[2]} = {nvox / 1e6:.0f} M voxels, zarr occupancy -> map.zarr "
+          f"(esdf + esdf_raw, zstd), chunk 128, max_dist {max_dist} m, sigma {SIGMA} m, fresh subprocess each ==")
+    runs = [("peer: today's in-process chunked loop (2 threads/chunk)", "peer", 1),
+            ("ours: 1 worker, this process, sync scheduler (2 threads/chunk)", "sync", 1),
+            ("ours: this process, threaded scheduler (2 chunks at once, 1 thread each)", "threads", 1),
+            ("ours: LocalCluster, 1 worker process (1 thread/chunk)", "cluster", 1),
+            ("ours: LocalCluster, 2 worker processes (1 thread/chunk)", "cluster", 2)]
+    res = {}
+    print(f"{'':74s} {'time':>7s} {'M vox/s':>8s} {'start-up':>9s} {'CPU':>7s} {'peak RSS/worker':>16s} {'vs peer':>8s}")
+    for name, mode, workers in runs:
+        r = _subprocess(["--worker-chunked", json.dumps({"shape": shape, "max_dist": max_dist, "mode": mode, "workers": workers})])
+        res[(mode, workers)] = r
+        ratio = res[("peer", 1)]["seconds"] / r["seconds"]
+        print(f"{name:74s} {r['seconds']:6.1f}s {nvox / r['seconds'] / 1e6:8.1f} {r['startup']:8.1f}s {r['cpu']:6.1f}s "
+              f"{r['peak_gb']:14.2f}GB {ratio:7.2f}x")
+    peer, one, two = res[("peer", 1)]["seconds"], res[("sync", 1)]["seconds"], res[("cluster", 2)]["seconds"]
+    one_proc = res[("cluster", 1)]["seconds"]
+    print(f"1 worker (sync) vs peer: {peer / one:.2f}x (goal: not slower -> {'MET' if one <= peer * 1.05 else 'NOT MET'}); "
+          f"2 workers vs peer: {peer / two:.2f}x (goal >= 1.7x -> {'MET' if peer / two >= 1.7 else 'NOT MET'}); "
+          f"2 workers vs 1 worker process at 1 thread/chunk: {one_proc / two:.2f}x")
+    print(f"store {res[('sync', 1)]['store_gb']:.2f} GB. CPU = user + system seconds of the run's processes, cluster start "
+          "and stop included: unlike the wall time it does not depend on what else the shared cores run. The peer "
+          "already used both cores inside each chunk (EDT and Gaussian threads), so a second worker process can add "
+          "only what those threads left idle.")
+    sizes = [(384, 384, 256), (512, 512, 256)] if quick else [(384, 384, 256), (768, 384, 256), shape]
+    print("\n== growth with grid size (ours, 2 worker processes; start-up excluded) ==")
+    print(f"{'grid':>14s} {'M voxels':>9s} {'time':>7s} {'ns/voxel':>9s}")
+    for sz in sizes:
+        n = sz[0] * sz[1] * sz[2]
+        r = res[("cluster", 2)] if sz == shape else _subprocess(
+            ["--worker-chunked", json.dumps({"shape": sz, "max_dist": max_dist, "mode": "cluster", "workers": 2})])
+        print(f"{'x'.join(map(str, sz)):>14s} {n / 1e6:9.0f} {r['seconds']:6.1f}s {r['seconds'] / n * 1e9:9.1f}")
 
 
 if __name__ == "__main__":

@@ -48,11 +48,13 @@ def test_chunks_equal_the_whole_grid_bit_for_bit(shape: tuple[int, int, int], ch
     vs, md = 0.1, 0.5
     raw = signed_distance(occ, voxel_size=vs, max_dist=md)
     esdf, n = smooth(raw, voxel_size=vs, sigma=sigma)
-    out, out_raw = np.full(shape, np.nan, np.float32), np.full(shape, np.nan, np.float32)
-    s = signed_distance_chunked(occ, out, out_raw=out_raw, voxel_size=vs, max_dist=md, sigma=sigma, chunk=chunk, progress=False)
-    np.testing.assert_array_equal(out_raw, raw)
-    np.testing.assert_array_equal(out, esdf)
-    assert s.n_prevented == n and s.workers == 1 and s.peak_rss_bytes > 0
+    for local_workers in (1, 2):  # synchronous, then threaded scheduler
+        out, out_raw = np.full(shape, np.nan, np.float32), np.full(shape, np.nan, np.float32)
+        s = signed_distance_chunked(occ, out, out_raw=out_raw, voxel_size=vs, max_dist=md, sigma=sigma, chunk=chunk,
+                                    progress=False, local_workers=local_workers)
+        np.testing.assert_array_equal(out_raw, raw)
+        np.testing.assert_array_equal(out, esdf)
+        assert s.n_prevented == n and s.workers == 1 and s.peak_rss_bytes > 0
 
 
 @pytest.mark.slow

@@ -66,13 +66,15 @@ def signed_distance_chunked(
     threads: int = 2,
     progress: bool = True,
     client: Client | None = None,
+    local_workers: int = 1,
 ) -> ChunkedSummary:
     """Signed distance (and optionally its smoothing) of a large grid, as a Dask graph of chunks.
 
     One task per chunk: it reads the chunk plus a halo from `occupied`, computes the exact EDT and
     the Gaussian there and writes the chunk's core straight into `out` (and `out_raw`). Without
-    `client` the graph runs in this process on Dask's synchronous scheduler (one chunk at a time);
-    with a :class:`distributed.Client` (see :func:`mapkit._dask.dask_client`) on its workers.
+    `client` the graph runs in this process: one chunk at a time on Dask's synchronous scheduler, or
+    `local_workers` chunks at once on its threaded one; with a :class:`distributed.Client` (see
+    :func:`mapkit._dask.dask_client`) on its workers.
 
     Parameters
     ----------
@@ -105,6 +107,9 @@ def signed_distance_chunked(
         Show a tqdm bar on stderr (chunks done, rate, ETA).
     client
         A Dask distributed client to run on; None = this process.
+    local_workers
+        Without `client`: chunks computed at once in this process (threads; each chunk still uses
+        `threads` threads), 1 = one at a time.
 
     Returns
     -------
@@ -124,7 +129,9 @@ def signed_distance_chunked(
     halo = chunk_halo(voxel_size=vs, max_dist=md, sigma=sg, truncate=tr)
     t0 = time.perf_counter()
     tasks = _chunk_tasks(occupied, out, out_raw, shape, chunk, halo, (vs, md, sg, tr), n_threads)
-    results = compute_tasks(tasks, client, desc="esdf", unit="chunk", progress=progress)
+    if isinstance(local_workers, bool) or not isinstance(local_workers, int) or local_workers < 1:
+        raise EsdfError(f"local_workers={local_workers!r} must be a positive number of chunks at once (e.g. 1)")
+    results = compute_tasks(tasks, client, desc="esdf", unit="chunk", progress=progress, local_threads=local_workers)
     peaks: dict[int, int] = {}
     for _, pid, peak in results:
         peaks[pid] = max(peaks.get(pid, 0), peak)

@@ -1,15 +1,19 @@
 """`mapkit esdf` on a world directory: the chunked ESDF of world.zarr (`mapkit fuse-world`) → map.zarr.
 
-The world's occupancy is read chunk by chunk: with ``--unknown occupied`` every task derives its
-obstacles (TSDF inside, or never observed) from its own block of world.zarr, so nothing world-sized
-is in any process. ``--unknown free`` also keeps unseen pockets that no observed free voxel reaches
-solid, a connected-component labelling of the whole grid: that step runs in this process on dense
-masks (about 8 bytes per voxel) before the chunked distances.
+The world's occupancy is read chunk by chunk and nothing world-sized is in any process: with
+``--unknown occupied`` every ESDF task derives its obstacles (TSDF inside, or never observed) from its
+own block of world.zarr; ``--unknown free`` keeps unseen pockets that no observed free voxel reaches
+solid, a connected-component rule over the whole grid that :mod:`mapkit.esdf._pockets` computes in
+three chunked Dask passes into a scratch store beside the map, removed afterwards.
 """
 
 from __future__ import annotations
 
+import os
+import shutil
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -26,9 +30,9 @@ from mapkit.esdf._build import (
     _dask_runner,
 )
 from mapkit.esdf._chunked import signed_distance_chunked
+from mapkit.esdf._pockets import free_obstacles
 from mapkit.esdf._store import create_map
 from mapkit.fusion import FusionError
-from mapkit.fusion._occupancy import fill_unknown
 from mapkit.fusion._world import open_world
 from mapkit.workspace import check_writable
 
@@ -63,27 +67,35 @@ def build_world_esdf(directory: Path, config: EsdfConfig, *, overwrite: bool, pr
         raise EsdfBuildError(str(exc)) from None
     attrs = dict(world.attrs)
     _check_matches(directory, config, attrs)
-    shape = tuple(int(n) for n in attrs["shape"])
+    shape = (int(attrs["shape"][0]), int(attrs["shape"][1]), int(attrs["shape"][2]))
     max_dist = config.max_dist or _CHUNKED_DEFAULT_MAX_DIST
     parameters = {**asdict(config), "tsdf_voxel": attrs["fuse"]["voxel"], "chunked": True, "max_dist": max_dist,
                   "world": True}
-    with _dask_runner(scheduler, workers) as runner, create_map(
+    arrays = {name: world[name] for name in ("tsdf", "observed", "behind")}
+    with _dask_runner(scheduler, workers) as runner, _scratch(directory) as scratch, create_map(
         target, shape=shape, origin=attrs["origin"], voxel_size=config.voxel, frame_id=attrs["frame_id"],
         sigma=config.sigma, unknown_policy=config.unknown, parameters=parameters, overwrite=overwrite,
     ) as writer:
-        solid, observed_count, solid_count = _obstacles(world, config, writer.observed)
-        if observed_count == 0:
+        n_observed = _copy_observed(arrays["observed"], writer.observed)
+        if n_observed == 0:
             raise EsdfBuildError(f"{directory / 'world.zarr'} has no observed voxel; check the flights and "
                                  "`mapkit fuse-world --bounds / --max-depth`")
+        solid: Any
+        if config.unknown == "occupied":
+            solid = WorldSolid(arrays["tsdf"], arrays["observed"])
+            n_solid = sum(int(np.count_nonzero(solid[x0 : x0 + _SLAB])) for x0 in range(0, shape[0], _SLAB))
+        else:
+            labels = _scratch_array(scratch, "labels", shape, "int32")
+            solid = _scratch_array(scratch, "solid", shape, "bool")
+            n_solid = free_obstacles(arrays, labels, solid, chunk=_CHUNK, client=runner.client, progress=progress)
         result = signed_distance_chunked(
             solid, writer.esdf, out_raw=writer.esdf_raw, voxel_size=config.voxel, max_dist=max_dist,
             sigma=config.sigma, chunk=_CHUNK, threads=runner.threads, client=runner.client, progress=progress,
         )
         writer.finalize()
     n = float(np.prod(shape))
-    return EsdfSummary(target, (shape[0], shape[1], shape[2]), np.asarray(attrs["origin"], dtype=np.float64),
-                       config.voxel, observed_count / n, solid_count / n, result.n_prevented,
-                       time.perf_counter() - t0, result)
+    return EsdfSummary(target, shape, np.asarray(attrs["origin"], dtype=np.float64), config.voxel, n_observed / n,
+                       n_solid / n, result.n_prevented, time.perf_counter() - t0, result)
 
 
 def _check_matches(directory: Path, config: EsdfConfig, attrs: dict[str, Any]) -> None:
@@ -96,25 +108,29 @@ def _check_matches(directory: Path, config: EsdfConfig, attrs: dict[str, Any]) -
                              f"--solid-depth {attrs['solid_depth']} (or re-run `mapkit fuse-world`)")
 
 
-def _obstacles(world: Any, config: EsdfConfig, out_observed: Any) -> tuple[Any, int, int]:
-    """(obstacle source for the chunked ESDF, observed voxels, solid voxels); copies `observed` into the map."""
-    tsdf, observed = world["tsdf"], world["observed"]
-    nx = tsdf.shape[0]
-    n_observed = n_solid = 0
-    if config.unknown == "occupied":
-        solid = WorldSolid(tsdf, observed)
-        for x0 in range(0, nx, _SLAB):
-            sl = slice(x0, min(x0 + _SLAB, nx))
-            obs = np.asarray(observed[sl], dtype=bool)
-            out_observed[sl] = obs.astype(np.uint8)
-            n_observed += int(obs.sum())
-            n_solid += int(np.count_nonzero(solid[sl]))
-        return solid, n_observed, n_solid
-    # free: the pocket rule labels connected free space over the whole grid (dense, in this process)
-    obs_all = np.asarray(observed[:], dtype=bool)
-    occupied = np.asarray(tsdf[:]) < 0
-    dense = fill_unknown(occupied, obs_all, "free", behind=np.asarray(world["behind"][:], dtype=bool))
-    del occupied
-    for x0 in range(0, nx, _SLAB):
-        out_observed[x0 : x0 + _SLAB] = obs_all[x0 : x0 + _SLAB].astype(np.uint8)
-    return dense, int(obs_all.sum()), int(dense.sum())
+def _copy_observed(observed: Any, out: Any) -> int:
+    """Stream the world's observed grid into the map's (uint8) in x-slabs; returns the observed count."""
+    count = 0
+    for x0 in range(0, observed.shape[0], _SLAB):
+        obs = np.asarray(observed[x0 : x0 + _SLAB], dtype=bool)
+        out[x0 : x0 + _SLAB] = obs.astype(np.uint8)
+        count += int(obs.sum())
+    return count
+
+
+@contextmanager
+def _scratch(directory: Path) -> Iterator[Path]:
+    """A scratch zarr group beside the map (on the storage the workers share), removed afterwards."""
+    path = directory / f".esdf-scratch-{os.getpid()}.zarr"
+    shutil.rmtree(path, ignore_errors=True)
+    try:
+        yield path
+    finally:
+        shutil.rmtree(path, ignore_errors=True)
+
+
+def _scratch_array(scratch: Path, name: str, shape: tuple[int, int, int], dtype: str) -> Any:
+    import zarr
+
+    return zarr.create_array(scratch / name, shape=shape, chunks=tuple(min(64, n) for n in shape), dtype=dtype,
+                             fill_value=0, zarr_format=3)
