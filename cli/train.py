@@ -37,7 +37,7 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @click.option("--grad-clip", type=POSITIVE, default=None, help="Override the gradient-norm clip.")
 @click.option("--preset", default="cpu", show_default=True, type=click.Choice(PRESET_NAMES), help="Named configuration.")
 @click.option("--name", default=None, help="Run name (default: the preset's name).")
-@click.option("--runs-dir", type=STORE_PATH, default=None, help="Where runs go (default: first WS/runs).")
+@click.option("--runs-dir", type=STORE_PATH, default=None, help="Where runs go, a local folder or an fsspec URL (default: first WS/runs).")
 @click.option("--epochs", type=COUNT, default=None, help="Override the preset's epochs.")
 @click.option("--batch-size", type=COUNT, default=None, help="Override the preset's batch size.")
 @click.option("--lr", type=FINITE, default=None, help="Override the preset's Adam learning rate.")

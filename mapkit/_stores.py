@@ -286,3 +286,35 @@ def store_files(loc: Location) -> Iterator[tuple[str, bytes]]:
         names = sorted((f[len(base) + 1:] for f in loc.fs.find(base)), key=lambda rel: tuple(rel.split("/")))
         for rel in names:
             yield rel, loc.fs.cat_file(f"{base}/{rel}")
+
+
+def upload_file(local: Path, target: Location) -> None:
+    """Copy one local file to `target` on a non-local filesystem: one object PUT, which object stores
+    make visible whole or not at all (so single files need no marker)."""
+    with store_errors(target):
+        target.fs.put_file(str(local), target.path)
+
+
+def upload_tree(local: Path, target: Location) -> None:
+    """Copy every file under the local folder `local` to the same names under `target`."""
+    for path in sorted(p for p in local.rglob("*") if p.is_file()):
+        upload_file(path, target / path.relative_to(local).as_posix())
+
+
+def download_tree(source: Location, local: Path) -> None:
+    """Copy every file under `source` (a non-local folder) to the same names under `local`."""
+    base = source.path.rstrip("/")
+    with store_errors(source):
+        source.fs.invalidate_cache(base)
+        for name in sorted(source.fs.find(base)):
+            dst = local / name[len(base) + 1:]
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            source.fs.get_file(name, str(dst))
+
+
+def remove_file(target: Location) -> None:
+    """Delete one file on a non-local filesystem if it is there."""
+    with store_errors(target):
+        target.fs.invalidate_cache(target.parent.path)
+        if target.fs.exists(target.path):
+            target.fs.rm_file(target.path)

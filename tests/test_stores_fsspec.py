@@ -5,6 +5,7 @@ never publishes; --overwrite; training's loader on memory:// with per-rank shard
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import shutil
@@ -32,7 +33,7 @@ from mapkit.export import ExportConfig, export_tuples, map_digest
 from mapkit.fusion import FuseConfig, fuse
 from mapkit.ingest import IngestError, ingest, open_frames_store
 from mapkit.sim import SimConfig, simulate
-from mapkit.train import TrainDataError, TupleSamples, TupleStore
+from mapkit.train import TrainDataError, TupleSamples, TupleStore, preset, train
 from mapkit.workspace import WorkspaceError
 
 EXPORT = ExportConfig(goals_per_frame=3, seed=1)
@@ -221,10 +222,26 @@ def test_commands_that_need_local_files_refuse_a_url(tmp_path: Path) -> None:
     assert "tuples.zarr does not exist" in line
 
 
-def test_train_refuses_a_run_folder_at_a_url(local: tuple[Path, Path], mem: str) -> None:
+@pytest.mark.slow
+def test_a_run_folder_at_a_url(local: tuple[Path, Path], mem: str) -> None:
+    """Training on tuples at memory:// with the default run folder WS/runs/NAME there too: every file
+    lands at the URL; --resume continues from it; an existing run is refused naming the URL."""
     copy_store(local[1] / "tuples.zarr", f"{mem}/tuples.zarr")
-    line = _one_line(["train", "-w", mem, "--max-steps", "1"])
-    assert "--runs-dir LOCAL_DIR" in line and f"{mem}/runs/cpu" in line
+    copy_store(local[1] / "map.zarr", f"{mem}/map.zarr")
+    config = preset("cpu", name="r", epochs=1, batch_size=8, max_steps=1, val_batches=1,
+                    planner={"input_size": [32, 48], "encoder_width": 0.125})
+    summary = train([mem], config, progress=False)
+    run = f"{mem}/runs/r"
+    assert summary.run_dir == run
+    fs = fsspec.filesystem("memory")
+    names = {p.rsplit("/", 1)[-1] for p in fs.find(Location.of(run).path)}
+    assert {"config.json", "metrics.jsonl", "checkpoint.pt", "model.pt", "training_curves.png"} <= names
+    assert json.loads(fs.cat_file(f"{Location.of(run).path}/config.json"))["workspaces"] == [mem]
+    line = _one_line(["train", "-w", mem, "--name", "r", "--max-steps", "1"])
+    assert f"run {run} exists" in line
+    train([mem], dataclasses.replace(config, epochs=2, max_steps=2), resume=True, progress=False)
+    rows = [json.loads(x) for x in fs.cat_file(f"{Location.of(run).path}/metrics.jsonl").decode().splitlines()]
+    assert [r["epoch"] for r in rows] == [0, 1, 2]
 
 
 def test_unknown_protocol_is_one_line() -> None:

@@ -7,6 +7,8 @@ import json
 import logging
 import math
 import os
+import shutil
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -18,7 +20,7 @@ import torch
 from torch import nn
 
 from mapkit._saved import load_saved
-from mapkit._stores import Location
+from mapkit._stores import Location, download_tree, remove_file, upload_file, upload_tree
 from mapkit._version import __version__
 from mapkit.train._config import TrainConfig, TrainConfigError
 from mapkit.train._data import TrainDataError, TupleSamples, TupleStore
@@ -37,7 +39,8 @@ REACH_DISTANCE = 1.0
 
 @dataclass
 class TrainSummary:
-    run_dir: Path
+    run_dir: Path | str
+    """The run folder: a local path, or its URL."""
     epochs_done: int
     steps: int
     seconds: float
@@ -345,12 +348,26 @@ class _Session:
     metrics: list[dict[str, Any]] = field(default_factory=list)
     writer: Any = None
     """TensorBoard SummaryWriter, None without the optional extra."""
+    remote: Location | None = None
+    """The run folder at a URL (``run_dir`` is then its local staging copy), None for a local run."""
 
     def log_row(self, entry: dict[str, Any]) -> None:
         """Append a row to metrics.jsonl (and to :attr:`metrics`)."""
         self.metrics.append(entry)
         with open(self.run_dir / "metrics.jsonl", "a") as f:
             f.write(json.dumps(entry) + "\n")
+        self.publish("metrics.jsonl")
+
+    def publish(self, *names: str) -> None:
+        """A run at a URL: copy these files (or folders) of ``run_dir`` there, each file whole."""
+        if self.remote is None:
+            return
+        for name in names:
+            path = self.run_dir / name
+            if path.is_dir():
+                upload_tree(path, self.remote / name)
+            elif path.exists():
+                upload_file(path, self.remote / name)
 
 
 @dataclass
@@ -369,17 +386,19 @@ def _where(workspace: str | Path | Location) -> str:
     return str(loc.local.resolve()) if loc.local is not None else loc.url
 
 
-def _run_dir(workspaces: Sequence[str | Path], runs_dir: str | Path | None, name: str) -> Path:
-    """runs_dir/NAME (default: first WS/runs/NAME); a run folder must be local (checkpoints, TensorBoard
-    and the curves are written through local files), while the workspaces may be URLs."""
+def _run_dir(workspaces: Sequence[str | Path], runs_dir: str | Path | None, name: str) -> tuple[Path, Location | None]:
+    """runs_dir/NAME (default: first WS/runs/NAME) and, for a run folder at a URL, that location: the
+    files are then written to a local staging folder holding a copy of what is there already (resume,
+    the overwrite check), and each is copied to the URL after it is written."""
     where = runs_dir if runs_dir else Location.of(workspaces[0]) / "runs"
-    loc = Location.of(where)
-    if loc.local is None:
-        raise TrainConfigError(
-            f"mapkit train: the run folder {loc.url}/{name} would be at a URL, which training cannot write yet; "
-            "pass --runs-dir LOCAL_DIR (the workspaces may stay URLs) and copy the finished run to shared storage"
-        )
-    return loc.local / name
+    loc = Location.of(where) / name
+    if loc.local is not None:
+        return loc.local, None
+    loc.check_reachable()
+    staging = Path(tempfile.mkdtemp(prefix=f".mapkit-run-{name}-"))
+    if loc.exists():
+        download_tree(loc, staging)
+    return staging, loc
 
 
 def _check_inputs(workspaces: Sequence[str | Path], val_workspaces: Sequence[str | Path], config: TrainConfig) -> None:
@@ -393,13 +412,17 @@ def _check_inputs(workspaces: Sequence[str | Path], val_workspaces: Sequence[str
                              "hold out whole worlds")
 
 
-def _resume_state(run_dir: Path, config: TrainConfig, *, resume: bool, overwrite: bool) -> dict[str, Any] | None:
+def _resume_state(run_dir: Path, config: TrainConfig, *, resume: bool, overwrite: bool,
+                  shown: str | None = None) -> dict[str, Any] | None:
     """The checkpoint to continue from (its config must match), None for a fresh run; refuses to
-    start over an existing run without ``overwrite``."""
+    start over an existing run without ``overwrite``. ``shown``: the run folder as messages name it
+    (its URL when ``run_dir`` is a staging copy)."""
     checkpoint_path = run_dir / "checkpoint.pt"
+    where = shown or str(run_dir)
     if resume:
         if not checkpoint_path.exists():
-            raise TrainConfigError(f"--resume: {checkpoint_path} does not exist; start without --resume")
+            raise TrainConfigError(f"--resume: {shown + '/checkpoint.pt' if shown else checkpoint_path} does not exist; "
+                                   "start without --resume")
         saved_all = json.loads((run_dir / "config.json").read_text())
         known = {f.name for f in dataclasses.fields(TrainConfig) if not f.name.startswith("_")}
         theirs = TrainConfig.from_dict({k: v for k, v in saved_all.items() if k in known}).to_dict()
@@ -413,7 +436,7 @@ def _resume_state(run_dir: Path, config: TrainConfig, *, resume: bool, overwrite
         return load_saved(checkpoint_path, "mapkit training checkpoint", TrainConfigError,
                           ("epoch", "step", "model", "optimizer"))
     if run_dir.exists() and any(run_dir.iterdir()) and not overwrite:
-        raise TrainConfigError(f"run {run_dir} exists; pass --resume to continue it, --overwrite to restart, or a new --name")
+        raise TrainConfigError(f"run {where} exists; pass --resume to continue it, --overwrite to restart, or a new --name")
     return None
 
 
@@ -465,6 +488,8 @@ def _start_run_dir(run: _Session, workspaces: Sequence[str | Path], val_workspac
     if not resume:
         for stale in ("metrics.jsonl", "checkpoint.pt", "model.pt", "training_curves.png"):
             (run_dir / stale).unlink(missing_ok=True)
+            if run.remote is not None:
+                remove_file(run.remote / stale)
     _atomic_text(json.dumps(config.to_dict() | {"planner_resolved": config.planner.to_dict(),
                                                 "workspaces": [_where(w) for w in workspaces],
                                                 "val_workspaces": [_where(w) for w in val_workspaces],
@@ -472,8 +497,10 @@ def _start_run_dir(run: _Session, workspaces: Sequence[str | Path], val_workspac
                                                 "training_worlds": sorted(map(list, simulated_worlds(
                                                     [*workspaces, *val_workspaces]))),
                                                 "mapkit_version": __version__}, indent=2), run_dir / "config.json")
+    run.publish("config.json")
     if (run_dir / "metrics.jsonl").exists():
         run.metrics = _metrics_upto(run_dir / "metrics.jsonl", start_epoch - 1)
+        run.publish("metrics.jsonl")
     run.writer = _tensorboard(run_dir)
 
 
@@ -582,6 +609,7 @@ def _end_epoch(run: _Session, data: _Splits, epoch: int, sums: dict[str, float],
     if improved:
         _write_model(run, epoch, val)
     _curves(run.metrics, run.run_dir / "training_curves.png")
+    run.publish("training_curves.png")
 
 
 def _write_checkpoint(run: _Session, epoch: int) -> None:
@@ -590,6 +618,7 @@ def _write_checkpoint(run: _Session, epoch: int) -> None:
                   "step": run.step, "config": run.config.to_dict(), "rng_torch": torch.get_rng_state(),
                   "rng_numpy": run.rng.bit_generator.state, "best_score": run.best_score, "best_epoch": run.best_epoch},
                  run.run_dir / "checkpoint.pt")
+    run.publish("checkpoint.pt")
 
 
 def _write_model(run: _Session, epoch: int, val: dict[str, float]) -> None:
@@ -598,6 +627,7 @@ def _write_model(run: _Session, epoch: int, val: dict[str, float]) -> None:
                   "loss_config": run.config.to_dict()["loss"], "mapkit_version": __version__, "epoch": epoch,
                   "selection": {"blocked_reach": val["blocked_reach"], "total": val["total"]}},
                  run.run_dir / "model.pt")
+    run.publish("model.pt")
 
 
 def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: str | Path | None = None,
@@ -613,12 +643,27 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     device = _device(config.device)
     rank, world = _distributed()
     threads = set_threads(world) if device.type == "cpu" else torch.get_num_threads()
-    run_dir = _run_dir(workspaces, runs_dir, config.name)
-    state = _resume_state(run_dir, config, resume=resume, overwrite=overwrite)
+    run_dir, remote = _run_dir(workspaces, runs_dir, config.name)
+    try:
+        return _train(workspaces, val_workspaces, config, run_dir, remote, resume=resume, overwrite=overwrite,
+                      progress=progress, device=device, rank=rank, world=world, threads=threads)
+    finally:
+        if remote is not None:
+            try:
+                shutil.rmtree(run_dir)  # the staging copy; the run is at `remote`
+            except OSError as exc:
+                log.warning("could not remove the staging copy %s of run %s (%s)", run_dir, remote.url, exc)
+
+
+def _train(workspaces: Sequence[str | Path], val_workspaces: Sequence[str | Path], config: TrainConfig, run_dir: Path,
+           remote: Location | None, *, resume: bool, overwrite: bool, progress: bool, device: torch.device, rank: int,
+           world: int, threads: int) -> TrainSummary:
+    """:func:`train` once the run folder is chosen (``run_dir`` local, or the staging copy of ``remote``)."""
+    state = _resume_state(run_dir, config, resume=resume, overwrite=overwrite, shown=remote.url if remote else None)
     start_epoch = int(state["epoch"]) + 1 if state else 1
     torch.manual_seed(config.seed)
     run = _Session(config=config, run_dir=run_dir, device=device, rank=rank, world=world,
-                   rng=np.random.default_rng(config.seed), step=int(state["step"]) if state else 0)
+                   rng=np.random.default_rng(config.seed), step=int(state["step"]) if state else 0, remote=remote)
     data = _splits(workspaces, val_workspaces, config)
     _build_model(run, state)
     if rank == 0:
@@ -642,8 +687,9 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
             break
     if run.writer is not None:
         run.writer.close()
+        run.publish("tensorboard")
     seconds = time.perf_counter() - t_start
     last: dict[str, Any] = next((m for m in reversed(run.metrics) if "train" in m), {})
     rate = samples_seen * world / train_seconds if train_seconds > 0 else math.nan
-    return TrainSummary(run_dir, epoch, run.step, seconds, rate, last, baseline, run.best_epoch,
+    return TrainSummary(run_dir if remote is None else remote.url, epoch, run.step, seconds, rate, last, baseline, run.best_epoch,
                         data.train_set.blocked_count(), threads)
