@@ -89,7 +89,7 @@ def test_frames_at_a_url_equal_the_local_store(local: tuple[Path, Path], tmp_pat
     np.testing.assert_array_equal(store.depth[:], open_frames_store(tmp_path / "ref").depth[:])
 
 
-def test_map_and_tuples_at_a_url_equal_the_local_stores(local: tuple[Path, Path], mem: str) -> None:
+def test_map_and_tuples_at_a_url_equal_the_local_stores(local: tuple[Path, Path], mem: str, tmp_path: Path) -> None:
     _, ws = local
     for name in ("frames.zarr", "map.zarr"):
         copy_store(ws / name, f"{mem}/{name}")
@@ -98,6 +98,8 @@ def test_map_and_tuples_at_a_url_equal_the_local_stores(local: tuple[Path, Path]
     remote, here = EsdfMap.open(f"{mem}/map.zarr"), EsdfMap.open(ws / "map.zarr")
     points = here.voxel_centre(np.array([[1, 2, 3], [5, 4, 2]])) + 0.03
     np.testing.assert_array_equal(remote.query(points)[0], here.query(points)[0])
+    result = CliRunner().invoke(main, ["slice", "-w", mem, "-o", str(tmp_path / "s.png"), "--z", "1.0"])
+    assert result.exit_code == 0 and (tmp_path / "s.png").stat().st_size > 0, result.output
     export_tuples(mem, EXPORT, progress=False)
     _assert_same_group(_group(ws / "tuples.zarr"), _group(f"{mem}/tuples.zarr"), skip_attrs=("map", "frames"))
     attrs = dict(_group(f"{mem}/tuples.zarr").attrs)
