@@ -67,7 +67,7 @@ def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float, trunc: flo
 @click.option("--solid-depth", type=NONNEGATIVE, default=0.5, show_default=True,
               help="Unseen space this far (m) behind measured surfaces is marked solid-behind (mapkit esdf --unknown free).")
 @click.option("--tile", type=COUNT, default=128, show_default=True, help="Voxels per tile edge (a multiple of 64); one Dask task each.")
-@click.option("--bounds", type=float, nargs=6, default=None, metavar="X0 Y0 Z0 X1 Y1 Z1",
+@click.option("--bounds", type=FINITE, nargs=6, default=None, metavar="X0 Y0 Z0 X1 Y1 Z1",
               help="World box (m); default: the flights' depth points.")
 @click.option("--scheduler", metavar="ADDRESS",
               help="Dask scheduler (tcp://HOST:8786; default: DASK_SCHEDULER_ADDRESS); paths must be on storage the workers share.")

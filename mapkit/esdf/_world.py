@@ -91,6 +91,7 @@ def build_world_esdf(directory: Path, config: EsdfConfig, *, overwrite: bool, pr
         result = signed_distance_chunked(
             solid, writer.esdf, out_raw=writer.esdf_raw, voxel_size=config.voxel, max_dist=max_dist,
             sigma=config.sigma, chunk=_CHUNK, threads=runner.threads, client=runner.client, progress=progress,
+            local_workers=runner.local_workers,
         )
         writer.finalize()
     n = float(np.prod(shape))
