@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_esdf.py            # full table (~2-3 min on 2 cores)
     .venv/bin/python benchmarks/bench_esdf.py --quick    # smaller large-grid runs
-    .venv/bin/python benchmarks/bench_esdf.py --dask-only  # only the chunked-on-Dask section (~10 min)
+    .venv/bin/python benchmarks/bench_esdf.py --dask-only  # only the chunked-on-Dask section (4-7 min)
 
 Scene: a forest-like occupancy (floor, vertical cylinders of random radius/height, random boxes;
 about 5 % occupied), voxel 0.1 m, Gaussian sigma 0.2 m (2 voxels, truncated at 3 sigma).

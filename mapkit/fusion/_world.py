@@ -175,7 +175,7 @@ def fuse_world(workspaces: Sequence[str | Path], output: str | Path, config: Wor
 def _open_stores(workspaces: Sequence[str | Path]) -> list[FramesStore]:
     if not workspaces:
         raise FusionError("no workspaces given; pass the workspaces whose frames.zarr make the world (mapkit ingest first)")
-    return [open_frames_store(Path(w)) for w in workspaces]
+    return [open_frames_store(w) for w in workspaces]  # paths or fsspec URLs, as every command
 
 
 def _world_frame(stores: list[FramesStore]) -> str:
