@@ -10,6 +10,7 @@ import pytest
 from click.testing import CliRunner
 from scenes import box_world, orbit_poses, record_scene
 
+import mapkit.esdf._world as world_esdf
 from mapkit.cli.main import main
 from mapkit.esdf import EsdfConfig, EsdfMap, build_esdf
 from mapkit.fusion import FuseConfig, FusionError, WorldConfig, fuse, fuse_world, open_world
@@ -68,7 +69,8 @@ def test_tiled_world_equals_the_single_process_map(two_flights: Path, tmp_path: 
 
 
 @pytest.mark.slow
-def test_tiles_on_a_local_cluster_equal_tiles_in_process(two_flights: Path, tmp_path: Path) -> None:
+def test_tiles_and_world_esdf_on_a_local_cluster_equal_them_in_process(two_flights: Path, tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     config = WorldConfig(voxel=0.2, tile=64, fuse=FuseConfig(voxel=0.05))
     fuse_world([two_flights], tmp_path / "a", config, progress=False)
     s = fuse_world([two_flights], tmp_path / "b", config, progress=False, workers=2)
@@ -77,6 +79,13 @@ def test_tiles_on_a_local_cluster_equal_tiles_in_process(two_flights: Path, tmp_
     for name in ("tsdf", "observed", "behind"):
         np.testing.assert_array_equal(np.asarray(a[name][:]), np.asarray(b[name][:]), err_msg=name)
     assert a.attrs["shape"] == b.attrs["shape"] and a.attrs["origin"] == b.attrs["origin"]
+    # and the world's ESDF (the chunked pocket passes included) on the cluster equals it in process
+    monkeypatch.setattr(world_esdf, "_CHUNK", 64)  # 2 x 2 x 1 chunks on this small grid
+    esdf_config = EsdfConfig(voxel=0.2, max_dist=1.0, unknown="free")
+    build_esdf(tmp_path / "a", esdf_config, progress=False)
+    s_esdf = build_esdf(tmp_path / "b", esdf_config, progress=False, workers=2)
+    assert s_esdf.chunked is not None and s_esdf.chunked.chunks == 4
+    _maps_equal(tmp_path / "a", tmp_path / "b")
 
 
 def test_world_config_and_inputs_are_checked(tmp_path: Path) -> None:
