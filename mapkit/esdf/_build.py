@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapkit._resources import available_memory
-from mapkit.esdf._chunked import ChunkedSummary
+from mapkit.esdf._chunked import ChunkedSummary, chunk_halo
 from mapkit.esdf._distance import Backend
 from mapkit.esdf._errors import EsdfError
 from mapkit.fusion import CLOUD, FUSE_META, TSDF, WORLD, FusionError, check_fused
@@ -286,6 +286,17 @@ def _dask_runner(scheduler: str | None, workers: int | None) -> Iterator[_Runner
         yield _Runner(client, max(1, available_cpus() // info.workers) if info.local else 1)
 
 
+def _chunks_at_once(runner: _Runner, *, voxel: float, max_dist: float, sigma: float) -> int:
+    """Chunks to compute at once in this process: one per core, fewer when their work arrays (about
+    ``(chunk + 2*halo)**3 * 18`` bytes each, plus the finished core) would take over a quarter of the
+    available memory; 1 on a cluster (its workers take one task per thread)."""
+    if runner.client is not None:
+        return 1
+    halo = chunk_halo(voxel_size=voxel, max_dist=max_dist, sigma=sigma)
+    per_chunk = (_CHUNK + 2 * halo) ** 3 * 18 + _CHUNK**3 * 8
+    return max(1, min(runner.local_workers, int(0.25 * available_memory() // per_chunk)))
+
+
 def _occupancy(workspace: Path, grid: Grid, fuse_cfg: dict[str, Any], config: EsdfConfig, *,
                progress: bool) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_], str]:
     """(TSDF-occupied, solid after the unknown policy, observed, world frame id) on `grid`."""
@@ -333,7 +344,7 @@ def _write_chunked(target: Path, solid: NDArray[np.bool_], observed: NDArray[np.
         result = signed_distance_chunked(
             solid, writer.esdf, out_raw=writer.esdf_raw, voxel_size=config.voxel, max_dist=max_dist,
             sigma=config.sigma, chunk=_CHUNK, threads=runner.threads, client=runner.client, progress=progress,
-            local_workers=runner.local_workers,
+            local_workers=_chunks_at_once(runner, voxel=config.voxel, max_dist=max_dist, sigma=config.sigma),
         )
         writer.observed[:] = observed.astype(np.uint8)
         writer.finalize()

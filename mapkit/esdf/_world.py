@@ -27,6 +27,7 @@ from mapkit.esdf._build import (
     EsdfBuildError,
     EsdfConfig,
     EsdfSummary,
+    _chunks_at_once,
     _dask_runner,
 )
 from mapkit.esdf._chunked import signed_distance_chunked
@@ -91,7 +92,7 @@ def build_world_esdf(directory: Path, config: EsdfConfig, *, overwrite: bool, pr
         result = signed_distance_chunked(
             solid, writer.esdf, out_raw=writer.esdf_raw, voxel_size=config.voxel, max_dist=max_dist,
             sigma=config.sigma, chunk=_CHUNK, threads=runner.threads, client=runner.client, progress=progress,
-            local_workers=runner.local_workers,
+            local_workers=_chunks_at_once(runner, voxel=config.voxel, max_dist=max_dist, sigma=config.sigma),
         )
         writer.finalize()
     n = float(np.prod(shape))
