@@ -160,17 +160,28 @@ def carve_free_space(
     flat = observed.reshape(-1)
     used = 0
 
+    tile = window != Window.whole(grid)
+
     def mark(target: NDArray[np.bool_], origin: NDArray[np.float64], dirs: NDArray[np.float64],
              z0: NDArray[np.float64], counts: NDArray[np.int64]) -> None:
         """Set the voxels at optical depths z0 + (n + 0.5) * step, n < counts, along each ray."""
-        ray_id = np.repeat(np.arange(len(counts)), counts)
         start = np.cumsum(counts) - counts
-        z = np.repeat(z0.astype(np.float32), counts) + (
-            np.arange(counts.sum(), dtype=np.float32) - np.repeat(start, counts).astype(np.float32) + 0.5
-        ) * np.float32(step)
         # Voxel coordinates directly (float32 halves the memory traffic of this hot loop).
         scaled_dirs = (dirs / grid.voxel_size).astype(np.float32)
         base = ((origin - grid.origin) / grid.voxel_size).astype(np.float32)
+        if tile:  # only the samples that can land in the window, each computed as for the whole grid
+            first, stop = _samples_in_box(base, scaled_dirs, z0, counts, step, lo - 1.0, hi.astype(np.float64))
+            kept = stop - first
+            ray_id = np.repeat(np.arange(len(kept)), kept)
+            # sample n of a ray is element start + n of the whole grid's enumeration (float32 there too)
+            element = np.repeat(start + first - (np.cumsum(kept) - kept), kept) + np.arange(kept.sum())
+            offset = element.astype(np.float32) - np.repeat(start, kept).astype(np.float32)
+            z = np.repeat(z0.astype(np.float32), kept) + (offset + 0.5) * np.float32(step)
+        else:
+            ray_id = np.repeat(np.arange(len(counts)), counts)
+            z = np.repeat(z0.astype(np.float32), counts) + (
+                np.arange(counts.sum(), dtype=np.float32) - np.repeat(start, counts).astype(np.float32) + 0.5
+            ) * np.float32(step)
         idx = np.rint(base + scaled_dirs[ray_id] * z[:, None]).astype(np.int64)
         inside = np.all((idx >= lo) & (idx < hi), axis=1)
         target[(idx[inside] - lo) @ strides] = True
@@ -199,6 +210,30 @@ def carve_free_space(
             mark(behind.reshape(-1), T[:3, 3], dirs[hit], depth[ok][hit] + step, n_behind)
         used += 1
     return used
+
+
+def _samples_in_box(base: NDArray[np.float32], dirs: NDArray[np.float32], z0: NDArray[np.float64],
+                    counts: NDArray[np.int64], step: float, box_lo: NDArray[np.float64],
+                    box_hi: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Per ray, the sample range [first, stop) of n < counts whose position base + dirs * (z0 + (n + 0.5)
+    * step) (voxel coordinates) can lie in [box_lo, box_hi]: the slab intersection, widened by two
+    samples each side so float32 rounding of the positions cannot drop one."""
+    d = dirs.astype(np.float64)
+    b = base.astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (box_lo - b) / d, (box_hi - b) / d
+    parallel = d == 0
+    inside_slab = (b >= box_lo) & (b <= box_hi)
+    enter = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), np.minimum(t1, t2)).max(axis=1)
+    leave = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), np.maximum(t1, t2)).min(axis=1)
+    with np.errstate(invalid="ignore"):
+        n_lo = np.floor(np.clip((enter - z0) / step - 0.5, -2.0, counts + 2.0)) - 2
+        n_hi = np.ceil(np.clip((leave - z0) / step - 0.5, -2.0, counts + 2.0)) + 3
+    first = np.clip(n_lo, 0, counts).astype(np.int64)
+    stop = np.clip(n_hi, 0, counts).astype(np.int64)
+    empty = ~(leave >= enter)
+    stop[empty] = first[empty]
+    return first, np.maximum(stop, first)
 
 
 def fill_unknown(
