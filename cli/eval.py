@@ -51,19 +51,22 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
               help="Metres from the goal where one segment to rest at the goal replaces the planner's plans (0: never).")
 @click.option("--look-ahead", type=FINITE, default=1.5, show_default=True,
               help="Seconds: the moving vehicle heads toward where its reference will be this much later (0: along the velocity).")
+@click.option("--record-plans", is_flag=True,
+              help="Also write plans.npz: what the learned method's time allocation was given at every plan "
+                   "(for `mapkit tune-timing`).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
              corridor_check: bool, v_max: float, a_max: float, memory: float, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
-             overwrite: bool) -> None:
+             record_plans: bool, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, Execution, LoopConfig, evaluate
 
     worlds = WORLD_ORDER if world.strip() == "all" else tuple(w.strip() for w in world.split(",") if w.strip())
     names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
     config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
-                        workers=workers, scheduler=scheduler,
+                        workers=workers, scheduler=scheduler, record_plans=record_plans,
                         execution=Execution(corridor=corridor or None, check_corridor=corridor_check, v_max=v_max or None,
                                             a_max=a_max or None, memory=memory or None, follow=follow),
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
@@ -80,4 +83,4 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
                    + (f"{eff:>12.4g}" if eff is not None else f"{'–':>12}") + (f"{ms:>9.2f}ms" if ms is not None else ""))
     click.echo("effort: median ∫‖snap‖² dt (m²/s⁷) of the successful flights")
     click.echo(f"wrote {output}/results.json, latency.json, report.md, trajectories.npz and "
-               f"{sum(p.suffix == '.png' for p in result.files)} PNGs")
+               f"{sum(p.suffix == '.png' for p in result.files)} PNGs" + (" (and plans.npz)" if record_plans else ""))

@@ -17,18 +17,26 @@ Reading results.json: :class:`EpisodeRecord` (one row of ``episodes``), :data:`O
 
 from mapkit._formats import EVAL_FORMAT, OUTCOMES, EpisodeRecord, Outcome
 from mapkit.evaluation._loop import Episode, LoopConfig, MethodPlan, Observation, level_pose, run_episode
-from mapkit.evaluation._methods import METHODS, Execution, LearnedMethod, OracleMethod, StraightMethod, make_methods
+from mapkit.evaluation._methods import (
+    METHODS,
+    Execution,
+    LearnedMethod,
+    OracleMethod,
+    PlanInput,
+    StraightMethod,
+    make_methods,
+)
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
 from mapkit.evaluation._paths import load_paths
 from mapkit.evaluation._pieces import Pieces, hold, pieces_from_body
-from mapkit.evaluation._run import WORLD_ORDER, CameraSpec, EvalConfig, EvalResult, evaluate, summarise
+from mapkit.evaluation._run import PLANS_FILE, WORLD_ORDER, CameraSpec, EvalConfig, EvalResult, evaluate, summarise
 
 __all__ = [
     "METHODS", "WORLD_ORDER", "EVAL_FORMAT", "OUTCOMES",
     "EpisodeRecord", "Outcome",
     "CameraSpec", "EvalConfig", "EvalError", "EvalResult", "evaluate", "summarise",
     "Episode", "LoopConfig", "MethodPlan", "Observation", "level_pose", "run_episode",
-    "Execution", "LearnedMethod", "OracleMethod", "StraightMethod", "make_methods",
+    "Execution", "LearnedMethod", "OracleMethod", "PlanInput", "StraightMethod", "make_methods", "PLANS_FILE",
     "Pair", "sample_pairs", "load_paths",
     "Pieces", "hold", "pieces_from_body",
 ]

@@ -327,6 +327,18 @@ def _reference_no_safer(obs: Observation, plan, check: _Checker) -> bool:
     return check.points(body) >= check(plan)
 
 
+@dataclass(frozen=True)
+class PlanInput:
+    """What a plan's time allocation was given in flight (``mapkit tune-timing`` learns from these)."""
+
+    waypoints: np.ndarray
+    """(K+1, 3) body frame metres: the start, then the network's key-points (before following the reference)."""
+    start: np.ndarray
+    """(3, 3) velocity, acceleration and jerk rows at the start, body frame."""
+    end_speed: float
+    """m/s at the last key-point (0: rest at the goal)."""
+
+
 @dataclass
 class _Attempt:
     """One network pass toward a goal, timed and (unless a spline) executed."""
@@ -358,6 +370,8 @@ class LearnedMethod:
         self.spline = spline
         self.config = net.config
         self.execution = execution
+        self.plan_log: list[PlanInput] | None = None
+        """A list to append every timed plan's :class:`PlanInput` to (``mapkit eval --record-plans``), or None."""
         self._subgoal: tuple[np.ndarray, float] | None = None  # (world point, until)
         self._flight: tuple[np.ndarray, float] | None = None  # (goal, time) of the last plan
         self._memory = (None if execution.memory is None or camera is None or spline
@@ -382,6 +396,8 @@ class LearnedMethod:
         with torch.inference_mode():
             timing = plan_timing(wpt, st, es, self.config, allocation=self.allocation, tan=self.net.tan)
         attempt = _Attempt(kp, float(out.eta[0]), timing, 1e3 * (time.perf_counter() - t_alloc))
+        if self.plan_log is not None:
+            self.plan_log.append(PlanInput(waypoints=wp, start=np.array(start[1:]), end_speed=end_speed))
         if self.spline:
             return attempt
         if self.camera is not None and self.execution.check_corridor:

@@ -26,7 +26,7 @@ import numpy as np
 from mapkit._formats import EVAL_FORMAT, EpisodeRecord
 from mapkit._version import __version__
 from mapkit.evaluation._loop import LoopConfig, run_episode
-from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, Execution, make_methods
+from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, Execution, LearnedMethod, PlanInput, make_methods
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
 from mapkit.workspace import atomic_output, check_writable
 
@@ -80,6 +80,9 @@ class EvalConfig:
     processes here. Results do not depend on it."""
     loop: LoopConfig = field(default_factory=LoopConfig)
     """The closed loop (replan interval, goal radius, robot radius, horizon, time limit, tracker)."""
+    record_plans: bool = False
+    """Also write plans.npz: what the ``learned`` method's time allocation was given at every plan
+    (:class:`~mapkit.evaluation.PlanInput`), for ``mapkit tune-timing``. Results do not depend on it."""
 
     def validate(self) -> None:
         unknown = [w for w in self.worlds if w not in WORLD_ORDER]
@@ -238,6 +241,7 @@ class _WorkerSetup:
     oracle_corridor: float
     execution: Execution
     loop: LoopConfig
+    record_plans: bool = False
 
 
 @dataclass(frozen=True)
@@ -271,6 +275,8 @@ class _EpisodeRun:
     """Time allocation latencies (latency.json)."""
     path: np.ndarray
     """(N, 4) float32 [t, x, y, z] at PATH_RATE_HZ (trajectories.npz)."""
+    plans: list[PlanInput] = field(default_factory=list)
+    """With ``record_plans``, the learned method's plan inputs (plans.npz)."""
 
 
 _WORKER: _WorkerState | None = None
@@ -320,6 +326,9 @@ def _world_bundle(kind: str) -> _WorldBundle:
         methods = make_methods(list(setup.methods), state.net, world, graph,
                                oracle_corridor=setup.oracle_corridor, robot_radius=setup.loop.robot_radius,
                                camera=calibration, execution=dataclasses.replace(setup.execution))
+        for method in methods:
+            if setup.record_plans and isinstance(method, LearnedMethod) and method.name == "learned":
+                method.plan_log = []
         state.worlds[kind] = _WorldBundle(world=world, graph=graph, camera=camera, rays=rays, methods=methods)
     return state.worlds[kind]
 
@@ -363,8 +372,10 @@ def _run_pair(kind: str, pair: dict) -> list[_EpisodeRun]:
             plan_effort=ep.plan_effort, peak_speed=ep.peak_speed, peak_acceleration=ep.peak_acceleration,
             peak_jerk=ep.peak_jerk,
         )
+        plans = getattr(method, "plan_log", None) or []
         out.append(_EpisodeRun(record=record, latencies_ms=ep.latencies_ms, allocation_ms=ep.allocation_ms,
-                               path=_path_at_rate(ep.samples, loop.control_rate)))
+                               path=_path_at_rate(ep.samples, loop.control_rate), plans=list(plans)))
+        plans.clear()
     return out
 
 
@@ -675,6 +686,8 @@ class _Collected:
     """(world, method) → time allocation latencies, ms."""
     paths: dict[str, np.ndarray] = field(default_factory=dict)
     """``"{world}/{pair:03d}/{method}"`` → (N, 4) float32 executed path."""
+    plans: list[tuple[str, int, PlanInput]] = field(default_factory=list)
+    """(world, pair, plan input) of every recorded plan, in results.json order."""
 
 
 def _collect(config: EvalConfig, pairs: dict[str, list[Pair]],
@@ -688,6 +701,7 @@ def _collect(config: EvalConfig, pairs: dict[str, list[Pair]],
                 out.latencies.setdefault((kind, method), []).extend(run.latencies_ms)
                 out.allocations.setdefault((kind, method), []).extend(run.allocation_ms)
                 out.paths[f"{kind}/{p.index:03d}/{method}"] = run.path
+                out.plans.extend((kind, p.index, plan) for plan in run.plans)
                 out.episodes.append(run.record)
     return out
 
@@ -710,11 +724,31 @@ def _results_doc(config: EvalConfig, context: _ModelContext, pairs: dict[str, li
     }
     del doc["config"]["workers"]  # neither changes any result
     del doc["config"]["scheduler"]
+    del doc["config"]["record_plans"]
     return doc
 
 
+PLANS_FILE = "plans.npz"
+"""``mapkit eval --record-plans``: the learned method's time allocation inputs."""
+
+
+def write_plans(path: Path, plans: list[tuple[str, int, PlanInput]]) -> None:
+    """plans.npz: ``waypoints`` (P, K+1, 3), ``start`` (P, 3, 3), ``end_speed`` (P,), ``world`` (P,)
+    and ``pair`` (P,) of every recorded plan (body frame, metres and seconds)."""
+    if plans:
+        waypoints = np.stack([p.waypoints for _, _, p in plans])
+        start = np.stack([p.start for _, _, p in plans])
+    else:
+        waypoints, start = np.zeros((0, 0, 3)), np.zeros((0, 3, 3))
+    np.savez_compressed(path, waypoints=waypoints.astype(np.float64), start=start.astype(np.float64),
+                        end_speed=np.array([p.end_speed for _, _, p in plans], np.float64),
+                        world=np.array([w for w, _, _ in plans], dtype=str),
+                        pair=np.array([i for _, i, _ in plans], np.int64))
+
+
 def _write_outputs(out_dir: Path, doc: dict[str, Any], lat: dict, alloc: dict, worlds: dict[str, Any],
-                   paths: dict[str, np.ndarray], workers: int, *, overwrite: bool) -> None:
+                   paths: dict[str, np.ndarray], workers: int, *, overwrite: bool,
+                   plans: list[tuple[str, int, PlanInput]] | None = None) -> None:
     """Write the eval folder as one unit: worlds, results.json, latency.json, trajectories.npz, report."""
     from mapkit.evaluation._report import write_report
 
@@ -728,6 +762,8 @@ def _write_outputs(out_dir: Path, doc: dict[str, Any], lat: dict, alloc: dict, w
             {"format": EVAL_FORMAT, "device": platform.processor() or platform.machine(), "torch_threads": 1,
              "workers": workers, "latency": lat, "allocation": alloc}, indent=1) + "\n")
         np.savez_compressed(tmp / "trajectories.npz", **paths)  # type: ignore[arg-type]  # numpy's stub: a key might be allow_pickle
+        if plans is not None:
+            write_plans(tmp / PLANS_FILE, plans)
         write_report(tmp, doc, lat, worlds, alloc)
 
 
@@ -779,7 +815,7 @@ def evaluate(
                              model_sha256=context.model_info["sha256"] if context.model_info else None,
                              seed=config.seed, pair_clearance=config.pair_clearance, camera=context.camera,
                              methods=tuple(config.methods), oracle_corridor=config.oracle_corridor,
-                             execution=config.execution, loop=config.loop)
+                             execution=config.execution, loop=config.loop, record_plans=config.record_plans)
         tasks = [(k, p.to_dict()) for k in config.worlds for p in pairs[k]]
         flown = _fly_all(setup, tasks, config.workers, progress, cluster)
     collected = _collect(config, pairs, flown.results)
@@ -789,6 +825,7 @@ def evaluate(
     lat = latency_summary(collected.latencies, worlds_list, methods)
     alloc = latency_summary(collected.allocations, worlds_list, methods)
     doc = _results_doc(config, context, pairs, summary, collected.episodes)
-    _write_outputs(out_dir, doc, lat, alloc, worlds, collected.paths, flown.workers, overwrite=overwrite)
+    _write_outputs(out_dir, doc, lat, alloc, worlds, collected.paths, flown.workers, overwrite=overwrite,
+                   plans=collected.plans if config.record_plans else None)
     files = sorted(p for p in out_dir.rglob("*") if p.is_file())
     return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat, "allocation": alloc}, files=files)

@@ -4,9 +4,22 @@ from mapkit.train._config import PRESETS, TrainConfig, TrainConfigError, preset
 from mapkit.train._data import TrainDataError, TupleSamples, TupleStore
 from mapkit.train._loop import TrainSummary, set_threads, train, validate
 from mapkit.train._provenance import simulated_worlds, workspace_camera
+from mapkit.train._timing_tune import (
+    PlanInputs,
+    TimingTuneConfig,
+    TimingTuneError,
+    TimingTuneSummary,
+    load_plan_inputs,
+    tune_tan,
+    tune_timing,
+)
 
 __all__ = [
     "PRESETS",
+    "PlanInputs",
+    "TimingTuneConfig",
+    "TimingTuneError",
+    "TimingTuneSummary",
     "TrainConfig",
     "TrainConfigError",
     "TrainDataError",
@@ -18,5 +31,8 @@ __all__ = [
     "simulated_worlds",
     "train",
     "validate",
+    "load_plan_inputs",
+    "tune_tan",
+    "tune_timing",
     "workspace_camera",
 ]

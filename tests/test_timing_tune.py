@@ -1,0 +1,102 @@
+"""`mapkit eval --record-plans` and `mapkit tune-timing`: the TAN fine-tuned on plans made in flight."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from mapkit.cli.main import main
+from mapkit.evaluation import PLANS_FILE, EvalConfig, evaluate
+from mapkit.planner import PlannerNet, planner_preset
+from mapkit.planning import Planner
+from mapkit.train import PlanInputs, TimingTuneConfig, TimingTuneError, load_plan_inputs, tune_tan
+from mapkit.train._timing_tune import plan_costs
+
+CONFIG = planner_preset("cpu", input_size=(48, 64))
+
+
+def synthetic_plans(n: int, seed: int) -> PlanInputs:
+    """Key-point paths as the planner makes them: roughly ahead, bending, from a moving start."""
+    rng = np.random.default_rng(seed)
+    M = CONFIG.num_keypoints
+    steps = rng.uniform(0.6, 1.6, (n, M, 1)) * np.array([1.0, 0.0, 0.0])
+    steps[..., 1] = rng.normal(0.0, 0.4, (n, M))
+    steps[..., 2] = rng.normal(0.0, 0.1, (n, M))
+    waypoints = np.concatenate([np.zeros((n, 1, 3)), np.cumsum(steps, axis=1)], axis=1)
+    start = np.zeros((n, 3, 3))
+    start[:, 0] = rng.uniform(0.0, 2.0, (n, 1)) * np.array([1.0, 0.0, 0.0]) + rng.normal(0, 0.3, (n, 3))
+    start[:, 1] = rng.normal(0.0, 0.5, (n, 3))
+    end_speed = np.where(rng.random(n) < 0.7, 2.0, 0.0)
+    return PlanInputs(torch.from_numpy(waypoints), torch.from_numpy(start), torch.from_numpy(end_speed))
+
+
+def test_tuning_lowers_the_snap_of_an_untrained_tan_on_unseen_plans():
+    torch.manual_seed(0)
+    net = PlannerNet(CONFIG)
+    train, val = synthetic_plans(512, 1), synthetic_plans(128, 2)
+    before, after, step = tune_tan(net.tan, CONFIG, train, val, TimingTuneConfig(steps=200, check_every=50),
+                                   progress=False)
+    assert step > 0
+    assert after[1] < before[1] and after[0] < before[0]
+    # Cost ratios to the gradient-descent split: the kept weights are what the net now holds.
+    with torch.no_grad():
+        ref = plan_costs(None, CONFIG, val)
+        now = plan_costs(net.tan, CONFIG, val)
+    assert float(now.sum() / ref.sum()) == pytest.approx(after[1], rel=1e-9)
+
+
+def test_plan_costs_use_the_planners_timing_and_the_analytic_cost():
+    """One segment from rest to rest: the TAN has nothing to split, so both allocations give the
+    rest-to-rest minimum snap cost 100800·d²/T⁷ over the planner's total time."""
+    from mapkit.planner._timing import total_time
+
+    config = CONFIG.__class__.from_dict({**CONFIG.to_dict(), "num_keypoints": 1})
+    net = PlannerNet(config)
+    wp = torch.tensor([[[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]]], dtype=torch.float64)
+    plans = PlanInputs(wp, torch.zeros(1, 3, 3, dtype=torch.float64), torch.zeros(1, dtype=torch.float64))
+    T = float(total_time(wp, plans.start, plans.end_speed, config)[0])
+    with torch.no_grad():
+        for tan in (net.tan, None):
+            assert float(plan_costs(tan, config, plans)[0]) == pytest.approx(100800 * 9.0 / T ** 7, rel=1e-6)
+
+
+@pytest.mark.slow
+def test_record_plans_then_tune_timing_through_the_cli(tmp_path: Path):
+    run = tmp_path / "run"
+    run.mkdir()
+    torch.manual_seed(0)
+    net = PlannerNet(CONFIG)
+    torch.save({"state_dict": net.state_dict(), "planner_config": CONFIG.to_dict()}, run / "model.pt")
+    (run / "config.json").write_text(json.dumps({}))
+    for seed in (3, 4):
+        config = EvalConfig(worlds=("office",), pairs=1, seed=seed, methods=("learned", "straight"), record_plans=True)
+        evaluate(run, tmp_path / f"e{seed}", config, progress=False)
+        doc = json.loads((tmp_path / f"e{seed}" / "results.json").read_text())
+        learned = [e for e in doc["episodes"] if e["method"] == "learned"]
+        with np.load(tmp_path / f"e{seed}" / PLANS_FILE) as z:
+            # every plan the learned method timed: at least one per replan it made
+            assert len(z["end_speed"]) >= sum(e["plans"] for e in learned) > 0
+            assert z["waypoints"].shape[1:] == (CONFIG.num_keypoints + 1, 3) and set(z["world"]) == {"office"}
+        assert "record_plans" not in doc["config"]  # results.json does not depend on it
+    out = CliRunner().invoke(main, ["tune-timing", "--model", str(run), "--plans", str(tmp_path / "e3"),
+                                    "--val", str(tmp_path / "e4"), "-o", str(tmp_path / "tuned"), "--steps", "20"])
+    assert out.exit_code == 0, out.output
+    assert "gradient-descent split" in out.output
+    tuned = Planner.load(tmp_path / "tuned").net
+    for (name, a), b in zip(net.state_dict().items(), tuned.state_dict().values(), strict=True):
+        assert name.startswith("tan.") or torch.equal(a, b), name  # only the TAN may change
+    record = json.loads((tmp_path / "tuned" / "config.json").read_text())["timing_tune"]
+    assert record["train_plans"] > 0 and record["val_plans"] > 0
+
+
+def test_folders_without_recorded_plans_are_refused_in_one_line(tmp_path: Path):
+    with pytest.raises(TimingTuneError, match="--record-plans"):
+        load_plan_inputs([tmp_path], num_segments=CONFIG.num_keypoints)
+    out = CliRunner().invoke(main, ["tune-timing", "--plans", str(tmp_path), "--val", str(tmp_path), "-o",
+                                    str(tmp_path / "out")])
+    assert out.exit_code == 1 and "Traceback" not in out.output and "--record-plans" in out.output
