@@ -9,6 +9,7 @@ re-exports its public names from private ``_modules``:
 - ``mapkit.fusion``: TSDF fusion of frames.zarr (Open3D) → cloud.ply, mesh.ply, tsdf.npz.
 - ``mapkit.esdf``: signed distance maps → map.zarr; queries, gradients and slices of them.
 - ``mapkit.export``: training tuples → tuples.zarr (depth, poses, velocities, goals, split).
+- ``mapkit.batch``: the per-flight stages above (ingest → fuse → esdf → export) over many recordings, on Dask.
 - ``mapkit.dataset``: training data at scale: many simulated worlds run through every stage above.
 - ``mapkit.trajopt``: differentiable minimum-snap trajectories, flight corridors, time allocation.
 - ``mapkit.planner``: the planner network and its self-supervised loss (batched tensors).
