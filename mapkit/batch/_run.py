@@ -107,7 +107,7 @@ def _submit(client: Client, config: BatchConfig, root: Path) -> list[list[Future
         previous: Future | None = None
         chain = []
         for step in config.steps:
-            job = StepJob(name=rec.name, recording=rec.path, workspace=root / rec.name, step=step,
+            job = StepJob(name=rec.name, recording=rec.path.resolve(), workspace=root / rec.name, step=step,
                           options=rec.ingest if step == "ingest" else options[step])
             # Earlier recordings first, so whole workspaces finish steadily (progress, partial results).
             previous = client.submit(run_step, job, previous, key=f"batch-{step}-{i}-{token}",
