@@ -2,8 +2,8 @@
 
 Simulates the same flights once (forest worlds, 160x120 depth at 30 Hz), then measures in one run:
   sequence   ingest → fuse → esdf → export per flight, the library calls of the single commands, one
-             after another in this process with its default threads (what a shell loop does, minus
-             the interpreter start per command): the named peer
+             after another in one fresh process with its default threads (what a shell loop does,
+             minus the interpreter start and imports per command): the named peer
   batch 1    run_batch with a local cluster of 1 worker (cluster start and stop included)
   batch 2    the same with 2 workers
   rerun      batch 1 again: every step is up to date, so this is the fixed cost (cluster, workers)
@@ -17,6 +17,8 @@ import argparse
 import os
 import resource
 import shutil
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -32,7 +34,8 @@ EXPORT = ExportConfig()
 
 
 def cpu_seconds() -> float:
-    """CPU time of this process and its reaped children (a local cluster's worker processes, once stopped)."""
+    """CPU time of this process and its reaped children (the peer's process; a local cluster's worker
+    processes, once stopped)."""
     me, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return me.ru_utime + me.ru_stime + children.ru_utime + children.ru_stime
 
@@ -45,19 +48,25 @@ def make_flights(folder: Path, n: int, duration: float) -> list[Path]:
                      folder / f"flight{i}", progress=False).bag_path for i in range(n)]
 
 
-def run_sequence(flights: list[Path], root: Path) -> float:
+def sequence(flights: list[Path], root: Path) -> None:
+    """The peer's work: the single commands' library calls, flight after flight."""
     from mapkit.esdf import build_esdf
     from mapkit.export import export_tuples
     from mapkit.fusion import fuse
     from mapkit.ingest import ingest
 
-    t = time.perf_counter()
     for flight in flights:
         ws = root / flight.stem
         ingest([flight], ws, progress=False)
         fuse([], ws, FUSE, progress=False)
         build_esdf(ws, ESDF, progress=False)
         export_tuples(ws, EXPORT, progress=False)
+
+
+def run_sequence(flights: list[Path], root: Path) -> float:
+    """The peer in a fresh interpreter, as the batch's workers are: both pay their imports."""
+    t = time.perf_counter()
+    subprocess.run([sys.executable, __file__, "--sequence", str(root), *map(str, flights)], check=True)
     return time.perf_counter() - t
 
 
@@ -80,7 +89,11 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=8.0, help="Seconds per simulated flight.")
     parser.add_argument("--growth", action=argparse.BooleanOptionalAction, default=True,
                         help="Also time batch 2 on 2 and 4 flights.")
+    parser.add_argument("--sequence", nargs="+", type=Path, metavar=("ROOT", "FLIGHT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.sequence:  # the peer's own process (see run_sequence)
+        sequence(args.sequence[1:], args.sequence[0])
+        return
     with tempfile.TemporaryDirectory() as tmp:
         flights = make_flights(Path(tmp) / "flights", args.flights, args.duration)
         times: dict[str, float] = {}
