@@ -124,14 +124,16 @@ def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="New run directory.")
 @click.option("--steps", type=COUNT, default=4000, show_default=True, help="Adam steps.")
 @click.option("--lr", type=POSITIVE, default=1e-3, show_default=True, help="Learning rate.")
+@click.option("--boundary-inputs", is_flag=True,
+              help="Replace the TAN by a new one that also reads the start velocity, acceleration and end speed.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
 def tune_timing_cmd(model: Path, plans: tuple[Path, ...], val: tuple[Path, ...], output: Path, steps: int, lr: float,
-                    overwrite: bool) -> None:
+                    boundary_inputs: bool, overwrite: bool) -> None:
     """Fine-tune the Time Allocation Net alone on plans the planner made in flight (lower snap per plan)."""
     from mapkit.train import TimingTuneConfig, tune_timing
 
-    s = tune_timing(model, plans, val, output, TimingTuneConfig(steps=steps, lr=lr), overwrite=overwrite)
+    s = tune_timing(model, plans, val, output, TimingTuneConfig(steps=steps, lr=lr, boundary_inputs=boundary_inputs), overwrite=overwrite)
     click.echo(f"{s.train_plans} plans to learn from, {s.val_plans} to validate; snap per plan against the "
                f"gradient-descent split (median / summed): {s.before[0]:.2f}× / {s.before[1]:.3f}× before, "
                f"{s.after[0]:.2f}× / {s.after[1]:.3f}× after (step {s.best_step})")

@@ -92,6 +92,15 @@ def test_record_plans_then_tune_timing_through_the_cli(tmp_path: Path):
         assert name.startswith("tan.") or torch.equal(a, b), name  # only the TAN may change
     record = json.loads((tmp_path / "tuned" / "config.json").read_text())["timing_tune"]
     assert record["train_plans"] > 0 and record["val_plans"] > 0
+    # A new TAN that reads the boundary conditions: the rest of the network is kept as it was.
+    out = CliRunner().invoke(main, ["tune-timing", "--model", str(run), "--plans", str(tmp_path / "e3"),
+                                    "--val", str(tmp_path / "e4"), "-o", str(tmp_path / "tunedB"), "--steps", "20",
+                                    "--boundary-inputs"])
+    assert out.exit_code == 0, out.output
+    boundary = Planner.load(tmp_path / "tunedB").net
+    assert boundary.config.tan_boundary and boundary.tan.config.boundary_inputs
+    for (name, a), b in zip(net.state_dict().items(), boundary.state_dict().values(), strict=False):
+        assert name.startswith("tan.") or torch.equal(a, b), name
 
 
 def test_folders_without_recorded_plans_are_refused_in_one_line(tmp_path: Path):

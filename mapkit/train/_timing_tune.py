@@ -26,7 +26,7 @@ from mapkit.errors import MapkitError
 from mapkit.workspace import atomic_output
 
 if TYPE_CHECKING:
-    from mapkit.planner import PlannerConfig
+    from mapkit.planner import PlannerConfig, PlannerNet
     from mapkit.trajopt import TimeAllocationNet
 
 
@@ -47,7 +47,11 @@ class TimingTuneConfig:
     check_every: int = 250
     """Steps between validations; the weights with the lowest validation cost are kept."""
     seed: int = 0
-    """Seed of the batch order."""
+    """Seed of the batch order (and of a new TAN's initial weights)."""
+    boundary_inputs: bool = False
+    """Replace the TAN by a new one that also reads the start velocity and acceleration and the end
+    speed (``PlannerConfig.tan_boundary``), trained from scratch on the plans. A TAN without them
+    cannot tell a plan started at cruise speed from one started at rest."""
 
     def validate(self) -> None:
         for name in ("steps", "batch_size", "check_every"):
@@ -188,24 +192,45 @@ def tune_timing(model: str | Path, plans: Sequence[Path], val: Sequence[Path], o
     net = Planner.load(model).net
     M = net.tan.config.num_segments
     train_set, val_set = load_plan_inputs(plans, num_segments=M), load_plan_inputs(val, num_segments=M)
-    before, after, best_step = tune_tan(net.tan, net.config, train_set, val_set, config, progress=progress)
+    if config.boundary_inputs and not net.config.tan_boundary:
+        with torch.no_grad():  # "before" is the model's own TAN, not the new one's random start
+            before = _ratios(net.tan, net.config, val_set, plan_costs(None, net.config, val_set))
+        net = _with_boundary_tan(net, seed=config.seed)
+        _, after, best_step = tune_tan(net.tan, net.config, train_set, val_set, config, progress=progress)
+    else:
+        before, after, best_step = tune_tan(net.tan, net.config, train_set, val_set, config, progress=progress)
     record = {"source": str(source), "plans": [str(p) for p in plans], "val": [str(p) for p in val],
               "train_plans": len(train_set), "val_plans": len(val_set), "config": asdict(config),
               "val_before": {"median_ratio": before[0], "sum_ratio": before[1]},
               "val_after": {"median_ratio": after[0], "sum_ratio": after[1]}, "best_step": best_step}
     out = Path(out_dir)
-    _write_run(source, net.state_dict(), record, out, overwrite=overwrite)
+    _write_run(source, net, record, out, overwrite=overwrite)
     return TimingTuneSummary(out_dir=out, train_plans=len(train_set), val_plans=len(val_set), before=before,
                              after=after, best_step=best_step)
 
 
-def _write_run(source: Path, state_dict: dict[str, torch.Tensor], record: dict, out: Path, *, overwrite: bool) -> None:
-    """``out``: the source's model.pt with the new weights and a ``timing_tune`` note, its config.json
-    with the same note, and any REPRODUCE.md left out (it describes the source)."""
+def _with_boundary_tan(net: PlannerNet, *, seed: int) -> PlannerNet:
+    """The same network with a new, untrained TAN that reads the boundary conditions."""
+    from dataclasses import replace
+
+    from mapkit.planner import PlannerNet
+
+    torch.manual_seed(seed)
+    out = PlannerNet(replace(net.config, tan_boundary=True))
+    kept = {k: v for k, v in net.state_dict().items() if not k.startswith("tan.")}
+    missing, unexpected = out.load_state_dict(kept, strict=False)
+    assert not unexpected and all(k.startswith("tan.") for k in missing)  # only the TAN is new
+    return out.eval()
+
+
+def _write_run(source: Path, net: PlannerNet, record: dict, out: Path, *, overwrite: bool) -> None:
+    """``out``: the source's model.pt with the new weights (and planner config) and a ``timing_tune``
+    note, its config.json with the same note; any REPRODUCE.md is left out (it describes the source)."""
     from mapkit._saved import load_saved
 
     saved = load_saved(source / "model.pt", "mapkit planner", TimingTuneError, ("planner_config", "state_dict"))
-    saved = {**saved, "state_dict": state_dict, "timing_tune": json.loads(json.dumps(record))}
+    saved = {**saved, "state_dict": net.state_dict(), "planner_config": net.config.to_dict(),
+             "timing_tune": json.loads(json.dumps(record))}
     run_config = json.loads((source / "config.json").read_text()) if (source / "config.json").is_file() else {}
     run_config["timing_tune"] = record
     with atomic_output(out, overwrite=overwrite) as tmp:
