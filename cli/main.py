@@ -110,7 +110,7 @@ def refuse_url(ctx: click.Context, option: str, value: Any, why: str) -> None:
     if isinstance(value, str) and is_url(value):
         raise click.ClickException(
             f"mapkit {ctx.info_name}: {option} {value} is a URL, but this command needs a local folder ({why}); "
-            "run it in a local workspace and copy the stores over (mapkit._stores.copy_store; docs/stores.md)"
+            "run it in a local workspace and copy the stores over with `mapkit copy-store` (docs/stores.md)"
         )
 
 
@@ -177,5 +177,6 @@ from mapkit.cli import ingest as _ingest  # noqa: E402,F401 - registers its comm
 from mapkit.cli import mapping as _mapping  # noqa: E402,F401 - registers its commands on main, defined above
 from mapkit.cli import plan as _plan  # noqa: E402,F401 - registers its commands on main, defined above
 from mapkit.cli import simulate as _simulate  # noqa: E402,F401 - registers its commands on main, defined above
+from mapkit.cli import stores as _stores  # noqa: E402,F401 - registers its commands on main, defined above
 from mapkit.cli import train as _train  # noqa: E402,F401 - registers its commands on main, defined above
 from mapkit.cli import view as _view  # noqa: E402,F401 - registers its commands on main, defined above

@@ -358,3 +358,23 @@ def test_two_gloo_ranks_train_on_tuples_over_http_with_uneven_batches(local: tup
     assert rows[-1]["epoch"] == 1 and rows[-1]["step"] == -(-batches // 2)  # each rank: half, rounded up
     config = json.loads((tmp_path / "runs" / "ddp" / "config.json").read_text())
     assert config["workspaces"] == [url]
+
+
+def test_cli_copy_store_publishes_a_complete_copy_and_refuses_an_incomplete_source(tmp_path: Path):
+    import zarr
+    from click.testing import CliRunner
+
+    from mapkit.cli.main import main
+
+    src = tmp_path / "map.zarr"
+    root = zarr.open_group(src, mode="w", zarr_format=3)
+    root.create_array("esdf", data=np.arange(24, dtype=np.float32).reshape(2, 3, 4))
+    out = CliRunner().invoke(main, ["copy-store", str(src), "memory://copy_cli/map.zarr"])
+    assert out.exit_code == 0, out.output
+    copied = zarr.open_group("memory://copy_cli/map.zarr", mode="r")
+    np.testing.assert_array_equal(copied["esdf"][:], root["esdf"][:])
+    again = CliRunner().invoke(main, ["copy-store", str(src), "memory://copy_cli/map.zarr"])
+    assert again.exit_code == 1 and "--overwrite" in again.output and "Traceback" not in again.output
+    (tmp_path / "empty.zarr").mkdir()
+    bad = CliRunner().invoke(main, ["copy-store", str(tmp_path / "empty.zarr"), "memory://copy_cli/x.zarr"])
+    assert bad.exit_code == 1 and "not a complete zarr store" in bad.output
