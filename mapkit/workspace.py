@@ -51,7 +51,8 @@ def atomic_output(target: Path, *, overwrite: bool) -> Iterator[Path]:
     _remove(old)
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """True while process ``pid`` of this host exists (someone else's included)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -72,7 +73,7 @@ def clean_stale(directory: Path) -> list[Path]:
         return handled
     for path in entries:
         m = _STAGED.match(path.name)
-        if m is None or int(m["pid"]) == os.getpid() or _alive(int(m["pid"])):
+        if m is None or int(m["pid"]) == os.getpid() or pid_alive(int(m["pid"])):
             continue
         target = directory / m["name"]
         if m["kind"] == "old" and not target.exists():

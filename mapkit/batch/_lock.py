@@ -13,21 +13,12 @@ from pathlib import Path
 from typing import Any
 
 from mapkit.batch._config import BatchError
+from mapkit.workspace import pid_alive
 
 LOCK = ".mapkit-batch.lock"
 """Lock file in the batch root while a batch runs."""
 
 log = logging.getLogger(__name__)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True  # another user's process
-    return True
 
 
 def _holder(path: Path) -> dict[str, Any]:
@@ -60,7 +51,7 @@ def root_lock(root: Path) -> Iterator[None]:
     if not _try_create(path, record):
         held = _holder(path)
         pid, where = held.get("pid"), held.get("host")
-        if where == host and isinstance(pid, int) and not _alive(pid):
+        if where == host and isinstance(pid, int) and not pid_alive(pid):
             log.warning("taking over %s: its holder (pid %s on %s) is gone", path, pid, where)
             path.unlink(missing_ok=True)
         if not _try_create(path, record):
