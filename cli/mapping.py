@@ -114,10 +114,13 @@ def fuse_world_cmd(workspaces: tuple[Path, ...], output: Path, voxel: float, tsd
                    "the workspace must be on storage the workers share.")
 @click.option("--workers", type=COUNT, default=None,
               help="Compute the chunked ESDF on N local Dask worker processes (1 = in this process).")
+@click.option("-o", "--output", metavar="PATH|URL", default=None,
+              help="Write map.zarr here instead of WS/map.zarr: a path or an fsspec URL (s3://bucket/site/map.zarr).")
 @OVERWRITE
 @library_call
 def esdf(workspace: Path, voxel: float, padding: float, sigma: float, unknown: str, solid_depth: float,
-         max_dist: float | None, backend: Backend, scheduler: str | None, workers: int | None, overwrite: bool) -> None:
+         max_dist: float | None, backend: Backend, scheduler: str | None, workers: int | None, output: str | None,
+         overwrite: bool) -> None:
     """Signed, Gaussian-smoothed ESDF of the fused map → WS/map.zarr.
 
     Grids too large for memory, or any grid with --workers / --scheduler, are computed chunk by chunk
@@ -129,7 +132,7 @@ def esdf(workspace: Path, voxel: float, padding: float, sigma: float, unknown: s
     config = EsdfConfig(voxel=voxel, padding=padding, sigma=sigma, unknown=unknown, solid_depth=solid_depth,
                         max_dist=max_dist, backend=backend)
     s = build_esdf(workspace, config, overwrite=overwrite, progress=True, scheduler=scheduler_address(scheduler),
-                   workers=workers)
+                   workers=workers, output=output)
     nx, ny, nz = s.shape
     ran = ""
     if s.chunked is not None:

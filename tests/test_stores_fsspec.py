@@ -378,3 +378,16 @@ def test_cli_copy_store_publishes_a_complete_copy_and_refuses_an_incomplete_sour
     (tmp_path / "empty.zarr").mkdir()
     bad = CliRunner().invoke(main, ["copy-store", str(tmp_path / "empty.zarr"), "memory://copy_cli/x.zarr"])
     assert bad.exit_code == 1 and "not a complete zarr store" in bad.output
+
+
+def test_cli_esdf_writes_map_zarr_to_a_url_equal_to_the_local_one(local: tuple[Path, Path], mem: str) -> None:
+    """`mapkit esdf -w WS -o URL`: the workspace's fusion stays local, the map goes to the URL, equal
+    array for array (and in its attrs) to the map the same options wrote into the workspace."""
+    _, ws = local
+    args = ["esdf", "-w", str(ws), "--voxel", "0.2", "--sigma", "0", "-o", f"{mem}/map.zarr"]
+    out = CliRunner().invoke(main, args)
+    assert out.exit_code == 0, out.output
+    assert f"{mem}/map.zarr" in out.output
+    _assert_same_group(_group(ws / "map.zarr"), _group(f"{mem}/map.zarr"))
+    again = CliRunner().invoke(main, args)  # a complete map there: refused without --overwrite
+    assert again.exit_code == 1 and "--overwrite" in again.output and "Traceback" not in again.output

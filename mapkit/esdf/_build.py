@@ -80,7 +80,8 @@ class EsdfConfig:
 
 @dataclass
 class EsdfSummary:
-    path: Path
+    path: Path | str
+    """Where map.zarr was written: a local path, or the URL given as ``output``."""
     shape: tuple[int, int, int]
     origin: NDArray[np.float64]
     voxel_size: float
@@ -213,7 +214,8 @@ def fits_dense(grid: Grid) -> bool:
 
 
 def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overwrite: bool = False,
-               progress: bool = True, scheduler: str | None = None, workers: int | None = None) -> EsdfSummary:
+               progress: bool = True, scheduler: str | None = None, workers: int | None = None,
+               output: str | Path | None = None) -> EsdfSummary:
     """Build ``workspace/map.zarr`` from ``workspace/tsdf.npz`` and ``workspace/frames.zarr``, or from
     ``workspace/world.zarr`` for a world directory of ``mapkit fuse-world`` (always chunked).
 
@@ -222,6 +224,9 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
     local worker processes (1 = this process, synchronous scheduler; the default for a grid that
     does not fit), or on the cluster at `scheduler` (``tcp://HOST:8786``; the workspace must be on
     storage its workers share).
+
+    `output`: where map.zarr goes instead of ``workspace/map.zarr``, a path or an fsspec URL
+    (``s3://bucket/site/map.zarr``); the workspace itself stays local (fusion's files are Open3D's).
     """
     config = config or EsdfConfig()
     config.validate()
@@ -231,10 +236,12 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
     if (workspace / WORLD).exists() and not (workspace / FUSE_META).exists():
         from mapkit.esdf._world import build_world_esdf
 
+        if output is not None:
+            raise EsdfBuildError(f"{workspace} is a world directory of `mapkit fuse-world`; its map goes to "
+                                 f"{workspace / MAP} (drop --output, then `mapkit copy-store` it where it should go)")
         return build_world_esdf(workspace, config, overwrite=overwrite, progress=progress, scheduler=scheduler,
                                 workers=workers)
-    target = workspace / MAP
-    check_writable(target, overwrite=overwrite)
+    target = _map_target(workspace, output, overwrite=overwrite)
     t0 = time.perf_counter()
     grid, meta = plan_grid(workspace, config)
     chunked = not fits_dense(grid) or scheduler is not None or workers is not None
@@ -323,7 +330,20 @@ def _occupancy(workspace: Path, grid: Grid, fuse_cfg: dict[str, Any], config: Es
     return occupied, solid, observed, str(store.attrs.get("world_frame", "world"))
 
 
-def _write_chunked(target: Path, solid: NDArray[np.bool_], observed: NDArray[np.bool_], grid: Grid, config: EsdfConfig,
+def _map_target(workspace: Path, output: str | Path | None, *, overwrite: bool) -> Path | str:
+    """map.zarr's destination, checked writable before any work: a local path, or a URL as given."""
+    from mapkit._stores import Location, check_store_writable, store_errors
+
+    if output is None:
+        check_writable(workspace / MAP, overwrite=overwrite)
+        return workspace / MAP
+    loc = Location.of(output)
+    with store_errors(loc):
+        check_store_writable(loc, overwrite=overwrite)
+    return loc.local if loc.local is not None else loc.url
+
+
+def _write_chunked(target: Path | str, solid: NDArray[np.bool_], observed: NDArray[np.bool_], grid: Grid, config: EsdfConfig,
                    parameters: dict[str, Any], frame_id: str, runner: _Runner, *, overwrite: bool,
                    progress: bool) -> ChunkedSummary:
     """The chunked ESDF on Dask, straight into map.zarr.
@@ -351,7 +371,7 @@ def _write_chunked(target: Path, solid: NDArray[np.bool_], observed: NDArray[np.
     return result
 
 
-def _write_dense(workspace: Path, target: Path, occupied: NDArray[np.bool_], solid: NDArray[np.bool_],
+def _write_dense(workspace: Path, target: Path | str, occupied: NDArray[np.bool_], solid: NDArray[np.bool_],
                  observed: NDArray[np.bool_], grid: Grid, config: EsdfConfig, parameters: dict[str, Any],
                  frame_id: str, *, overwrite: bool) -> int:
     """The whole-grid ESDF (sub-voxel distances unless disabled) → map.zarr; returns the sign flips prevented."""
