@@ -642,7 +642,9 @@ def train(workspaces: Sequence[str | Path], config: TrainConfig, *, runs_dir: st
     _check_inputs(workspaces, val_workspaces, config)
     device = _device(config.device)
     rank, world = _distributed()
-    threads = set_threads(world) if device.type == "cpu" else torch.get_num_threads()
+    # torchrun's LOCAL_WORLD_SIZE: the processes on this machine, which share its cores
+    local = int(os.environ.get("LOCAL_WORLD_SIZE", world))
+    threads = set_threads(local) if device.type == "cpu" else torch.get_num_threads()
     run_dir, remote = _run_dir(workspaces, runs_dir, config.name)
     try:
         return _train(workspaces, val_workspaces, config, run_dir, remote, resume=resume, overwrite=overwrite,
