@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +73,21 @@ def test_on_a_local_cluster_into_map_zarr(tmp_path: Path, client) -> None:
     np.testing.assert_array_equal(m.esdf_raw[:], raw)
     np.testing.assert_array_equal(m.esdf[:], esdf)
     assert s.chunks == 3 * 2 * 2 and s.n_prevented == n and s.workers == 2
+
+
+def test_local_workers_start_without_the_profiler_and_the_malloc_setting(monkeypatch: pytest.MonkeyPatch) -> None:
+    def worker_settings() -> tuple[bool, str | None]:
+        import os
+
+        import dask
+
+        return bool(dask.config.get("distributed.worker.profile.enabled")), os.environ.get("MALLOC_TRIM_THRESHOLD_")
+
+    # What a LocalCluster with Dask's defaults, started earlier in this process, leaves behind.
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
+    with dask_client(None, workers=1) as (c, _):
+        assert set(c.run(worker_settings).values()) == {(False, None)}
+    assert os.environ["MALLOC_TRIM_THRESHOLD_"] == "65536"
 
 
 def test_numpy_destinations_are_refused_on_a_cluster(client) -> None:
