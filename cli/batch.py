@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 from typing import Any
 
 import click
@@ -14,8 +13,8 @@ from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, library
 
 @main.command()
 @click.argument("recordings", nargs=-1, required=True)
-@click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
-              help="Root folder: one workspace per recording, ROOT/<name>/.")
+@click.option("-o", "--output", required=True, metavar="ROOT",
+              help="Root folder, or an fsspec URL (s3://bucket/flights): one workspace per recording, ROOT/<name>/.")
 @click.option("--steps", default="ingest,fuse,esdf,export", show_default=True, help="Steps to run, comma-separated.")
 @click.option("--scheduler", metavar="ADDRESS",
               help="Dask scheduler (tcp://HOST:8786); default: DASK_SCHEDULER_ADDRESS, else a local cluster.")
@@ -35,7 +34,7 @@ from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, library
 @click.option("--seed", type=INDEX, default=0, show_default=True, help="export: seed of goal sampling and split.")
 @ingest_options
 @library_call
-def batch(recordings: tuple[str, ...], output: Path, steps: str, scheduler: str | None, workers: int | None, retries: int,
+def batch(recordings: tuple[str, ...], output: str, steps: str, scheduler: str | None, workers: int | None, retries: int,
           fuse_voxel: float, trunc: float, max_depth: float, mesh: bool, esdf_voxel: float, padding: float, sigma: float,
           unknown: str, max_dist: float | None, goals_per_frame: int, clearance: float, seed: int, **kw: Any) -> None:
     """Run ingest → fuse → esdf → export for every recording: ROOT/<name>/ is the workspace the single
@@ -45,13 +44,13 @@ def batch(recordings: tuple[str, ...], output: Path, steps: str, scheduler: str 
     Up-to-date steps are skipped, so a rerun resumes; a failed recording does not stop the others;
     exits 1 if any failed.
     """
-    from mapkit.batch import BatchConfig, parse_steps, resolve_recordings, run_batch
+    from mapkit.batch import BatchConfig, parse_root, parse_steps, resolve_recordings, run_batch
     from mapkit.esdf import EsdfConfig
     from mapkit.export import ExportConfig
     from mapkit.fusion import FuseConfig
 
     config = BatchConfig(
-        recordings=resolve_recordings(recordings, build_config(**kw)), root=output, steps=parse_steps(steps),
+        recordings=resolve_recordings(recordings, build_config(**kw)), root=parse_root(output), steps=parse_steps(steps),
         scheduler=scheduler, workers=workers, retries=retries,
         fuse=FuseConfig(voxel=fuse_voxel, trunc=trunc, max_depth=max_depth, mesh=mesh),
         esdf=EsdfConfig(voxel=esdf_voxel, padding=padding, sigma=sigma, unknown=unknown, max_dist=max_dist),

@@ -318,3 +318,64 @@ def test_unexpected_task_errors_are_one_line() -> None:
     assert _unexpected(ValueError("bad\n  thing")) == "unexpected ValueError: bad thing; report this"
     assert _unexpected(OSError(28, "No space left on device")) == "OSError: [Errno 28] No space left on device"
     assert _unexpected(KilledWorker("batch-esdf-0-abc", "tcp://w", 3)).startswith("its worker died each time it ran")
+
+
+@pytest.fixture
+def threaded_scheduler() -> Any:
+    """Two worker threads in this process: they share its memory:// filesystem, as a cluster's workers
+    share an object store."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+        yield cluster.scheduler_address
+
+
+def download(url: str, local: Path) -> Path:
+    from mapkit._stores import Location, download_tree
+
+    download_tree(Location.of(url), local)
+    return local
+
+
+@pytest.mark.slow
+def test_batch_root_at_a_url_equals_single_commands_skips_and_reruns(
+        flights: list[Path], reference: dict[str, Path], threaded_scheduler: str, tmp_path: Path) -> None:
+    import fsspec
+
+    fs = fsspec.filesystem("memory")
+    root = f"memory://batch-{tmp_path.name}"
+    first = run_batch(config(flights[:2] + [broken_recording(tmp_path)], root, scheduler=threaded_scheduler), progress=False)
+    assert {r.name: r.status for r in first.results} == {"flight1": "done", "flight2": "done", "broken": "failed"}
+    assert first.root == root and not fs.exists(f"/batch-{tmp_path.name}/{LOCK}")
+    for flight in flights[:2]:
+        ws = download(f"{root}/{flight.stem}", tmp_path / "down" / flight.stem)
+        assert_same_workspace(ws, reference[flight.stem])
+        assert {p.name for p in (ws / MARKERS).iterdir()} == {"ingest.json", "fuse.json", "esdf.json", "export.json"}
+    from mapkit.batch._remote import scratch_for
+
+    assert not scratch_for(f"{root}/flight1").exists()  # removed after the recording's last step
+    again = run_batch(config(flights[:2], root, scheduler=threaded_scheduler), progress=False)
+    assert [r.status for r in again.results] == ["skipped", "skipped"]
+    # A fuse whose files are not the ones fuse.json describes runs again, and a map that is gone is made
+    # again; both make the same product file as before, so the tuples after them stay up to date.
+    fs.pipe_file(f"/batch-{tmp_path.name}/flight1/cloud.ply", b"truncated")
+    fs.rm(f"/batch-{tmp_path.name}/flight1/map.zarr", recursive=True)
+    redo = run_batch(config(flights[:1], root, scheduler=threaded_scheduler), progress=False)
+    assert {o.step: o.status for o in redo.results[0].steps} == {
+        "ingest": "skipped", "fuse": "done", "esdf": "done", "export": "skipped"}
+    assert_same_workspace(download(f"{root}/flight1", tmp_path / "redo"), reference["flight1"])
+    # A step whose input was never made at the URL: one line naming it and the fix.
+    alone = run_batch(config(flights[2:3], root, scheduler=threaded_scheduler, steps=("esdf",)), progress=False)
+    assert alone.failed[0].reason == (f"esdf: {root}/flight3 has no frames.zarr/zarr.json: the ingest step has not "
+                                      "run there; add ingest to --steps")
+    # Another batch holding the root: one line naming it.
+    fs.pipe_file(f"/batch-{tmp_path.name}/{LOCK}", json.dumps({"pid": 1, "host": "elsewhere", "since": "now"}).encode())
+    result = CliRunner().invoke(main, ["batch", str(flights[0]), "-o", root, "--scheduler", threaded_scheduler])
+    assert result.exit_code == 1 and result.output.count("\n") == 1
+    assert f"error: {root} is in use by another `mapkit batch` (pid 1 on elsewhere" in result.output
+
+
+def test_batch_root_url_without_a_backend_is_one_line(flights: list[Path]) -> None:
+    result = CliRunner().invoke(main, ["batch", str(flights[0]), "-o", "nosuchfs://bucket/maps"])
+    assert result.exit_code == 1 and result.output.count("\n") == 1
+    assert "nosuchfs://bucket/maps" in result.output and "fsspec backend" in result.output

@@ -7,6 +7,7 @@ Typical use::
     config = BatchConfig(recordings=resolve_recordings(["flights/*.mcap"]), root=Path("maps"))
     summary = run_batch(config)          # maps/<stem>/frames.zarr, cloud.ply, map.zarr, tuples.zarr
     summary.failed                       # each with its one-line reason
+    BatchConfig(..., root="s3://bucket/maps")  # workspaces on shared storage (fsspec URL)
 """
 
 from mapkit.batch._config import (
@@ -15,6 +16,7 @@ from mapkit.batch._config import (
            BatchError,
            Recording,
            Step,
+           parse_root,
            parse_steps,
            read_manifest,
            resolve_recordings,
@@ -24,4 +26,4 @@ from mapkit.batch._run import BatchSummary, RecordingResult, run_batch
 from mapkit.batch._steps import MARKERS, StepOutcome
 
 __all__ = ["LOCK", "MARKERS", "STEPS", "BatchConfig", "BatchError", "BatchSummary", "Recording", "RecordingResult", "Step",
-           "StepOutcome", "parse_steps", "read_manifest", "resolve_recordings", "run_batch"]
+           "StepOutcome", "parse_root", "parse_steps", "read_manifest", "resolve_recordings", "run_batch"]

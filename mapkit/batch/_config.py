@@ -10,6 +10,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Literal, get_args
 
+from mapkit._stores import Location, is_url
 from mapkit.errors import MapkitError
 from mapkit.esdf import EsdfConfig
 from mapkit.export import ExportConfig
@@ -47,8 +48,9 @@ class BatchConfig:
 
     recordings: tuple[Recording, ...]
     """The recordings, with unique names (see :func:`resolve_recordings`)."""
-    root: Path
-    """Folder holding one workspace per recording (``ROOT/<name>/``)."""
+    root: Path | str
+    """Folder holding one workspace per recording (``ROOT/<name>/``): a path, or an fsspec URL
+    (``s3://bucket/flights``; see :mod:`mapkit.batch._remote`)."""
     steps: tuple[Step, ...] = STEPS
     """The steps to run, in pipeline order; a step whose outputs are up to date is skipped."""
     scheduler: str | None = None
@@ -78,7 +80,9 @@ class BatchConfig:
             raise BatchError(f"steps {','.join(self.steps)} name a step twice")
         if self.retries < 0:
             raise BatchError(f"retries={self.retries} must be >= 0")
-        if self.root.exists() and not self.root.is_dir():
+        if isinstance(self.root, str):
+            Location.of(self.root)  # an unknown protocol or missing backend is one line here
+        elif self.root.exists() and not self.root.is_dir():
             raise BatchError(f"-o {self.root} is a file; pass a folder for the workspaces")
         _check_unique(self.recordings)
         for recording in self.recordings:
@@ -86,6 +90,15 @@ class BatchConfig:
         self.fuse.validate()
         self.esdf.validate()
         self.export.validate()
+
+
+def parse_root(text: str | Path) -> Path | str:
+    """A batch root as given on the command line: an fsspec URL stays text, a local path (or a
+    ``file://`` URL, whose folders rename atomically) becomes an absolute Path."""
+    if not is_url(text):
+        return Path(text).resolve()
+    loc = Location.of(str(text))
+    return loc.local.resolve() if loc.local is not None else str(text).rstrip("/")
 
 
 def parse_steps(text: str) -> tuple[Step, ...]:

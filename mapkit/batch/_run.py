@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from mapkit._dask import ClusterInfo, dask_client
-from mapkit.batch._config import BatchConfig, Recording
+from mapkit.batch._config import BatchConfig, Recording, parse_root
 from mapkit.batch._lock import root_lock
 from mapkit.batch._steps import Status, StepJob, StepOutcome, run_step
 
@@ -46,8 +46,8 @@ class RecordingResult:
 class BatchSummary:
     """A finished batch."""
 
-    root: Path
-    """The batch root."""
+    root: Path | str
+    """The batch root (a path, or a URL)."""
     results: tuple[RecordingResult, ...]
     """One per recording, in the order given."""
     seconds: float
@@ -79,7 +79,7 @@ def run_batch(config: BatchConfig, *, progress: bool = True) -> BatchSummary:
     SchedulerError for a scheduler that cannot be reached.
     """
     config.validate()
-    root = config.root.resolve()
+    root = parse_root(config.root)
     with root_lock(root), dask_client(config.scheduler, workers=config.workers) as (client, info):
         t0 = time.perf_counter()
         _announce(config, info, progress=progress)
@@ -97,7 +97,7 @@ def _announce(config: BatchConfig, info: ClusterInfo, *, progress: bool) -> None
     log.info(line)
 
 
-def _submit(client: Client, config: BatchConfig, root: Path) -> list[list[Future]]:
+def _submit(client: Client, config: BatchConfig, root: Path | str) -> list[list[Future]]:
     """Per recording, its chain of step futures (each task takes the previous step's outcome)."""
     token = uuid.uuid4().hex[:8]  # keys unique to this run on a shared scheduler
     options: dict[str, FuseConfig | EsdfConfig | ExportConfig] = {"fuse": config.fuse, "esdf": config.esdf, "export": config.export}
@@ -106,9 +106,10 @@ def _submit(client: Client, config: BatchConfig, root: Path) -> list[list[Future
     for i, rec in enumerate(config.recordings):
         previous: Future | None = None
         chain = []
+        workspace = f"{root}/{rec.name}" if isinstance(root, str) else root / rec.name
         for step in config.steps:
-            job = StepJob(name=rec.name, recording=rec.path.resolve(), workspace=root / rec.name, step=step,
-                          options=rec.ingest if step == "ingest" else options[step])
+            job = StepJob(name=rec.name, recording=rec.path.resolve(), workspace=workspace, step=step,
+                          options=rec.ingest if step == "ingest" else options[step], last=step == config.steps[-1])
             # Earlier recordings first, so whole workspaces finish steadily (progress, partial results).
             previous = client.submit(run_step, job, previous, key=f"batch-{step}-{i}-{token}",
                                      retries=config.retries, priority=n - i, pure=False)

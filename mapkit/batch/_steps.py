@@ -16,10 +16,11 @@ import json
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
+from mapkit.batch import _remote
 from mapkit.batch._config import BatchError, Step
 from mapkit.errors import MapkitError
 from mapkit.esdf import MAP, EsdfConfig
@@ -53,12 +54,15 @@ class StepJob:
     """The recording's workspace name."""
     recording: Path
     """The recording (absolute)."""
-    workspace: Path
-    """``ROOT/<name>`` (absolute)."""
+    workspace: Path | str
+    """``ROOT/<name>``: an absolute path, or a URL (the step then runs in a local scratch workspace,
+    see :mod:`mapkit.batch._remote`)."""
     step: Step
     """The step to run."""
     options: IngestConfig | FuseConfig | EsdfConfig | ExportConfig
     """That step's options."""
+    last: bool = False
+    """The recording's last step: with a URL workspace, the worker's scratch copy goes after it."""
 
 
 @dataclass(frozen=True)
@@ -84,6 +88,8 @@ def run_step(job: StepJob, previous: StepOutcome | None = None) -> StepOutcome:
     not help); anything else raises, so Dask retries it and the batch reports it as unexpected.
     """
     if previous is not None and previous.status == "failed":
+        if job.last and isinstance(job.workspace, str):
+            _remote.drop_scratch(job.workspace)
         return previous
     t0 = time.perf_counter()
     try:
@@ -92,12 +98,26 @@ def run_step(job: StepJob, previous: StepOutcome | None = None) -> StepOutcome:
         if why is None:
             return StepOutcome(job.name, job.step, "skipped", "up to date", time.perf_counter() - t0)
         _one_thread()
-        (job.workspace / MARKERS / f"{job.step}.json").unlink(missing_ok=True)
-        _RUNNERS[job.step](job)
+        _remove_marker(job)
+        if isinstance(job.workspace, str):
+            _run_at_url(job, job.workspace)
+        else:
+            _RUNNERS[job.step](job)
         _write_marker(job, key)
     except MapkitError as exc:
         return StepOutcome(job.name, job.step, "failed", " ".join(str(exc).split()), time.perf_counter() - t0)
+    finally:
+        if job.last and isinstance(job.workspace, str):
+            _remote.drop_scratch(job.workspace)
     return StepOutcome(job.name, job.step, "done", why, time.perf_counter() - t0)
+
+
+def _run_at_url(job: StepJob, url: str) -> None:
+    """The step in this worker's scratch workspace, between bringing in what it reads and publishing
+    what it made (:mod:`mapkit.batch._remote`)."""
+    scratch = _remote.stage_in(url, job.step, PRODUCTS)
+    _RUNNERS[job.step](replace(job, workspace=scratch))
+    _remote.stage_out(url, job.step, scratch)
 
 
 def _one_thread() -> None:
@@ -126,12 +146,20 @@ def recording_fingerprint(path: Path) -> dict[str, Any]:
     return {"path": str(path), "bytes": sum(s.st_size for s in stats), "mtime_ns": max((s.st_mtime_ns for s in stats), default=0)}
 
 
-def product_digest(workspace: Path, step: Step) -> str | None:
-    """sha256 of the step's product file, None when there is none (the step never completed)."""
+def _read(workspace: Path | str, rel: str) -> bytes | None:
+    """A file of the workspace (local or at a URL), None when it is not there."""
+    if isinstance(workspace, str):
+        return _remote.read_bytes(workspace, rel)
     try:
-        return hashlib.sha256((workspace / PRODUCTS[step]).read_bytes()).hexdigest()
+        return (workspace / rel).read_bytes()
     except FileNotFoundError:
         return None
+
+
+def product_digest(workspace: Path | str, step: Step) -> str | None:
+    """sha256 of the step's product file, None when there is none (the step never completed)."""
+    data = _read(workspace, PRODUCTS[step])
+    return None if data is None else hashlib.sha256(data).hexdigest()
 
 
 def step_key(job: StepJob) -> str:
@@ -147,34 +175,47 @@ def step_key(job: StepJob) -> str:
 
 def stale_reason(job: StepJob, key: str) -> str | None:
     """Why the step must run (new, options or input changed, output changed), None when it is up to date."""
-    marker = job.workspace / MARKERS / f"{job.step}.json"
-    try:
-        seen = json.loads(marker.read_text())
-    except FileNotFoundError:
+    raw = _read(job.workspace, f"{MARKERS}/{job.step}.json")
+    if raw is None:
         return "new"
+    try:
+        seen = json.loads(raw)
     except ValueError:
         return "marker unreadable"
     if seen.get("key") != key:
         return "options or input changed"
     if seen.get("product") != product_digest(job.workspace, job.step):
         return "output changed or missing"
-    if job.step == "fuse":
+    if job.step == "fuse":  # fuse.json is a file beside others: their sizes must still match
+        if isinstance(job.workspace, str):
+            return None if _remote.fused_complete(job.workspace) else "output incomplete"
         try:
-            check_fused(job.workspace)  # fuse.json is a file beside others: their sizes must still match
+            check_fused(job.workspace)
         except MapkitError:
             return "output incomplete"
     return None
+
+
+def _remove_marker(job: StepJob) -> None:
+    rel = f"{MARKERS}/{job.step}.json"
+    if isinstance(job.workspace, str):
+        _remote.remove(job.workspace, rel)
+    else:
+        (job.workspace / rel).unlink(missing_ok=True)
 
 
 def _write_marker(job: StepJob, key: str) -> None:
     product = product_digest(job.workspace, job.step)
     if product is None:
         raise BatchError(f"{job.step} of {job.workspace} left no {PRODUCTS[job.step]}; report this")
-    marker = job.workspace / MARKERS / f"{job.step}.json"
     record = {"step": job.step, "key": key, "product": product, "recording": str(job.recording),
               "options": _options(job.options)}
-    with atomic_output(marker, overwrite=True) as tmp:
-        tmp.write_text(json.dumps(record, indent=2))
+    text = json.dumps(record, indent=2)
+    if isinstance(job.workspace, str):
+        _remote.write_bytes(job.workspace, f"{MARKERS}/{job.step}.json", text.encode())
+        return
+    with atomic_output(job.workspace / MARKERS / f"{job.step}.json", overwrite=True) as tmp:
+        tmp.write_text(text)
 
 
 # The same library calls as `mapkit ingest`, `mapkit fuse -w WS` (no recordings: fuse the workspace's
