@@ -14,8 +14,10 @@ from mapkit.cli.main import COUNT, FINITE, NONNEGATIVE, POSITIVE, library_call, 
 if TYPE_CHECKING:
     from mapkit.esdf import Backend
 
-FUSE_WORKSPACE = workspace_option("Workspace directory.", local_reason="open3d writes cloud.ply and mesh.ply to local files")
-ESDF_WORKSPACE = workspace_option("Workspace directory.", local_reason="it reads fuse's tsdf.npz and cloud.ply as local files")
+FUSE_WORKSPACE = workspace_option("Workspace directory, or an fsspec URL (fused in a local temporary folder, then published there).",
+                                  urls=True)
+ESDF_WORKSPACE = workspace_option("Workspace directory, or an fsspec URL (built in a local temporary folder, then published there).",
+                                  urls=True)
 SLICE_WORKSPACE = workspace_option("Workspace with map.zarr.", urls=True)
 OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
 
@@ -51,7 +53,7 @@ def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float, trunc: flo
         f"[{hi[0]:.2f} {hi[1]:.2f} {hi[2]:.2f}] m; {s.seconds:.1f} s ({s.frames_per_second:.0f} frames/s, "
         f"integrate {s.integrate_frames_per_second:.0f} frames/s)"
     )
-    click.echo("wrote " + ", ".join(str(p) for p in s.outputs))
+    click.echo("wrote " + ", ".join(s.urls or [str(p) for p in s.outputs]))
 
 
 @main.command("fuse-world")

@@ -148,7 +148,9 @@ def _no_leaked_malloc_setting() -> Iterator[None]:
     import dask
 
     key = "MALLOC_TRIM_THRESHOLD_"
-    dasks = (dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {}).get(key)
+    # Dask's shipped default, not the current config (which a cluster of ours, open around this one, has changed)
+    shipped = dask.config.merge(*dask.config.defaults)
+    dasks = (dask.config.get("distributed.nanny.pre-spawn-environ", default={}, config=shipped) or {}).get(key)
     mine = os.environ.get(key)
     if mine is None or dasks is None or mine != str(dasks):
         yield

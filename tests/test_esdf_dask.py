@@ -75,7 +75,7 @@ def test_on_a_local_cluster_into_map_zarr(tmp_path: Path, client) -> None:
     assert s.chunks == 3 * 2 * 2 and s.n_prevented == n and s.workers == 2
 
 
-def test_local_workers_start_without_the_profiler_and_the_malloc_setting(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_local_workers_start_without_the_profiler_and_the_malloc_setting(client, monkeypatch: pytest.MonkeyPatch) -> None:
     def worker_settings() -> tuple[bool, str | None]:
         import os
 
@@ -83,7 +83,9 @@ def test_local_workers_start_without_the_profiler_and_the_malloc_setting(monkeyp
 
         return bool(dask.config.get("distributed.worker.profile.enabled")), os.environ.get("MALLOC_TRIM_THRESHOLD_")
 
-    # What a LocalCluster with Dask's defaults, started earlier in this process, leaves behind.
+    assert set(client.run(worker_settings).values()) == {(False, None)}
+    # What a LocalCluster with Dask's defaults, started earlier in this process, leaves behind; and a
+    # cluster of ours (`client`) is open around the new one.
     monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
     with dask_client(None, workers=1) as (c, _):
         assert set(c.run(worker_settings).values()) == {(False, None)}

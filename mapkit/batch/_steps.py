@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
+from mapkit import _staging
 from mapkit.batch import _remote
 from mapkit.batch._config import BatchError, Step
 from mapkit.errors import MapkitError
@@ -149,7 +150,7 @@ def recording_fingerprint(path: Path) -> dict[str, Any]:
 def _read(workspace: Path | str, rel: str) -> bytes | None:
     """A file of the workspace (local or at a URL), None when it is not there."""
     if isinstance(workspace, str):
-        return _remote.read_bytes(workspace, rel)
+        return _staging.read_bytes(workspace, rel)
     try:
         return (workspace / rel).read_bytes()
     except FileNotFoundError:
@@ -199,7 +200,7 @@ def stale_reason(job: StepJob, key: str) -> str | None:
 def _remove_marker(job: StepJob) -> None:
     rel = f"{MARKERS}/{job.step}.json"
     if isinstance(job.workspace, str):
-        _remote.remove(job.workspace, rel)
+        _staging.remove(job.workspace, rel)
     else:
         (job.workspace / rel).unlink(missing_ok=True)
 
@@ -212,7 +213,7 @@ def _write_marker(job: StepJob, key: str) -> None:
               "options": _options(job.options)}
     text = json.dumps(record, indent=2)
     if isinstance(job.workspace, str):
-        _remote.write_bytes(job.workspace, f"{MARKERS}/{job.step}.json", text.encode())
+        _staging.write_bytes(job.workspace, f"{MARKERS}/{job.step}.json", text.encode())
         return
     with atomic_output(job.workspace / MARKERS / f"{job.step}.json", overwrite=True) as tmp:
         tmp.write_text(text)

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mapkit import _staging
 from mapkit._resources import available_memory
 from mapkit.esdf._chunked import ChunkedSummary, chunk_halo
 from mapkit.esdf._distance import Backend
@@ -19,7 +20,7 @@ from mapkit.esdf._errors import EsdfError
 from mapkit.fusion import CLOUD, FUSE_META, TSDF, WORLD, FusionError, check_fused
 from mapkit.fusion._occupancy import Grid, carve_free_space, fill_unknown, occupancy_from_tsdf
 from mapkit.ingest import open_frames_store
-from mapkit.workspace import check_writable
+from mapkit.workspace import FRAMES, check_writable
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -226,12 +227,20 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
     storage its workers share).
 
     `output`: where map.zarr goes instead of ``workspace/map.zarr``, a path or an fsspec URL
-    (``s3://bucket/site/map.zarr``); the workspace itself stays local (fusion's files are Open3D's).
+    (``s3://bucket/site/map.zarr``).
+
+    `workspace` may be an fsspec URL: its frames.zarr and fused files are copied into a local
+    temporary folder (``$TMPDIR``; on a cluster, storage its workers share) and map.zarr is written
+    at the URL (:mod:`mapkit._staging`).
     """
     config = config or EsdfConfig()
     config.validate()
     if workers is not None and (isinstance(workers, bool) or workers < 1):
         raise EsdfBuildError(f"--workers {workers} must be at least 1 (1 = this process)")
+    url = _staging.remote(workspace)
+    if url is not None:
+        return _build_at_url(url, config, overwrite=overwrite, progress=progress, scheduler=scheduler,
+                             workers=workers, output=output)
     workspace = Path(workspace)
     if (workspace / WORLD).exists() and not (workspace / FUSE_META).exists():
         from mapkit.esdf._world import build_world_esdf
@@ -398,3 +407,19 @@ def _write_dense(workspace: Path, target: Path | str, occupied: NDArray[np.bool_
         parameters=parameters, overwrite=overwrite,
     )
     return prevented
+
+
+def _build_at_url(url: str, config: EsdfConfig, *, overwrite: bool, progress: bool, scheduler: str | None,
+                  workers: int | None, output: str | Path | None) -> EsdfSummary:
+    """:func:`build_esdf` for a workspace at a URL, from local copies of its frames.zarr and fused files."""
+    import tempfile
+
+    if not _staging.file_set_complete(url, FUSE_META):
+        raise EsdfBuildError(f"{url} has no complete fused map ({FUSE_META} and the files it lists); run "
+                             f"`mapkit fuse BAG... -w {url}` first")
+    with tempfile.TemporaryDirectory(prefix="mapkit-esdf-") as tmp:
+        local = Path(tmp)
+        _staging.download_store(url, FRAMES, local)
+        _staging.download_file_set(url, FUSE_META, local)
+        return build_esdf(local, config, overwrite=overwrite, progress=progress, scheduler=scheduler, workers=workers,
+                          output=output if output is not None else f"{url}/{MAP}")

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mapkit import _staging
 from mapkit._resources import available_memory
 from mapkit._threads import prefetch
 from mapkit._version import __version__
@@ -79,6 +80,10 @@ class FuseSummary:
     seconds: float
     integrate_seconds: float
     outputs: list[Path] = field(default_factory=list)
+    """The files written; for a workspace at a URL, the local copies they were published from
+    (``urls`` names them where they now are)."""
+    urls: list[str] = field(default_factory=list)
+    """For a workspace at a URL: where each of ``outputs`` was published."""
 
     @property
     def frames_per_second(self) -> float:
@@ -393,11 +398,17 @@ def fuse(
     overwrite: bool = False,
     progress: bool = True,
 ) -> FuseSummary:
-    """Ingest `recordings` (reusing an up-to-date frames.zarr) and fuse them (see `fuse_store`)."""
+    """Ingest `recordings` (reusing an up-to-date frames.zarr) and fuse them (see `fuse_store`).
+
+    `workspace` may be an fsspec URL: the work then runs in a local temporary folder and frames.zarr
+    (when ingested here) and the fused files are published at the URL (:mod:`mapkit._staging`)."""
     config = config or FuseConfig()
     config.validate()
     _device(config.device)  # before ingesting: a missing GPU should not cost an ingest first
     ingest_config = ingest_config or IngestConfig()
+    url = _staging.remote(workspace)
+    if url is not None:
+        return _fuse_at_url(recordings, url, config, ingest_config, overwrite=overwrite, progress=progress)
     workspace = Path(workspace)
     frames_path = workspace / FRAMES
     if recordings:
@@ -414,3 +425,31 @@ def fuse(
     elif not frames_path.exists():
         raise FusionError(f"no recordings given and {frames_path} does not exist; pass BAG... or run `mapkit ingest` first")
     return fuse_store(open_frames_store(workspace), workspace, config, overwrite=overwrite, progress=progress)
+
+
+def _fuse_at_url(recordings: Sequence[str | Path], url: str, config: FuseConfig, ingest_config: IngestConfig, *,
+                 overwrite: bool, progress: bool) -> FuseSummary:
+    """:func:`fuse` for a workspace at a URL: in a local temporary folder holding a copy of the URL's
+    frames.zarr, then published (a new frames.zarr with its zarr.json last, the fused files before
+    the fuse.json that lists them)."""
+    import tempfile
+
+    if not overwrite and _staging.read_bytes(url, FUSE_META) is not None:
+        raise FusionError(f"{url}/{FUSE_META} exists (a fused map); pass --overwrite to replace it")
+    frames_before = _staging.read_bytes(url, _staging.store_marker(FRAMES))
+    if frames_before is None and not recordings:
+        raise FusionError(f"no recordings given and {url}/{FRAMES} does not exist; pass BAG... or run "
+                          f"`mapkit ingest BAG... -w {url}` first")
+    with tempfile.TemporaryDirectory(prefix="mapkit-fuse-") as tmp:
+        local = Path(tmp)
+        if frames_before is not None:
+            _staging.download_store(url, FRAMES, local)
+        try:
+            summary = fuse(recordings, local, config, ingest_config, overwrite=overwrite, progress=progress)
+        except MapkitError as exc:  # name the workspace the user gave, not the temporary folder
+            raise type(exc)(str(exc).replace(str(local), url)) from None
+        if (local / _staging.store_marker(FRAMES)).read_bytes() != frames_before:
+            _staging.publish_store(local, url, FRAMES)
+        _staging.publish_file_set(local, url, FUSE_META)
+    summary.urls = [f"{url}/{p.name}" for p in summary.outputs]
+    return summary
