@@ -7,7 +7,9 @@ Simulates the same flights once (forest worlds, 160x120 depth at 30 Hz), then me
   batch 1    run_batch with a local cluster of 1 worker (cluster start and stop included)
   batch 2    the same with 2 workers
   rerun      batch 1 again: every step is up to date, so this is the fixed cost (cluster, workers)
-and, with --growth, batch 2 on the first 2 and 4 flights (how wall time grows with flights).
+The three runs are repeated in --repeat interleaved rounds (default 3) and their medians reported:
+on a shared machine one round moves by ±10 %. With --growth, batch 2 also runs on the first 2 and 4
+flights (how wall time grows with flights).
 Goals (issue 15): batch 2 ≥ 1.7× batch 1 on 2 cores; batch 1 within 10 % of the sequence.
 """
 
@@ -17,6 +19,7 @@ import argparse
 import os
 import resource
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -87,6 +90,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--flights", type=int, default=6)
     parser.add_argument("--duration", type=float, default=8.0, help="Seconds per simulated flight.")
+    parser.add_argument("--repeat", type=int, default=3, help="Rounds of the three runs; medians are reported.")
     parser.add_argument("--growth", action=argparse.BooleanOptionalAction, default=True,
                         help="Also time batch 2 on 2 and 4 flights.")
     parser.add_argument("--sequence", nargs="+", type=Path, metavar=("ROOT", "FLIGHT"), help=argparse.SUPPRESS)
@@ -96,19 +100,22 @@ def main() -> None:
         return
     with tempfile.TemporaryDirectory() as tmp:
         flights = make_flights(Path(tmp) / "flights", args.flights, args.duration)
-        times: dict[str, float] = {}
-        cpu: dict[str, float] = {}
+        walls: dict[str, list[float]] = {}
+        cpus: dict[str, list[float]] = {}
         load0 = os.getloadavg()[0]
-        for label, run in (("sequence", lambda r: run_sequence(flights, r)),
-                           ("batch 1", lambda r: run_batch_timed(flights, r, 1)),
-                           ("batch 2", lambda r: run_batch_timed(flights, r, 2))):
-            root = Path(tmp) / label.replace(" ", "")
-            c0 = cpu_seconds()
-            times[label] = run(root)
-            cpu[label] = cpu_seconds() - c0
-            if label == "batch 1":  # a rerun skips every step: the fixed cost of a batch (cluster, workers)
-                times["rerun"] = run_batch_timed(flights, root, 1, expect="skipped")
-            shutil.rmtree(root)
+        for _ in range(args.repeat):  # rounds interleave the runs, so a busy spell hits all of them alike
+            for label, run in (("sequence", lambda r: run_sequence(flights, r)),
+                               ("batch 1", lambda r: run_batch_timed(flights, r, 1)),
+                               ("batch 2", lambda r: run_batch_timed(flights, r, 2))):
+                root = Path(tmp) / label.replace(" ", "")
+                c0 = cpu_seconds()
+                walls.setdefault(label, []).append(run(root))
+                cpus.setdefault(label, []).append(cpu_seconds() - c0)
+                if label == "batch 1":  # a rerun skips every step: the fixed cost of a batch (cluster, workers)
+                    walls.setdefault("rerun", []).append(run_batch_timed(flights, root, 1, expect="skipped"))
+                shutil.rmtree(root)
+        times = {label: statistics.median(v) for label, v in walls.items()}
+        cpu = {label: statistics.median(v) for label, v in cpus.items()}
         growth = {}
         if args.growth:
             for n in (2, 4):
@@ -118,7 +125,8 @@ def main() -> None:
     load = os.getloadavg()[0]
     print(f"input: {args.flights} simulated flights, {args.duration:.0f} s each at 30 Hz, 160x120 depth; fuse voxel "
           f"{FUSE.voxel} m, esdf voxel {ESDF.voxel} m; {os.cpu_count()} cores, load average {load0:.1f} at the start, "
-          f"{load:.1f} at the end (other processes share the cores above a load of 2)")
+          f"{load:.1f} at the end (other processes share the cores above a load of 2); median of {args.repeat} "
+          "interleaved round(s)")
     seq = times["sequence"]
     print(f"{'run':<42}{'wall s':>8}{'flights/min':>13}{'vs sequence':>13}{'CPU s':>8}  goal")
     print(f"{'sequence (single commands, one process)':<42}{seq:>8.1f}{60 * args.flights / seq:>13.2f}{1.0:>13.2f}"
@@ -127,6 +135,9 @@ def main() -> None:
         t = times[label]
         print(f"{label + ' worker(s)':<42}{t:>8.1f}{60 * args.flights / t:>13.2f}{t / seq:>13.2f}{cpu[label]:>8.1f}  {goal}")
     print(f"{'batch 1 worker, rerun (every step skipped)':<42}{times['rerun']:>8.1f}")
+    if args.repeat > 1:
+        print("rounds, wall s: " + "; ".join(f"{label} " + " / ".join(f"{t:.1f}" for t in walls[label])
+                                            for label in ("sequence", "batch 1", "batch 2")))
     print(f"speed-up batch 2 vs batch 1: {times['batch 1'] / times['batch 2']:.2f}x (goal >= 1.7x on 2 cores); "
           f"overhead batch 1 vs sequence: {100 * (times['batch 1'] / seq - 1):+.1f} % (goal <= +10 %)")
     if len(growth) > 1:
