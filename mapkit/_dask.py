@@ -5,8 +5,9 @@ Every stage that fans out over Dask (``mapkit batch``, the chunked ESDF, ``mapki
 
 - ``scheduler`` given (``tcp://HOST:8786``): connect to it;
 - else the Dask convention ``DASK_SCHEDULER_ADDRESS`` (Dask's own ``scheduler-address`` config);
-- else a :class:`distributed.LocalCluster` of one single-threaded worker process per available core
-  (the process's CPU affinity, not the machine's total), dashboard on a free port, workers without
+- else a :class:`distributed.LocalCluster` of one worker process per available core (the process's
+  CPU affinity, not the machine's total; one task at a time each, native libraries get the cores
+  divided among the workers), dashboard on a free port, workers without
   Dask's statistical profiler (the dashboard's Profile page stays empty; it cost ~10 % CPU).
 
 A scheduler that cannot be reached is a :class:`SchedulerError` naming the address and the fix.
@@ -41,6 +42,13 @@ def available_cpus() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not Linux
         return max(1, os.cpu_count() or 1)
+
+
+def default_threads() -> int:
+    """Threads for native work in this process: ``OMP_NUM_THREADS`` when set to a positive integer (a
+    Dask worker's share of its machine, or a batch scheduler's), else the available cores."""
+    text = os.environ.get("OMP_NUM_THREADS", "").strip()
+    return int(text) if text.isdigit() and int(text) > 0 else available_cpus()
 
 
 @dataclass(frozen=True)
@@ -104,13 +112,14 @@ def _client(address: str | None, workers: int | None, timeout_s: float) -> Itera
         n = workers if workers is not None else available_cpus()
         if n < 1:
             raise SchedulerError(f"workers={n} must be at least 1")
-        # Single-threaded worker processes: the stages are numpy/torch code that holds the GIL in places
-        # and sets its own thread counts; processes also isolate a worker that dies.
+        # One task at a time per worker process: the stages are numpy/torch code that holds the GIL in
+        # places, and processes isolate a worker that dies; native threads come from _worker_environ.
         # The workers' statistical profiler samples every running task's stack each 10 ms: about 10 %
         # more CPU on the batch pipeline (2 flights of 24 s, one worker: 25.0 vs 23.0 CPU-s, the
         # single commands 22.1). Local clusters go without it; a cluster of your own keeps Dask's default.
-        with _no_leaked_malloc_setting(), dask.config.set({"distributed.nanny.pre-spawn-environ": _worker_environ(),
-                              "distributed.worker.profile.enabled": False}), \
+        environ = _worker_environ(n)
+        with _worker_environment(environ), dask.config.set({"distributed.nanny.pre-spawn-environ": environ,
+                                                           "distributed.worker.profile.enabled": False}), \
                 LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
                              silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
             yield client, _info(client, local=True)
@@ -126,40 +135,54 @@ def _client(address: str | None, workers: int | None, timeout_s: float) -> Itera
         yield client, _info(client, local=False)
 
 
-def _worker_environ() -> dict[str, Any]:
-    """The environment Dask's nanny gives local workers, less its ``MALLOC_TRIM_THRESHOLD_=65536``.
+def _worker_environ(workers: int) -> dict[str, Any]:
+    """The environment Dask's nanny gives local workers, less its ``MALLOC_TRIM_THRESHOLD_=65536``, and
+    with the native libraries' thread limits (OMP, MKL, OpenBLAS; Open3D, numpy and the EDT follow
+    them) set to this machine's cores shared among the ``workers``, where Dask sets 1.
 
-    That setting makes glibc hand freed memory back at once, and also fixes its mmap threshold, so
-    every large numpy temporary is mapped, faulted in and unmapped again: the batch pipeline on a
-    worker spent 4.5 s of system time where the same calls in one process spend 1.1 s (20 % more
-    wall time). The OMP/MKL/OpenBLAS thread limits of one stay.
+    ``MALLOC_TRIM_THRESHOLD_`` makes glibc hand freed memory back at once, and also fixes its mmap
+    threshold, so every large numpy temporary is mapped, faulted in and unmapped again: the batch
+    pipeline on a worker spent 4.5 s of system time where the same calls in one process spend 1.1 s
+    (20 % more wall time). A single worker on two cores with one thread leaves a core idle that the
+    single commands use.
     """
     import dask
 
     environ = dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {}
-    return {k: v for k, v in dict(environ).items() if k != "MALLOC_TRIM_THRESHOLD_"}
+    threads = max(1, available_cpus() // workers)
+    out = {k: v for k, v in dict(environ).items() if k != "MALLOC_TRIM_THRESHOLD_"}
+    out.update({k: threads for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")})
+    return out
 
 
 @contextmanager
-def _no_leaked_malloc_setting() -> Iterator[None]:
-    """A nanny started with Dask's defaults (another library's LocalCluster, earlier in this process)
-    leaves its ``MALLOC_TRIM_THRESHOLD_`` in this process's environment, which workers would inherit;
-    hide it while our cluster runs. A value of the user's own (not Dask's) stays."""
+def _worker_environment(environ: dict[str, Any]) -> Iterator[None]:
+    """This process's environment set to ``environ`` while a local cluster runs, and restored after.
+
+    A nanny resolves each of its variables from this process's environment before its config, and
+    copies the result into this process's environment for good. So a cluster started with Dask's
+    defaults earlier (another library's) would hand its ``MALLOC_TRIM_THRESHOLD_`` and thread limits
+    to our workers, and ours would leave ``OMP_NUM_THREADS=1`` behind in the command's own process.
+    A ``MALLOC_TRIM_THRESHOLD_`` of the user's own (not Dask's default) reaches the workers."""
     import dask
 
     key = "MALLOC_TRIM_THRESHOLD_"
     # Dask's shipped default, not the current config (which a cluster of ours, open around this one, has changed)
     shipped = dask.config.merge(*dask.config.defaults)
     dasks = (dask.config.get("distributed.nanny.pre-spawn-environ", default={}, config=shipped) or {}).get(key)
-    mine = os.environ.get(key)
-    if mine is None or dasks is None or mine != str(dasks):
-        yield
-        return
-    del os.environ[key]
+    names = set(environ) | {key}
+    before = {name: os.environ.get(name) for name in names}
+    if dasks is not None and before[key] == str(dasks):
+        del os.environ[key]
+    os.environ.update({name: str(value) for name, value in environ.items()})
     try:
         yield
     finally:
-        os.environ[key] = mine
+        for name, value in before.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
 
 
 def _info(client: Client, *, local: bool) -> ClusterInfo:

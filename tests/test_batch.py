@@ -174,8 +174,8 @@ def test_batch_survives_a_worker_killed_mid_task(flights: list[Path], reference:
 
 @pytest.fixture
 def one_process(monkeypatch: pytest.MonkeyPatch) -> None:
-    """run_step sets torch to one thread for worker processes; not for the test process."""
-    monkeypatch.setattr(steps_module, "_one_thread", lambda: None)
+    """run_step sets torch threads for worker processes; not for the test process."""
+    monkeypatch.setattr(steps_module, "_worker_threads", lambda: None)
 
 
 def test_step_skips_when_current_and_reruns_on_option_input_or_output_change(

@@ -12,7 +12,7 @@ from scenes import box_world, orbit_poses, record_scene
 from test_esdf import random_scene
 
 import mapkit.esdf._build as build
-from mapkit._dask import dask_client
+from mapkit._dask import available_cpus, dask_client
 from mapkit.cli.main import main
 from mapkit.esdf import (
     EsdfConfig,
@@ -76,20 +76,23 @@ def test_on_a_local_cluster_into_map_zarr(tmp_path: Path, client) -> None:
 
 
 def test_local_workers_start_without_the_profiler_and_the_malloc_setting(client, monkeypatch: pytest.MonkeyPatch) -> None:
-    def worker_settings() -> tuple[bool, str | None]:
+    def worker_settings() -> tuple[bool, str | None, str | None]:
         import os
 
         import dask
 
-        return bool(dask.config.get("distributed.worker.profile.enabled")), os.environ.get("MALLOC_TRIM_THRESHOLD_")
+        return (bool(dask.config.get("distributed.worker.profile.enabled")), os.environ.get("MALLOC_TRIM_THRESHOLD_"),
+                os.environ.get("OMP_NUM_THREADS"))
 
-    assert set(client.run(worker_settings).values()) == {(False, None)}
+    cores = available_cpus()  # shared among the workers by the native libraries' thread limits
+    assert set(client.run(worker_settings).values()) == {(False, None, str(max(1, cores // 2)))}
     # What a LocalCluster with Dask's defaults, started earlier in this process, leaves behind; and a
     # cluster of ours (`client`) is open around the new one.
     monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
+    omp = os.environ.get("OMP_NUM_THREADS")
     with dask_client(None, workers=1) as (c, _):
-        assert set(c.run(worker_settings).values()) == {(False, None)}
-    assert os.environ["MALLOC_TRIM_THRESHOLD_"] == "65536"
+        assert set(c.run(worker_settings).values()) == {(False, None, str(cores))}
+    assert os.environ["MALLOC_TRIM_THRESHOLD_"] == "65536" and os.environ.get("OMP_NUM_THREADS") == omp
 
 
 def test_numpy_destinations_are_refused_on_a_cluster(client) -> None:

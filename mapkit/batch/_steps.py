@@ -98,7 +98,7 @@ def run_step(job: StepJob, previous: StepOutcome | None = None) -> StepOutcome:
         why = stale_reason(job, key)
         if why is None:
             return StepOutcome(job.name, job.step, "skipped", "up to date", time.perf_counter() - t0)
-        _one_thread()
+        _worker_threads()
         _remove_marker(job)
         if isinstance(job.workspace, str):
             _run_at_url(job, job.workspace)
@@ -121,13 +121,15 @@ def _run_at_url(job: StepJob, url: str) -> None:
     _remote.stage_out(url, job.step, scratch)
 
 
-def _one_thread() -> None:
-    """One thread per worker process: each worker is one core. Dask's nanny starts workers with
-    OMP_NUM_THREADS=1 (numpy's BLAS, Open3D, torch read it); a torch already loaded is set here. The
-    steps never import torch: importing it only for this costs seconds per worker, at start and exit."""
+def _worker_threads() -> None:
+    """A torch already loaded gets the worker's share of the cores (``OMP_NUM_THREADS``, which the local
+    cluster sets and numpy's BLAS, Open3D and the EDT follow). The steps never import torch: importing
+    it only for this costs seconds per worker, at start and exit."""
     torch = sys.modules.get("torch")
     if torch is not None:
-        torch.set_num_threads(1)
+        from mapkit._dask import default_threads
+
+        torch.set_num_threads(default_threads())
 
 
 def _digest(payload: Any) -> str:

@@ -60,6 +60,14 @@ def float_grid(name: str, arr: Any) -> np.ndarray:
 
 
 def threads(value: Any) -> int:
+    """A thread count; None: ``OMP_NUM_THREADS`` when it is set (as Dask's workers and batch schedulers
+    set it, one per worker), else the cores this process may use, so workers sharing a machine do not
+    each start a thread per core."""
+    if value is None:
+        from mapkit._dask import default_threads
+
+        return default_threads()
     if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
         raise EsdfError(f"threads={value!r} must be a positive integer (the number of CPU threads to use)")
     return int(value)
+

@@ -63,7 +63,7 @@ def signed_distance_chunked(
     sigma: float = 0.0,
     truncate: float = 3.0,
     out_raw: Any = None,
-    threads: int = 2,
+    threads: int | None = None,
     progress: bool = True,
     client: Client | None = None,
     local_workers: int = 1,
@@ -102,7 +102,8 @@ def signed_distance_chunked(
     out_raw
         Optional float32 [nx, ny, nz] destination for the unsmoothed (clamped) field.
     threads
-        CPU threads each task uses for the EDT and the Gaussian.
+        CPU threads each task uses for the EDT and the Gaussian (None: ``OMP_NUM_THREADS`` if set, else
+        the available cores).
     progress
         Show a tqdm bar on stderr (chunks done, rate, ETA).
     client

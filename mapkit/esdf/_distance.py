@@ -20,7 +20,7 @@ def signed_distance(
     voxel_size: float,
     max_dist: float | None = None,
     backend: Backend = "edt",
-    threads: int = 2,
+    threads: int | None = None,
 ) -> np.ndarray:
     """Exact signed Euclidean distance in metres of every voxel to the obstacle surface.
 
@@ -38,7 +38,7 @@ def signed_distance(
         sides). ``"scipy"``: ``scipy.ndimage.distance_transform_edt`` on each side (exact too;
         slower, float64 intermediates). Both give the same field to float32 rounding.
     threads
-        CPU threads for the ``edt`` backend.
+        CPU threads for the ``edt`` backend (None: ``OMP_NUM_THREADS`` if set, else the available cores).
 
     Returns
     -------
@@ -119,7 +119,7 @@ def smooth(
     voxel_size: float,
     sigma: float,
     truncate: float = 3.0,
-    threads: int = 2,
+    threads: int | None = None,
 ) -> tuple[np.ndarray, int]:
     """Gaussian-smooth a signed distance field without flipping the sign away from the surface.
 
@@ -135,7 +135,7 @@ def smooth(
         Kernel half-width in standard deviations (radius = ``int(truncate * sigma/voxel_size + 0.5)``
         voxels, as in scipy). Borders repeat the edge voxel (scipy ``mode="nearest"``).
     threads
-        CPU threads.
+        CPU threads (None: ``OMP_NUM_THREADS`` if set, else the available cores).
 
     Returns
     -------
