@@ -8,8 +8,9 @@ before downloads nothing), runs the same library call as with a local root, then
 product at the URL the way readers expect a finished one (:mod:`mapkit._staging`: stores with their
 root ``zarr.json`` last; fuse's files before the fuse.json that lists them).
 
-The step's marker (``.batch/<step>.json``) is written after its product, as with a local root. The
-scratch workspace of a recording is removed when its last step has run.
+The step's marker (``.batch/<step>.json``) is written after its product, as with a local root. A
+recording's scratch workspace is removed by its last step, and every worker removes what is left of
+the root's when the batch ends.
 """
 
 from __future__ import annotations
@@ -33,10 +34,15 @@ READS: dict[Step, tuple[Step, ...]] = {"ingest": (), "fuse": ("ingest",), "esdf"
 """The steps whose products a step reads from its workspace."""
 
 
+def _root_scratch(root_url: str) -> Path:
+    digest = hashlib.sha256(root_url.rstrip("/").encode()).hexdigest()[:16]
+    return Path(tempfile.gettempdir()) / "mapkit-batch" / digest
+
+
 def scratch_for(workspace_url: str) -> Path:
-    """This worker's local scratch workspace for a workspace URL."""
-    digest = hashlib.sha256(workspace_url.rstrip("/").encode()).hexdigest()[:16]
-    return Path(tempfile.gettempdir()) / "mapkit-batch" / digest / workspace_url.rstrip("/").rsplit("/", 1)[-1]
+    """This worker's local scratch workspace for a workspace URL (``ROOT/<name>``)."""
+    root, name = workspace_url.rstrip("/").rsplit("/", 1)
+    return _root_scratch(root) / name
 
 
 def fused_complete(workspace_url: str) -> bool:
@@ -77,3 +83,9 @@ def stage_out(workspace_url: str, step: Step, scratch: Path) -> None:
 def drop_scratch(workspace_url: str) -> None:
     """Remove this worker's scratch workspace of a recording (its last step has run)."""
     shutil.rmtree(scratch_for(workspace_url), ignore_errors=True)
+
+
+def drop_root_scratch(root_url: str) -> None:
+    """Remove every scratch workspace of a batch root on this worker (run on each worker at the end:
+    a recording's earlier steps may have run on workers its last step did not)."""
+    shutil.rmtree(_root_scratch(root_url), ignore_errors=True)

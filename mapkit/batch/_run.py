@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from mapkit._dask import ClusterInfo, dask_client
+from mapkit.batch import _remote
 from mapkit.batch._config import BatchConfig, Recording, parse_root
 from mapkit.batch._lock import root_lock
 from mapkit.batch._steps import Status, StepJob, StepOutcome, run_step
@@ -85,6 +86,8 @@ def run_batch(config: BatchConfig, *, progress: bool = True) -> BatchSummary:
         _announce(config, info, progress=progress)
         chains = _submit(client, config, root)
         results = _collect(config.recordings, chains, progress=progress)
+        if isinstance(root, str):
+            client.run(_remote.drop_root_scratch, root)
         return BatchSummary(root=root, results=results, seconds=time.perf_counter() - t0, cluster=info)
 
 
