@@ -651,3 +651,51 @@ def test_a_follow_fraction_outside_0_1_is_refused_by_name(follow: float):
 
     with pytest.raises(EvalError, match="--follow must be in"):
         EvalConfig(execution=Execution(follow=follow)).validate()
+
+
+@pytest.mark.parametrize("speed, expected", [(None, 2.0), (0.0, 0.0), (1.0, 1.0)])
+def test_plans_toward_a_way_out_pass_it_at_the_subgoal_speed(monkeypatch, speed: float | None, expected: float):
+    """When nothing leads on toward the goal, the network plans toward the open direction, and keeps
+    that way-out point for the next plans; those plans pass it at ``subgoal_speed`` (None: cruise)."""
+    import dataclasses
+
+    from mapkit.evaluation import Execution
+    from mapkit.evaluation import _methods as methods
+    from mapkit.planner import CameraInput
+
+    torch.manual_seed(0)
+    cfg = planner_preset("cpu", input_size=(48, 64), num_candidates=4, depth_check=True, velocity_input=True,
+                         head_activation="leaky_relu")
+    K = np.array([[48.4, 0.0, 39.5], [0.0, 48.4, 29.5], [0.0, 0.0, 1.0]])
+    T_bc = np.array([[0.0, 0.0, 1.0, 0.08], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.02], [0.0, 0.0, 0.0, 1.0]])
+    method = methods.LearnedMethod("learned", PlannerNet(cfg), camera=CameraInput.from_calibration(K, 80, 60, T_bc),
+                                   execution=Execution(subgoal_speed=speed))
+    speeds: list[float] = []
+    attempt = methods.LearnedMethod._attempt
+
+    def recorded(self, obs, start, goal, end_speed):
+        speeds.append(end_speed)
+        return attempt(self, obs, start, goal, end_speed)
+
+    monkeypatch.setattr(methods.LearnedMethod, "_attempt", recorded)
+    # The network's first plan is blocked by what the vehicle remembers; everything after it is clear.
+    monkeypatch.setattr(methods.LearnedMethod, "_remembered",
+                        lambda self, obs, start, a: dataclasses.replace(a, blocked=len(speeds) == 1))
+    monkeypatch.setattr(methods, "open_direction", lambda *args, **kwargs: np.array([3.0, 1.0, 0.0]))
+    T_wb = np.eye(4)
+    T_wb[:3, 3] = START
+    obs = Observation(t=0.0, T_world_body=T_wb, state_world=np.vstack([START, np.zeros((3, 3))]), goal_world=GOAL,
+                      local_goal_body=np.array([6.0, 0.0, 0.0]), depth=np.full((60, 80), 5.0, dtype=np.float32),
+                      goal_clipped=True)
+    method.plan(obs)
+    assert speeds == [cfg.cruise_speed, expected]
+    method.plan(dataclasses.replace(obs, t=0.5))  # the way out is kept for subgoal_time
+    assert speeds[2] == expected
+
+
+@pytest.mark.parametrize("speed", [-1.0, float("nan")])
+def test_a_negative_subgoal_speed_is_refused_by_name(speed: float):
+    from mapkit.evaluation import EvalError, Execution
+
+    with pytest.raises(EvalError, match="subgoal_speed must be >= 0"):
+        EvalConfig(execution=Execution(subgoal_speed=speed)).validate()

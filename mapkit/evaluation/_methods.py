@@ -86,6 +86,12 @@ class Execution:
     instead, until it gets within a metre of that point or this time passes. Office and garage on
     seeds 7 / 13 (120 pairs each): 1 s 80.8 / 75.0 %, 1.5 s 79.2 / 69.2 %, 2 s 77.5 / 75.0 %,
     3 s 75.8 / 70.8 %, 5 s 71.7 / 68.3 %."""
+    subgoal_speed: float | None = None
+    """m/s at which plans pass the way-out point of ``subgoal_time`` (None: the planner's cruise speed;
+    0: stop there, as until 2026-11-29). Stopping at every way out made a stop-and-go of the office's
+    blocked stretches, and flying toward open space was half of a flight's effort. Office, dev seeds
+    31 / 37 (60 pairs, `accel` 1.5): 0 → 80.0 / 60.0 %, 1 m/s 70.0 / 58.3 %, cruise 71.7 / 58.3 % at
+    ×0.49 / ×0.39 the effort on the pairs both reached; the five held-out seeds in the README."""
     follow: float = 0.75
     """Fraction of the way each interior key-point of a plan moves toward where the reference being
     flown will be when the new plan reaches that key-point (by at most ``corridor`` per axis; the
@@ -455,6 +461,10 @@ class LearnedMethod:
                 self._subgoal = None
         return None if self._subgoal is None else self._subgoal[0]
 
+    def _subgoal_speed(self) -> float:
+        speed = self.execution.subgoal_speed
+        return self.config.cruise_speed if speed is None else speed
+
     def plan(self, obs: Observation) -> MethodPlan:
         t0 = time.perf_counter()
         start = obs.start_body()
@@ -463,7 +473,8 @@ class LearnedMethod:
             attempt = self._attempt(obs, start, np.asarray(obs.local_goal_body, dtype=np.float64),
                                     self.config.cruise_speed if obs.goal_clipped else 0.0)
         else:
-            attempt = self._attempt(obs, start, obs.T_world_body[:3, :3].T @ (sub - obs.T_world_body[:3, 3]), 0.0)
+            attempt = self._attempt(obs, start, obs.T_world_body[:3, :3].T @ (sub - obs.T_world_body[:3, 3]),
+                                    self._subgoal_speed())
         if self._memory is not None:
             self._memory.add(obs)
             attempt = self._remembered(obs, start, attempt)
@@ -472,7 +483,7 @@ class LearnedMethod:
                 if body is not None:
                     point = obs.T_world_body[:3, :3] @ body + obs.T_world_body[:3, 3]
                     self._subgoal = (point, obs.t + self.execution.subgoal_time)
-                    attempt = self._remembered(obs, start, self._attempt(obs, start, body, 0.0))
+                    attempt = self._remembered(obs, start, self._attempt(obs, start, body, self._subgoal_speed()))
         if self.spline:
             timing = attempt.timing
             coeffs, durations = _clamped_spline(np.concatenate([start[:1], attempt.kp]), start[1],
