@@ -42,6 +42,9 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @click.option("--memory", type=FINITE, default=8.0, show_default=True,
               help="Seconds of depth images the learned planner remembers: paths that come near a remembered surface "
                    "are replaced by a clear candidate, or a detour toward open space, or braking; 0 = off.")
+@click.option("--subgoal-speed", type=FINITE, default=None,
+              help="m/s at which learned plans pass a way out toward open space (when nothing leads on toward "
+                   "the goal); default: the cruise speed; 0 = stop there.")
 @click.option("--follow", type=FRACTION, default=0.75, show_default=True,
               help="Fraction of the way each key-point of a new plan moves toward the reference being flown "
                    "(at most the corridor's width): smoother replanning; 0 = the network's key-points.")
@@ -58,7 +61,7 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
-             corridor_check: bool, v_max: float, a_max: float, memory: float, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
+             corridor_check: bool, v_max: float, a_max: float, memory: float, subgoal_speed: float | None, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
              record_plans: bool, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, Execution, LoopConfig, evaluate
@@ -68,7 +71,8 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
     config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
                         workers=workers, scheduler=scheduler, record_plans=record_plans,
                         execution=Execution(corridor=corridor or None, check_corridor=corridor_check, v_max=v_max or None,
-                                            a_max=a_max or None, memory=memory or None, follow=follow),
+                                            a_max=a_max or None, memory=memory or None, subgoal_speed=subgoal_speed,
+                                            follow=follow),
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
                                         on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,
                                         look_ahead=look_ahead))

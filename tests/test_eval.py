@@ -347,6 +347,7 @@ def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
     (["--memory", "-8"], "--memory must be a positive number"),
     (["--plan-latency", "0.7"], "--plan-latency must be in"),
     (["--final-approach", "-1"], "--final-approach must be >= 0"),
+    (["--subgoal-speed", "-1"], "--subgoal-speed must be >= 0"),
     (["--horizon", "-3"], "--horizon must be > 0"),
     (["--min-distance", "0"], "--min-distance must be > 0"),
 ])
@@ -697,5 +698,5 @@ def test_plans_toward_a_way_out_pass_it_at_the_subgoal_speed(monkeypatch, speed:
 def test_a_negative_subgoal_speed_is_refused_by_name(speed: float):
     from mapkit.evaluation import EvalError, Execution
 
-    with pytest.raises(EvalError, match="subgoal_speed must be >= 0"):
+    with pytest.raises(EvalError, match="--subgoal-speed must be >= 0"):
         EvalConfig(execution=Execution(subgoal_speed=speed)).validate()

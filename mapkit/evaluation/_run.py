@@ -114,7 +114,8 @@ class EvalConfig:
             if not (math.isfinite(value) and value > 0):
                 raise EvalError(f"Execution.{name} must be a positive number of seconds, got {value}")
         if ex.subgoal_speed is not None and not (math.isfinite(ex.subgoal_speed) and ex.subgoal_speed >= 0):
-            raise EvalError(f"Execution.subgoal_speed must be >= 0 m/s (None: the cruise speed), got {ex.subgoal_speed}")
+            raise EvalError(f"--subgoal-speed must be >= 0 m/s (0: stop at the way out; default: the cruise speed), "
+                            f"got {ex.subgoal_speed}")
         if not (math.isfinite(ex.follow) and 0 <= ex.follow <= 1):
             raise EvalError(f"--follow must be in [0, 1] (the fraction of the way toward the reference), got {ex.follow}")
         if not (math.isfinite(loop.plan_latency) and 0 <= loop.plan_latency < loop.replan_interval):
