@@ -490,3 +490,69 @@ def test_depth_margins_against_a_wall_in_front():
     f = depth_margins(torch.stack([near, far_aside], dim=1), x, calib, max_depth=10.0).reshape(1, 2, -1, 2)
     at_2m = 5  # the sixth point (2 m along the path, last of the second segment)
     assert float(f[0, 0, at_2m, 1]) < 0.05 and float(f[0, 1, at_2m, 1]) > 1.0 - 1e-6
+
+
+@pytest.mark.parametrize("shape", [(1, 96, 160), (3, 95, 161), (2, 33, 48)])
+def test_nearest_depth_pyramid_cpu_path_equals_pooling_and_brute_force(shape):
+    """The numpy minima used on the CPU equal torch's pooling exactly (odd and even sizes), and each
+    full-resolution level is the plain minimum over its square window (a brute-force check)."""
+    from mapkit.planner._depthcheck import WINDOWS, _pyramid_torch, nearest_depth_pyramid
+
+    g = torch.Generator().manual_seed(3)
+    B, h, w = shape
+    x = torch.stack([torch.rand(B, h, w, generator=g), (torch.rand(B, h, w, generator=g) > 0.2).float()], dim=1)
+    fast = nearest_depth_pyramid(x)
+    level = torch.where(x[:, 1:2] > 0.5, x[:, :1], torch.ones_like(x[:, :1]))
+    assert fast.shape == (B, len(WINDOWS), h, w) and fast.dtype == torch.float32
+    assert torch.equal(fast, _pyramid_torch(level))
+    padded = np.pad(level[:, 0].numpy(), ((0, 0), (1, 1), (1, 1)), constant_values=np.inf)
+    brute = np.min([padded[:, 1 + dy:1 + dy + h, 1 + dx:1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0)
+    np.testing.assert_array_equal(fast[:, 0].numpy(), brute)  # window 3
+
+
+def test_prepare_inference_freezes_the_encoder_without_changing_the_plan():
+    """The frozen encoder serves single-image plans with the eager encoder's features (float
+    rounding), is not part of the state dict, and is dropped by train(); batches keep the eager one."""
+    cfg = planner_preset("cpu")
+    torch.manual_seed(0)
+    net = PlannerNet(cfg).eval()
+    depth, goal = _inputs(2, cfg)
+    x = net.preprocess(depth)
+    with torch.inference_mode():
+        eager = net.encoder(x[:1])
+        before = net(x[:1], goal[:1]).keypoints
+    keys = set(net.state_dict())
+    assert net.prepare_inference() is net and not net.training
+    if net._frozen_encoder is None:
+        pytest.skip("this torch build cannot freeze the encoder")
+    with torch.inference_mode():
+        frozen = net._frozen_encoder.module(x[:1])
+        after = net(x[:1], goal[:1]).keypoints
+        assert torch.equal(net._encode(x), net.encoder(x))  # a batch of two: the eager encoder
+    assert not torch.equal(frozen, eager)  # really another implementation ...
+    torch.testing.assert_close(frozen, eager, atol=1e-4, rtol=1e-4)  # ... of the same features
+    torch.testing.assert_close(after, before, atol=1e-4, rtol=1e-4)
+    assert set(net.state_dict()) == keys
+    net.train()
+    assert net._frozen_encoder is None
+
+
+def test_a_second_goal_from_the_same_image_reuses_its_encoding():
+    """``image=`` from an earlier pass gives exactly the output of a fresh pass for the new goal."""
+    cfg = planner_preset("cpu")
+    torch.manual_seed(0)
+    net = PlannerNet(cfg).eval()
+    depth, goal = _inputs(2, cfg)
+    x = net.preprocess(depth[:1])
+    cam = None
+    if cfg.depth_check and cfg.num_candidates > 1:
+        from mapkit.planner import CameraInput
+        cam = CameraInput.from_calibration(torch.tensor([[100.0, 0, 100], [0, 100, 60], [0, 0, 1]]), 200, 120,
+                                           torch.tensor([[0.0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]]))
+    with torch.inference_mode():
+        first = net(x, goal[:1], camera=cam)
+        assert first.image is not None and first.image.x is x
+        fresh = net(x, goal[1:], camera=cam)
+        reused = net(x, goal[1:], camera=cam, image=first.image)
+    for name in ("keypoints", "eta_logit", "candidates"):
+        assert torch.equal(getattr(reused, name), getattr(fresh, name))

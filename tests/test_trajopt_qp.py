@@ -330,3 +330,26 @@ def test_corridor_is_bounded_along_each_segment():
     t = ((dense[:, None] - seg_a[None]) * d[None]).sum(-1) / (d * d).sum(-1)[None]
     closest = seg_a[None] + t.clamp(0, 1)[..., None] * d[None]
     assert float((dense[:, None] - closest).norm(dim=-1).min(dim=1).values.max()) < 0.25
+
+
+@pytest.mark.parametrize("which", ["both", "speed", "acceleration"])
+def test_relimited_problem_equals_one_set_up_with_those_limits(which):
+    """Tightening the limits re-uses the problem and changes only the limits' bounds: the result
+    equals the problem set up from scratch with the new limits, entry for entry."""
+    from mapkit.trajopt._minsnap import _position_qp
+
+    w, T = random_problem(3, 4, seed=5)
+    z = torch.zeros(3, 3, 3, dtype=F64)
+    corr = torch.full((3, 4), 0.4, dtype=F64)
+    vm = torch.tensor([2.0, 2.5, 3.0], dtype=F64) if which != "acceleration" else None
+    am = torch.tensor([3.0, 4.0, 5.0], dtype=F64) if which != "speed" else None
+    qp = _position_qp(w, T, z, z, corridor=corr, corridor_samples=4, v_max=vm, a_max=am)
+    assert qp.limit_rows[0] > 0 if vm is not None else qp.limit_rows[0] == 0
+    vm2 = None if vm is None else vm * torch.tensor([0.9, 0.8, 1.0], dtype=F64)
+    am2 = None if am is None else am * torch.tensor([1.0, 0.7, 0.95], dtype=F64)
+    fresh = _position_qp(w, T, z, z, corridor=corr, corridor_samples=4, v_max=vm2, a_max=am2)
+    again = qp.relimited(vm2, am2)
+    for name in ("lo", "hi", "C", "c_fix", "P", "q", "local"):
+        assert torch.equal(getattr(again, name), getattr(fresh, name)), name
+    assert not torch.equal(again.lo, qp.lo)
+    assert np.array_equal(again.seg_np, fresh.seg_np) and again.limit_rows == fresh.limit_rows

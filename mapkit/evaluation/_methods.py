@@ -38,7 +38,7 @@ from scipy.spatial import cKDTree
 
 from mapkit.evaluation._loop import MethodPlan, Observation
 from mapkit.evaluation._pieces import Pieces, pieces_from_body
-from mapkit.planner import Allocation, CameraInput, PlannerConfig, Timing, plan_timing
+from mapkit.planner import Allocation, CameraInput, ImageFeatures, PlannerConfig, Timing, plan_timing
 from mapkit.planner._model import PlannerNet, PlannerOutput
 from mapkit.sim import FreeSpaceGraph, World
 from mapkit.trajopt import Trajectory, allocate_times, min_snap
@@ -380,16 +380,24 @@ class LearnedMethod:
         """A list to append every timed plan's :class:`PlanInput` to (``mapkit eval --record-plans``), or None."""
         self._subgoal: tuple[np.ndarray, float] | None = None  # (world point, until)
         self._flight: tuple[np.ndarray, float] | None = None  # (goal, time) of the last plan
+        self._image: tuple[Observation, ImageFeatures] | None = None  # the last frame's encoding
         self._memory = (None if execution.memory is None or camera is None or spline
                         else _Memory(camera, execution.memory))
 
     def _keypoints(self, obs: Observation, start: np.ndarray, goal: np.ndarray):
+        """The network's pass toward ``goal``; a second goal from the same frame (a way out) reuses
+        the first pass's encoding of the image."""
         with torch.inference_mode():
-            d = torch.from_numpy(np.asarray(obs.depth, dtype=np.float32)[None])
-            x = self.net.preprocess(d)
+            image = self._image[1] if self._image is not None and self._image[0] is obs else None
+            if image is None:
+                x = self.net.preprocess(torch.from_numpy(np.asarray(obs.depth, dtype=np.float32)[None]))
+            else:
+                x = image.x
             g = torch.from_numpy(np.asarray(goal, dtype=np.float32)[None])
             v = torch.from_numpy(np.asarray(start[1], dtype=np.float32)[None])
-            return x, self.net(x, g, camera=self.camera, velocity=v)
+            out = self.net(x, g, camera=self.camera, velocity=v, image=image)
+            self._image = None if out.image is None else (obs, out.image)
+            return x, out
 
     def _attempt(self, obs: Observation, start: np.ndarray, goal: np.ndarray, end_speed: float) -> _Attempt:
         """Key-points to ``goal`` (body frame), timed, moved toward the reference being flown

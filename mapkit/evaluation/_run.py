@@ -287,7 +287,8 @@ _WORKER: _WorkerState | None = None
 
 
 def _init_worker(setup: _WorkerSetup) -> None:
-    """Per process: one torch thread (deterministic results whatever --workers is), the model."""
+    """Per process: one torch thread (deterministic results whatever --workers is), the model
+    prepared for inference (the same frozen encoder in every process, so results stay identical)."""
     import torch
 
     global _WORKER
@@ -296,7 +297,7 @@ def _init_worker(setup: _WorkerSetup) -> None:
     if setup.model is not None:
         from mapkit.planning import Planner
 
-        net = Planner.load(setup.model).net
+        net = Planner.load(setup.model).net.prepare_inference()  # every process plans hundreds of frames
     _WORKER = _WorkerState(setup=setup, net=net)
 
 

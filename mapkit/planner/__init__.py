@@ -48,6 +48,7 @@ from mapkit.planner._loss import (
 )
 from mapkit.planner._model import (
     PLANNER_PRESETS,
+    ImageFeatures,
     Plan,
     PlannerConfig,
     PlannerNet,
@@ -66,6 +67,7 @@ __all__ = [
     "depth_margins",
     "seen_conflicts",
     "PLANNER_PRESETS",
+    "ImageFeatures",
     "LossConfig",
     "Plan",
     "PlannerConfig",

@@ -72,26 +72,81 @@ WINDOWS = (3, 7, 15, 31, 63)
 to the image size of the robot's disc at its depth."""
 
 
+def _pyramid_schedule() -> list[tuple[bool, int]]:
+    """(halve first, odd step) per level of :data:`WINDOWS`: each level pools the previous one, so
+    windows add up (size + step − 1 = k); windows wider than 16 pixels run on a half-resolution grid."""
+    schedule, size, scale = [], 1, 1
+    for k in WINDOWS:
+        halve = k > 16 and scale == 1
+        if halve:
+            scale, size = 2, size // 2 + 1
+        step = max(1, (k // scale) - size + 1) | 1
+        size = size + step - 1
+        schedule.append((halve, step))
+    return schedule
+
+
 def nearest_depth_pyramid(x: torch.Tensor) -> torch.Tensor:
     """(B, len(WINDOWS), h, w): the nearest depth / max_depth within each window around every pixel
     of the preprocessed depth ``x`` (B, 2, h, w); pixels without a return count as far. Min-pooling is
     separable (rows, then columns), each level pools the previous one, and windows wider than 16
     pixels run on a half-resolution grid (within a pixel of the exact window): a few milliseconds for
-    a 96 × 160 image on one core instead of the 5 × k² comparisons per pixel of plain windows."""
+    a 96 × 160 image on one core instead of the 5 × k² comparisons per pixel of plain windows. On the
+    CPU the same minima come from scipy (exactly equal): torch's pooling along image columns is
+    several times slower there, and this runs in every plan."""
     level = torch.where(x[:, 1:2] > 0.5, x[:, :1], torch.ones_like(x[:, :1]))
+    if level.device.type == "cpu":
+        return torch.from_numpy(_pyramid_numpy(level.detach().numpy()))
+    return _pyramid_torch(level)
+
+
+def _pyramid_torch(level: torch.Tensor) -> torch.Tensor:
+    """:func:`nearest_depth_pyramid` of ``level`` (B, 1, h, w) with torch's pooling (any device)."""
     h, w = level.shape[-2:]
-    levels, size, scale = [], 1, 1
-    for k in WINDOWS:  # each level pools the previous one: windows add up (size + step − 1 = k)
-        if k > 16 and scale == 1:  # wide windows on a half-resolution grid (a pixel of slack)
+    levels, scale = [], 1
+    for halve, step in _pyramid_schedule():
+        if halve:
             level, scale = -F.max_pool2d(-level, 2, stride=2, ceil_mode=True), 2
-            size = size // 2 + 1
-        step = max(1, (k // scale) - size + 1) | 1
         rows = -F.max_pool2d(-level, (step, 1), stride=1, padding=(step // 2, 0))
         level = -F.max_pool2d(-rows, (1, step), stride=1, padding=(0, step // 2))
-        size = size + step - 1
         full = level if scale == 1 else level.repeat_interleave(2, dim=-2).repeat_interleave(2, dim=-1)[..., :h, :w]
         levels.append(full)
     return torch.cat(levels, dim=1)
+
+
+def _running_min(a: np.ndarray, size: int, axis: int) -> np.ndarray:
+    """Minimum over the centred window of odd ``size`` along ``axis``, edges repeated outward (a
+    repeated edge lies in its own window, so it is the same as ignoring the outside): minima of
+    doubling spans, then two overlapping spans per window, a few array passes for any size (scipy's
+    filter costs tens of microseconds per call on these small images)."""
+    m = np.moveaxis(a, axis, 0)  # a view: slices along the first axis stay views
+    n, half = m.shape[0], size // 2
+    m = np.concatenate([np.repeat(m[:1], half, axis=0), m, np.repeat(m[-1:], half, axis=0)])
+    span = 1
+    while 2 * span <= size:
+        m = np.minimum(m[:-span], m[span:])
+        span *= 2
+    return np.moveaxis(np.minimum(m[:n], m[size - span:size - span + n]), 0, axis)
+
+
+def _pyramid_numpy(level: np.ndarray) -> np.ndarray:
+    """:func:`nearest_depth_pyramid` of ``level`` (B, 1, h, w) in numpy (exactly the same minima)."""
+    B, _, h, w = level.shape
+    schedule = _pyramid_schedule()
+    out = np.empty((B, len(schedule), h, w), dtype=level.dtype)
+    for i, (halve, step) in enumerate(schedule):
+        if halve:
+            even = np.pad(level, ((0, 0), (0, 0), (0, h % 2), (0, w % 2)), constant_values=np.inf)
+            rows = np.minimum(even[:, :, 0::2], even[:, :, 1::2])  # 2 × 2 blocks (a reduce over them is slower)
+            level = np.minimum(rows[..., 0::2], rows[..., 1::2])
+        level = _running_min(_running_min(level, step, axis=2), step, axis=3)
+        if level.shape[2:] == (h, w):
+            out[:, i] = level[:, 0]
+        elif h % 2 == 0 and w % 2 == 0:  # each half-resolution pixel fills its 2 × 2 block, in place
+            out[:, i].reshape(B, h // 2, 2, w // 2, 2)[:] = level[:, 0, :, None, :, None]
+        else:
+            out[:, i] = level[:, 0].repeat(2, axis=1).repeat(2, axis=2)[:, :h, :w]
+    return out
 
 
 def depth_margins(candidates: torch.Tensor, x: torch.Tensor, camera: CameraInput, *, max_depth: float,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from dataclasses import dataclass
@@ -130,8 +131,14 @@ def _limit_rows(T: torch.Tensor, q: int, limit: torch.Tensor, n_samples: int) ->
     kept = np.nonzero(keep.reshape(-1))[0]
     keep_t = index_tensor(kept, T.device)
     rows = rows.reshape(B, M * K, 3, 3, 8).index_select(1, keep_t).reshape(B, -1, 3, 8)
-    lim = limit.reshape(B, 1).expand(B, rows.shape[1])
-    return rows, np.repeat(kept // K, 3), -lim, lim
+    lo, hi = _limit_bounds(limit, rows.shape[1])
+    return rows, np.repeat(kept // K, 3), lo, hi
+
+
+def _limit_bounds(limit: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bounds (B, m) ``-limit`` and ``limit`` of m limit rows."""
+    lim = limit.reshape(-1, 1).expand(limit.shape[0], m)
+    return -lim, lim
 
 
 def _to_global(local: torch.Tensor, seg: torch.Tensor, N: int) -> torch.Tensor:
@@ -174,6 +181,22 @@ class _PositionQp:
     """(B, m, 3·nf) rows on the free values (no autograd)."""
     c_fix: torch.Tensor
     """(B, m) the fixed values' part of each row (no autograd)."""
+    limit_rows: tuple[int, int] = (0, 0)
+    """How many of the last rows are speed limits, then acceleration limits."""
+
+    def relimited(self, v_max: torch.Tensor | None, a_max: torch.Tensor | None) -> _PositionQp:
+        """The same problem with other speed / acceleration limits (the problem's own ones present):
+        only their bounds change, so the rows, objective and the rest are reused as they are."""
+        n_v, n_a = self.limit_rows
+        keep = self.lo.shape[1] - n_v - n_a
+        lo, hi = [self.lo[:, :keep]], [self.hi[:, :keep]]
+        for n, limit in ((n_v, v_max), (n_a, a_max)):
+            if n:
+                assert limit is not None  # a problem with limit rows is re-limited with limits
+                lo_l, hi_l = _limit_bounds(limit, n)
+                lo.append(lo_l)
+                hi.append(hi_l)
+        return dataclasses.replace(self, lo=torch.cat(lo, dim=1), hi=torch.cat(hi, dim=1))
 
     def solve_active(self, active: list[np.ndarray], upper: list[np.ndarray]) -> torch.Tensor:
         """Differentiable KKT solve holding each element's ``active`` rows at their bounds (``upper``:
@@ -211,20 +234,22 @@ class _PositionQp:
 
 
 def _inequality_rows(w: torch.Tensor, T: torch.Tensor, corridor: torch.Tensor | None, corridor_samples: int,
-                     v_max: torch.Tensor | None, a_max: torch.Tensor | None) -> _Rows:
-    """Rows (B, m, 3, 8), their segments (m,) and bounds lo/hi (B, m) of the corridor and limits given."""
+                     v_max: torch.Tensor | None, a_max: torch.Tensor | None) -> tuple[_Rows, tuple[int, int]]:
+    """Rows (B, m, 3, 8), their segments (m,) and bounds lo/hi (B, m) of the corridor and limits given,
+    and how many of the last rows are speed, then acceleration limits."""
     row_sets = []
     if corridor is not None:
         row_sets.append(_corridor_rows(w, T, corridor, corridor_samples))
-    if v_max is not None:
-        row_sets.append(_limit_rows(T, 1, v_max, corridor_samples))
-    if a_max is not None:
-        row_sets.append(_limit_rows(T, 2, a_max, corridor_samples))
+    limit_rows = []
+    for q, limit in ((1, v_max), (2, a_max)):  # the limits last (see _PositionQp.relimited)
+        if limit is not None:
+            row_sets.append(_limit_rows(T, q, limit, corridor_samples))
+        limit_rows.append(0 if limit is None else row_sets[-1][0].shape[1])
     local = torch.cat([r[0] for r in row_sets], dim=1)  # (B, m, 3, 8)
     seg_np = np.concatenate([r[1] for r in row_sets])
     lo = torch.cat([r[2] for r in row_sets], dim=1)
     hi = torch.cat([r[3] for r in row_sets], dim=1)
-    return local, seg_np, lo, hi
+    return (local, seg_np, lo, hi), (limit_rows[0], limit_rows[1])
 
 
 def _position_qp(w: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, *,
@@ -244,7 +269,7 @@ def _position_qp(w: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: tor
     for a in range(3):
         P[:, a * nf:(a + 1) * nf, a * nf:(a + 1) * nf] = 2.0 * Hff
     q = (2.0 * (Hfp @ Xp)).transpose(1, 2).reshape(B, 3 * nf)
-    local, seg_np, lo, hi = _inequality_rows(w, T, corridor, corridor_samples, v_max, a_max)
+    (local, seg_np, lo, hi), limit_rows = _inequality_rows(w, T, corridor, corridor_samples, v_max, a_max)
     # The whole constraint matrix, without autograd, for the numerical solve.
     with torch.no_grad():
         seg_all = index_tensor(seg_np, dev).unsqueeze(0).expand(B, local.shape[1])
@@ -252,7 +277,7 @@ def _position_qp(w: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: tor
         C = Cfull.index_select(3, fi).reshape(B, local.shape[1], 3 * nf)
         c_fix = torch.einsum("bman,bna->bm", Cfull.index_select(3, xi), Xp.detach())
     return _PositionQp(B=B, N=lay.n_knot, nf=nf, fi=fi, xi=xi, X0=X0, Xp=Xp, P=P, q=q, local=local, seg_np=seg_np,
-                       lo=lo, hi=hi, C=C, c_fix=c_fix)
+                       lo=lo, hi=hi, C=C, c_fix=c_fix, limit_rows=limit_rows)
 
 
 def _scaled(qp: _PositionQp) -> tuple[np.ndarray, ...]:
@@ -274,10 +299,13 @@ def _scaled(qp: _PositionQp) -> tuple[np.ndarray, ...]:
 def _solve_position_qp(
     w: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, *, corridor: torch.Tensor | None,
     corridor_samples: int, v_max: torch.Tensor | None, a_max: torch.Tensor | None, solver: str,
+    qp: _PositionQp | None = None,
 ) -> _Solved:
-    """Knot vectors (B, N, 3), ok mask (B,) numpy, statuses and info for the inequality path."""
-    qp = _position_qp(w, T, start, end, corridor=corridor, corridor_samples=corridor_samples, v_max=v_max,
-                      a_max=a_max)
+    """Knot vectors (B, N, 3), ok mask (B,) numpy, statuses and info for the inequality path; ``qp``:
+    the problem when already set up (the others then only name it)."""
+    if qp is None:
+        qp = _position_qp(w, T, start, end, corridor=corridor, corridor_samples=corridor_samples, v_max=v_max,
+                          a_max=a_max)
     Ps_np, qs_np, Cs_np, los_np, his_np = _scaled(qp)
     res = _qp.solve_batch(Ps_np, qs_np, Cs_np, los_np, his_np, solver=solver)
     ok = res.ok.copy()
@@ -344,9 +372,11 @@ def _independent(C: np.ndarray, act: np.ndarray) -> np.ndarray:
 
 def _tighten_limits(X: torch.Tensor, ok: np.ndarray, status: list[str], info: dict[str, Any], w: torch.Tensor,
                     T: torch.Tensor, start_t: torch.Tensor, end_t: torch.Tensor, corr: torch.Tensor | None,
-                    corridor_samples: int, vm: torch.Tensor | None, am: torch.Tensor | None, solver: str) -> _Solved:
-    """Re-solve with limits scaled down by the excess found on a dense grid, until the solution
-    keeps ``vm``/``am`` between the QP's samples too (a few rounds; the excess shrinks fast)."""
+                    corridor_samples: int, vm: torch.Tensor | None, am: torch.Tensor | None, solver: str,
+                    qp: _PositionQp) -> _Solved:
+    """Re-solve ``qp`` (the problem solved with ``vm``/``am``) with limits scaled down by the excess
+    found on a dense grid, until the solution keeps ``vm``/``am`` between the QP's samples too (a few
+    rounds; the excess shrinks fast)."""
     vm0, am0 = vm, am
     for _ in range(4):
         traj = Trajectory(coefficients(X, T, 4), T)
@@ -360,8 +390,9 @@ def _tighten_limits(X: torch.Tensor, ok: np.ndarray, status: list[str], info: di
             break
         vm = None if vm is None else vm * torch.where(scale < 1, 0.995 * scale, torch.ones_like(scale))
         am = None if am is None else am * torch.where(scale < 1, 0.995 * scale, torch.ones_like(scale))
+        # only the limits' bounds change: the problem is not set up again (most of a solve's time)
         X, ok, status, info = _solve_position_qp(w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples,
-                                                 v_max=vm, a_max=am, solver=solver)
+                                                 v_max=vm, a_max=am, solver=solver, qp=qp.relimited(vm, am))
     return X, ok, status, info
 
 
@@ -550,13 +581,14 @@ def _solve_constrained(
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[str, ...], dict[str, Any]]:
     """The inequality path: (X, solved mask, messages, info); unsolved elements fall back to the
     closed form with a warning or an error as ``on_infeasible`` says."""
+    qp = _position_qp(w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples, v_max=vm, a_max=am)
     X, ok, status, info = _solve_position_qp(
         w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples,
-        v_max=vm, a_max=am, solver=solver,
+        v_max=vm, a_max=am, solver=solver, qp=qp,
     )
     if limits_everywhere and (vm is not None or am is not None):
         X, ok, status, info = _tighten_limits(X, ok, status, info, w, T, start_t, end_t, corr, corridor_samples,
-                                              vm, am, solver)
+                                              vm, am, solver, qp)
     solved = torch.ones(w.shape[0], dtype=torch.bool, device=w.device)
     messages: tuple[str, ...] = ()
     if not ok.all():
