@@ -37,6 +37,9 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @click.option("--corridor-check/--no-corridor-check", default=True, show_default=True,
               help="Narrow the corridor (½, ¼, ⅒, then through the key-points) while the trajectory comes closer to "
                    "seen surfaces in the depth image than the one through the key-points.")
+@click.option("--check-memory/--no-check-memory", default=True, show_default=True,
+              help="The corridor's check also counts remembered surfaces near the trajectory's first seconds "
+                   "(the jamb of a doorway the camera no longer sees).")
 @click.option("--v-max", type=FINITE, default=3.0, show_default=True, help="Per-axis speed limit of learned plans, m/s; 0 = none.")
 @click.option("--a-max", type=FINITE, default=4.0, show_default=True, help="Per-axis acceleration limit of learned plans, m/s²; 0 = none.")
 @click.option("--memory", type=FINITE, default=8.0, show_default=True,
@@ -61,7 +64,7 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
-             corridor_check: bool, v_max: float, a_max: float, memory: float, subgoal_speed: float | None, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
+             corridor_check: bool, check_memory: bool, v_max: float, a_max: float, memory: float, subgoal_speed: float | None, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
              record_plans: bool, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, Execution, LoopConfig, evaluate
@@ -70,7 +73,8 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
     names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
     config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
                         workers=workers, scheduler=scheduler, record_plans=record_plans,
-                        execution=Execution(corridor=corridor or None, check_corridor=corridor_check, v_max=v_max or None,
+                        execution=Execution(corridor=corridor or None, check_corridor=corridor_check,
+                                            check_memory=check_memory, v_max=v_max or None,
                                             a_max=a_max or None, memory=memory or None, subgoal_speed=subgoal_speed,
                                             follow=follow),
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,

@@ -700,3 +700,37 @@ def test_a_negative_subgoal_speed_is_refused_by_name(speed: float):
 
     with pytest.raises(EvalError, match="--subgoal-speed must be >= 0"):
         EvalConfig(execution=Execution(subgoal_speed=speed)).validate()
+
+
+def test_the_corridor_keeps_clear_of_a_remembered_door_jamb():
+    """Key-points turn left around a door jamb the camera no longer sees: the widest corridor cuts
+    the corner into it. Checked against the depth image alone it is kept; with the memory
+    (``Execution.check_memory``) the corridor narrows until it keeps as clear as the key-points."""
+    from scipy.spatial import cKDTree
+
+    from mapkit.evaluation import Execution
+    from mapkit.evaluation._methods import _Checker, _execute, _Memory, _samples
+    from mapkit.planner import preprocess_depth
+
+    w, h = 160, 96
+    memory = _Memory(_forward_camera(w, h), seconds=4.0)
+    jamb = np.array([[1.0, 0.75, z] for z in np.linspace(-1.0, 1.0, 21)])  # inside the turn
+    memory.frames = [(0.0, cKDTree(jamb))]
+    x = preprocess_depth(torch.zeros(1, h, w), input_size=(h, w), max_depth=10.0)  # nothing in view now
+    wp = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 2.0, 0.0]]],
+                      dtype=torch.float64)
+    T = torch.full((1, 4), 0.6, dtype=torch.float64)
+    start, end = torch.zeros(1, 3, 3, dtype=torch.float64), torch.zeros(1, 3, 3, dtype=torch.float64)
+    how = Execution(v_max=None, a_max=None)
+    in_view = _Checker(x, _forward_camera(w, h), 10.0, None)
+    recalled = _Checker(x, _forward_camera(w, h), 10.0, None, recall=(memory, np.eye(4), how.blocked_within))
+
+    def near_jamb(traj) -> int:
+        return int(memory.conflicts(_samples(traj, within=how.blocked_within)[0], np.eye(4))[0])
+
+    pinned = min_snap(wp, T, start=start, end=end)
+    widest = _execute(wp, T, start, end, how, in_view)
+    assert near_jamb(pinned) == 0 and near_jamb(widest) > 0  # the corridor cuts the corner into the jamb
+    kept = _execute(wp, T, start, end, how, recalled)
+    assert near_jamb(kept) == 0
+    assert not torch.allclose(kept.coeffs, widest.coeffs)
