@@ -7,13 +7,15 @@ Depth frames are rendered in a simulated office (the evaluation's camera, 160 ×
 along a straight flight; the goal lies 6 m ahead, the vehicle flies at 1.5 m/s. Each piece is timed
 against its named peer in the same run, the peer being what mapkit used before 2026-11-30:
 
-- the network pass with the frozen encoder (``PlannerNet.prepare_inference``) against the eager
-  encoder;
+- the encoder run by ONNX Runtime (``PlannerNet.prepare_inference``, since 2026-11-30) against the
+  frozen TorchScript graph it replaced, and that against the eager encoder; the network pass with
+  the frozen encoder against the eager encoder;
 - the nearest-depth pyramid in numpy against torch's pooling (the same minima);
 - the corridor minimum snap (1 m) around the plan's key-points, beside the closed form through them
   (a reference point, not a peer it replaced); and the same corridor with speed and acceleration
   limits tight enough to need re-solving, where the peer sets the problem up again each round
-  instead of changing only the limits' bounds.
+  instead of changing only the limits' bounds; and the corridor without gradients (DAQP's own
+  answer) against the same solve with the torch KKT re-solve autograd needs.
 
 Each pair is timed in alternating blocks (median of 10): a shared machine's speed drifts by tens of
 per cent within minutes, and alternating blocks see the same drift.
@@ -85,8 +87,11 @@ def _network(net, frames, camera, repeats: int) -> None:
     goal = torch.tensor([[6.0, 0.0, 0.0]])
     velocity = torch.tensor([[1.5, 0.0, 0.0]])
     inputs = _inputs(net, frames)
+    net.prepare_inference("torchscript")
+    torchscript = net._frozen_encoder
     net.prepare_inference()
     frozen = net._frozen_encoder
+    assert frozen is not None and torchscript is not None  # both runtimes are dependencies
 
     def forward(x):
         return net(x, goal, camera=camera, velocity=velocity)
@@ -99,7 +104,9 @@ def _network(net, frames, camera, repeats: int) -> None:
             net._frozen_encoder = frozen
 
     with torch.inference_mode():
-        _row("encoder", _compare(net._encode, net.encoder, inputs, repeats), "eager encoder")
+        _row(f"encoder ({frozen.runtime})", _compare(frozen.module, torchscript.module, inputs, repeats),
+             "frozen TorchScript encoder")
+        _row("frozen TorchScript encoder", _compare(torchscript.module, net.encoder, inputs, repeats), "eager encoder")
         _row("network pass (encoder included)", _compare(forward, forward_eager, inputs, repeats),
              "with the eager encoder")
 
@@ -148,9 +155,15 @@ def _min_snap(net, frames, camera, repeats: int) -> None:
     def pinned(wp, T, start, end):
         return min_snap(wp, T, start=start, end=end)
 
+    def corridor_polished(*args):
+        with torch.enable_grad():
+            return corridor(*args)
+
     with torch.no_grad():
         _row("corridor min snap (1 m)", _compare(corridor, pinned, problems, repeats), "through the key-points",
              reference=True)
+        _row("  without gradients: DAQP's answer", _compare(corridor, corridor_polished, problems, repeats),
+             "with the torch KKT re-solve")
         _row("  + v/a limits, re-solved", _compare(limited, limited_rebuilt, problems, repeats // 3),
              "problem set up every round")
 

@@ -510,6 +510,8 @@ def test_memory_keeps_a_wall_after_it_leaves_the_view_and_forgets_it_later():
     # body frame of the turned vehicle: +y (its left) is world +x; the wall is 2 m to its left
     near = torch.tensor([[[0.0, 2.0 - 0.5 * ROBOT_CLEARANCE, 0.0]], [[0.0, 2.0 - 2.0 * ROBOT_CLEARANCE, 0.0]]])
     assert memory.conflicts(near, turned).tolist() == [1, 0]
+    observe(1.5, T0, np.full((h, w), 1.3, dtype=np.float32))  # a wall across x = 1.3 m: the second point's
+    assert memory.conflicts(near, turned).tolist() == [1, 1]  # asked before, and the new image still counts
     observe(6.0, turned, np.zeros((h, w), dtype=np.float32))  # 6 s later: forgotten
     assert memory.conflicts(near, turned).tolist() == [0, 0]
 

@@ -510,9 +510,11 @@ def test_nearest_depth_pyramid_cpu_path_equals_pooling_and_brute_force(shape):
     np.testing.assert_array_equal(fast[:, 0].numpy(), brute)  # window 3
 
 
-def test_prepare_inference_freezes_the_encoder_without_changing_the_plan():
-    """The frozen encoder serves single-image plans with the eager encoder's features (float
-    rounding), is not part of the state dict, and is dropped by train(); batches keep the eager one."""
+@pytest.mark.parametrize("runtime", ["onnxruntime", "torchscript"])
+def test_prepare_inference_freezes_the_encoder_without_changing_the_plan(runtime):
+    """The frozen encoder (either runtime) serves single-image plans with the eager encoder's
+    features (float rounding), is not part of the state dict, and is dropped by train(); batches
+    keep the eager one."""
     cfg = planner_preset("cpu")
     torch.manual_seed(0)
     net = PlannerNet(cfg).eval()
@@ -522,9 +524,10 @@ def test_prepare_inference_freezes_the_encoder_without_changing_the_plan():
         eager = net.encoder(x[:1])
         before = net(x[:1], goal[:1]).keypoints
     keys = set(net.state_dict())
-    assert net.prepare_inference() is net and not net.training
+    assert net.prepare_inference(runtime) is net and not net.training
     if net._frozen_encoder is None:
-        pytest.skip("this torch build cannot freeze the encoder")
+        pytest.skip(f"{runtime} cannot freeze the encoder here")
+    assert net.frozen_runtime == runtime
     with torch.inference_mode():
         frozen = net._frozen_encoder.module(x[:1])
         after = net(x[:1], goal[:1]).keypoints
@@ -534,7 +537,7 @@ def test_prepare_inference_freezes_the_encoder_without_changing_the_plan():
     torch.testing.assert_close(after, before, atol=1e-4, rtol=1e-4)
     assert set(net.state_dict()) == keys
     net.train()
-    assert net._frozen_encoder is None
+    assert net._frozen_encoder is None and net.frozen_runtime is None
 
 
 def test_a_second_goal_from_the_same_image_reuses_its_encoding():

@@ -82,6 +82,22 @@ def test_corridor_satisfied_and_active():
     assert (dev >= 0.1 - 1e-9).any()  # some constraint is tight
 
 
+def test_without_gradients_the_solution_is_daqps_own_to_rounding():
+    """Under no_grad the corridor and limits come straight from DAQP; with gradients the active set is
+    re-solved in torch. Both are the same optimum (tight constraints included), not two answers."""
+    w, T = random_problem(6, 5, seed=7)
+    closed = min_snap(w, T)
+    kw = dict(corridor=0.1, corridor_samples=5, v_max=0.95 * closed.max_velocity(per_axis=True).amax(-1),
+              a_max=0.95 * closed.max_acceleration(per_axis=True).amax(-1))
+    polished = min_snap(w, T, **kw)
+    with torch.no_grad():
+        direct = min_snap(w, T, **kw)
+    assert min(polished.info["active"]) > 0 and polished.info["active"] == direct.info["active"]
+    assert not torch.equal(direct.coeffs, polished.coeffs)  # really the other path ...
+    torch.testing.assert_close(direct.coeffs, polished.coeffs.detach(), rtol=0, atol=1e-8)  # ... to the same optimum
+    torch.testing.assert_close(direct.snap_cost(), polished.snap_cost().detach(), rtol=1e-9, atol=0)
+
+
 def test_limits_satisfied():
     w, T = random_problem(8, 4, seed=3)
     T2 = T * 1.2

@@ -281,11 +281,13 @@ class _Memory:
         self.T_body_camera = np.linalg.inv(camera.T_camera_body[0].double().numpy())
         self.frames: list[tuple[float, cKDTree]] = []
         self._nearest_cache: tuple[tuple, float] | None = None
+        self._near_cache: dict[tuple[bytes, float], dict[cKDTree, np.ndarray]] = {}
 
     def forget(self) -> None:
         """A new flight starts with nothing remembered."""
         self.frames = []
         self._nearest_cache = None
+        self._near_cache = {}
 
     def add(self, obs: Observation) -> None:
         """Remember the observation's depth image."""
@@ -339,10 +341,23 @@ class _Memory:
         pts = paths_body.double().numpy() @ T_world_body[:3, :3].T + T_world_body[:3, 3]
         flat = pts.reshape(-1, 3)
         radius = min(ROBOT_CLEARANCE, max(self._nearest(T_world_body[:3, 3]) - 0.02, ROBOT_RADIUS))
+        # A plan's trajectory is asked about again once the new image is remembered: the frames
+        # already asked about answer from the last few queries' results (a k-d tree query per
+        # frame is most of the memory's time).
+        key = (flat.tobytes(), radius)
+        known = self._near_cache.get(key, {})
+        per_frame = {}
         near = np.zeros(len(flat), dtype=bool)
         for _, tree in self.frames:
-            d, _ = tree.query(flat, distance_upper_bound=radius)
-            near |= np.isfinite(d)
+            hit = known.get(tree)
+            if hit is None:
+                hit = np.isfinite(tree.query(flat, distance_upper_bound=radius)[0])
+            per_frame[tree] = hit
+            near |= hit
+        self._near_cache.pop(key, None)
+        self._near_cache[key] = per_frame
+        while len(self._near_cache) > 4:
+            del self._near_cache[next(iter(self._near_cache))]
         return near.reshape(pts.shape[:2]).sum(axis=1)
 
 

@@ -282,7 +282,7 @@ def _position_qp(w: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: tor
 
 def _scaled(qp: _PositionQp) -> tuple[np.ndarray, ...]:
     """The problem scaled for the numerical solvers (unit Hessian diagonal, unit-norm rows), numpy:
-    P, q, C, lo, hi."""
+    P, q, C, lo, hi, and the variables' scale d (z = d · z_scaled)."""
     with torch.no_grad():
         d = torch.rsqrt(torch.diagonal(qp.P.detach(), dim1=-2, dim2=-1))
         Ps = qp.P.detach() * d.unsqueeze(-1) * d.unsqueeze(-2)
@@ -293,7 +293,8 @@ def _scaled(qp: _PositionQp) -> tuple[np.ndarray, ...]:
         Cs = Cs / rn.unsqueeze(-1)
         los = (qp.lo.detach() - qp.c_fix) / rn
         his = (qp.hi.detach() - qp.c_fix) / rn
-    return Ps.cpu().numpy(), qs.cpu().numpy(), Cs.cpu().numpy(), los.cpu().numpy(), his.cpu().numpy()
+    return (Ps.cpu().numpy(), qs.cpu().numpy(), Cs.cpu().numpy(), los.cpu().numpy(), his.cpu().numpy(),
+            d.cpu().numpy())
 
 
 def _solve_position_qp(
@@ -306,11 +307,16 @@ def _solve_position_qp(
     if qp is None:
         qp = _position_qp(w, T, start, end, corridor=corridor, corridor_samples=corridor_samples, v_max=v_max,
                           a_max=a_max)
-    Ps_np, qs_np, Cs_np, los_np, his_np = _scaled(qp)
+    Ps_np, qs_np, Cs_np, los_np, his_np, scale = _scaled(qp)
     res = _qp.solve_batch(Ps_np, qs_np, Cs_np, los_np, his_np, solver=solver)
     ok = res.ok.copy()
     status = list(res.status)
     active, upper = res.active, res.upper
+    if solver == "daqp" and not torch.is_grad_enabled():
+        # Without gradients DAQP's own answer serves: an exact active-set method, its last KKT solve
+        # is the torch one below to rounding (~1e-12), which is there for autograd.
+        z = torch.from_numpy(np.where(ok[:, None], res.z * scale, 0.0)).to(qp.X0)
+        return _knots(qp, z), ok, status, _info(solver, res, active, qp)
     try:
         z = qp.solve_active(active, upper)
         bad = qp.violated(z).cpu().numpy() & ok
@@ -331,16 +337,17 @@ def _solve_position_qp(
             ok[b] = False
             status[b] = "the active-set KKT solve did not reproduce a feasible solution"
     z = torch.where(torch.as_tensor(ok, device=w.device).unsqueeze(-1), z, torch.zeros_like(z))
-    X = qp.X0.index_copy(1, qp.fi, z.reshape(qp.B, 3, qp.nf).transpose(1, 2))
-    info: dict[str, Any] = {
-        "path": "qp",
-        "solver": solver,
-        "solver_seconds": res.seconds,
-        "active": [int(a.size) for a in active],
-        "rows": int(qp.local.shape[1]),
-        "variables": int(3 * qp.nf),
-    }
-    return X, ok, status, info
+    return _knots(qp, z), ok, status, _info(solver, res, active, qp)
+
+
+def _knots(qp: _PositionQp, z: torch.Tensor) -> torch.Tensor:
+    """Knot vectors (B, N, 3) with the free values ``z`` (B, 3·nf)."""
+    return qp.X0.index_copy(1, qp.fi, z.reshape(qp.B, 3, qp.nf).transpose(1, 2))
+
+
+def _info(solver: str, res: _qp.QPResult, active: list[np.ndarray], qp: _PositionQp) -> dict[str, Any]:
+    return {"path": "qp", "solver": solver, "solver_seconds": res.seconds, "active": [int(a.size) for a in active],
+            "rows": int(qp.local.shape[1]), "variables": int(3 * qp.nf)}
 
 
 def _correct_active_set(P: np.ndarray, q: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray,
