@@ -7,8 +7,9 @@ Depth frames are rendered in a simulated office (the evaluation's camera, 160 ×
 along a straight flight; the goal lies 6 m ahead, the vehicle flies at 1.5 m/s. Each piece is timed
 against its named peer in the same run, the peer being what mapkit used before 2026-11-30:
 
-- the encoder run by ONNX Runtime (``PlannerNet.prepare_inference``, since 2026-11-30) against the
-  frozen TorchScript graph it replaced, and that against the eager encoder; the network pass with
+- the encoder and the nearest-depth pyramid run by ONNX Runtime in one graph
+  (``PlannerNet.prepare_inference``, since 2026-11-30) against the frozen TorchScript encoder and the
+  numpy pyramid they replaced, and the TorchScript encoder against the eager one; the network pass with
   the frozen encoder against the eager encoder;
 - the nearest-depth pyramid in numpy against torch's pooling (the same minima);
 - the corridor minimum snap (1 m) around the plan's key-points, beside the closed form through them
@@ -84,6 +85,7 @@ def _inputs(net, frames) -> list[tuple[torch.Tensor]]:
 
 
 def _network(net, frames, camera, repeats: int) -> None:
+    from mapkit.planner._depthcheck import nearest_depth_pyramid
     goal = torch.tensor([[6.0, 0.0, 0.0]])
     velocity = torch.tensor([[1.5, 0.0, 0.0]])
     inputs = _inputs(net, frames)
@@ -96,6 +98,9 @@ def _network(net, frames, camera, repeats: int) -> None:
     def forward(x):
         return net(x, goal, camera=camera, velocity=velocity)
 
+    def encoder_and_pyramid(x):  # what a plan ran until the pyramid joined the ONNX graph
+        return torchscript.module(x)[0], nearest_depth_pyramid(x)
+
     def forward_eager(x):
         net._frozen_encoder = None
         try:
@@ -104,8 +109,8 @@ def _network(net, frames, camera, repeats: int) -> None:
             net._frozen_encoder = frozen
 
     with torch.inference_mode():
-        _row(f"encoder ({frozen.runtime})", _compare(frozen.module, torchscript.module, inputs, repeats),
-             "frozen TorchScript encoder")
+        _row(f"encoder + pyramid ({frozen.runtime})", _compare(frozen.module, encoder_and_pyramid, inputs, repeats),
+             "TorchScript encoder + numpy pyramid")
         _row("frozen TorchScript encoder", _compare(torchscript.module, net.encoder, inputs, repeats), "eager encoder")
         _row("network pass (encoder included)", _compare(forward, forward_eager, inputs, repeats),
              "with the eager encoder")

@@ -529,15 +529,47 @@ def test_prepare_inference_freezes_the_encoder_without_changing_the_plan(runtime
         pytest.skip(f"{runtime} cannot freeze the encoder here")
     assert net.frozen_runtime == runtime
     with torch.inference_mode():
-        frozen = net._frozen_encoder.module(x[:1])
+        frozen, pyramid = net._frozen_encoder.module(x[:1])
         after = net(x[:1], goal[:1]).keypoints
-        assert torch.equal(net._encode(x), net.encoder(x))  # a batch of two: the eager encoder
+        features, none = net._encode(x)  # a batch of two: the eager encoder
+        assert torch.equal(features, net.encoder(x)) and none is None
+    assert pyramid is None  # one candidate, no depth check: no pyramid to make
     assert not torch.equal(frozen, eager)  # really another implementation ...
     torch.testing.assert_close(frozen, eager, atol=1e-4, rtol=1e-4)  # ... of the same features
     torch.testing.assert_close(after, before, atol=1e-4, rtol=1e-4)
     assert set(net.state_dict()) == keys
     net.train()
     assert net._frozen_encoder is None and net.frozen_runtime is None
+
+
+def test_onnx_runtime_makes_the_exact_pyramid_of_a_model_that_checks_its_paths():
+    """With several candidates checked against the depth image, ONNX Runtime computes the nearest-depth
+    pyramid with the features: exactly the numpy one (min-pooling has no rounding), and the forward
+    pass uses it (the numpy one is not called)."""
+    from mapkit.planner import CameraInput, _model
+    from mapkit.planner._depthcheck import nearest_depth_pyramid
+
+    cfg = planner_preset("cpu-multi", depth_check=True)
+    torch.manual_seed(0)
+    net = PlannerNet(cfg).prepare_inference("onnxruntime")
+    if net.frozen_runtime != "onnxruntime":
+        pytest.skip("ONNX Runtime cannot run the encoder here")
+    depth, goal = _inputs(1, cfg)
+    depth[0, 40:60, 60:100] = 1.5  # something near in view
+    depth[0, :5] = float("nan")  # and pixels without a return
+    x = net.preprocess(depth)
+    camera = CameraInput.from_calibration(np.array([[80.0, 0, 80], [0, 80, 48], [0, 0, 1]]), 160, 96, np.eye(4))
+    with torch.inference_mode():
+        _features, made = net._frozen_encoder.module(x)
+        assert made is not None and torch.equal(made, nearest_depth_pyramid(x))
+        calls = []
+        original = _model.nearest_depth_pyramid
+        _model.nearest_depth_pyramid = lambda *a: calls.append(1) or original(*a)  # type: ignore[assignment]
+        try:
+            out = net(x, goal, camera=camera)
+        finally:
+            _model.nearest_depth_pyramid = original
+    assert not calls and torch.equal(out.pyramid, made)
 
 
 def test_a_second_goal_from_the_same_image_reuses_its_encoding():

@@ -18,6 +18,7 @@ from mapkit.planner._depthcheck import (
     FEATURES_PER_POINT,
     POINTS_PER_SEGMENT,
     CameraInput,
+    _pyramid_torch,
     depth_margins,
     nearest_depth_pyramid,
 )
@@ -330,7 +331,8 @@ class Plan:
 @dataclass(frozen=True)
 class _FrozenEncoder:
     """The encoder frozen for one input shape (a plain attribute, so it is neither a submodule nor
-    part of the state dict): ``module`` maps a (1, 2, h, w) tensor to its features."""
+    part of the state dict): ``module`` maps a (1, 2, h, w) tensor to its features and, where the
+    runtime computes it too, the nearest-depth pyramid (else None)."""
 
     module: Any
     shape: tuple[int, ...]
@@ -338,23 +340,42 @@ class _FrozenEncoder:
     runtime: Literal["onnxruntime", "torchscript"]
 
 
-def _torchscript(encoder: nn.Module, example: torch.Tensor) -> Any:
+class _TorchScriptEncoder:
     """The encoder traced and frozen by TorchScript. TorchScript is deprecated in favour of
     torch.compile, which needs a C++ toolchain and tens of seconds per process on a bare CPU machine;
     this takes a second."""
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        warnings.simplefilter("ignore", torch.jit.TracerWarning)  # the input check is a constant here
-        frozen = torch.jit.optimize_for_inference(torch.jit.trace(encoder, example))
-        for _ in range(2):
-            frozen(example)
-    return frozen
+
+    def __init__(self, encoder: nn.Module, example: torch.Tensor) -> None:
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            warnings.simplefilter("ignore", torch.jit.TracerWarning)  # the input check is a constant here
+            self.module = torch.jit.optimize_for_inference(torch.jit.trace(encoder, example))
+            for _ in range(2):
+                self.module(example)
+
+    def __call__(self, x: torch.Tensor) -> tuple[torch.Tensor, None]:
+        return self.module(x), None
+
+
+class _EncoderGraph(nn.Module):
+    """What ONNX Runtime runs: the encoder and, for a model that checks its paths against the depth
+    image, the nearest-depth pyramid (exact min-pooling, one call instead of a numpy pass per plan)."""
+
+    def __init__(self, encoder: nn.Module, pyramid: bool) -> None:
+        super().__init__()
+        self.encoder, self.pyramid = encoder, pyramid
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        if not self.pyramid:
+            return (self.encoder(x),)
+        level = torch.where(x[:, 1:2] > 0.5, x[:, :1], torch.ones_like(x[:, :1]))
+        return self.encoder(x), _pyramid_torch(level)
 
 
 class _OrtEncoder:
-    """The encoder exported to ONNX and run by ONNX Runtime on one thread."""
+    """The encoder (and the pyramid) exported to ONNX and run by ONNX Runtime on one thread."""
 
-    def __init__(self, encoder: nn.Module, example: torch.Tensor) -> None:
+    def __init__(self, encoder: nn.Module, example: torch.Tensor, pyramid: bool) -> None:
         import tempfile
         from pathlib import Path
 
@@ -367,13 +388,13 @@ class _OrtEncoder:
             graph = Path(tmp) / "encoder.onnx"
             with torch.no_grad(), warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # the TorchScript-based exporter's deprecation notices
-                torch.onnx.export(encoder, (example,), graph, dynamo=False, opset_version=17, input_names=["x"],
-                                  output_names=["features"])
+                torch.onnx.export(_EncoderGraph(encoder, pyramid), (example,), graph, dynamo=False, opset_version=17,
+                                  input_names=["x"], output_names=["features", "pyramid"][:1 + int(pyramid)])
             self.session = ort.InferenceSession(str(graph), options, providers=["CPUExecutionProvider"])
 
-    def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        features = self.session.run(None, {"x": x.detach().contiguous().numpy()})[0]
-        return torch.from_numpy(features)
+    def __call__(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        out = self.session.run(None, {"x": x.detach().contiguous().numpy()})
+        return torch.from_numpy(out[0]), torch.from_numpy(out[1]) if len(out) > 1 else None
 
 
 def _mlp(dims: list[int], activation: str = "relu") -> nn.Sequential:
@@ -455,9 +476,11 @@ class PlannerNet(nn.Module):
     def prepare_inference(self, runtime: Literal["auto", "onnxruntime", "torchscript"] = "auto") -> PlannerNet:
         """Put the net in ``eval()`` mode and keep a frozen copy of the encoder for plans of one image
         on the CPU: exported to ONNX and run by ONNX Runtime (0.7 ms per image on one core, against
-        3.1 eager and 1.7 as a frozen TorchScript graph; a plan takes about 15), or, where ONNX
-        Runtime is missing or cannot run it (or ``runtime="torchscript"``), as a frozen TorchScript
-        graph (batch norm folded, oneDNN kernels). Its features differ from the eager encoder's by
+        3.1 eager and 1.7 as a frozen TorchScript graph; a plan takes about 13), together with the
+        nearest-depth pyramid of a model that checks its paths against the depth image (exactly
+        :func:`nearest_depth_pyramid`'s minima, 0.5 ms less per plan), or, where ONNX Runtime is
+        missing or cannot run it (or ``runtime="torchscript"``), as a frozen TorchScript graph (batch
+        norm folded, oneDNN kernels). Its features differ from the eager encoder's by
         float rounding (~1e-6). The eager encoder still serves batches, other devices, gradients and
         training; ``train()`` or loading weights drops the copy. Where neither runtime can freeze
         the encoder, the eager one stays in use (:attr:`frozen_runtime` None)."""
@@ -470,7 +493,9 @@ class PlannerNet(nn.Module):
         tries = {"auto": ("onnxruntime", "torchscript")}.get(runtime, (runtime,))
         for name in tries:
             try:
-                module = _OrtEncoder(self.encoder, example) if name == "onnxruntime" else _torchscript(self.encoder, example)
+                pyramid = self.config.depth_check and self.config.num_candidates > 1
+                module = (_OrtEncoder(self.encoder, example, pyramid) if name == "onnxruntime"
+                          else _TorchScriptEncoder(self.encoder, example))
                 module(example)  # TorchScript's profiling runs, ONNX Runtime's first allocation: here, not in a plan
             except Exception as exc:  # noqa: BLE001 - a runtime that is not installed or cannot run the graph
                 log.info("%s cannot run the encoder (%s)", name, exc)
@@ -494,12 +519,14 @@ class PlannerNet(nn.Module):
         self._frozen_encoder = None
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
-    def _encode(self, x: torch.Tensor) -> torch.Tensor:
+    def _encode(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The encoder's features of x, and its nearest-depth pyramid when the frozen copy made it."""
         frozen = self._frozen_encoder
         if (frozen is not None and not self.training and not torch.is_grad_enabled()
                 and tuple(x.shape) == frozen.shape and x.dtype == frozen.dtype and x.device.type == "cpu"):
-            return frozen.module(x)
-        return self.encoder(x)
+            features, pyramid = frozen.module(x)
+            return features, pyramid
+        return self.encoder(x), None
 
     # ------------------------------------------------------------------ pieces
     def preprocess(self, depth: torch.Tensor) -> torch.Tensor:
@@ -566,7 +593,11 @@ class PlannerNet(nn.Module):
         if goal.shape != (B, 3):
             raise PlannerError(f"goal must have shape (B={B}, 3) in the body frame, got {tuple(goal.shape)}")
         goal = goal.to(x.dtype)
-        encoded = self._encode(x) if image is None else image.features
+        made = None  # the pyramid, when the frozen encoder made it with the features
+        if image is None:
+            encoded, made = self._encode(x)
+        else:
+            encoded = image.features
         feat = encoded
         if image_index is not None:
             feat = feat[image_index]
@@ -592,7 +623,9 @@ class PlannerNet(nn.Module):
                      (goal / c.max_depth)[:, None].expand(B, M, 3)]
             if c.depth_check:
                 # once per image, then shared by its goals
-                pyramid = nearest_depth_pyramid(x) if image is None or image.pyramid is None else image.pyramid
+                pyramid = image.pyramid if image is not None and image.pyramid is not None else made
+                if pyramid is None:
+                    pyramid = nearest_depth_pyramid(x)
                 if image_index is not None:
                     pyramid = pyramid[image_index]
                 assert camera is not None  # required with depth_check and several candidates (checked above)
