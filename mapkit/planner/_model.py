@@ -490,7 +490,8 @@ class PlannerNet(nn.Module):
         example = torch.zeros(1, 2, h, w, dtype=next(self.encoder.parameters()).dtype)
         if example.device.type != "cpu" or example.dtype != torch.float32:
             return self
-        tries = {"auto": ("onnxruntime", "torchscript")}.get(runtime, (runtime,))
+        tries: tuple[Literal["onnxruntime", "torchscript"], ...] = (
+            ("onnxruntime", "torchscript") if runtime == "auto" else (runtime,))
         for name in tries:
             try:
                 pyramid = self.config.depth_check and self.config.num_candidates > 1
@@ -500,7 +501,7 @@ class PlannerNet(nn.Module):
             except Exception as exc:  # noqa: BLE001 - a runtime that is not installed or cannot run the graph
                 log.info("%s cannot run the encoder (%s)", name, exc)
                 continue
-            self._frozen_encoder = _FrozenEncoder(module, tuple(example.shape), example.dtype, name)  # type: ignore[arg-type]
+            self._frozen_encoder = _FrozenEncoder(module, tuple(example.shape), example.dtype, name)
             return self
         log.warning("the encoder could not be frozen for inference; planning uses the eager encoder")
         return self
@@ -524,8 +525,7 @@ class PlannerNet(nn.Module):
         frozen = self._frozen_encoder
         if (frozen is not None and not self.training and not torch.is_grad_enabled()
                 and tuple(x.shape) == frozen.shape and x.dtype == frozen.dtype and x.device.type == "cpu"):
-            features, pyramid = frozen.module(x)
-            return features, pyramid
+            return frozen.module(x)
         return self.encoder(x), None
 
     # ------------------------------------------------------------------ pieces
