@@ -53,3 +53,42 @@ def test_viz_gives_the_rows_as_records(tmp_path: Path) -> None:
     assert [r.to_dict() for r in ev.episodes] == json.loads((tmp_path / "results.json").read_text())["episodes"]
     assert [r.outcome for r in ev.episodes_of("office", 4)] == ["timeout"] and len(ev.episodes_of("office")) == 2
     ev.close()
+
+
+def test_effort_at_time_is_the_snap_of_the_same_path_flown_in_another_time() -> None:
+    import torch
+
+    from mapkit.evaluation import effort_at_time
+    from mapkit.trajopt import min_snap
+
+    # Rest to rest, the minimum-snap path does not depend on the pace: 2× the durations is the same path
+    # flown at half speed, and one segment over d in T costs 100800·d²/T⁷.
+    wp = torch.tensor([[[0.0, 0.0, 1.0], [2.0, 1.0, 1.2], [3.0, 3.0, 1.0]]], dtype=torch.float64)
+    T = torch.tensor([[1.3, 0.9]], dtype=torch.float64)
+    fast, slow = (float(min_snap(wp, k * T).snap_cost()[0]) for k in (1.0, 2.0))
+    assert effort_at_time(fast, 2.2, 4.4) == pytest.approx(slow, rel=1e-9)
+    assert fast == pytest.approx(slow * 2 ** 7, rel=1e-9)
+    assert effort_at_time(100800 * 4.0 / 3.0 ** 7, 3.0, 1.5) == pytest.approx(100800 * 4.0 / 1.5 ** 7)
+    with pytest.raises(ValueError, match="> 0 s"):
+        effort_at_time(1.0, 0.0, 2.0)
+
+
+def test_compare_effort_counts_the_pairs_both_reached_at_equal_flight_time() -> None:
+    from mapkit.evaluation import compare_effort
+
+    def row(method: str, pair: int, effort: float, time_s: float, outcome: str = "success") -> EpisodeRecord:
+        return EpisodeRecord.from_dict(ROW | {"method": method, "pair": pair, "control_effort": effort,
+                                              "time_s": time_s, "outcome": outcome})
+
+    rows = [row("oracle", 0, 100.0, 10.0), row("learned", 0, 100.0 * 2 ** 7, 5.0),  # same cost at equal time
+            row("oracle", 1, 50.0, 8.0), row("learned", 1, 300.0, 8.0),  # 6× at equal time
+            row("oracle", 2, 60.0, 8.0), row("learned", 2, 1.0, 8.0, "timeout"),  # not both reached
+            row("learned", 3, 5.0, 8.0)]  # the oracle did not fly it
+    c = compare_effort(rows, "learned", "oracle")
+    assert c is not None and c.pairs == 2
+    assert c.equal_time_ratio == pytest.approx(3.5)  # median of 1 and 6
+    assert c.median_a == pytest.approx((12800 + 300) / 2) and c.median_b == pytest.approx(75.0)
+    assert c.time_a == pytest.approx(6.5) and c.time_b == pytest.approx(9.0)
+    assert compare_effort(rows, "learned", "straight") is None
+    s = summarise(rows, ["office"], ["oracle"])["oracle"]["overall"]
+    assert s["time_s"]["median"] == pytest.approx(8.0)  # over its three successful flights

@@ -12,7 +12,8 @@ Building blocks for other loops: :func:`run_episode` with any object that has ``
 piecewise polynomials with exact snap effort); :func:`sample_pairs`.
 
 Reading results.json: :class:`EpisodeRecord` (one row of ``episodes``), :data:`Outcome`,
-:data:`EVAL_FORMAT`.
+:data:`EVAL_FORMAT`; :func:`compare_effort` (two methods on the pairs both reached, also at equal
+flight time: :func:`effort_at_time`).
 """
 
 from mapkit._formats import EVAL_FORMAT, OUTCOMES, EpisodeRecord, Outcome
@@ -29,6 +30,7 @@ from mapkit.evaluation._methods import (
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
 from mapkit.evaluation._paths import load_paths
 from mapkit.evaluation._pieces import Pieces, hold, pieces_from_body
+from mapkit.evaluation._report import EffortComparison, compare_effort, effort_at_time
 from mapkit.evaluation._run import PLANS_FILE, WORLD_ORDER, CameraSpec, EvalConfig, EvalResult, evaluate, summarise
 
 __all__ = [
@@ -39,4 +41,5 @@ __all__ = [
     "Execution", "LearnedMethod", "OracleMethod", "PlanInput", "StraightMethod", "make_methods", "PLANS_FILE",
     "Pair", "sample_pairs", "load_paths",
     "Pieces", "hold", "pieces_from_body",
+    "EffortComparison", "compare_effort", "effort_at_time",
 ]

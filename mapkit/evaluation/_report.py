@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -131,16 +132,16 @@ def _effort_table(doc: dict, latency: dict) -> list[str]:
     """Table II (effort, peaks, latency, path ratio, clearance) and the paper's figures."""
     s, methods = doc["summary"], doc["methods"]
     L = ["## Table II — control effort and planning latency", "",
-         "| method | executed effort m²/s⁷: median (mean ± std) | per-plan effort, median | peak speed / acc. / jerk, "
-         "median | latency ms | path length / straight | min distance m (mean, min) |",
-         "|---|---|---|---|---|---|---|"]
+         "| method | executed effort m²/s⁷: median (mean ± std) | per-plan effort, median | flight time s, median | "
+         "peak speed / acc. / jerk, median | latency ms | path length / straight | min distance m (mean, min) |",
+         "|---|---|---|---|---|---|---|---|"]
     for m in methods:
         o = s[m]["overall"]
         md = o["min_distance"]
         mind = "–" if md.get("mean") is None else f"{md['mean']:.2f}, {md['min']:.2f}"
         peaks = " / ".join(_median(o.get(k, {}), "{:.2f}") for k in ("peak_speed", "peak_acceleration", "peak_jerk"))
         L.append(f"| {m} | {_median(o['control_effort'])} ({_effort(o['control_effort'])}) | "
-                 f"{_median(o.get('plan_effort', {}))} | {peaks} | {_lat(latency[m]['overall'])} | "
+                 f"{_median(o.get('plan_effort', {}))} | {_median(o.get('time_s', {}), '{:.1f}')} | {peaks} | {_lat(latency[m]['overall'])} | "
                  f"{_pm(o['path_length_ratio'])} | {mind} |")
     L += ["", "Paper: " + "; ".join(f"{k} {e} m²/s⁷, {t} ms" for k, (e, t) in PAPER_EFFORT_LATENCY.items()) + ".", ""]
     return L
@@ -181,28 +182,74 @@ def _per_world_table(doc: dict, latency: dict) -> list[str]:
     return L
 
 
+@dataclass(frozen=True)
+class EffortComparison:
+    """Executed effort of method ``a`` against ``b`` on the pairs both reached."""
+
+    pairs: int
+    """Pairs both methods reached."""
+    median_a: float
+    median_b: float
+    """Median executed effort of each over those pairs, m²/s⁷."""
+    time_a: float
+    time_b: float
+    """Median flight time of each over those pairs, s."""
+    equal_time_ratio: float
+    """Median over those pairs of a's effort / b's effort re-timed to a's flight time: ``b``'s flown
+    path, flown through in the time ``a`` took, costs ``effort_b · (time_b / time_a)⁷``
+    (:func:`effort_at_time`). The raw ratio mixes the paths' smoothness with their speed: flown in
+    half the time the same path costs 128×."""
+
+
+def effort_at_time(effort: float, time_s: float, new_time_s: float) -> float:
+    """∫‖snap‖² dt of a trajectory ``p(t)``, t ∈ [0, ``time_s``], flown along the same path in
+    ``new_time_s`` instead: ``q(t) = p(t · time_s / new_time_s)`` has snap scaled by (time_s / new_time_s)⁴
+    over a duration scaled by new_time_s / time_s, so its effort is ``effort · (time_s / new_time_s)⁷``."""
+    if time_s <= 0 or new_time_s <= 0:
+        raise ValueError(f"flight times must be > 0 s, got {time_s} and {new_time_s}")
+    return effort * (time_s / new_time_s) ** 7
+
+
+def compare_effort(episodes: list[EpisodeRecord], a: str, b: str) -> EffortComparison | None:
+    """Effort of ``a`` against ``b`` on the pairs both reached (None when there are none)."""
+    ok: dict[tuple[str, int], dict[str, tuple[float, float]]] = {}  # pair → method → (effort, time)
+    for e in episodes:
+        if e.method in (a, b) and e.outcome == "success" and e.control_effort is not None and e.time_s:
+            ok.setdefault((e.world, e.pair), {})[e.method] = (e.control_effort, e.time_s)
+    both = np.array([[*v[a], *v[b]] for v in ok.values() if len(v) == 2]).reshape(-1, 4)
+    if not len(both):
+        return None
+    ea, ta, eb, tb = both.T
+    ratios = [x / effort_at_time(y, t_b, t_a) for x, t_a, y, t_b in both[eb > 0]]  # a zero effort has no ratio
+    return EffortComparison(
+        pairs=len(both), median_a=float(np.median(ea)), median_b=float(np.median(eb)),
+        time_a=float(np.median(ta)), time_b=float(np.median(tb)),
+        equal_time_ratio=float(np.median(ratios)) if ratios else float("nan"))
+
+
+def _rel(x: float, y: float) -> str:
+    """x / y as "3.2×", or with the percentage below 2×."""
+    if x / y >= 2:
+        return f"{x / y:.3g}×"
+    return f"{x / y:.3g}× ({100 * abs(1 - x / y):.1f} % {'lower' if x < y else 'higher'})"
+
+
 def _effort_comparison(doc: dict, episodes: list[EpisodeRecord], a: str, b: str, paper: str) -> str:
     """Effort of a vs b over all their successful flights and over the pairs both reached."""
     s = doc["summary"]
     ea, eb = s[a]["overall"]["control_effort"].get("median"), s[b]["overall"]["control_effort"].get("median")
     if ea is None or not eb:
         return f"Effort {a} vs {b}: no comparison (one of them reached no goal; {paper})."
-    ok: dict[tuple[str, int], dict[str, float | None]] = {}
-    for e in episodes:
-        if e.method in (a, b) and e.outcome == "success":
-            ok.setdefault((e.world, e.pair), {})[e.method] = e.control_effort
-    both = [v for v in ok.values() if len(v) == 2]
-
-    def rel(x: float, y: float) -> str:
-        if x / y >= 2:
-            return f"{x / y:.3g}×"
-        return f"{x / y:.3g}× ({100 * abs(1 - x / y):.1f} % {'lower' if x < y else 'higher'})"
-
-    text = f"Executed effort {a} vs {b}, medians: {rel(ea, eb)} over each one's successful flights"
-    if both:
-        ma = float(np.median([v[a] for v in both]))
-        mb = float(np.median([v[b] for v in both]))
-        text += f"; {rel(ma, mb)} on the {len(both)} pairs both reached ({ma:.4g} vs {mb:.4g} m²/s⁷)"
+    text = f"Executed effort {a} vs {b}, medians: {_rel(ea, eb)} over each one's successful flights"
+    c = compare_effort(episodes, a, b)
+    if c is not None:
+        text += (f"; {_rel(c.median_a, c.median_b)} on the {c.pairs} pairs both reached ({c.median_a:.4g} vs "
+                 f"{c.median_b:.4g} m²/s⁷, flown in {c.time_a:.1f} vs {c.time_b:.1f} s); at equal flight time "
+                 f"({b}'s path flown in {a}'s time), {c.equal_time_ratio:.3g}× (median over those pairs")
+        per_world = [(w, compare_effort([e for e in episodes if e.world == w], a, b)) for w in doc["worlds"]]
+        if len(per_world) > 1:
+            text += "; " + ", ".join(f"{w} {cw.equal_time_ratio:.3g}×" for w, cw in per_world if cw is not None)
+        text += ")"
     return text + f" ({paper})."
 
 

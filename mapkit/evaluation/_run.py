@@ -403,7 +403,7 @@ def _present(values: list[float | None]) -> list[float]:
 
 
 def summarise(episodes: list[EpisodeRecord], worlds: list[str], methods: list[str]) -> dict:
-    """Per method: per world and ``overall`` rates and metric statistics (effort and path ratio over
+    """Per method: per world and ``overall`` rates and metric statistics (effort, flight time and path ratio over
     successful episodes; clearance over all)."""
     out: dict[str, dict] = {}
     for m in methods:
@@ -421,6 +421,7 @@ def summarise(episodes: list[EpisodeRecord], worlds: list[str], methods: list[st
                 "timeout_rate": sum(e.outcome == "timeout" for e in eps) / n if n else None,
                 "control_effort": _stats(_present([e.control_effort for e in ok])),
                 "plan_effort": _stats(_present([e.plan_effort for e in ok])),
+                "time_s": _stats(_present([e.time_s for e in ok])),
                 "peak_speed": _stats(_present([e.peak_speed for e in ok])),
                 "peak_acceleration": _stats(_present([e.peak_acceleration for e in ok])),
                 "peak_jerk": _stats(_present([e.peak_jerk for e in ok])),
