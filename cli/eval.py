@@ -40,6 +40,9 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @click.option("--check-memory/--no-check-memory", default=True, show_default=True,
               help="The corridor's check also counts remembered surfaces near the trajectory's first seconds "
                    "(the jamb of a doorway the camera no longer sees).")
+@click.option("--turn-toward-open/--no-turn-toward-open", default=True, show_default=True,
+              help="A blocked learned planner that hovers turns toward the side with fewer remembered surfaces "
+                   "(off: always counter-clockwise).")
 @click.option("--v-max", type=FINITE, default=3.0, show_default=True, help="Per-axis speed limit of learned plans, m/s; 0 = none.")
 @click.option("--a-max", type=FINITE, default=4.0, show_default=True, help="Per-axis acceleration limit of learned plans, m/s²; 0 = none.")
 @click.option("--memory", type=FINITE, default=8.0, show_default=True,
@@ -64,7 +67,7 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
-             corridor_check: bool, check_memory: bool, v_max: float, a_max: float, memory: float, subgoal_speed: float | None, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
+             corridor_check: bool, check_memory: bool, turn_toward_open: bool, v_max: float, a_max: float, memory: float, subgoal_speed: float | None, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
              record_plans: bool, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, Execution, LoopConfig, evaluate
@@ -76,7 +79,7 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
                         execution=Execution(corridor=corridor or None, check_corridor=corridor_check,
                                             check_memory=check_memory, v_max=v_max or None,
                                             a_max=a_max or None, memory=memory or None, subgoal_speed=subgoal_speed,
-                                            follow=follow),
+                                            follow=follow, turn_toward_open=turn_toward_open),
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
                                         on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,
                                         look_ahead=look_ahead))

@@ -21,6 +21,7 @@ from mapkit.evaluation import (
     StraightMethod,
     evaluate,
     hold,
+    level_pose,
     load_paths,
     pieces_from_body,
     run_episode,
@@ -582,6 +583,46 @@ def test_a_blocked_vehicle_brakes_beside_a_remembered_wall_not_into_it():
     end = stop.derivative(np.array([stop.t_end]), 0)[0]
     assert np.allclose(end, 2.0 ** 2 / 3.0 * direction, atol=1e-9)
     assert np.allclose(stop.derivative(np.array([stop.t_end]), 1)[0], 0.0, atol=1e-9)
+
+
+def test_a_blocked_vehicle_turns_away_from_the_remembered_wall_beside_it():
+    """Stopped with a wall 1 m to its right (seen and remembered), the vehicle turns left to look for
+    a way; mirrored, right; with nothing remembered either way there is no preference."""
+    from mapkit.evaluation._methods import _Memory
+
+    w, h = 160, 96
+    for yaw, expected in ((-90.0, 1.0), (90.0, -1.0)):  # looking right (the wall at y = −1 m), then left
+        memory = _Memory(_forward_camera(w, h), seconds=4.0)
+        assert memory.open_side(np.eye(4)) is None
+        memory.add(Observation(t=0.0, T_world_body=level_pose(np.zeros(3), np.radians(yaw)),
+                               state_world=np.zeros((4, 3)), goal_world=np.zeros(3), local_goal_body=np.zeros(3),
+                               depth=np.full((h, w), 1.0, dtype=np.float32)))
+        assert memory.open_side(np.eye(4)) == expected
+
+
+def test_the_hovering_vehicle_turns_the_way_the_method_asks():
+    """A method that is blocked from the start and asks to turn clockwise: the camera's yaw steps
+    down by the look turn; without an answer it steps up (counter-clockwise)."""
+    world = World([Box((50.0, 50.0, 1.5), (0.1, 0.1, 0.1))], np.array([[-10.0, -10.0, 0.0], [60.0, 60.0, 3.0]]))
+
+    class Stuck:
+        name, needs_depth, replans = "stuck", False, True
+
+        def __init__(self, side: float | None) -> None:
+            self.side, self.yaws = side, []
+
+        def plan(self, obs: Observation) -> MethodPlan:
+            R = obs.T_world_body[:3, :3]
+            self.yaws.append(float(np.degrees(np.arctan2(R[1, 0], R[0, 0]))))
+            return MethodPlan(pieces=hold(obs.state_world[0], obs.t), latency_ms=0.0, eta=0.9, blocked=True,
+                              turn_side=self.side)
+
+    start, goal = np.array([0.0, 0.0, 1.5]), np.array([10.0, 0.0, 1.5])
+    for side, step in ((-1.0, -60.0), (None, 60.0)):
+        method = Stuck(side)
+        run_episode(world, start, goal, method, LoopConfig(timeout_min=2.0))
+        turns = np.diff(method.yaws)
+        assert len(turns) >= 2 and np.allclose(turns[turns != 0][:2], step)
 
 
 def test_the_vehicle_looks_where_its_reference_turns():

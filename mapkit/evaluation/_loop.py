@@ -142,6 +142,9 @@ class MethodPlan:
     brake_direction: np.ndarray | None = None
     """(3,) unit vector, body frame at the observation: where a blocked method brakes to (None: along
     the velocity)."""
+    turn_side: float | None = None
+    """+1 (counter-clockwise) or −1: the way a blocked vehicle that hovers should turn to look
+    elsewhere, read when it starts turning (None: the way it turned last, at first counter-clockwise)."""
     blocked: bool = False
     """The method found no way ahead it can fly (every path it could take runs into what the camera
     sees): the loop brakes to rest and then turns to look elsewhere, whatever η says."""
@@ -233,6 +236,8 @@ class _Flight:
     t: float = 0.0
     look: float = 0.0
     braking: bool = False
+    turn: float = 1.0
+    """+1 or −1: the way the hovering vehicle turns (:attr:`MethodPlan.turn_side`)."""
     plans: int = 0
     rejected: int = 0
     latencies: list[float] = field(default_factory=list)
@@ -349,7 +354,9 @@ def _replan(f: _Flight, world: World, goal: np.ndarray, method: Method, config: 
     if vetoed or mp.blocked:
         f.rejected += 1
         if f.t >= f.ref.t_end - 1e-9:
-            f.look += math.radians(config.look_turn_deg)
+            if f.look == 0.0 and mp.turn_side:  # a new look around, the way the method asks
+                f.turn = float(np.sign(mp.turn_side))
+            f.look += f.turn * math.radians(config.look_turn_deg)
         elif (mp.blocked or config.on_reject == "brake") and not f.braking:
             f.braking = True
             f.take(_brake(obs, config.brake_deceleration, mp.brake_direction).pieces)
