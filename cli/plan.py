@@ -46,6 +46,8 @@ def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float
                    f"the point {LOCAL_GOAL_RANGE:g} m along the way (body {np.round(result.goal_body, 3).tolist()}); "
                    "replan from a later frame to go on")
     verdict = "execute" if result.execute else "do NOT execute (eta >= 0.5)"
+    if result.widened:
+        verdict += " (a widened candidate, mapkit.planning.WIDEN)"
     click.echo(
         f"eta {result.eta:.3f} → {verdict}; segment times {np.round(result.durations.astype(float), 2).tolist()} s "
         f"(total {result.durations.sum():.2f} s); control effort {result.control_effort:.2f} m²/s⁷; "

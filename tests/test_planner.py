@@ -33,6 +33,7 @@ from mapkit.planner import (
     time_targets,
     torchvision_resnet18_keys,
 )
+from mapkit.planner._model import choose_candidate
 from mapkit.trajopt import allocate_times, min_snap
 
 VOXEL = 0.2
@@ -410,6 +411,39 @@ def test_anchors_detour_both_ways_and_end_at_the_goal():
     assert out.candidates.shape == (2, 6, cfg.num_keypoints, 3) and out.scores.shape == (2, 6)
     assert float((out.candidates - anchors).norm(dim=-1).max()) < 0.1
     assert torch.equal(out.keypoints, out.candidates[torch.arange(2), out.chosen])
+
+
+def test_widened_candidates_scale_the_detour_and_are_judged_like_the_trained_ones():
+    cfg = planner_preset("cpu", num_candidates=6)
+    torch.manual_seed(0)
+    net = PlannerNet(cfg).eval()
+    goal = torch.tensor([[6.0, 0.0, 0.0], [2.0, 3.0, 0.5]])
+    K = cfg.num_keypoints
+    cands = net.anchor_paths(goal) + 0.1 * torch.randn(2, 6, K, 3)
+    wide = net.widened(cands, goal, (1.5, 2.5))
+    assert wide.shape == (2, 18, K, 3)
+    assert torch.equal(wide[:, :6], cands)
+    line = net.straight_line(goal)[:, None, :-1]
+    for i, f in enumerate((1.5, 2.5), start=1):
+        torch.testing.assert_close(wide[:, 6 * i:6 * (i + 1), :-1] - line, f * (cands[:, :, :-1] - line))
+        assert torch.equal(wide[:, 6 * i:6 * (i + 1), -1], cands[:, :, -1])  # where the path ends: kept
+    for bad in ((0.0,), (float("nan"),), (-2.0,)):
+        with pytest.raises(PlannerError, match="widening factors"):
+            net.widened(cands, goal, bad)
+    depth, _ = _inputs(2, cfg)
+    with torch.no_grad():
+        x = net.preprocess(depth)
+        plain = net(x, goal)
+        out = net(x, goal, widen=(1.5, 2.5))
+        planned = net.plan(depth, goal, widen=(1.5, 2.5))
+    assert out.candidates.shape == (2, 18, K, 3) and out.scores.shape == (2, 18)
+    # the judge reads each candidate alone: adding widened ones changes nothing about the trained ones
+    torch.testing.assert_close(out.scores[:, :6], plain.scores)
+    torch.testing.assert_close(out.candidate_eta_logits[:, :6], plain.candidate_eta_logits)
+    torch.testing.assert_close(out.candidates[:, 6:], net.widened(plain.candidates, goal, (1.5, 2.5))[:, 6:])
+    assert torch.equal(out.chosen, choose_candidate(out.scores, out.candidate_eta_logits))
+    assert torch.equal(out.keypoints, out.candidates[torch.arange(2), out.chosen])
+    assert torch.equal(planned.widened, out.chosen >= 6)
 
 
 @pytest.mark.slow

@@ -273,7 +273,8 @@ class PlannerOutput:
     eta_logit: torch.Tensor
     """(B,) the logit of ``eta`` (for numerically exact BCE)."""
     candidates: torch.Tensor | None = None
-    """(B, M, K, 3) every candidate path (M = ``num_candidates``); ``keypoints`` is the chosen one."""
+    """(B, M, K, 3) every candidate path (M = ``num_candidates``, then any widened ones: ``forward``'s
+    ``widen``); ``keypoints`` is the chosen one."""
     candidate_eta_logits: torch.Tensor | None = None
     """(B, M) collision logits of each candidate."""
     scores: torch.Tensor | None = None
@@ -325,6 +326,8 @@ class Plan:
     """(B,) collision probability when the plan came from :meth:`PlannerNet.plan`, else None."""
     eta_logit: torch.Tensor | None = None
     """(B,) its logit, likewise."""
+    widened: torch.Tensor | None = None
+    """(B,) bool: the chosen candidate is a widened one (``widen``), when from :meth:`PlannerNet.plan`."""
 
 
 # ----------------------------------------------------------------------------------- network
@@ -561,9 +564,20 @@ class PlannerNet(nn.Module):
         offset = offset * scale[:, None, None]
         return line[:, None] + bump[None, None, :, None] * offset[:, :, None, :]
 
+    def widened(self, candidates: torch.Tensor, goal: torch.Tensor, factors: tuple[float, ...]) -> torch.Tensor:
+        """(B, M (1 + F), K, 3): ``candidates`` (B, M, K, 3) followed by each of them with its interior
+        key-points' offsets from the straight line to ``goal`` scaled by each of the F ``factors`` (the
+        last key-point, where the net ends its path, is kept)."""
+        if not all(math.isfinite(f) and f > 0 for f in factors):
+            raise PlannerError(f"widening factors must be finite and > 0, got {factors}")
+        line = self.straight_line(goal)[:, None]  # (B, 1, K, 3)
+        detour = candidates - line
+        detour[..., -1, :] = 0.0
+        return torch.cat([candidates] + [candidates + detour * (f - 1.0) for f in factors], dim=1)
+
     def forward(self, x: torch.Tensor, goal: torch.Tensor, image_index: torch.Tensor | None = None,
                 camera: CameraInput | None = None, velocity: torch.Tensor | None = None,
-                image: ImageFeatures | None = None) -> PlannerOutput:
+                image: ImageFeatures | None = None, widen: tuple[float, ...] = ()) -> PlannerOutput:
         """Predict key-points and η.
 
         Args:
@@ -576,6 +590,8 @@ class PlannerNet(nn.Module):
             velocity: (B, 3) body-frame velocity, m/s (``config.velocity_input``; None = at rest).
             image: ``PlannerOutput.image`` of an earlier pass on the same ``x`` (one image): its
                 features and pyramid are reused (a second goal from the same frame).
+            widen: factors of :meth:`widened` candidates judged and chosen among like the trained ones
+                (several candidates only; () none).
 
         Returns:
             :class:`PlannerOutput` with keypoints (B, K, 3), eta (B,), eta_logit (B,).
@@ -612,6 +628,9 @@ class PlannerNet(nn.Module):
         M, K = c.num_candidates, c.num_keypoints
         offsets = self.keypoint_mlp(flat).reshape(B, M, K, 3)
         candidates = self.anchor_paths(goal) + offsets
+        if widen and M > 1:
+            candidates = self.widened(candidates, goal, widen)
+            M = candidates.shape[1]
         pyramid = None
         if self.judge_mlp is None:
             assert self.eta_mlp is not None  # one candidate: an η head instead of a judge (__init__)
@@ -714,6 +733,7 @@ class PlannerNet(nn.Module):
         end_speed: torch.Tensor | None = None,
         corridor: float | None = None,
         camera: CameraInput | None = None,
+        widen: tuple[float, ...] = (),
     ) -> Plan:
         """Depth image(s) in metres + goal → :class:`Plan` (preprocess, forward, trajectory).
 
@@ -723,6 +743,7 @@ class PlannerNet(nn.Module):
             start_velocity, start_acceleration: (B, 3) body frame, see :meth:`trajectory`.
             end_speed: (B,) m/s at the last key-point (0: rest; a receding-horizon loop passes the local
                 goal at cruise speed while the real goal lies beyond it).
+            widen: widened candidates, see :meth:`forward`.
 
         Gradients flow as usual; wrap the call in ``torch.inference_mode()`` and put the net in
         ``eval()`` mode for deployment.
@@ -731,10 +752,11 @@ class PlannerNet(nn.Module):
         goal = torch.as_tensor(goal, dtype=x.dtype, device=x.device)
         if goal.ndim == 1:
             goal = goal.unsqueeze(0)
-        out = self(x, goal, camera=camera, velocity=start_velocity)
+        out = self(x, goal, camera=camera, velocity=start_velocity, widen=widen)
         p = self.trajectory(out.keypoints, start_velocity=start_velocity, start_acceleration=start_acceleration,
                             end_speed=end_speed, corridor=corridor)
         p.eta, p.eta_logit = out.eta, out.eta_logit
+        p.widened = (out.chosen >= self.config.num_candidates) if out.chosen is not None else None
         return p
 
 
