@@ -64,6 +64,7 @@ def main() -> None:
     parser.add_argument("--model", default="pretrained")
     parser.add_argument("--plans", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--tilt", type=float, default=10.0, help="camera pitch, degrees down")
     args = parser.parse_args()
     import torch
 
@@ -74,7 +75,7 @@ def main() -> None:
     torch.set_num_threads(1)
     planner = Planner.load(args.model)
     cam = CameraModel(width=160, height=120)
-    T_bl, T_lo = camera_extrinsics(tilt_deg=10.0)
+    T_bl, T_lo = camera_extrinsics(tilt_deg=args.tilt)
     T_bc = T_bl @ T_lo
     rng = np.random.default_rng(args.seed)
     ok = trained_ok = widened = straight_ok = done = 0
@@ -108,7 +109,7 @@ def main() -> None:
             done += 1
             if done >= args.plans:
                 break
-    print(f"foreign scenes (Open3D ray casting, camera pitched 10° down): {ok}/{done} plans to hidden goals "
+    print(f"foreign scenes (Open3D ray casting, camera pitched {args.tilt:g}° down): {ok}/{done} plans to hidden goals "
           f"collision-free, executed and within 1 m of the goal ({100 * ok / done:.0f} %; target >= 80 %; "
           f"{widened} on a widened candidate); trained candidates alone: {trained_ok}/{done}; "
           f"straight line: {straight_ok}/{done}")
