@@ -489,6 +489,28 @@ def test_winner_takes_all_keeps_the_detour_that_wins(box_map):
     assert int(out.chosen[0]) != 0  # not the straight anchor
 
 
+def test_anchor_pull_adds_the_losers_squared_distance_from_their_anchors(box_map):
+    """Every candidate offset from its anchor by the same c: the pull adds exactly β‖c‖² per sample,
+    whichever candidate wins; a negative weight is refused."""
+    from mapkit.planner import candidate_loss
+
+    net = PlannerNet(planner_preset("cpu", num_candidates=4, input_size=(32, 48), encoder_width=0.125))
+    c = torch.tensor([0.3, -0.4, 0.2])
+    with torch.no_grad():
+        last = net.keypoint_mlp[-1]
+        last.weight.zero_()
+        last.bias.copy_(c.repeat(4 * net.config.num_keypoints))
+    depth = torch.full((2, 48, 64), 5.0)
+    goal = torch.tensor([[8.0, 0.0, 0.0], [6.0, 2.0, 0.5]])
+    T = torch.eye(4).expand(2, 4, 4).clone()
+    with torch.no_grad():
+        out = net(net.preprocess(depth), goal)
+        loss = {beta: candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=box_map,
+                                     config=LossConfig(candidate_anchor_pull=beta))[0] for beta in (0.0, 0.5)}
+    torch.testing.assert_close(loss[0.5] - loss[0.0], 0.5 * c.square().sum(), rtol=1e-5, atol=1e-6)
+    with pytest.raises(PlannerError, match="candidate_anchor_pull"):
+        LossConfig(candidate_anchor_pull=-1.0)
+
 def test_depth_margins_against_a_wall_in_front():
     """Depth 4 m everywhere (a wall facing the camera): path points before it are in view with a
     positive margin, points behind it negative, points behind the camera out of view; a pole beside

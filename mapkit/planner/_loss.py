@@ -53,6 +53,12 @@ class LossConfig:
     candidate_spread: float = 0.05
     """α: every candidate's path cost enters with weight α (the winner's with 1 + α), so candidates
     that never win still move towards sensible paths instead of dying (only with several)."""
+    candidate_anchor_pull: float = 0.0
+    """β, 1/m²: every candidate that does not win a sample adds β × the mean squared distance (m²) of
+    its key-points from its own anchor path's, divided among the M − 1 losers (only with several).
+    ``candidate_spread`` pulls the losers toward the cheapest path, and the shipped model's eight
+    candidates ended up within a metre of each other; this pull keeps them apart instead. Off: a
+    fine-tune with it (β 0.1, no spread term) lost 15 of 240 office dev flights (docs/train.md)."""
     robot_radius: float = 0.3
     """Metres. The obstacle cost acts on the clearance d − robot_radius."""
     obstacle_softness: float = 1.0
@@ -102,6 +108,9 @@ class LossConfig:
             raise PlannerError(f"score_temperature must be >= 0 metres, got {self.score_temperature}")
         if self.min_samples < 2:
             raise PlannerError(f"min_samples must be >= 2, got {self.min_samples}")
+        for name in ("candidate_spread", "candidate_anchor_pull"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
+                raise PlannerError(f"{name} must be >= 0, got {getattr(self, name)}")
 
     @property
     def collision_threshold(self) -> float:
@@ -414,6 +423,10 @@ def candidate_loss(
     per = path[rows, winner]
     if M > 1:
         per = per + cfg.candidate_spread * path.mean(dim=1)
+        if cfg.candidate_anchor_pull > 0:
+            away = (cand - net.anchor_paths(goal)).square().sum(-1).mean(-1)  # (B, M) m²
+            losers = torch.ones_like(away).scatter(1, winner[:, None], 0.0)
+            per = per + cfg.candidate_anchor_pull * (away * losers).sum(dim=1) / (M - 1)
     u_e = F.binary_cross_entropy_with_logits(logits, collided.to(logits.dtype), reduction="none").mean(dim=1)
     if out.scores is None or M == 1:
         u_score = torch.zeros_like(per)
