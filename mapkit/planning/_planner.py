@@ -62,11 +62,11 @@ trained ones. Training pulls all eight candidates toward the cheapest path, so t
 a metre where a box beside the line needs two. Foreign-scene bench, 200 plans per seed, without →
 with: seed 0 (where the factors were chosen among (1.5, 2, 3), (1.5, 2.5) and six up to 4) 130 → 164;
 seeds 1 / 2 / 3: 133 → 165, 133 → 162, 131 → 158 (81 % on average against 66); seed 1 with the camera
-level or pitched 15° down: 135 → 165, 129 → 159. Choosing a widened one
-only when every trained one is expected to collide: 165 / 154 / 156. ``mapkit eval``'s closed loop
-does not widen: it hovers and looks around when every candidate is expected to collide, and widening
-there lowered the office dev seeds from 196 to 190 of 240 (docs/evaluation.md). Latency: within
-this machine's noise (3.2–3.5 ms per plan either way, one thread, 100 plans from a random image)."""
+level or pitched 15° down: 135 → 165, 129 → 159. Choosing a widened one only when every trained one is
+expected to collide: 165 / 154 / 156 on seeds 1 / 2 / 3. ``mapkit eval``'s closed loop does not widen:
+it hovers and looks around when every candidate is expected to collide, and widening there lowered
+the office dev seeds from 196 to 190 of 240 (docs/evaluation.md). Latency: within this machine's
+noise (3.2–3.5 ms per plan either way, one thread, 100 plans from a random image)."""
 
 
 class Planner:
