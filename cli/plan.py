@@ -19,9 +19,11 @@ from mapkit.cli.main import FINITE, INDEX, library_call, main, workspace_option
 @click.option("--goal-frame", type=click.Choice(GOAL_FRAMES), default="body", show_default=True, help="Frame of --goal.")
 @click.option("-o", "--output", type=click.Path(path_type=Path), default=None, help="Output folder (default: WS/plans).")
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda.")
+@click.option("--widen/--no-widen", default=True, show_default=True,
+              help="Also judge each candidate with its detour widened ×1.5 and ×2.5 (mapkit.planning.WIDEN).")
 @library_call
 def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float, float, float], goal_frame: GoalFrame,
-             output: Path | None, device: str) -> None:
+             output: Path | None, device: str, widen: bool) -> None:
     """Plan from a recorded frame; writes the trajectory as JSON, TUM and MCAP (nav_msgs/Path)."""
     from mapkit.export import body_velocities
     from mapkit.ingest import open_frames_store
@@ -37,7 +39,8 @@ def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float
     velocity = body_velocities(store.stamp_ns, store.T_world_body, store.source_index)[frame_index]
     planner = Planner.load(run_dir, device=device)
     planned = plan_from_frame(planner, np.asarray(store.depth[frame_index]), T_wb, store.T_world_camera[frame_index],
-                              store.K, goal, goal_frame=goal_frame, velocity_body=velocity)
+                              store.K, goal, goal_frame=goal_frame, velocity_body=velocity,
+                              widen=None if widen else ())
     g, result = planned.goal_body, planned.result
     paths = write_plan_outputs(result, T_wb, int(store.stamp_ns[frame_index]), out,
                                world_frame=str(store.attrs.get("world_frame", "world")), stem=f"plan_{frame_index:06d}")

@@ -48,11 +48,17 @@ def plan_from_frame(
     goal_frame: GoalFrame = "body",
     velocity_body: NDArray[np.float64] | None = None,
     corridor: float | None = None,
+    widen: tuple[float, ...] | None = None,
 ) -> FramePlan:
     """Plan from one frame (depth (H, W) metres, its body and optical-camera poses (4, 4), K (3, 3)) to
-    ``goal`` (3,) given in ``goal_frame``; ``velocity_body`` (3,) and ``corridor`` as in :meth:`Planner.plan`."""
+    ``goal`` (3,) given in ``goal_frame``; ``velocity_body`` (3,), ``corridor`` and ``widen`` as in
+    :meth:`Planner.plan` (None: its default, :data:`mapkit.planning.WIDEN`)."""
     goal_body = goal_in_body(goal, T_world_body, goal_frame)
     T_body_camera = invert_transform(T_world_body) @ T_world_camera
+    if widen is None:
+        from mapkit.planning._planner import WIDEN  # torch is loaded by now: a planner exists
+
+        widen = WIDEN
     result = planner.plan(depth, goal_body, velocity_body=velocity_body, corridor=corridor, K=K,
-                          T_body_camera=T_body_camera)
+                          T_body_camera=T_body_camera, widen=widen)
     return FramePlan(goal_body, result)
