@@ -263,8 +263,8 @@ def open_direction(depth: np.ndarray, camera: CameraInput, goal_body: np.ndarray
     middle fifth of the rows (a doorway, the open end of a corridor), up to 5 m and 1 m short of what
     is seen there; columns toward ``goal_body`` win ties (one metre of free depth per radian off the
     goal's bearing; 0.5 or 2 m per radian reached 1025 / 1019 of the 1200 office flights of dev seeds
-    200–219, against 1032). None when no column is free for ``min_free`` metres. Columns without a
-    return count as free to ``max_depth``."""
+    200–219, against 1032). None when no column is free for ``min_free`` metres (2.0 or 3.5 m: 1024 /
+    1026). Columns without a return count as free to ``max_depth``."""
     depth = np.asarray(depth, dtype=np.float64)
     H, W = depth.shape
     band = depth[int(0.4 * H):int(0.6 * H) + 1]
