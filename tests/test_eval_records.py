@@ -92,3 +92,31 @@ def test_compare_effort_counts_the_pairs_both_reached_at_equal_flight_time() -> 
     assert compare_effort(rows, "learned", "straight") is None
     s = summarise(rows, ["office"], ["oracle"])["oracle"]["overall"]
     assert s["time_s"]["median"] == pytest.approx(8.0)  # over its three successful flights
+
+
+def test_success_by_detour_bins_pairs_by_the_oracles_route() -> None:
+    from mapkit.evaluation import OutcomeCounts, success_by_detour
+    from mapkit.evaluation._report import _detour_table
+
+    def row(method: str, pair: int, outcome: str, path_length: float = 10.0, world: str = "office") -> EpisodeRecord:
+        return EpisodeRecord.from_dict(ROW | {"method": method, "pair": pair, "outcome": outcome, "distance": 10.0,
+                                              "path_length": path_length, "world": world})
+
+    rows = [row("oracle", 0, "success", 9.6), row("learned", 0, "success"),  # stopped 0.4 m short: ratio 0.96
+            row("oracle", 1, "success", 10.5), row("learned", 1, "collision"),
+            row("oracle", 2, "success", 12.0), row("learned", 2, "timeout"),  # 1.2: the 1.1–1.3 bin
+            row("oracle", 3, "success", 25.0), row("learned", 3, "success"),  # 2.5: beyond the last edge
+            row("oracle", 4, "timeout", 30.0), row("learned", 4, "timeout"),
+            row("oracle", 0, "success", 13.0, "garage"),  # the same pair index in another world: its own pair
+            row("learned", 9, "success")]  # a pair the oracle did not fly is left out
+    bins = success_by_detour(rows)
+    assert [(b.low, b.high, b.pairs) for b in bins] == [(0.0, 1.1, 2), (1.1, 1.3, 1), (1.3, 1.6, 1),
+                                                        (2.0, float("inf"), 1), (None, None, 1)]
+    assert bins[0].counts["learned"] == OutcomeCounts(success=1, collision=1)
+    assert bins[1].counts["learned"] == OutcomeCounts(timeout=1)
+    assert bins[2].counts == {"oracle": OutcomeCounts(success=1)}  # the garage pair, no learned flight there
+    assert bins[4].counts["oracle"] == OutcomeCounts(timeout=1)
+    assert success_by_detour(rows, reference="straight") == []
+    table = _detour_table({"methods": ["learned", "oracle"]}, rows)
+    assert "| < 1.1 | 2 | 50.0 (1 / 0) |" in table and "| 1.3–1.6 | 1 | – |" in table
+    assert "| ≥ 2 | 1 | 100.0 (0 / 0) |" in table and "| oracle failed | 1 | 0.0 (0 / 1) |" in table

@@ -13,7 +13,8 @@ piecewise polynomials with exact snap effort); :func:`sample_pairs`.
 
 Reading results.json: :class:`EpisodeRecord` (one row of ``episodes``), :data:`Outcome`,
 :data:`EVAL_FORMAT`; :func:`compare_effort` (two methods on the pairs both reached, also at equal
-flight time: :func:`effort_at_time`).
+flight time: :func:`effort_at_time`); :func:`success_by_detour` (outcomes by how long the oracle's way
+round was).
 """
 
 from mapkit._formats import EVAL_FORMAT, OUTCOMES, EpisodeRecord, Outcome
@@ -30,7 +31,15 @@ from mapkit.evaluation._methods import (
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
 from mapkit.evaluation._paths import load_paths
 from mapkit.evaluation._pieces import Pieces, hold, pieces_from_body
-from mapkit.evaluation._report import EffortComparison, compare_effort, effort_at_time
+from mapkit.evaluation._report import (
+    DETOUR_EDGES,
+    DetourBin,
+    EffortComparison,
+    OutcomeCounts,
+    compare_effort,
+    effort_at_time,
+    success_by_detour,
+)
 from mapkit.evaluation._run import PLANS_FILE, WORLD_ORDER, CameraSpec, EvalConfig, EvalResult, evaluate, summarise
 
 __all__ = [
@@ -41,5 +50,6 @@ __all__ = [
     "Execution", "LearnedMethod", "OracleMethod", "PlanInput", "StraightMethod", "make_methods", "PLANS_FILE",
     "Pair", "sample_pairs", "load_paths",
     "Pieces", "hold", "pieces_from_body",
-    "EffortComparison", "compare_effort", "effort_at_time",
+    "EffortComparison", "compare_effort", "effort_at_time", "DETOUR_EDGES", "DetourBin", "OutcomeCounts",
+    "success_by_detour",
 ]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,6 +78,7 @@ def _markdown(path: Path, doc: dict, episodes: list[EpisodeRecord], latency: dic
             L += [_effort_comparison(doc, episodes, "learned", other, paper), ""]
     L += _allocation_table(doc, latency, allocation)
     L += _per_world_table(doc, latency)
+    L += _detour_table(doc, episodes)
     L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     L += [f"Versions: {', '.join(f'{k} {v}' for k, v in doc['versions'].items())}.", ""]
     path.write_text("\n".join(L))
@@ -225,6 +227,75 @@ def compare_effort(episodes: list[EpisodeRecord], a: str, b: str) -> EffortCompa
         pairs=len(both), median_a=float(np.median(ea)), median_b=float(np.median(eb)),
         time_a=float(np.median(ta)), time_b=float(np.median(tb)),
         equal_time_ratio=float(np.median(ratios)) if ratios else float("nan"))
+
+
+DETOUR_EDGES = (1.1, 1.3, 1.6, 2.0)
+"""Bin edges of :func:`success_by_detour`: the reference's route length over the straight distance."""
+
+
+@dataclass(frozen=True)
+class OutcomeCounts:
+    success: int = 0
+    collision: int = 0
+    timeout: int = 0
+
+
+@dataclass(frozen=True)
+class DetourBin:
+    """The pairs whose reference route was ``low``–``high`` times their straight distance (both None:
+    the pairs the reference did not fly to the goal), with each method's outcomes on them."""
+
+    low: float | None
+    high: float | None
+    pairs: int
+    counts: dict[str, OutcomeCounts]
+    """Method → its outcomes on these pairs."""
+
+
+def success_by_detour(episodes: list[EpisodeRecord], reference: str = "oracle",
+                      edges: tuple[float, ...] = DETOUR_EDGES) -> list[DetourBin]:
+    """Every method's outcomes by how far ``reference``'s successful route strays from the straight line
+    (its path length / the start–goal distance; below 1 where it stopped within the goal radius). A
+    planner that fails only where the way round is long explores badly; one that fails on near-straight
+    routes fails locally. Empty bins are left out; [] when ``reference`` did not fly."""
+    ratio: dict[tuple[str, int], float | None] = {}
+    for e in episodes:
+        if e.method == reference:
+            r = None
+            if e.outcome == "success" and e.path_length is not None and e.distance:
+                r = e.path_length / e.distance
+            ratio[(e.world, e.pair)] = r
+    if not ratio:
+        return []
+    bounds = list(zip((0.0, *edges), (*edges, math.inf), strict=True))
+    slots: list[dict[str, list[str]]] = [{} for _ in range(len(bounds) + 1)]  # the last: reference failed
+    for e in episodes:
+        if (e.world, e.pair) in ratio:
+            r = ratio[(e.world, e.pair)]
+            k = len(bounds) if r is None else next(i for i, (_, high) in enumerate(bounds) if r < high)
+            slots[k].setdefault(e.method, []).append(e.outcome)
+    return [DetourBin(low=low, high=high, pairs=len(by_method[reference]), counts={
+                m: OutcomeCounts(*(o.count(name) for name in ("success", "collision", "timeout"))) for m, o in by_method.items()})
+            for (low, high), by_method in zip([*bounds, (None, None)], slots, strict=True) if by_method]
+
+
+def _detour_table(doc: dict, episodes: list[EpisodeRecord]) -> list[str]:
+    """Success by the oracle's detour (when the oracle flew beside other methods)."""
+    methods = [m for m in doc["methods"] if m != "oracle"]
+    bins = success_by_detour(episodes) if methods else []
+    if not bins:
+        return []
+    L = ["", "## Success by detour", "",
+         "Pairs binned by the oracle's route length over the straight distance; success % (collisions / "
+         "timeouts) of each method on them.", "",
+         "| oracle route / straight | pairs | " + " | ".join(methods) + " |", "|---|---|" + "---|" * len(methods)]
+    for b in bins:
+        label = ("oracle failed" if b.low is None or b.high is None else f"< {b.high:g}" if b.low == 0
+                 else f"≥ {b.low:g}" if not math.isfinite(b.high) else f"{b.low:g}–{b.high:g}")
+        cells = [f"{100 * c.success / b.pairs:.1f} ({c.collision} / {c.timeout})" if (c := b.counts.get(m)) else "–"
+                 for m in methods]
+        L.append(f"| {label} | {b.pairs} | " + " | ".join(cells) + " |")
+    return L
 
 
 def _rel(x: float, y: float) -> str:
