@@ -235,9 +235,19 @@ DETOUR_EDGES = (1.1, 1.3, 1.6, 2.0)
 
 @dataclass(frozen=True)
 class OutcomeCounts:
+    """How many flights of one method ended each way."""
+
     success: int = 0
     collision: int = 0
     timeout: int = 0
+
+    @classmethod
+    def of(cls, outcomes: list[str]) -> OutcomeCounts:
+        return cls(*(outcomes.count(name) for name in ("success", "collision", "timeout")))
+
+    @property
+    def flights(self) -> int:
+        return self.success + self.collision + self.timeout
 
 
 @dataclass(frozen=True)
@@ -274,8 +284,8 @@ def success_by_detour(episodes: list[EpisodeRecord], reference: str = "oracle",
             r = ratio[(e.world, e.pair)]
             k = len(bounds) if r is None else next(i for i, (_, high) in enumerate(bounds) if r < high)
             slots[k].setdefault(e.method, []).append(e.outcome)
-    return [DetourBin(low=low, high=high, pairs=len(by_method[reference]), counts={
-                m: OutcomeCounts(*(o.count(name) for name in ("success", "collision", "timeout"))) for m, o in by_method.items()})
+    return [DetourBin(low=low, high=high, pairs=len(by_method[reference]),
+                      counts={m: OutcomeCounts.of(o) for m, o in by_method.items()})
             for (low, high), by_method in zip([*bounds, (None, None)], slots, strict=True) if by_method]
 
 
@@ -292,7 +302,7 @@ def _detour_table(doc: dict, episodes: list[EpisodeRecord]) -> list[str]:
     for b in bins:
         label = ("oracle failed" if b.low is None or b.high is None else f"< {b.high:g}" if b.low == 0
                  else f"≥ {b.low:g}" if not math.isfinite(b.high) else f"{b.low:g}–{b.high:g}")
-        cells = [f"{100 * c.success / b.pairs:.1f} ({c.collision} / {c.timeout})" if (c := b.counts.get(m)) else "–"
+        cells = [f"{100 * c.success / c.flights:.1f} ({c.collision} / {c.timeout})" if (c := b.counts.get(m)) else "–"
                  for m in methods]
         L.append(f"| {label} | {b.pairs} | " + " | ".join(cells) + " |")
     return L
