@@ -20,11 +20,23 @@ from mapkit.cli.main import COUNT, INDEX, NONNEGATIVE, POSITIVE, library_call, m
 @click.option("--goals-per-frame", type=COUNT, default=5, show_default=True, help="Goals per exported frame.")
 @click.option("--goal-mix", type=NONNEGATIVE, nargs=3, default=(0.2, 0.4, 0.4), show_default=True,
               help="Shares of FUTURE VISIBLE HIDDEN goals.")
+@click.option("--speed", type=POSITIVE, nargs=2, default=(1.0, 2.5), show_default=True,
+              help="Range of each world's cruise speed, m/s (MIN MAX, within 1..3).")
+@click.option("--density-scale", type=POSITIVE, nargs=2, default=(0.8, 1.8), show_default=True,
+              help="Range of obstacle density relative to each kind's default (MIN MAX).")
+@click.option("--size-scale", type=POSITIVE, nargs=2, default=(0.55, 0.8), show_default=True,
+              help="Range of horizontal world extent relative to each kind's default (MIN MAX).")
+@click.option("--tilt-deg", type=NONNEGATIVE, nargs=2, default=(0.0, 15.0), show_default=True,
+              help="Range of camera pitch down, degrees (MIN MAX; world 0 flies level).")
+@click.option("--noise-fraction", type=NONNEGATIVE, default=0.5, show_default=True,
+              help="Share of worlds recorded with RealSense-like depth noise.")
 @click.option("--workers", type=INDEX, default=0, show_default=True, help="Worlds at once (0 = one per CPU core).")
 @click.option("--dry-run", is_flag=True, help="Print the size/time estimate and the world list, generate nothing.")
 @library_call
 def dataset_cmd(root: Path, worlds: int, kinds: str, seed: int, duration: float, rate: float, goals_per_frame: int,
-                goal_mix: tuple[float, float, float], workers: int, dry_run: bool) -> None:
+                goal_mix: tuple[float, float, float], speed: tuple[float, float], density_scale: tuple[float, float],
+                size_scale: tuple[float, float], tilt_deg: tuple[float, float], noise_fraction: float, workers: int,
+                dry_run: bool) -> None:
     """Many simulated worlds (varied kinds, density, size, speed, camera, mount pitch, noise), each
     flown and run through ingest → fuse → esdf → export into ROOT/<world>/. Resumable: complete
     worlds are skipped."""
@@ -32,7 +44,8 @@ def dataset_cmd(root: Path, worlds: int, kinds: str, seed: int, duration: float,
     from mapkit.export import ExportConfig
 
     config = DatasetConfig(worlds=worlds, kinds=tuple(k.strip() for k in kinds.split(",") if k.strip()), seed=seed,
-                           duration=duration, rate=rate, workers=workers,
+                           duration=duration, rate=rate, speed=speed, density_scale=density_scale,
+                           size_scale=size_scale, tilt_deg=tilt_deg, noise_fraction=noise_fraction, workers=workers,
                            export=ExportConfig(goals_per_frame=goals_per_frame, goal_mix=goal_mix))
     s = build_dataset(root, config, progress=True, dry_run=dry_run)
     if dry_run:

@@ -71,3 +71,21 @@ def test_bad_requests_are_one_line_errors(tmp_path: Path) -> None:
     assert result.exit_code == 2 and "'--worlds': 0 must be >= 1" in result.output and "Traceback" not in result.output
     with pytest.raises(DatasetError, match=r"holds no dataset.json"):
         dataset_workspaces(tmp_path)
+
+
+def test_cli_ranges_reach_the_worlds(tmp_path: Path) -> None:
+    args = ["dataset", "-o", str(tmp_path / "d"), "--worlds", "3", "--kinds", "office", "--dry-run"]
+    default = CliRunner().invoke(main, args)
+    assert default.exit_code == 0, default.output
+    # the CLI's defaults are the library's: the same worlds either way
+    for spec in world_specs(DatasetConfig(worlds=3, kinds=("office",))):
+        assert (f"{spec.name}: {spec.size[0]}x{spec.size[1]}x{spec.size[2]} m, density {spec.density}, {spec.speed} m/s, "
+                f"camera {spec.width}x{spec.height} fx {spec.fx} tilt {spec.tilt_deg} deg, noise {spec.noise}") in default.output
+    result = CliRunner().invoke(main, args + ["--density-scale", "2", "2", "--speed", "1.2", "1.2", "--size-scale",
+                                              "0.5", "0.5", "--tilt-deg", "5", "5", "--noise-fraction", "0"])
+    assert result.exit_code == 0, result.output
+    lines = [line for line in result.output.splitlines() if "-office-" in line]
+    assert len(lines) == 3 and all("density 0.1, 1.2 m/s" in line and "noise none" in line for line in lines)
+    assert "tilt 0.0 deg" in lines[0] and all("tilt 5.0 deg" in line for line in lines[1:])  # world 0 flies level
+    bad = CliRunner().invoke(main, args + ["--speed", "0.5", "2"])
+    assert bad.exit_code == 1 and bad.output.strip() == "error: --speed 0.5 2.0: need 1.0 <= min <= max <= 3.0"
