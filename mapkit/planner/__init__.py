@@ -29,6 +29,7 @@ Loss: :func:`planner_loss` = γ1 U_O (:func:`obstacle_cost` on the ESDF) + γ2 U
 """
 
 from mapkit.planner._depthcheck import CameraInput, depth_margins, seen_conflicts
+from mapkit.planner._detour import DetourGrid, detour_excess
 from mapkit.planner._errors import PlannerError
 from mapkit.planner._loss import (
     LossConfig,
@@ -64,6 +65,8 @@ from mapkit.planner._timing import Allocation, Timing, plan_timing, total_time
 __all__ = [
     "Allocation",
     "CameraInput",
+    "DetourGrid",
+    "detour_excess",
     "depth_margins",
     "seen_conflicts",
     "PLANNER_PRESETS",

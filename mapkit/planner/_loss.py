@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import torch
 import torch.nn.functional as F
 
+from mapkit.planner._detour import detour_excess
 from mapkit.planner._errors import PlannerError
 from mapkit.planner._model import Plan, PlannerNet, PlannerOutput
 from mapkit.trajopt import Trajectory, allocate_times
@@ -59,6 +60,16 @@ class LossConfig:
     ``candidate_spread`` pulls the losers toward the cheapest path, and the shipped model's eight
     candidates ended up within a metre of each other; this pull keeps them apart instead. Off: a
     fine-tune with it (β 0.1, no spread term) lost 15 of 240 office dev flights (docs/train.md)."""
+    detour_weight: float = 0.0
+    """λ: U_G also counts λ × how much longer the way from the path's end to the goal is through the
+    map's free space than straight (:func:`mapkit.planner.detour_excess`, level 0.2 m grid, at most
+    ``detour_cap``). 0 (the paper's U_G): a goal behind a wall rewards stopping at the wall."""
+    detour_cap: float = 8.0
+    """Metres: the largest detour excess counted."""
+    winner_collision_penalty: float = 0.0
+    """κ, metres of path cost added to every candidate whose path collides (the η label) when choosing
+    the winner and the score's target only (no gradient): a candidate that keeps clear wins over one
+    that reaches the goal through a wall. 0: the cheapest path cost wins."""
     robot_radius: float = 0.3
     """Metres. The obstacle cost acts on the clearance d − robot_radius."""
     obstacle_softness: float = 1.0
@@ -108,7 +119,8 @@ class LossConfig:
             raise PlannerError(f"score_temperature must be >= 0 metres, got {self.score_temperature}")
         if self.min_samples < 2:
             raise PlannerError(f"min_samples must be >= 2, got {self.min_samples}")
-        for name in ("candidate_spread", "candidate_anchor_pull"):
+        for name in ("candidate_spread", "candidate_anchor_pull", "detour_weight", "detour_cap",
+                     "winner_collision_penalty"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise PlannerError(f"{name} must be >= 0, got {getattr(self, name)}")
 
@@ -413,13 +425,18 @@ def candidate_loss(
     u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius, softness=cfg.obstacle_softness,
                         reduction=cfg.obstacle_reduction).reshape(B, M)
     u_g = goal_cost(plan.waypoints[:, -1], goal_m).reshape(B, M)
+    if cfg.detour_weight > 0:
+        ends = body_to_world(plan.waypoints[:, -1:], _per_candidate(T_world_body, M)).reshape(B, M, 3)
+        goals_world = body_to_world(goal[:, None], T_world_body)[:, 0]
+        u_g = u_g + cfg.detour_weight * detour_excess(ends, goals_world, esdf_map, cap=cfg.detour_cap)
     smooth_pts = plan.waypoints if cfg.smoothness_on == "keypoints" else pts_body
     u_s = smoothness_cost(smooth_pts, torch.zeros_like(goal_m), goal_m).reshape(B, M)
     collided = collision_labels(pts_world, esdf_map, threshold=cfg.collision_threshold,
                                 raw=cfg.label_from_raw).reshape(B, M)
     path = cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s
     rows = torch.arange(B, device=cand.device)
-    winner = path.detach().argmin(dim=1)
+    ranked = path.detach() + cfg.winner_collision_penalty * collided.to(path.dtype)
+    winner = ranked.argmin(dim=1)
     per = path[rows, winner]
     if M > 1:
         per = per + cfg.candidate_spread * path.mean(dim=1)
@@ -431,7 +448,7 @@ def candidate_loss(
     if out.scores is None or M == 1:
         u_score = torch.zeros_like(per)
     elif cfg.score_temperature > 0:
-        target = torch.softmax(-path.detach() / cfg.score_temperature, dim=1)
+        target = torch.softmax(-ranked / cfg.score_temperature, dim=1)
         u_score = F.cross_entropy(out.scores, target, reduction="none")
     else:
         u_score = F.cross_entropy(out.scores, winner, reduction="none")
