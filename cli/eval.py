@@ -48,6 +48,9 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @click.option("--memory", type=FINITE, default=8.0, show_default=True,
               help="Seconds of depth images the learned planner remembers: paths that come near a remembered surface "
                    "are replaced by a clear candidate, or a detour toward open space, or braking; 0 = off.")
+@click.option("--route-after", type=FINITE, default=0.0, show_default=True,
+              help="Seconds without getting 0.5 m closer to the goal after which the learned planner aims along a "
+                   "route around every surface seen in the flight (unseen space free); 0 = never.")
 @click.option("--subgoal-speed", type=FINITE, default=None,
               help="m/s at which learned plans pass a way out toward open space (when nothing leads on toward "
                    "the goal); default: the cruise speed; 0 = stop there.")
@@ -67,10 +70,10 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
-             corridor_check: bool, check_memory: bool, turn_toward_open: bool, v_max: float, a_max: float, memory: float, subgoal_speed: float | None, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
+             corridor_check: bool, check_memory: bool, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
              record_plans: bool, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
-    from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, Execution, LoopConfig, evaluate
+    from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, Execution, LoopConfig, RouteConfig, evaluate
 
     worlds = WORLD_ORDER if world.strip() == "all" else tuple(w.strip() for w in world.split(",") if w.strip())
     names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
@@ -79,7 +82,8 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
                         execution=Execution(corridor=corridor or None, check_corridor=corridor_check,
                                             check_memory=check_memory, v_max=v_max or None,
                                             a_max=a_max or None, memory=memory or None, subgoal_speed=subgoal_speed,
-                                            follow=follow, turn_toward_open=turn_toward_open),
+                                            follow=follow, turn_toward_open=turn_toward_open,
+                                            route=None if route_after == 0 else RouteConfig(after=route_after)),
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
                                         on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,
                                         look_ahead=look_ahead))

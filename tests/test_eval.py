@@ -349,6 +349,7 @@ def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
     (["--plan-latency", "0.7"], "--plan-latency must be in"),
     (["--final-approach", "-1"], "--final-approach must be >= 0"),
     (["--subgoal-speed", "-1"], "--subgoal-speed must be >= 0"),
+    (["--route-after", "-2"], "--route-after must be a positive number"),
     (["--horizon", "-3"], "--horizon must be > 0"),
     (["--min-distance", "0"], "--min-distance must be > 0"),
 ])

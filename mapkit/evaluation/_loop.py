@@ -149,6 +149,8 @@ class MethodPlan:
     turn_side: float | None = None
     """+1 (counter-clockwise) or −1: the way a blocked vehicle that hovers should turn to look
     elsewhere, read when it starts turning (None: the way it turned last, at first counter-clockwise)."""
+    look_at: np.ndarray | None = None
+    """(3,) world point a hovering vehicle faces at the next observation (None: the goal)."""
     blocked: bool = False
     """The method found no way ahead it can fly (every path it could take runs into what the camera
     sees): the loop brakes to rest and then turns to look elsewhere, whatever η says."""
@@ -242,6 +244,8 @@ class _Flight:
     braking: bool = False
     turn: float = 1.0
     """+1 or −1: the way the hovering vehicle turns (:attr:`MethodPlan.turn_side`)."""
+    look_at: np.ndarray | None = None
+    """Where the hovering vehicle faces (:attr:`MethodPlan.look_at`); None: the goal."""
     plans: int = 0
     rejected: int = 0
     latencies: list[float] = field(default_factory=list)
@@ -334,7 +338,8 @@ def _replan(f: _Flight, world: World, goal: np.ndarray, method: Method, config: 
     if config.look_ahead > 0:
         ahead = f.ref.derivative(np.array([min(f.t + config.look_ahead, f.ref.t_end)]), 0)[0] - f.x[0]
         heading = ahead if math.hypot(ahead[0], ahead[1]) > 0.3 else heading
-    yaw = math.atan2(heading[1], heading[0]) if v_h > 0.5 else math.atan2(to_goal[1], to_goal[0]) + f.look
+    facing = to_goal if f.look_at is None else f.look_at - f.x[0]
+    yaw = math.atan2(heading[1], heading[0]) if v_h > 0.5 else math.atan2(facing[1], facing[0]) + f.look
     T_wb = level_pose(f.x[0], yaw)
     g_body = T_wb[:3, :3].T @ to_goal
     n = float(np.linalg.norm(g_body))
@@ -350,6 +355,7 @@ def _replan(f: _Flight, world: World, goal: np.ndarray, method: Method, config: 
         mp = _final_approach(obs, config)
     else:
         mp = method.plan(obs)
+    f.look_at = mp.look_at
     f.plans += 1
     f.latencies.append(mp.latency_ms)
     if mp.allocation_ms is not None:

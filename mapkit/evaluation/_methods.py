@@ -38,6 +38,7 @@ from scipy.spatial import cKDTree
 
 from mapkit.evaluation._loop import MethodPlan, Observation
 from mapkit.evaluation._pieces import Pieces, pieces_from_body
+from mapkit.evaluation._route import FlightMap, Progress, RouteConfig, depth_points
 from mapkit.planner import Allocation, CameraInput, ImageFeatures, PlannerConfig, Timing, plan_timing
 from mapkit.planner._model import PlannerNet, PlannerOutput
 from mapkit.sim import FreeSpaceGraph, World
@@ -138,6 +139,11 @@ class Execution:
     each stop the other way from the last. Surfaces counted within 2 m: 90.0 / 90.0 / 81.7 / 65.0 %,
     4.5 m: 90.0 / 88.3 / 81.7 / 65.0 % (measured after the choice of 3 m). Choosing the side for every
     hovering plan, not only blocked ones (a look-around after an η veto too): 90.0 / 86.7 / 81.7 / 65.0 %."""
+    route: RouteConfig | None = None
+    """With ``memory``: once a flight has not come 0.5 m closer to its goal for ``route.after``
+    seconds, the network's goal is a point on a route around every surface seen since the flight
+    began (:class:`~mapkit.evaluation._route.FlightMap`; unseen space counts as free), while that route
+    is a detour, and a hovering vehicle faces that point. None: the local goal on the straight line."""
     blocked_within: float = 2.0
     """Seconds of each candidate that must keep clear of remembered surfaces for the way ahead to count
     as open: braking from cruise speed takes about 2.7 s and 2.7 m. Office and garage on seeds 7 and 13
@@ -295,7 +301,8 @@ class _Memory:
 
     def __init__(self, camera: CameraInput, seconds: float) -> None:
         self.seconds = seconds
-        self.ray = tuple(float(v) for v in camera.intrinsics[0])
+        fx, fy, cx, cy = (float(v) for v in camera.intrinsics[0])
+        self.ray = (fx, fy, cx, cy)
         self.T_body_camera = np.linalg.inv(camera.T_camera_body[0].double().numpy())
         self.frames: list[tuple[float, cKDTree]] = []
         self._nearest_cache: tuple[tuple, float] | None = None
@@ -307,21 +314,19 @@ class _Memory:
         self._nearest_cache = None
         self._near_cache = {}
 
+    def points(self, obs: Observation) -> np.ndarray:
+        """(N, 3) world points of the observation's depth image (every second pixel)."""
+        return depth_points(np.asarray(obs.depth), self.ray, obs.T_world_body @ self.T_body_camera, self.stride)
+
     def add(self, obs: Observation) -> None:
         """Remember the observation's depth image."""
-        full = np.asarray(obs.depth, dtype=np.float64)
-        H, W = full.shape
-        depth = full[::self.stride, ::self.stride]
-        fx, fy, cx, cy = self.ray
-        v, u = np.nonzero(np.isfinite(depth) & (depth > 0))
-        z = depth[v, u]
-        x = ((u * self.stride + 0.5) / W - cx) / fx * z
-        y = ((v * self.stride + 0.5) / H - cy) / fy * z
-        T = obs.T_world_body @ self.T_body_camera
-        world = np.stack([x, y, z], axis=1) @ T[:3, :3].T + T[:3, 3]
-        self.frames = [(t, tree) for t, tree in self.frames if obs.t - t <= self.seconds]
+        self.add_points(obs.t, self.points(obs))
+
+    def add_points(self, t: float, world: np.ndarray) -> None:
+        """Remember an image's world points (:meth:`points`) seen at ``t``."""
+        self.frames = [(seen, tree) for seen, tree in self.frames if t - seen <= self.seconds]
         if len(world):
-            self.frames.append((obs.t, cKDTree(world, balanced_tree=False, compact_nodes=False)))
+            self.frames.append((t, cKDTree(world, balanced_tree=False, compact_nodes=False)))
 
     def clearest(self, T_world_body: np.ndarray, start: np.ndarray, deceleration: float = 3.0) -> np.ndarray | None:
         """Body-frame unit vector closest to the velocity (turned by up to 60°, level) along which a
@@ -457,6 +462,8 @@ class LearnedMethod:
         self._image: tuple[Observation, ImageFeatures] | None = None  # the last frame's encoding
         self._memory = (None if execution.memory is None or camera is None or spline
                         else _Memory(camera, execution.memory))
+        self._route = None if execution.route is None or self._memory is None else FlightMap(execution.route)
+        self._progress = Progress()
 
     def _keypoints(self, obs: Observation, start: np.ndarray, goal: np.ndarray):
         """The network's pass toward ``goal``; a second goal from the same frame (a way out) reuses
@@ -537,14 +544,29 @@ class LearnedMethod:
         starting over) first clears the memory and the subgoal of the last one."""
         if self._flight is None or obs.t <= self._flight[1] or not np.array_equal(self._flight[0], obs.goal_world):
             self._subgoal = None
+            self._progress = Progress()
             if self._memory is not None:
                 self._memory.forget()
+            if self._route is not None:
+                self._route.forget()
         self._flight = (np.array(obs.goal_world), obs.t)
         if self._subgoal is not None:
             point, until = self._subgoal
             if obs.t > until or np.linalg.norm(point - obs.T_world_body[:3, 3]) < 1.0:
                 self._subgoal = None
         return None if self._subgoal is None else self._subgoal[0]
+
+    def _aim(self, obs: Observation, points: np.ndarray | None, wanted: bool) -> np.ndarray | None:
+        """The flight map's aim point (world) when ``wanted`` and the flight has stalled; the map and
+        the flight's progress are kept up to date either way."""
+        if self._route is None or points is None:
+            return None
+        p = obs.T_world_body[:3, 3]
+        self._route.add(points, p)
+        stalled = self._progress.update(obs.t, float(np.linalg.norm(np.asarray(obs.goal_world) - p)), self._route.config)
+        xy = self._route.aim(p, np.asarray(obs.goal_world)) if stalled and wanted else None
+        # halfway to the local goal's height: the route is level, the goal need not be
+        return None if xy is None else np.array([xy[0], xy[1], p[2] + 0.5 * float(obs.local_goal_body[2])])
 
     def _subgoal_speed(self) -> float:
         speed = self.execution.subgoal_speed
@@ -554,17 +576,24 @@ class LearnedMethod:
         t0 = time.perf_counter()
         start = obs.start_body()
         sub = self._subgoal_in_force(obs)
+        points = None if self._memory is None else self._memory.points(obs)
+        aim = self._aim(obs, points, sub is None)
+        goal_body = np.asarray(obs.local_goal_body, dtype=np.float64)
+        end_speed = self.config.cruise_speed if obs.goal_clipped else 0.0
+        if aim is not None:
+            goal_body = obs.T_world_body[:3, :3].T @ (aim - obs.T_world_body[:3, 3])
+            end_speed = self.config.cruise_speed
         if sub is None:
-            attempt = self._attempt(obs, start, np.asarray(obs.local_goal_body, dtype=np.float64),
-                                    self.config.cruise_speed if obs.goal_clipped else 0.0)
+            attempt = self._attempt(obs, start, goal_body, end_speed)
         else:
             attempt = self._attempt(obs, start, obs.T_world_body[:3, :3].T @ (sub - obs.T_world_body[:3, 3]),
                                     self._subgoal_speed())
         if self._memory is not None:
-            self._memory.add(obs)
+            assert points is not None  # computed with the memory
+            self._memory.add_points(obs.t, points)
             attempt = self._remembered(obs, start, attempt)
             if attempt.blocked and sub is None and self.camera is not None:
-                body = open_direction(np.asarray(obs.depth), self.camera, obs.local_goal_body, self.config.max_depth)
+                body = open_direction(np.asarray(obs.depth), self.camera, goal_body, self.config.max_depth)
                 if body is not None:
                     point = obs.T_world_body[:3, :3] @ body + obs.T_world_body[:3, 3]
                     self._subgoal = (point, obs.t + self.execution.subgoal_time)
@@ -589,7 +618,7 @@ class LearnedMethod:
         kp_world = attempt.kp @ obs.T_world_body[:3, :3].T + obs.T_world_body[:3, 3]
         return MethodPlan(pieces=pieces, latency_ms=latency, eta=attempt.eta, keypoints_world=kp_world,
                           allocation_ms=None if self.spline else attempt.allocation_ms, overrides_eta=overrides,
-                          blocked=attempt.blocked, brake_direction=brake, turn_side=side)
+                          blocked=attempt.blocked, brake_direction=brake, turn_side=side, look_at=aim)
 
 
 def _clamped_spline(wp: np.ndarray, v0: np.ndarray, v1: np.ndarray, total: float) -> tuple[np.ndarray, np.ndarray]:

@@ -113,6 +113,8 @@ class EvalConfig:
         for name, value in (("blocked_within", ex.blocked_within), ("subgoal_time", ex.subgoal_time)):
             if not (math.isfinite(value) and value > 0):
                 raise EvalError(f"Execution.{name} must be a positive number of seconds, got {value}")
+        if ex.route is not None and not (math.isfinite(ex.route.after) and ex.route.after > 0):
+            raise EvalError(f"--route-after must be a positive number of seconds (0 turns the flight map off), got {ex.route.after}")
         if ex.subgoal_speed is not None and not (math.isfinite(ex.subgoal_speed) and ex.subgoal_speed >= 0):
             raise EvalError(f"--subgoal-speed must be >= 0 m/s (0: stop at the way out; default: the cruise speed), "
                             f"got {ex.subgoal_speed}")
