@@ -63,7 +63,8 @@ class LossConfig:
     detour_weight: float = 0.0
     """λ: U_G also counts λ × how much longer the way from the path's end to the goal is through the
     map's free space than straight (:func:`mapkit.planner.detour_excess`, level 0.2 m grid, at most
-    ``detour_cap``). 0 (the paper's U_G): a goal behind a wall rewards stopping at the wall."""
+    ``detour_cap``; in :func:`candidate_loss`, cached per map and goal). 0 (the paper's U_G): a goal behind a
+    wall rewards stopping at the wall."""
     detour_cap: float = 8.0
     """Metres: the largest detour excess counted."""
     winner_collision_penalty: float = 0.0
