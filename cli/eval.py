@@ -48,7 +48,7 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @click.option("--memory", type=FINITE, default=8.0, show_default=True,
               help="Seconds of depth images the learned planner remembers: paths that come near a remembered surface "
                    "are replaced by a clear candidate, or a detour toward open space, or braking; 0 = off.")
-@click.option("--route-after", type=FINITE, default=0.0, show_default=True,
+@click.option("--route-after", type=FINITE, default=3.0, show_default=True,
               help="Seconds without getting 0.5 m closer to the goal after which the learned planner aims along a "
                    "route around every surface seen in the flight (unseen space free); 0 = never.")
 @click.option("--subgoal-speed", type=FINITE, default=None,

@@ -59,13 +59,15 @@ def test_only_surfaces_near_the_vehicles_height_count():
     assert level.aim(start, goal) is None
 
 
-def test_progress_stalls_after_the_configured_time_and_stays_stalled():
+def test_progress_stalls_after_the_configured_time_until_the_flight_is_closer_than_ever():
     config = RouteConfig(after=3.0, progress=0.5)
     p = Progress()
     assert not p.update(0.0, 10.0, config)
     assert not p.update(2.0, 9.0, config)  # 1 m closer: the clock restarts at 2 s
     assert not p.update(4.5, 8.8, config)  # 0.2 m is no progress, but only 2.5 s have passed
     assert p.update(5.5, 8.7, config)
-    assert p.update(6.0, 2.0, config)  # once stalled, for the rest of the flight
+    assert p.update(7.0, 12.0, config)  # going round, farther than before: still stalled
+    assert not p.update(9.0, 8.4, config)  # 0.6 m closer than ever: the straight way again
+    assert p.update(12.5, 8.4, config)
     with pytest.raises(AttributeError):
         config.after = 1.0  # frozen

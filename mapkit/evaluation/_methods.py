@@ -28,7 +28,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -139,11 +139,12 @@ class Execution:
     each stop the other way from the last. Surfaces counted within 2 m: 90.0 / 90.0 / 81.7 / 65.0 %,
     4.5 m: 90.0 / 88.3 / 81.7 / 65.0 % (measured after the choice of 3 m). Choosing the side for every
     hovering plan, not only blocked ones (a look-around after an η veto too): 90.0 / 86.7 / 81.7 / 65.0 %."""
-    route: RouteConfig | None = None
-    """With ``memory``: once a flight has not come 0.5 m closer to its goal for ``route.after``
-    seconds, the network's goal is a point on a route around every surface seen since the flight
-    began (:class:`~mapkit.evaluation._route.FlightMap`; unseen space counts as free), while that route
-    is a detour, and a hovering vehicle faces that point. None: the local goal on the straight line."""
+    route: RouteConfig | None = field(default_factory=RouteConfig)
+    """With ``memory``: while a flight has not come 0.5 m closer to its goal than ever before for
+    ``route.after`` seconds, the network's goal is a point on a route around every surface seen since
+    the flight began (:class:`~mapkit.evaluation._route.FlightMap`; unseen space counts as free), as
+    long as that route is a detour, and a hovering vehicle faces that point. None: the local goal on
+    the straight line."""
     blocked_within: float = 2.0
     """Seconds of each candidate that must keep clear of remembered surfaces for the way ahead to count
     as open: braking from cruise speed takes about 2.7 s and 2.7 m. Office and garage on seeds 7 and 13

@@ -22,7 +22,7 @@ class RouteConfig:
 
     after: float = 3.0
     """Seconds without getting ``progress`` metres closer to the goal than ever before in the flight,
-    after which the route chooses the network's goal for the rest of the flight."""
+    after which the route chooses the network's goal, until the flight is that much closer than ever."""
     progress: float = 0.5
     """Metres of progress that count."""
     cell: float = 0.25
@@ -138,15 +138,15 @@ class FlightMap:
 
 @dataclass
 class Progress:
-    """How close a flight has come to its goal, and since when; once it has stalled for
-    :attr:`RouteConfig.after` seconds it stays :attr:`stalled`."""
+    """How close a flight has come to its goal, and since when. A flight is stalled while it has not
+    come :attr:`RouteConfig.progress` closer than ever before for :attr:`RouteConfig.after` seconds,
+    and no longer once it does (as a Bug algorithm leaves a wall where it is closer than ever)."""
 
     best: float = np.inf
     since: float = 0.0
-    stalled: bool = False
 
     def update(self, t: float, distance: float, config: RouteConfig) -> bool:
+        """Record the distance at time ``t``; True while stalled."""
         if distance < self.best - config.progress:
             self.best, self.since = distance, t
-        self.stalled = self.stalled or t - self.since > config.after
-        return self.stalled
+        return t - self.since > config.after
