@@ -626,6 +626,28 @@ def test_the_hovering_vehicle_turns_the_way_the_method_asks():
         assert len(turns) >= 2 and np.allclose(turns[turns != 0][:2], step)
 
 
+def test_a_hovering_vehicle_faces_the_point_its_method_names():
+    """A method that hovers and names a point 90° to the left of the goal's bearing: from the second
+    observation on, the camera faces that point instead of the goal; naming none faces the goal again."""
+    world = World([Box((50.0, 50.0, 1.5), (0.1, 0.1, 0.1))], np.array([[-10.0, -10.0, 0.0], [60.0, 60.0, 3.0]]))
+
+    class Pointing:
+        name, needs_depth, replans = "pointing", False, True
+
+        def __init__(self) -> None:
+            self.yaws: list[float] = []
+
+        def plan(self, obs: Observation) -> MethodPlan:
+            R = obs.T_world_body[:3, :3]
+            self.yaws.append(float(np.degrees(np.arctan2(R[1, 0], R[0, 0]))))
+            look = np.array([0.0, 5.0, 1.5]) if len(self.yaws) < 4 else None
+            return MethodPlan(pieces=hold(obs.state_world[0], obs.t), latency_ms=0.0, eta=0.0, look_at=look)
+
+    method = Pointing()
+    run_episode(world, np.array([0.0, 0.0, 1.5]), np.array([10.0, 0.0, 1.5]), method, LoopConfig(timeout_min=3.0))
+    assert np.allclose(method.yaws[:5], [0.0, 90.0, 90.0, 90.0, 0.0], atol=1e-6)
+
+
 def test_the_vehicle_looks_where_its_reference_turns():
     """With look-ahead the camera heads toward the reference 1.5 s on (into a left turn), without it
     along the velocity."""
