@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -718,6 +719,19 @@ def test_a_follow_fraction_outside_0_1_is_refused_by_name(follow: float):
 
     with pytest.raises(EvalError, match="--follow must be in"):
         EvalConfig(execution=Execution(follow=follow)).validate()
+
+
+@pytest.mark.parametrize("route, message", [
+    ({"descend": -1.0}, "RouteConfig.descend must be >= 0 metres, got -1.0"),
+    ({"cell": 0.0}, "RouteConfig.cell must be > 0 metres, got 0.0"),
+    ({"height": float("nan")}, "RouteConfig.height must be > 0 metres"),
+    ({"inflate": 1.2}, "RouteConfig.wary (1.0 m) must exceed RouteConfig.inflate (1.2 m)"),
+])
+def test_a_bad_flight_map_setting_is_refused_by_name(route: dict[str, float], message: str):
+    from mapkit.evaluation import EvalError, Execution, RouteConfig
+
+    with pytest.raises(EvalError, match=re.escape(message)):
+        EvalConfig(execution=Execution(route=RouteConfig(**route))).validate()
 
 
 @pytest.mark.parametrize("speed, expected", [(None, 2.0), (0.0, 0.0), (1.0, 1.0)])

@@ -40,7 +40,7 @@ from mapkit.evaluation._report import (
     effort_at_time,
     success_by_detour,
 )
-from mapkit.evaluation._route import FlightMap, Progress, RouteConfig
+from mapkit.evaluation._route import Aim, FlightMap, Progress, RouteConfig
 from mapkit.evaluation._run import PLANS_FILE, WORLD_ORDER, CameraSpec, EvalConfig, EvalResult, evaluate, summarise
 
 __all__ = [
@@ -49,7 +49,7 @@ __all__ = [
     "CameraSpec", "EvalConfig", "EvalError", "EvalResult", "evaluate", "summarise",
     "Episode", "LoopConfig", "MethodPlan", "Observation", "level_pose", "run_episode",
     "Execution", "LearnedMethod", "OracleMethod", "PlanInput", "StraightMethod", "make_methods", "PLANS_FILE",
-    "FlightMap", "Progress", "RouteConfig",
+    "Aim", "FlightMap", "Progress", "RouteConfig",
     "Pair", "sample_pairs", "load_paths",
     "Pieces", "hold", "pieces_from_body",
     "EffortComparison", "compare_effort", "effort_at_time", "DETOUR_EDGES", "DetourBin", "OutcomeCounts",

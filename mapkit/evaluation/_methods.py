@@ -142,11 +142,14 @@ class Execution:
     route: RouteConfig | None = field(default_factory=RouteConfig)
     """With ``memory``: while a flight has not come 0.5 m closer to its goal than ever before for
     ``route.after`` seconds, the network's goal is a point on a route around every surface seen since
-    the flight began (:class:`~mapkit.evaluation._route.FlightMap`; unseen space counts as free), as
-    long as that route is a detour, and a hovering vehicle faces that point. None: the local goal on
-    the straight line. Office, dev seeds 200–219 (1200 flights, 2026-12-02): 1070 against 1032 without
-    (for the rest of a flight once stalled: 1054); nine held-out seeds 11–53: office 82.8 against 82.4 %,
-    overall 94.1 against 93.7 % (docs/evaluation.md, "Flight map")."""
+    the flight began (:class:`~mapkit.evaluation._route.FlightMap`, a 3-D grid; unseen space counts as
+    free; a column is passable at any clear height, and the point's height is the one that passes the
+    route's next column closed at the vehicle's own), as long as that route is a detour, and a hovering
+    vehicle faces that point. None: the local goal on the straight line. Office, dev seeds 200–219 (1200
+    flights, 2026-12-02): 1139 against 1070 with a level map of the surfaces within 0.5 m of the vehicle's
+    height (which closed doorways under their lintels) and 1032 without a map; nine held-out seeds 11–53:
+    office 92.4 against 82.8 and 82.4 %, overall 97.35 against 94.1 and 93.7 % (docs/evaluation.md,
+    "Flight map")."""
     blocked_within: float = 2.0
     """Seconds of each candidate that must keep clear of remembered surfaces for the way ahead to count
     as open: braking from cruise speed takes about 2.7 s and 2.7 m. Office and garage on seeds 7 and 13
@@ -567,9 +570,12 @@ class LearnedMethod:
         p = obs.T_world_body[:3, 3]
         self._route.add(points, p)
         stalled = self._progress.update(obs.t, float(np.linalg.norm(np.asarray(obs.goal_world) - p)), self._route.config)
-        xy = self._route.aim(p, np.asarray(obs.goal_world)) if stalled and wanted else None
-        # halfway to the local goal's height: the route is level, the goal need not be
-        return None if xy is None else np.array([xy[0], xy[1], p[2] + 0.5 * float(obs.local_goal_body[2])])
+        aim = self._route.aim(p, np.asarray(obs.goal_world)) if stalled and wanted else None
+        if aim is None:
+            return None
+        # the height that passes the route's next closed column; else halfway to the local goal's height
+        z = p[2] + 0.5 * float(obs.local_goal_body[2]) if aim.height is None else aim.height
+        return np.array([aim.xy[0], aim.xy[1], z])
 
     def _subgoal_speed(self) -> float:
         speed = self.execution.subgoal_speed

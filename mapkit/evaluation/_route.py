@@ -1,12 +1,15 @@
-"""The flight map: every surface the camera saw during one flight, on a level grid, and the route to
+"""The flight map: every surface the camera saw during one flight, on a 3-D grid, and the route to
 the goal around them, for a learned planner that has stopped getting closer to its goal.
 
 A planner that reads one depth image is drawn to the wall nearest a goal behind it (the office's
 long walls with doors): it flies there, finds no way on, leaves, and comes back. The map remembers
 the whole flight, and an optimistic route (unseen space counts as free) leads along the walls seen so
-far to the doorways that are left. Route search: scikit-image's MCP on a cost grid from SciPy's
-Euclidean distance transform; the grid itself, the point to aim at and when to use them are written
-here, because no library keeps such a map for a flight.
+far to the doorways that are left. The route runs across the grid, through every column that some
+height keeps clear (down to ``descend`` below the vehicle and the goal): a level map closed every
+doorway under its lintel for a vehicle flying above the lintel's foot, and those flights timed out
+most. Route search: scikit-image's MCP on a cost grid from SciPy's Euclidean distance transform; the
+grid itself, the point to aim at, its height and when to use them are written here, because no library
+keeps such a map for a flight.
 """
 
 from __future__ import annotations
@@ -26,16 +29,21 @@ class RouteConfig:
     progress: float = 0.5
     """Metres of progress that count."""
     cell: float = 0.25
-    """Metres, the side of a grid cell."""
+    """Metres, the side of a grid cell (the same up and across, so distances are Euclidean)."""
     extent: float = 80.0
-    """Metres, the side of the square grid, centred where the flight starts."""
-    band: float = 0.5
-    """Metres above and below the vehicle's height within which seen points count as surfaces."""
+    """Metres, the side of the grid across, centred where the flight starts."""
+    height: float = 6.0
+    """Metres, the grid's height, centred on the height the flight starts at."""
+    descend: float = 1.0
+    """Metres the route may go below the lower of the vehicle's and the goal's heights (it never goes
+    above the higher: the space over a seen ceiling is unseen, and would count as free): a column is
+    passable when some height in that range keeps ``inflate`` from everything seen (a doorway under a
+    lintel, a gap under a beam)."""
     inflate: float = 0.45
-    """Metres: cells nearer a seen surface than this are not passed (the robot radius and a margin)."""
+    """Metres: places nearer a seen surface than this are not passed (the robot radius and a margin)."""
     wary: float = 1.0
     """Metres: passing nearer a seen surface than this costs up to 4× as much (routes keep to the
-    middle of doorways)."""
+    middle of doorways), and the route's height through a column keeps this much clear where it can."""
     detour: float = 1.0
     """Metres the route must be longer than the straight line for the route to be used."""
     horizon: float = 5.0
@@ -59,13 +67,25 @@ def depth_points(depth: np.ndarray, ray: tuple[float, float, float, float], T_wo
     return np.stack([x, y, z], axis=1) @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
 
 
+@dataclass(frozen=True)
+class Aim:
+    """Where the flight map sends a stalled flight."""
+
+    xy: np.ndarray
+    """(2,) world point on the route, the farthest within the horizon in straight sight."""
+    height: float | None
+    """World height to pass the route's first column that is closed at the vehicle's own height
+    within the horizon (a doorway under a lintel); None when the route is open at that height."""
+
+
 class FlightMap:
-    """Seen surfaces near the vehicle's height, on a level grid, for one flight (:meth:`forget` starts
-    the next)."""
+    """Every surface the camera saw during one flight, on a 3-D grid (:meth:`forget` starts the next);
+    the route runs across it, through any column some height of which is clear."""
 
     def __init__(self, config: RouteConfig = RouteConfig()) -> None:
         self.config = config
         self.size = int(round(config.extent / config.cell))
+        self.levels = int(round(config.height / config.cell))
         self.occupied: np.ndarray | None = None
         self.origin: np.ndarray | None = None
 
@@ -74,30 +94,33 @@ class FlightMap:
         self.origin = None
 
     def add(self, points_world: np.ndarray, position: np.ndarray) -> None:
-        """Mark the cells of ``points_world`` (N, 3) within the height band of ``position`` (3,)."""
+        """Mark the cells of ``points_world`` (N, 3); the first call centres the grid on ``position`` (3,)."""
         c = self.config
         if self.occupied is None:
-            self.occupied = np.zeros((self.size, self.size), dtype=bool)
-            self.origin = np.asarray(position[:2], dtype=np.float64) - 0.5 * self.size * c.cell
-        near = points_world[np.abs(points_world[:, 2] - position[2]) < c.band]
-        ij = np.floor((near[:, :2] - self.origin) / c.cell).astype(int)
-        inside = (ij >= 0).all(axis=1) & (ij < self.size).all(axis=1)
-        self.occupied[ij[inside, 0], ij[inside, 1]] = True
+            self.occupied = np.zeros((self.size, self.size, self.levels), dtype=bool)
+            half = 0.5 * c.cell * np.array([self.size, self.size, self.levels])
+            self.origin = np.asarray(position, dtype=np.float64) - half
+        ijk = np.floor((points_world - self.origin) / c.cell).astype(int)
+        inside = (ijk >= 0).all(axis=1) & (ijk < self.occupied.shape).all(axis=1)
+        self.occupied[ijk[inside, 0], ijk[inside, 1], ijk[inside, 2]] = True
 
     def _cells(self, xy: np.ndarray) -> np.ndarray:
         assert self.origin is not None  # after add
-        return np.clip(np.floor((xy - self.origin) / self.config.cell).astype(int), 0, self.size - 1)
+        return np.clip(np.floor((xy - self.origin[:2]) / self.config.cell).astype(int), 0, self.size - 1)
 
-    def aim(self, position: np.ndarray, goal: np.ndarray) -> np.ndarray | None:
-        """(2,) world point to fly to: the farthest point of the route to ``goal`` within
-        :attr:`RouteConfig.horizon` (and at least a metre away) in straight sight of ``position``;
-        None when nothing is mapped near the way, the route is no real detour, or no route point is
-        in sight."""
-        from scipy.ndimage import distance_transform_edt
+    def _level(self, z: float) -> int:
+        assert self.origin is not None
+        return int(np.clip(np.floor((z - self.origin[2]) / self.config.cell), 0, self.levels - 1))
+
+    def aim(self, position: np.ndarray, goal: np.ndarray) -> Aim | None:
+        """Where to fly: the farthest point of the route to ``goal`` within
+        :attr:`RouteConfig.horizon` (and at least a metre away) in straight sight of ``position``, and the
+        height to pass the route at; None when nothing is mapped near the way, the route is no real
+        detour, or no route point is in sight."""
         from skimage.graph import MCP_Geometric
 
         c = self.config
-        if self.occupied is None:
+        if self.occupied is None or self.origin is None:
             return None
         a, b = self._cells(position[:2]), self._cells(goal[:2])
         margin = int(8.0 / c.cell)
@@ -106,18 +129,54 @@ class FlightMap:
         occupied = self.occupied[lo[0]:hi[0], lo[1]:hi[1]]
         if not occupied.any():
             return None
-        clearance = distance_transform_edt(~occupied) * c.cell
-        cost = np.where(clearance < c.inflate, 1e3,
-                        1.0 + 3.0 * np.clip((c.wary - clearance) / (c.wary - c.inflate), 0.0, 1.0))
+        clearance, column = self._clearance(occupied, position[2], goal[2])
+        cost = np.where(column < c.inflate, 1e3,
+                        1.0 + 3.0 * np.clip((c.wary - column) / (c.wary - c.inflate), 0.0, 1.0))
         here, there = (int(a[0] - lo[0]), int(a[1] - lo[1])), (int(b[0] - lo[0]), int(b[1] - lo[1]))
         cost[here] = min(cost[here], 1.0)  # the vehicle may start near a wall
         search = MCP_Geometric(cost)
         search.find_costs([there])
-        route = (np.array(search.traceback(here))[::-1] + lo + 0.5) * c.cell + self.origin
+        cells = np.array(search.traceback(here))[::-1]
+        route = (cells + lo + 0.5) * c.cell + self.origin[:2]
         step = np.linalg.norm(np.diff(route, axis=0), axis=1)
         if step.sum() - float(np.linalg.norm(goal[:2] - position[:2])) < c.detour:
             return None
-        return self._farthest_in_sight(route, np.concatenate([[0.0], np.cumsum(step)]), position[:2], clearance, lo)
+        along = np.concatenate([[0.0], np.cumsum(step)])
+        xy = self._farthest_in_sight(route, along, position[:2], column, lo)
+        if xy is None:
+            return None
+        return Aim(xy, self._height(clearance, column, cells[along <= c.horizon], position[2]))
+
+    def _clearance(self, occupied: np.ndarray, z_vehicle: float, z_goal: float) -> tuple[np.ndarray, np.ndarray]:
+        """Metres from each cell of ``occupied`` to the nearest seen surface (unseen space is free), the
+        heights the route may not use set to 0; and each column's best clearance over the rest."""
+        from scipy.ndimage import distance_transform_edt
+
+        c = self.config
+        low = self._level(min(z_vehicle, z_goal) - c.descend)
+        high = self._level(max(z_vehicle, z_goal))
+        # Surfaces farther above or below the usable heights than `wary` change no decision (every use
+        # saturates there), so the transform runs on that slab only: a third of the work in an office.
+        reach = int(np.ceil(c.wary / c.cell)) + 1
+        bottom, top = max(low - reach, 0), min(high + 1 + reach, self.levels)
+        clearance = np.zeros(occupied.shape)
+        clearance[:, :, low:high + 1] = (distance_transform_edt(~occupied[:, :, bottom:top]) * c.cell)[:, :, low - bottom:high + 1 - bottom]
+        return clearance, clearance.max(axis=2)
+
+    def _height(self, clearance: np.ndarray, column: np.ndarray, cells: np.ndarray, z: float) -> float | None:
+        """The height to pass the first of ``cells`` (route cells ahead) closed at height ``z`` though
+        open at another: the one nearest ``z`` that keeps :attr:`RouteConfig.wary` clear (or as much as
+        the column keeps anywhere)."""
+        c = self.config
+        assert self.origin is not None  # after add
+        k = self._level(z)
+        for i, j in cells:
+            if clearance[i, j, k] >= c.inflate or column[i, j] < c.inflate:
+                continue
+            good = np.flatnonzero(clearance[i, j] >= min(c.wary, column[i, j]) - 1e-9)
+            best = int(good[np.argmin(np.abs(good - k))])
+            return float(self.origin[2] + (best + 0.5) * c.cell)
+        return None
 
     def _farthest_in_sight(self, route: np.ndarray, along: np.ndarray, start: np.ndarray, clearance: np.ndarray,
                            lo: np.ndarray) -> np.ndarray | None:

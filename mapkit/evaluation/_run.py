@@ -28,6 +28,7 @@ from mapkit._version import __version__
 from mapkit.evaluation._loop import LoopConfig, run_episode
 from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, Execution, LearnedMethod, PlanInput, make_methods
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
+from mapkit.evaluation._route import RouteConfig
 from mapkit.workspace import atomic_output, check_writable
 
 if TYPE_CHECKING:
@@ -113,8 +114,8 @@ class EvalConfig:
         for name, value in (("blocked_within", ex.blocked_within), ("subgoal_time", ex.subgoal_time)):
             if not (math.isfinite(value) and value > 0):
                 raise EvalError(f"Execution.{name} must be a positive number of seconds, got {value}")
-        if ex.route is not None and not (math.isfinite(ex.route.after) and ex.route.after > 0):
-            raise EvalError(f"--route-after must be a positive number of seconds (0 turns the flight map off), got {ex.route.after}")
+        if ex.route is not None:
+            _validate_route(ex.route)
         if ex.subgoal_speed is not None and not (math.isfinite(ex.subgoal_speed) and ex.subgoal_speed >= 0):
             raise EvalError(f"--subgoal-speed must be >= 0 m/s (0: stop at the way out; default: the cruise speed), "
                             f"got {ex.subgoal_speed}")
@@ -836,3 +837,16 @@ def evaluate(
                    plans=collected.plans if config.record_plans else None)
     files = sorted(p for p in out_dir.rglob("*") if p.is_file())
     return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat, "allocation": alloc}, files=files)
+
+
+def _validate_route(route: RouteConfig) -> None:
+    """One line naming the flight map's first bad setting."""
+    if not (math.isfinite(route.after) and route.after > 0):
+        raise EvalError(f"--route-after must be a positive number of seconds (0 turns the flight map off), got {route.after}")
+    positive = ("progress", "cell", "extent", "height", "inflate", "horizon")
+    for name in positive + ("descend", "detour", "sight"):
+        value = getattr(route, name)
+        if not (math.isfinite(value) and (value > 0 if name in positive else value >= 0)):
+            raise EvalError(f"RouteConfig.{name} must be {'> 0' if name in positive else '>= 0'} metres, got {value}")
+    if not route.wary > route.inflate:
+        raise EvalError(f"RouteConfig.wary ({route.wary} m) must exceed RouteConfig.inflate ({route.inflate} m)")
