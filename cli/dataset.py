@@ -28,6 +28,9 @@ from mapkit.cli.main import COUNT, INDEX, NONNEGATIVE, POSITIVE, library_call, m
               help="Range of horizontal world extent relative to each kind's default (MIN MAX).")
 @click.option("--tilt-deg", type=NONNEGATIVE, nargs=2, default=(0.0, 15.0), show_default=True,
               help="Range of camera pitch down, degrees (MIN MAX; world 0 flies level).")
+@click.option("--cameras", default="160x120,212x120:1.1,192x144:0.9", show_default=True,
+              help="Depth cameras drawn per world, WIDTHxHEIGHT[:FX_SCALE] (focal length relative to a D435's); "
+                   "world 0 flies the first, and `mapkit eval` renders it. 640x360 for the paper preset.")
 @click.option("--noise-fraction", type=NONNEGATIVE, default=0.5, show_default=True,
               help="Share of worlds recorded with RealSense-like depth noise.")
 @click.option("--workers", type=INDEX, default=0, show_default=True, help="Worlds at once (0 = one per CPU core).")
@@ -35,17 +38,18 @@ from mapkit.cli.main import COUNT, INDEX, NONNEGATIVE, POSITIVE, library_call, m
 @library_call
 def dataset_cmd(root: Path, worlds: int, kinds: str, seed: int, duration: float, rate: float, goals_per_frame: int,
                 goal_mix: tuple[float, float, float], speed: tuple[float, float], density_scale: tuple[float, float],
-                size_scale: tuple[float, float], tilt_deg: tuple[float, float], noise_fraction: float, workers: int,
-                dry_run: bool) -> None:
+                size_scale: tuple[float, float], tilt_deg: tuple[float, float], cameras: str, noise_fraction: float,
+                workers: int, dry_run: bool) -> None:
     """Many simulated worlds (varied kinds, density, size, speed, camera, mount pitch, noise), each
     flown and run through ingest → fuse → esdf → export into ROOT/<world>/. Resumable: complete
     worlds are skipped."""
-    from mapkit.dataset import DatasetConfig, build_dataset, world_specs
+    from mapkit.dataset import DatasetConfig, build_dataset, parse_cameras, world_specs
     from mapkit.export import ExportConfig
 
     config = DatasetConfig(worlds=worlds, kinds=tuple(k.strip() for k in kinds.split(",") if k.strip()), seed=seed,
                            duration=duration, rate=rate, speed=speed, density_scale=density_scale,
-                           size_scale=size_scale, tilt_deg=tilt_deg, noise_fraction=noise_fraction, workers=workers,
+                           size_scale=size_scale, tilt_deg=tilt_deg, cameras=parse_cameras(cameras),
+                           noise_fraction=noise_fraction, workers=workers,
                            export=ExportConfig(goals_per_frame=goals_per_frame, goal_mix=goal_mix))
     s = build_dataset(root, config, progress=True, dry_run=dry_run)
     if dry_run:

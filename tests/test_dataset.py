@@ -12,10 +12,12 @@ from click.testing import CliRunner
 from mapkit.cli.main import main
 from mapkit.dataset import (
     DONE,
+    CameraVariant,
     DatasetConfig,
     DatasetError,
     build_dataset,
     dataset_workspaces,
+    parse_cameras,
     split_worlds,
     world_specs,
 )
@@ -89,3 +91,19 @@ def test_cli_ranges_reach_the_worlds(tmp_path: Path) -> None:
     assert "tilt 0.0 deg" in lines[0] and all("tilt 5.0 deg" in line for line in lines[1:])  # world 0 flies level
     bad = CliRunner().invoke(main, args + ["--speed", "0.5", "2"])
     assert bad.exit_code == 1 and bad.output.strip() == "error: --speed 0.5 2.0: need 1.0 <= min <= max <= 3.0"
+
+
+def test_cameras_option_sets_every_worlds_camera(tmp_path: Path) -> None:
+    """`--cameras 640x360` (the paper preset's D435) flies every world with it, at the D435's focal
+    length; the default string is the library's default; malformed or absurd cameras are one line."""
+    assert parse_cameras("160x120,212x120:1.1,192x144:0.9") == DatasetConfig().cameras
+    assert parse_cameras(" 640X360 ") == (CameraVariant(640, 360, 1.0),)
+    args = ["dataset", "-o", str(tmp_path / "d"), "--worlds", "4", "--dry-run"]
+    paper = CliRunner().invoke(main, args + ["--cameras", "640x360"])
+    assert paper.exit_code == 0, paper.output
+    lines = [line for line in paper.output.splitlines() if " m/s, camera " in line]
+    assert len(lines) == 4 and all("camera 640x360 fx 387.0 " in line for line in lines)
+    for text, message in (("640by360", "is not WIDTHxHEIGHT[:FX_SCALE]"), (",", "names no camera"),
+                          ("8x8", "need 16..4096 pixels a side"), ("640x360:9", "focal-length scale in 0.25..4")):
+        bad = CliRunner().invoke(main, args + ["--cameras", text])
+        assert bad.exit_code == 1 and message in bad.output and len(bad.output.strip().splitlines()) == 1, bad.output

@@ -378,6 +378,22 @@ def test_cli_bad_models(tmp_path: Path):
     assert not (tmp_path / "ev").exists()
 
 
+def test_a_model_larger_than_its_recorded_training_camera_renders_that_camera(tmp_path: Path):
+    """The paper preset (360x640) trained on a 160x120 dataset resizes those images up in training, and
+    evaluating it renders the same camera and resizes the same way (only an unknown camera is refused,
+    as in `test_cli_bad_models`)."""
+    import dataclasses
+
+    from mapkit.evaluation._run import _default_camera, _model_context
+
+    recorded = dataclasses.replace(_default_camera(), source="recorded by the run")
+    run = save_model(tmp_path / "paper", PlannerConfig(input_size=(360, 640), encoder_width=0.125),
+                     camera=dataclasses.asdict(recorded))
+    context = _model_context(run, EvalConfig(methods=("learned",)))
+    assert (context.camera.height, context.camera.width) == (120, 160)
+    assert context.camera.source == "recorded by the run"
+
+
 def test_refuses_the_seed_of_a_training_world(tmp_path: Path):
     """The run's training workspace came from a simulated office with seed 3: evaluating office
     worlds with seed 3 would fly the training world."""

@@ -13,6 +13,7 @@ from mapkit.dataset._build import (
     build_world,
     dataset_workspaces,
     estimate,
+    parse_cameras,
     split_worlds,
     world_specs,
 )
@@ -31,5 +32,6 @@ __all__ = [
     "dataset_workspaces",
     "split_worlds",
     "estimate",
+    "parse_cameras",
     "world_specs",
 ]

@@ -42,6 +42,22 @@ class CameraVariant:
     """Focal length relative to the D435's (387 px at 640 px width, scaled to ``width``)."""
 
 
+def parse_cameras(text: str) -> tuple[CameraVariant, ...]:
+    """Cameras from ``WxH[:FX_SCALE],...`` (``--cameras``), e.g. ``640x360`` for the paper preset's
+    D435 or the default ``160x120,212x120:1.1,192x144:0.9``; a malformed entry is a one-line error."""
+    out = []
+    for entry in (e.strip() for e in text.split(",") if e.strip()):
+        size, _, scale = entry.partition(":")
+        w, _, h = size.lower().partition("x")
+        try:
+            out.append(CameraVariant(int(w), int(h), float(scale) if scale else 1.0))
+        except ValueError:
+            raise DatasetError(f"--cameras entry {entry!r} is not WIDTHxHEIGHT[:FX_SCALE] (e.g. 640x360 or 212x120:1.1)") from None
+    if not out:
+        raise DatasetError(f"--cameras {text!r} names no camera; e.g. 160x120 or 640x360,848x480")
+    return tuple(out)
+
+
 @dataclass
 class DatasetConfig:
     """What `mapkit dataset` generates. Per-world parameters are drawn from these ranges with a
@@ -72,7 +88,8 @@ class DatasetConfig:
         CameraVariant(160, 120), CameraVariant(212, 120, 1.1), CameraVariant(192, 144, 0.9),
     )
     """Cameras drawn per world. World 0 always flies the first one with no tilt: `mapkit eval`
-    renders the camera of the first training workspace."""
+    renders the camera of the first training workspace. The network resizes every image to its input
+    size; for the paper preset (360x640) a 640x360 camera keeps the detail it was built for."""
     noise_fraction: float = 0.5
     """Share of worlds recorded with RealSense-like depth noise (the rest exact)."""
     fuse_voxel: float = 0.05
@@ -99,6 +116,13 @@ class DatasetConfig:
             lo, hi = getattr(self, name)
             if not (np.isfinite(lo) and np.isfinite(hi) and lo_min <= lo <= hi <= hi_max):
                 raise DatasetError(f"--{name.replace('_', '-')} {lo} {hi}: need {lo_min} <= min <= max <= {hi_max}")
+        for cam in self.cameras:
+            if not (16 <= cam.width <= 4096 and 16 <= cam.height <= 4096 and np.isfinite(cam.fx_scale)
+                    and 0.25 <= cam.fx_scale <= 4.0):
+                raise DatasetError(f"--cameras {cam.width}x{cam.height}:{cam.fx_scale}: need 16..4096 pixels a side "
+                                   f"and a focal-length scale in 0.25..4")
+        if not self.cameras:
+            raise DatasetError("--cameras names no camera; e.g. 160x120 or 640x360")
         if not 0 <= self.noise_fraction <= 1:
             raise DatasetError(f"--noise-fraction {self.noise_fraction} must be in [0, 1]")
         if self.workers < 0:

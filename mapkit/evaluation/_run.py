@@ -493,17 +493,20 @@ def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> 
     net = planner.net
     run_cfg = _run_config(run_dir)
     cam = _training_camera(run_cfg)
-    if cam is None:
-        log.warning("the run's training workspaces are not readable; rendering %s", context.camera.source)
-    else:
-        context.camera = cam
     h, w = net.config.input_size
-    if h > context.camera.height or w > context.camera.width:
+    if cam is not None:
+        # the network resizes the training camera's images here exactly as it did in training (the
+        # paper preset's 360x640 from a 160x120 dataset, too), so any input size is consistent
+        context.camera = cam
+    elif h > context.camera.height or w > context.camera.width:
         raise EvalError(
-            f"model {run_dir} expects depth resized to {h}x{w} but its training camera renders "
-            f"{context.camera.height}x{context.camera.width}; this model was trained for another camera and cannot be evaluated "
-            f"with it (retrain, or evaluate a model whose input size is at most the camera's)"
+            f"model {run_dir} expects depth resized to {h}x{w}, its run records no training camera and its "
+            f"workspaces are not readable, and the default camera renders only "
+            f"{context.camera.height}x{context.camera.width}; put the run's training workspaces back where "
+            f"its config.json names them, or evaluate a model trained on a recorded camera"
         )
+    else:
+        log.warning("the run's training workspaces are not readable; rendering %s", context.camera.source)
     loss = run_cfg.get("loss", {}) or {}
     if "robot_radius" in loss:
         context.loop = dataclasses.replace(context.loop, robot_radius=float(loss["robot_radius"]))
