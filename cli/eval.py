@@ -54,6 +54,13 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @click.option("--subgoal-speed", type=FINITE, default=None,
               help="m/s at which learned plans pass a way out toward open space (when nothing leads on toward "
                    "the goal); default: the cruise speed; 0 = stop there.")
+@click.option("--speed", type=FINITE, default=0.0, show_default=True,
+              help="Cruise speed (m/s) of the speed profile that times learned plans; 0 = the model's cruise speed "
+                   "(2 m/s for the shipped model). Slower is smoother (the effort grows with the 7th power of the "
+                   "pace) but slower: 1.2 m/s is the oracle's pace.")
+@click.option("--search-speed", type=FINITE, default=None,
+              help="Cruise speed (m/s) for the rest of a flight once it searches for its way (stalled, or flown "
+                   "1.4x its progress toward the goal + 1 m); default: the model's cruise speed.")
 @click.option("--follow", type=FRACTION, default=0.75, show_default=True,
               help="Fraction of the way each key-point of a new plan moves toward the reference being flown "
                    "(at most the corridor's width): smoother replanning; 0 = the network's key-points.")
@@ -70,7 +77,7 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
-             corridor_check: bool, check_memory: bool, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
+             corridor_check: bool, check_memory: bool, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
              record_plans: bool, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, Execution, LoopConfig, RouteConfig, evaluate
@@ -82,7 +89,8 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
                         execution=Execution(corridor=corridor or None, check_corridor=corridor_check,
                                             check_memory=check_memory, v_max=v_max or None,
                                             a_max=a_max or None, memory=memory or None, subgoal_speed=subgoal_speed,
-                                            follow=follow, turn_toward_open=turn_toward_open,
+                                            follow=follow, turn_toward_open=turn_toward_open, speed=speed or None,
+                                            search_speed=search_speed,
                                             route=None if route_after == 0 else RouteConfig(after=route_after)),
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
                                         on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,

@@ -752,14 +752,8 @@ def test_a_bad_flight_map_setting_is_refused_by_name(route: dict[str, float], me
         EvalConfig(execution=Execution(route=RouteConfig(**route))).validate()
 
 
-@pytest.mark.parametrize("speed, expected", [(None, 2.0), (0.0, 0.0), (1.0, 1.0)])
-def test_plans_toward_a_way_out_pass_it_at_the_subgoal_speed(monkeypatch, speed: float | None, expected: float):
-    """When nothing leads on toward the goal, the network plans toward the open direction, and keeps
-    that way-out point for the next plans; those plans pass it at ``subgoal_speed`` (None: cruise)."""
-    import dataclasses
-
-    from mapkit.evaluation import Execution
-    from mapkit.evaluation import _methods as methods
+def _tiny_learned_method(execution):
+    from mapkit.evaluation._methods import LearnedMethod
     from mapkit.planner import CameraInput
 
     torch.manual_seed(0)
@@ -767,8 +761,92 @@ def test_plans_toward_a_way_out_pass_it_at_the_subgoal_speed(monkeypatch, speed:
                          head_activation="leaky_relu")
     K = np.array([[48.4, 0.0, 39.5], [0.0, 48.4, 29.5], [0.0, 0.0, 1.0]])
     T_bc = np.array([[0.0, 0.0, 1.0, 0.08], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.02], [0.0, 0.0, 0.0, 1.0]])
-    method = methods.LearnedMethod("learned", PlannerNet(cfg), camera=CameraInput.from_calibration(K, 80, 60, T_bc),
-                                   execution=Execution(subgoal_speed=speed))
+    return LearnedMethod("learned", PlannerNet(cfg), camera=CameraInput.from_calibration(K, 80, 60, T_bc),
+                         execution=execution)
+
+
+def _open_view_at_start(t: float = 0.0) -> Observation:
+    T_wb = np.eye(4)
+    T_wb[:3, 3] = START
+    return Observation(t=t, T_world_body=T_wb, state_world=np.vstack([START, np.zeros((3, 3))]), goal_world=GOAL,
+                       local_goal_body=np.array([6.0, 0.0, 0.0]), depth=np.full((60, 80), 5.0, dtype=np.float32),
+                       goal_clipped=True)
+
+
+def test_plans_are_timed_at_the_execution_speed_and_at_the_search_speed_once_stalled(monkeypatch):
+    """Plans toward a local goal beyond the horizon pass it at ``Execution.speed``, and the speed
+    profile cruises at it (so the same plan at 1 m/s takes longer than at the model's 2 m/s). Once the
+    flight has stalled, the rest of it flies at ``search_speed`` (None: the model's); a new flight
+    starts at ``speed`` again."""
+    from mapkit.evaluation import Execution
+    from mapkit.evaluation import _methods as methods
+    from mapkit.evaluation._route import Progress
+
+    speeds: list[float] = []
+    attempt = methods.LearnedMethod._attempt
+
+    def recorded(self, obs, start, goal, end_speed):
+        speeds.append(end_speed)
+        return attempt(self, obs, start, goal, end_speed)
+
+    monkeypatch.setattr(methods.LearnedMethod, "_attempt", recorded)
+    slow, model = _tiny_learned_method(Execution(speed=1.0)), _tiny_learned_method(Execution(speed=None))
+    durations = [m.plan(_open_view_at_start()).pieces.t_end for m in (slow, model)]
+    assert speeds == [1.0, model.config.cruise_speed] and durations[0] > 1.5 * durations[1]
+    monkeypatch.setattr(Progress, "update", lambda self, t, distance, config: t >= 0.5)  # stalled from 0.5 s
+    fast = _tiny_learned_method(Execution(speed=1.0, search_speed=1.5))
+    for t in (0.0, 0.5, 1.0):
+        fast.plan(_open_view_at_start(t))
+    fast.plan(_open_view_at_start(0.0))  # a new flight (time starts over): not stalled yet
+    assert speeds[2:] == [1.0, 1.5, 1.5, 1.0]
+
+
+def test_a_flight_searches_once_it_has_flown_much_farther_than_it_came_closer():
+    """Straight at the goal (or weaving 1.1× the progress) is not searching; 2 m sideways is (flown 2 m
+    > 1.4 × 0 + 1 m), and a flight that searched keeps searching when it then makes progress."""
+    from mapkit.evaluation._methods import _Search
+
+    straight, search = _Search(), _Search()
+    for x in np.linspace(0.0, 8.0, 17):
+        assert not straight.update(np.array([x, 0.0, 1.0]), 10.0 - x, 1.4, 1.0)
+    weave = _Search()
+    for k, x in enumerate(np.linspace(0.0, 8.0, 17)):
+        assert not weave.update(np.array([x, 0.23 * (k % 2), 1.0]), 10.0 - x, 1.4, 1.0)
+    assert not search.update(np.array([0.0, 0.0, 1.0]), 10.0, 1.4, 1.0)
+    assert not search.update(np.array([0.0, 0.9, 1.0]), 10.0, 1.4, 1.0)
+    assert search.update(np.array([0.0, 2.0, 1.0]), 10.0, 1.4, 1.0)
+    assert search.update(np.array([5.0, 2.0, 1.0]), 5.0, 1.4, 1.0) and search.searching
+
+
+@pytest.mark.parametrize("option, value", [("speed", 0.0), ("speed", float("nan")), ("search_speed", -2.0)])
+def test_a_speed_that_is_not_positive_is_refused_by_name(option: str, value: float):
+    from mapkit.evaluation import EvalError, Execution
+
+    flag = "--" + option.replace("_", "-")
+    with pytest.raises(EvalError, match=f"{flag} must be a positive speed in m/s"):
+        EvalConfig(execution=Execution(**{option: value})).validate()
+
+
+@pytest.mark.parametrize("setting, message", [({"search_ratio": 0.9}, "Execution.search_ratio must be >= 1"),
+                                              ({"search_margin": float("nan")}, "Execution.search_margin must be >= 0")])
+def test_a_bad_search_setting_is_refused_by_name(setting: dict[str, float], message: str):
+    from mapkit.evaluation import EvalError, Execution
+
+    with pytest.raises(EvalError, match=re.escape(message)):
+        EvalConfig(execution=Execution(**setting)).validate()
+
+
+@pytest.mark.parametrize("speed, expected", [(None, 2.0), (0.0, 0.0), (1.0, 1.0)])
+def test_plans_toward_a_way_out_pass_it_at_the_subgoal_speed(monkeypatch, speed: float | None, expected: float):
+    """When nothing leads on toward the goal, the network plans toward the open direction, and keeps
+    that way-out point for the next plans; those plans pass it at ``subgoal_speed`` (None: the
+    model's cruise speed, 2 m/s)."""
+    import dataclasses
+
+    from mapkit.evaluation import Execution
+    from mapkit.evaluation import _methods as methods
+
+    method = _tiny_learned_method(Execution(subgoal_speed=speed))
     speeds: list[float] = []
     attempt = methods.LearnedMethod._attempt
 
@@ -781,13 +859,9 @@ def test_plans_toward_a_way_out_pass_it_at_the_subgoal_speed(monkeypatch, speed:
     monkeypatch.setattr(methods.LearnedMethod, "_remembered",
                         lambda self, obs, start, a: dataclasses.replace(a, blocked=len(speeds) == 1))
     monkeypatch.setattr(methods, "open_direction", lambda *args, **kwargs: np.array([3.0, 1.0, 0.0]))
-    T_wb = np.eye(4)
-    T_wb[:3, 3] = START
-    obs = Observation(t=0.0, T_world_body=T_wb, state_world=np.vstack([START, np.zeros((3, 3))]), goal_world=GOAL,
-                      local_goal_body=np.array([6.0, 0.0, 0.0]), depth=np.full((60, 80), 5.0, dtype=np.float32),
-                      goal_clipped=True)
+    obs = _open_view_at_start()
     method.plan(obs)
-    assert speeds == [cfg.cruise_speed, expected]
+    assert speeds == [method.config.cruise_speed, expected]
     method.plan(dataclasses.replace(obs, t=0.5))  # the way out is kept for subgoal_time
     assert speeds[2] == expected
 

@@ -28,7 +28,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -101,7 +101,7 @@ class Execution:
     seeds 7 / 13 (120 pairs each): 1 s 80.8 / 75.0 %, 1.5 s 79.2 / 69.2 %, 2 s 77.5 / 75.0 %,
     3 s 75.8 / 70.8 %, 5 s 71.7 / 68.3 %."""
     subgoal_speed: float | None = None
-    """m/s at which plans pass the way-out point of ``subgoal_time`` (None: the planner's cruise speed;
+    """m/s at which plans pass the way-out point of ``subgoal_time`` (None: the plans' cruise speed;
     0: stop there, as until 2026-11-29). Stopping at every way out made a stop-and-go of the office's
     blocked stretches, and flying toward open space was half of a flight's effort. Office, dev seeds
     31 / 37 (60 pairs, `accel` 1.5): 0 → 80.0 / 60.0 %, 1 m/s 70.0 / 58.3 %, cruise 71.7 / 58.3 % at
@@ -150,11 +150,57 @@ class Execution:
     height (which closed doorways under their lintels) and 1032 without a map; nine held-out seeds 11–53:
     office 92.4 against 82.8 and 82.4 %, overall 97.35 against 94.1 and 93.7 % (docs/evaluation.md,
     "Flight map")."""
+    speed: float | None = None
+    """m/s: the cruise speed of the speed profile that times learned plans (and the speed at which a
+    plan passes a local goal beyond the horizon) while the flight makes its way. None: the model's
+    ``cruise_speed`` (2 m/s for the shipped model). The network still reads the velocity scaled by
+    the model's own cruise speed. The same path flown in 1/k of the time costs k⁷ the snap, so this
+    trades time for effort: at 1.2 m/s (the oracle's pace) the flights of dev seeds 7 / 13 cost 1.6 /
+    1.7× the oracle's effort against 23 / 21× at 2 m/s, but office dev seeds 200–213 reached 762 of 840
+    against 798 (timeouts), hence not the default ("Speed" in docs/evaluation.md)."""
+    search_speed: float | None = None
+    """m/s for the rest of a flight once it searches for its way: it has stalled (no 0.5 m of
+    progress for ``route.after`` seconds), or flown more than ``search_ratio`` × the distance it has
+    come toward the goal plus ``search_margin``. None: the model's ``cruise_speed``. Matters only
+    with a slower ``speed``: a flight that looks for its way through an office covers 1.6–3× the
+    straight distance, and at the oracle's pace those flights ran out of time."""
+    search_ratio: float = 1.4
+    """Flown path over progress toward the goal above which a flight counts as searching (a flight
+    weaving between trees flies 1.05–1.15×)."""
+    search_margin: float = 1.0
+    """Metres of flown path allowed before the ratio counts (turning toward the way at the start)."""
     blocked_within: float = 2.0
     """Seconds of each candidate that must keep clear of remembered surfaces for the way ahead to count
     as open: braking from cruise speed takes about 2.7 s and 2.7 m. Office and garage on seeds 7 and 13
     (120 pairs each): 1.0 s 62.5 % (seed 7), 1.5 s 70.8 / 66.7 %, 2.0 s 75.8 / 70.8 %, 2.5 s 71.7 %,
     3.0 s 70.8 %."""
+
+
+@dataclass
+class _Search:
+    """Whether a flight searches for its way: it has stalled, or flown much farther than it has come
+    toward its goal. Once searching, it stays so for the rest of the flight."""
+
+    searching: bool = False
+    start_distance: float | None = None
+    flown: float = 0.0
+    last: np.ndarray | None = None
+
+    def update(self, position: np.ndarray, distance: float, ratio: float, margin: float) -> bool:
+        """Record the vehicle's position and distance to the goal at a plan; True once searching."""
+        if self.last is None:
+            self.start_distance = distance
+        else:
+            self.flown += float(np.linalg.norm(position - self.last))
+        self.last = np.array(position, dtype=np.float64)
+        assert self.start_distance is not None
+        self.searching = self.searching or self.flown > ratio * (self.start_distance - distance) + margin
+        return self.searching
+
+
+def _at_speed(config: PlannerConfig, speed: float | None) -> PlannerConfig:
+    """``config`` whose speed profile cruises at ``speed`` m/s (None: its own cruise speed)."""
+    return config if speed is None else replace(config, cruise_speed=float(speed))
 
 
 def _tensors(wp: np.ndarray, start: np.ndarray, end_speed: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -461,6 +507,9 @@ class LearnedMethod:
         self.spline = spline
         self.config = net.config
         self.execution = execution
+        self._timing_config = _at_speed(net.config, execution.speed)
+        """The planner config whose cruise speed times the plans: ``speed``, ``search_speed`` once searching."""
+        self._search = _Search()
         self.plan_log: list[PlanInput] | None = None
         """A list to append every timed plan's :class:`PlanInput` to (``mapkit eval --record-plans``), or None."""
         self._subgoal: tuple[np.ndarray, float] | None = None  # (world point, until)
@@ -495,7 +544,7 @@ class LearnedMethod:
         wpt, st, es = _tensors(wp, start, end_speed)
         t_alloc = time.perf_counter()
         with torch.inference_mode():
-            timing = plan_timing(wpt, st, es, self.config, allocation=self.allocation, tan=self.net.tan)
+            timing = plan_timing(wpt, st, es, self._timing_config, allocation=self.allocation, tan=self.net.tan)
         attempt = _Attempt(kp, float(out.eta[0]), timing, 1e3 * (time.perf_counter() - t_alloc))
         if self.plan_log is not None:
             self.plan_log.append(PlanInput(waypoints=wp, start=np.array(start[1:]), end_speed=end_speed))
@@ -531,7 +580,7 @@ class LearnedMethod:
         st = torch.from_numpy(np.ascontiguousarray(start[1:]))[None].expand(M, 3, 3)
         es = torch.full((M,), attempt.end_speed, dtype=torch.float64)
         with torch.inference_mode():
-            timing = plan_timing(wp, st, es, self.config, allocation=self.allocation, tan=self.net.tan)
+            timing = plan_timing(wp, st, es, self._timing_config, allocation=self.allocation, tan=self.net.tan)
             paths = min_snap(wp, timing.durations, start=st, end=timing.end)
         clear = memory.conflicts(_samples(paths, within=how.blocked_within)[0], T) == 0
         if not clear.any():
@@ -551,6 +600,7 @@ class LearnedMethod:
         if self._flight is None or obs.t <= self._flight[1] or not np.array_equal(self._flight[0], obs.goal_world):
             self._subgoal = None
             self._progress = Progress()
+            self._search = _Search()
             if self._memory is not None:
                 self._memory.forget()
             if self._route is not None:
@@ -570,6 +620,7 @@ class LearnedMethod:
         p = obs.T_world_body[:3, 3]
         self._route.add(points, p)
         stalled = self._progress.update(obs.t, float(np.linalg.norm(np.asarray(obs.goal_world) - p)), self._route.config)
+        self._search.searching = self._search.searching or stalled
         aim = self._route.aim(p, np.asarray(obs.goal_world)) if stalled and wanted else None
         if aim is None:
             return None
@@ -577,9 +628,17 @@ class LearnedMethod:
         z = p[2] + 0.5 * float(obs.local_goal_body[2]) if aim.height is None else aim.height
         return np.array([aim.xy[0], aim.xy[1], z])
 
+    def _speed_config(self, obs: Observation) -> PlannerConfig:
+        """The planner config timed at ``speed``, or at ``search_speed`` once the flight searches."""
+        how = self.execution
+        p = obs.T_world_body[:3, 3]
+        searching = self._search.update(p, float(np.linalg.norm(np.asarray(obs.goal_world) - p)),
+                                        how.search_ratio, how.search_margin)
+        return _at_speed(self.config, how.search_speed if searching else how.speed)
+
     def _subgoal_speed(self) -> float:
         speed = self.execution.subgoal_speed
-        return self.config.cruise_speed if speed is None else speed
+        return self._timing_config.cruise_speed if speed is None else speed
 
     def plan(self, obs: Observation) -> MethodPlan:
         t0 = time.perf_counter()
@@ -587,11 +646,12 @@ class LearnedMethod:
         sub = self._subgoal_in_force(obs)
         points = None if self._memory is None else self._memory.points(obs)
         aim = self._aim(obs, points, sub is None)
+        self._timing_config = self._speed_config(obs)
         goal_body = np.asarray(obs.local_goal_body, dtype=np.float64)
-        end_speed = self.config.cruise_speed if obs.goal_clipped else 0.0
+        end_speed = self._timing_config.cruise_speed if obs.goal_clipped else 0.0
         if aim is not None:
             goal_body = obs.T_world_body[:3, :3].T @ (aim - obs.T_world_body[:3, 3])
-            end_speed = self.config.cruise_speed
+            end_speed = self._timing_config.cruise_speed
         if sub is None:
             attempt = self._attempt(obs, start, goal_body, end_speed)
         else:

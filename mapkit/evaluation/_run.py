@@ -119,6 +119,13 @@ class EvalConfig:
         if ex.subgoal_speed is not None and not (math.isfinite(ex.subgoal_speed) and ex.subgoal_speed >= 0):
             raise EvalError(f"--subgoal-speed must be >= 0 m/s (0: stop at the way out; default: the cruise speed), "
                             f"got {ex.subgoal_speed}")
+        for option, value in (("--speed", ex.speed), ("--search-speed", ex.search_speed)):
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise EvalError(f"{option} must be a positive speed in m/s (or left out: the model's cruise speed), got {value}")
+        if not (math.isfinite(ex.search_ratio) and ex.search_ratio >= 1):
+            raise EvalError(f"Execution.search_ratio must be >= 1 (flown path over progress), got {ex.search_ratio}")
+        if not (math.isfinite(ex.search_margin) and ex.search_margin >= 0):
+            raise EvalError(f"Execution.search_margin must be >= 0 metres, got {ex.search_margin}")
         if not (math.isfinite(ex.follow) and 0 <= ex.follow <= 1):
             raise EvalError(f"--follow must be in [0, 1] (the fraction of the way toward the reference), got {ex.follow}")
         if not (math.isfinite(loop.plan_latency) and 0 <= loop.plan_latency < loop.replan_interval):
