@@ -744,6 +744,7 @@ def test_a_follow_fraction_outside_0_1_is_refused_by_name(follow: float):
     ({"cell": 0.0}, "RouteConfig.cell must be > 0 metres, got 0.0"),
     ({"height": float("nan")}, "RouteConfig.height must be > 0 metres"),
     ({"inflate": 1.2}, "RouteConfig.wary (1.0 m) must exceed RouteConfig.inflate (1.2 m)"),
+    ({"ground": float("inf")}, "RouteConfig.ground must be a finite world height in metres or None"),
 ])
 def test_a_bad_flight_map_setting_is_refused_by_name(route: dict[str, float], message: str):
     from mapkit.evaluation import EvalError, Execution, RouteConfig

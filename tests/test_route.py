@@ -94,6 +94,22 @@ def test_a_low_wall_is_flown_over_and_a_seen_ceiling_is_not():
     assert full.aim(start, goal) is None
 
 
+def test_no_route_under_a_wall_whose_foot_was_not_seen():
+    """A wall seen from 0.8 m up (its foot below the camera's view) between a vehicle at 1.0 m and a
+    goal at 0.6 m: the route may descend to -0.4 m, where nothing was seen. The ground (z = 0) counts
+    as seen, so the aim leads round the wall's end; without it, the way under the wall counts as open
+    and straight, and the map offers no route at all."""
+    start, goal = np.array([0.0, -2.0, 1.0]), np.array([0.0, 3.0, 0.6])
+    seen = _wall(-6.0, 3.0, z0=0.8, z1=3.0)
+    grounded = FlightMap()
+    grounded.add(seen, start)
+    aim = grounded.aim(start, goal)
+    assert aim is not None and aim.xy[0] > 3.3 and aim.height is None
+    underground = FlightMap(RouteConfig(ground=None))
+    underground.add(seen, start)
+    assert underground.aim(start, goal) is None
+
+
 def test_progress_stalls_after_the_configured_time_until_the_flight_is_closer_than_ever():
     config = RouteConfig(after=3.0, progress=0.5)
     p = Progress()

@@ -149,7 +149,7 @@ class Execution:
     flights, 2026-12-02): 1139 against 1070 with a level map of the surfaces within 0.5 m of the vehicle's
     height (which closed doorways under their lintels) and 1032 without a map; nine held-out seeds 11–53:
     office 92.4 against 82.8 and 82.4 %, overall 97.35 against 94.1 and 93.7 % (docs/evaluation.md,
-    "Flight map")."""
+    "Flight map"). With the ground counted as seen (``RouteConfig.ground``, 2026-12-03): 1149 of 1200."""
     speed: float | None = None
     """m/s: the cruise speed of the speed profile that times learned plans (and the speed at which a
     plan passes a local goal beyond the horizon) while the flight makes its way. None: the model's

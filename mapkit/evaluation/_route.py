@@ -50,6 +50,10 @@ class RouteConfig:
     """Metres along the route within which the aim point is chosen."""
     sight: float = 0.3
     """Metres the straight line from the vehicle to the aim point must keep from seen surfaces."""
+    ground: float | None = 0.0
+    """World height of the ground (z up; the simulated worlds' floor is at 0), which counts as seen
+    everywhere: the foot of a wall seen from nearby is outside the camera's view, and the unseen space
+    below it would otherwise open a route under the wall. None: no ground."""
 
 
 def depth_points(depth: np.ndarray, ray: tuple[float, float, float, float], T_world_camera: np.ndarray,
@@ -159,8 +163,13 @@ class FlightMap:
         # saturates there), so the transform runs on that slab only: a third of the work in an office.
         reach = int(np.ceil(c.wary / c.cell)) + 1
         bottom, top = max(low - reach, 0), min(high + 1 + reach, self.levels)
+        slab = occupied[:, :, bottom:top]
+        assert self.origin is not None  # after add
+        if c.ground is not None and c.ground >= self.origin[2] and self._level(c.ground) >= bottom:
+            slab = slab.copy()  # the ground and below count as seen
+            slab[:, :, :self._level(c.ground) - bottom + 1] = True
         clearance = np.zeros(occupied.shape)
-        clearance[:, :, low:high + 1] = (distance_transform_edt(~occupied[:, :, bottom:top]) * c.cell)[:, :, low - bottom:high + 1 - bottom]
+        clearance[:, :, low:high + 1] = (distance_transform_edt(~slab) * c.cell)[:, :, low - bottom:high + 1 - bottom]
         return clearance, clearance.max(axis=2)
 
     def _height(self, clearance: np.ndarray, column: np.ndarray, cells: np.ndarray, z: float) -> float | None:

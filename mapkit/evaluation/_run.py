@@ -858,5 +858,7 @@ def _validate_route(route: RouteConfig) -> None:
         value = getattr(route, name)
         if not (math.isfinite(value) and (value > 0 if name in positive else value >= 0)):
             raise EvalError(f"RouteConfig.{name} must be {'> 0' if name in positive else '>= 0'} metres, got {value}")
+    if route.ground is not None and not math.isfinite(route.ground):
+        raise EvalError(f"RouteConfig.ground must be a finite world height in metres or None (no ground), got {route.ground}")
     if not route.wary > route.inflate:
         raise EvalError(f"RouteConfig.wary ({route.wary} m) must exceed RouteConfig.inflate ({route.inflate} m)")
