@@ -62,6 +62,16 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @click.option("--search-speed", type=FINITE, default=None,
               help="Cruise speed (m/s) for the rest of a flight once it searches for its way (stalled, or flown "
                    "1.4x its progress toward the goal + 1 m); default: the model's cruise speed.")
+@click.option("--turn-accel", type=FINITE, default=1.5, show_default=True,
+              help="m/s²: a learned plan whose key-points turn is timed at most at sqrt(turn-accel x the turn's "
+                   "radius) (and at least --turn-min-speed): turns are flown slower, straight paths at cruise "
+                   "speed; 0 = every plan at the cruise speed.")
+@click.option("--turn-min-speed", type=FINITE, default=1.0, show_default=True,
+              help="m/s: the slowest cruise speed --turn-accel sets.")
+@click.option("--stop-decel", type=FINITE, default=0.0, show_default=True,
+              help="m/s²: until a flight searches for its way, learned plans that end at rest at the goal slow "
+                   "down to it at this rate (0.75 cuts the effort by about a tenth and costs a few office "
+                   "flights); 0 = the model's acceleration.")
 @click.option("--follow", type=FRACTION, default=0.75, show_default=True,
               help="Fraction of the way each key-point of a new plan moves toward the reference being flown "
                    "(at most the corridor's width): smoother replanning; 0 = the network's key-points.")
@@ -78,7 +88,7 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
-             corridor_check: bool, check_memory: bool, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
+             corridor_check: bool, check_memory: bool, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
              record_plans: bool, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, Execution, LoopConfig, RouteConfig, evaluate
@@ -91,7 +101,8 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
                                             check_memory=check_memory, v_max=v_max or None,
                                             a_max=a_max or None, memory=memory or None, subgoal_speed=subgoal_speed,
                                             follow=follow, turn_toward_open=turn_toward_open, speed=speed or None,
-                                            search_speed=search_speed,
+                                            search_speed=search_speed, turn_accel=turn_accel or None,
+                                            turn_min_speed=turn_min_speed, stop_decel=stop_decel or None,
                                             route=None if route_after == 0 else RouteConfig(after=route_after)),
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
                                         on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,

@@ -350,6 +350,9 @@ def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
     (["--plan-latency", "0.7"], "--plan-latency must be in"),
     (["--final-approach", "-1"], "--final-approach must be >= 0"),
     (["--subgoal-speed", "-1"], "--subgoal-speed must be >= 0"),
+    (["--turn-accel", "-1"], "--turn-accel must be a positive number"),
+    (["--stop-decel", "-1"], "--stop-decel must be a positive number"),
+    (["--turn-min-speed", "0"], "--turn-min-speed must be a positive speed"),
     (["--route-after", "-2"], "--route-after must be a positive number"),
     (["--horizon", "-3"], "--horizon must be > 0"),
     (["--min-distance", "0"], "--min-distance must be > 0"),
@@ -802,6 +805,54 @@ def test_plans_are_timed_at_the_execution_speed_and_at_the_search_speed_once_sta
     assert speeds[2:] == [1.0, 1.5, 1.5, 1.0]
 
 
+def test_plans_that_turn_are_timed_at_the_speed_of_their_sharpest_turn():
+    """With ``turn_accel`` a plan's cruise speed and its speed at a passed goal are √(a R) of its
+    sharpest turn (at least ``turn_min_speed``); a straight plan keeps the cruise speed, and without
+    ``turn_accel`` every plan does."""
+    from mapkit.evaluation import Execution
+    from mapkit.planner import plan_timing
+
+    x = torch.linspace(0.0, 6.0, 6, dtype=torch.float64)
+    line = torch.stack([x, torch.zeros_like(x), torch.zeros_like(x)], dim=-1)
+    bent = line.clone()
+    bent[3:, 0], bent[3:, 1] = bent[2, 0], x[1:4] - x[0]  # a right angle after 2.4 m, then 3.6 m sideways
+    wp, start = torch.stack([line, bent]), torch.zeros(2, 3, 3, dtype=torch.float64)
+    passing = torch.full((2,), 2.0, dtype=torch.float64)
+    method = _tiny_learned_method(Execution(turn_accel=1.0, turn_min_speed=0.5))
+    cruise = method.config.cruise_speed
+    slow = (1.0 * 0.6) ** 0.5  # R = half the 1.2 m segment / tan 45°
+    timing = method._timed(wp, start, passing)
+    expected = plan_timing(wp, start, torch.tensor([2.0, slow], dtype=torch.float64), method.config,
+                           tan=method.net.tan, cruise_speed=torch.tensor([cruise, slow], dtype=torch.float64))
+    assert torch.allclose(timing.total, expected.total, rtol=1e-12) and float(timing.total[1]) > 1.5 * float(timing.total[0])
+    assert timing.end[:, 0].norm(dim=-1).tolist() == pytest.approx([2.0, slow], rel=1e-12)
+    floor = _tiny_learned_method(Execution(turn_accel=0.1, turn_min_speed=1.5))._timed(wp, start, passing)
+    assert floor.end[1, 0].norm() == pytest.approx(1.5, rel=1e-12)
+    plain = _tiny_learned_method(Execution(turn_accel=None))._timed(wp, start, passing)
+    assert torch.allclose(plain.total, plan_timing(wp, start, passing, method.config, tan=method.net.tan).total, rtol=1e-12)
+    assert plain.end[:, 0].norm(dim=-1).tolist() == pytest.approx([2.0, 2.0], rel=1e-12)
+
+
+def test_plans_to_rest_slow_down_at_the_stop_deceleration():
+    """A plan that ends at rest at its goal slows down at ``stop_decel`` (the model's ``accel``
+    without it); a plan that passes its goal at speed keeps ``accel``."""
+    from mapkit.evaluation import Execution
+    from mapkit.planner import plan_timing
+
+    x = torch.linspace(0.0, 6.0, 6, dtype=torch.float64)
+    wp = torch.stack([x, torch.zeros_like(x), torch.zeros_like(x)], dim=-1).expand(2, 6, 3)
+    start = torch.zeros(2, 3, 3, dtype=torch.float64)
+    start[:, 0, 0] = 2.0
+    end_speed = torch.tensor([0.0, 2.0], dtype=torch.float64)
+    method = _tiny_learned_method(Execution(stop_decel=0.5))
+    timing = method._timed(wp, start, end_speed)
+    expected = plan_timing(wp, start, end_speed, method.config, tan=method.net.tan,
+                           decel=torch.tensor([0.5, method.config.accel], dtype=torch.float64))
+    assert torch.allclose(timing.total, expected.total, rtol=1e-12)
+    plain = _tiny_learned_method(Execution(stop_decel=None))._timed(wp, start, end_speed)
+    assert float(timing.total[0]) > float(plain.total[0]) and float(timing.total[1]) == float(plain.total[1])
+
+
 def test_a_flight_searches_once_it_has_flown_much_farther_than_it_came_closer():
     """Straight at the goal (or weaving 1.1× the progress) is not searching; 2 m sideways is (flown 2 m
     > 1.4 × 0 + 1 m), and a flight that searched keeps searching when it then makes progress."""
@@ -819,7 +870,8 @@ def test_a_flight_searches_once_it_has_flown_much_farther_than_it_came_closer():
     assert search.update(np.array([5.0, 2.0, 1.0]), 5.0, 1.4, 1.0) and search.searching
 
 
-@pytest.mark.parametrize("option, value", [("speed", 0.0), ("speed", float("nan")), ("search_speed", -2.0)])
+@pytest.mark.parametrize("option, value", [("speed", 0.0), ("speed", float("nan")), ("search_speed", -2.0),
+                                           ("turn_min_speed", float("inf"))])
 def test_a_speed_that_is_not_positive_is_refused_by_name(option: str, value: float):
     from mapkit.evaluation import EvalError, Execution
 

@@ -3,12 +3,21 @@ minima, cruise-through plans, the TAN's boundary inputs and dense speed/accelera
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
-from mapkit.planner import PlannerConfig, PlannerNet, plan_timing, time_targets, total_time
+from mapkit.planner import PlannerConfig, PlannerNet, plan_timing, time_targets, total_time, turn_speed
 from mapkit.planner._timing import durations_from_shares, end_state
-from mapkit.trajopt import TimeAllocationNet, TimeAllocationNetConfig, allocate_times, min_snap, profile_time
+from mapkit.trajopt import (
+    TimeAllocationNet,
+    TimeAllocationNetConfig,
+    TrajoptError,
+    allocate_times,
+    min_snap,
+    profile_time,
+)
 
 F64 = torch.float64
 
@@ -24,6 +33,41 @@ F64 = torch.float64
 def test_profile_time_is_the_hand_computed_profile(length: float, v0: float, ve: float, expected: float):
     T = profile_time(torch.tensor([length]), torch.tensor([v0]), torch.tensor([ve]), cruise_speed=2.0, accel=1.0)
     assert float(T[0]) == pytest.approx(expected, rel=1e-12)
+
+
+def test_profile_time_takes_a_cruise_speed_per_plan():
+    length, v0, ve = torch.tensor([6.0, 6.0, 1.0]), torch.tensor([0.0, 2.0, 0.0]), torch.tensor([2.0, 2.0, 0.0])
+    cruise = torch.tensor([2.0, 1.0, 0.5])
+    T = profile_time(length, v0, ve, cruise_speed=cruise, accel=1.0)
+    each = [profile_time(length[i:i + 1], v0[i:i + 1], ve[i:i + 1], cruise_speed=float(cruise[i]), accel=1.0)
+            for i in range(3)]
+    assert torch.equal(T, torch.cat(each))
+    assert float(T[1]) == pytest.approx(6.0, rel=1e-12)  # start and end speeds above 1 m/s count as 1 m/s
+    with pytest.raises(TrajoptError, match="cruise_speed, accel and decel must be > 0"):
+        profile_time(length, v0, ve, cruise_speed=torch.tensor([2.0, 0.0, 1.0]), accel=1.0)
+
+
+@pytest.mark.parametrize(("length", "v0", "ve", "expected"), [
+    (6.0, 2.0, 0.0, 4.0 + 1.0),  # brake 4 s over 4 m at 0.5 m/s², cruise 2 m
+    (6.0, 0.0, 2.0, 4.0),  # no slowing down: as before
+    (1.0, 0.0, 0.0, (2.0 / 3.0) ** 0.5 * 3.0),  # peak √(2/3): 1/3 m up at 1 m/s², 2/3 m down at 0.5
+])
+def test_profile_time_slows_down_at_its_own_rate(length: float, v0: float, ve: float, expected: float):
+    T = profile_time(torch.tensor([length]), torch.tensor([v0]), torch.tensor([ve]), cruise_speed=2.0, accel=1.0,
+                     decel=0.5)
+    assert float(T[0]) == pytest.approx(expected, rel=1e-12)
+
+
+def test_turn_speed_is_the_arc_of_the_sharpest_turn():
+    """√(a R), R the radius of the arc tangent to both segments at half the shorter one from the
+    corner: a right angle between 2 m and 1 m segments has R = 0.5 m; a 60° turn between 1 m segments
+    R = 0.5 / tan 30°; a straight path none."""
+    right = torch.tensor([[[0.0, 0, 0], [2, 0, 0], [2, 1, 0]]], dtype=F64)
+    sixty = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [1.5, 3 ** 0.5 / 2, 0], [2.5, 3 ** 0.5 / 2, 0]]], dtype=F64)
+    v = turn_speed(torch.cat([right[:, [0, 1, 2, 2]], sixty, straight(3)]), 2.0)
+    assert v[0] == pytest.approx((2.0 * 0.5) ** 0.5, rel=1e-12)  # the repeated last key-point is no turn
+    assert v[1] == pytest.approx((2.0 * 0.5 / math.tan(math.pi / 6)) ** 0.5, rel=1e-12)
+    assert math.isinf(float(v[2]))
 
 
 def straight(n: int = 5, length: float = 6.0) -> torch.Tensor:

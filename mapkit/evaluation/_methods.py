@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 from mapkit.evaluation._loop import MethodPlan, Observation
 from mapkit.evaluation._pieces import Pieces, pieces_from_body
 from mapkit.evaluation._route import FlightMap, Progress, RouteConfig, depth_points
-from mapkit.planner import Allocation, CameraInput, ImageFeatures, PlannerConfig, Timing, plan_timing
+from mapkit.planner import Allocation, CameraInput, ImageFeatures, PlannerConfig, Timing, plan_timing, turn_speed
 from mapkit.planner._model import PlannerNet, PlannerOutput
 from mapkit.sim import FreeSpaceGraph, World
 from mapkit.trajopt import Trajectory, allocate_times, min_snap
@@ -159,6 +159,26 @@ class Execution:
     1.7× the oracle's effort against 23 / 21× at 2 m/s, but office dev seeds 200–219 reached 1091 of
     1200 against 1139 (66 timeouts against 28), hence not the default ("Speed" in docs/evaluation.md).
     At 1.5 m/s: 1135 of 1200; on thirteen held-out seeds 96.9 against 97.5 % at about a fifth of the effort."""
+    turn_accel: float | None = 1.5
+    """m/s²: each plan's cruise speed (and its speed at a passed goal) is at most √(``turn_accel`` R),
+    R the radius of the sharpest turn of its key-points (:func:`mapkit.planner.turn_speed`), and at
+    least ``turn_min_speed``; None: every plan at the cruise speed. A turn's snap grows with the
+    seventh power of the speed it is flown at, and a straight path has none, so this slows the plans
+    that turn and leaves the straight ones at cruise speed. Chosen on office dev seeds 200–205 (360
+    flights; success, effort on the pairs all reached against none): 1.0 338 ×0.32, 1.5 346 ×0.45,
+    2.5 350 ×0.89, none 347. Office dev seeds 200–219: 1149 of 1200 either way (17 collisions / 34
+    timeouts against 31 / 20) at ×0.52 the effort; held-out seeds 11–29 ×0.78–0.87 per pair at
+    96.0 against 96.7 % ("Turns" in docs/evaluation.md)."""
+    turn_min_speed: float = 1.0
+    """m/s: the slowest cruise speed ``turn_accel`` sets (the cruise speed itself when slower)."""
+    stop_decel: float | None = None
+    """m/s²: until a flight searches for its way, plans that end at rest (at the goal) slow down to
+    it at this rate instead of the model's ``accel`` (None). A garage flight's costliest half second
+    was often its approach to the goal. Not the default: with 0.75 (and ``turn_accel`` 1.5) office
+    dev seeds 200–219 reached 1148 of 1200 against 1149 (×0.91 the effort), the held-out offices of
+    seeds 11–29 262 against 265 of 300 (28 timeouts against 22); applied in searching flights too,
+    1145 and 260, at 12.5–14.4× the oracle's effort on seeds 11–29 against 16.5–21.4× ("Turns" in
+    docs/evaluation.md)."""
     search_speed: float | None = None
     """m/s for the rest of a flight once it searches for its way: it has stalled (no 0.5 m of
     progress for ``route.after`` seconds), or flown more than ``search_ratio`` × the distance it has
@@ -536,6 +556,21 @@ class LearnedMethod:
             self._image = None if out.image is None else (obs, out.image)
             return x, out
 
+    def _timed(self, wp: torch.Tensor, start: torch.Tensor, end_speed: torch.Tensor) -> Timing:
+        """Segment times of plans (B, K+1, 3) at the flight's cruise speed, each slowed for its
+        sharpest turn (:attr:`Execution.turn_accel`), its speed at a passed goal too; plans to rest
+        slow down at :attr:`Execution.stop_decel` until the flight searches."""
+        config, how = self._timing_config, self.execution
+        cruise = decel = None
+        if how.turn_accel is not None:
+            slowest = min(how.turn_min_speed, config.cruise_speed)
+            cruise = turn_speed(wp, how.turn_accel).clamp(slowest, config.cruise_speed)
+            end_speed = torch.minimum(end_speed, cruise)
+        if how.stop_decel is not None and not self._search.searching:
+            decel = torch.where(end_speed > 0, config.accel, how.stop_decel).to(wp.dtype)
+        return plan_timing(wp, start, end_speed, config, allocation=self.allocation, tan=self.net.tan,
+                           cruise_speed=cruise, decel=decel)
+
     def _attempt(self, obs: Observation, start: np.ndarray, goal: np.ndarray, end_speed: float) -> _Attempt:
         """Key-points to ``goal`` (body frame), timed, moved toward the reference being flown
         (:attr:`Execution.follow`) and executed."""
@@ -545,10 +580,11 @@ class LearnedMethod:
         wpt, st, es = _tensors(wp, start, end_speed)
         t_alloc = time.perf_counter()
         with torch.inference_mode():
-            timing = plan_timing(wpt, st, es, self._timing_config, allocation=self.allocation, tan=self.net.tan)
+            timing = self._timed(wpt, st, es)
         attempt = _Attempt(kp, float(out.eta[0]), timing, 1e3 * (time.perf_counter() - t_alloc))
         if self.plan_log is not None:
-            self.plan_log.append(PlanInput(waypoints=wp, start=np.array(start[1:]), end_speed=end_speed))
+            self.plan_log.append(PlanInput(waypoints=wp, start=np.array(start[1:]),
+                                           end_speed=float(timing.end[0, 0].norm())))
         if self.spline:
             return attempt
         how = self.execution
@@ -581,7 +617,7 @@ class LearnedMethod:
         st = torch.from_numpy(np.ascontiguousarray(start[1:]))[None].expand(M, 3, 3)
         es = torch.full((M,), attempt.end_speed, dtype=torch.float64)
         with torch.inference_mode():
-            timing = plan_timing(wp, st, es, self._timing_config, allocation=self.allocation, tan=self.net.tan)
+            timing = self._timed(wp, st, es)
             paths = min_snap(wp, timing.durations, start=st, end=timing.end)
         clear = memory.conflicts(_samples(paths, within=how.blocked_within)[0], T) == 0
         if not clear.any():
@@ -792,7 +828,8 @@ def make_methods(names: list[str], net: PlannerNet | None, world: World, graph: 
                                      execution=execution))
         elif name == "iplanner-style":
             assert net is not None  # likewise
-            out.append(LearnedMethod(name, net, spline=True, camera=camera))
+            # iPlanner's spline flies the model's speed profile, as it did before turns were slowed
+            out.append(LearnedMethod(name, net, spline=True, camera=camera, execution=Execution(turn_accel=None)))
         elif name == "straight":
             out.append(StraightMethod(cfg))
         elif name == "oracle":

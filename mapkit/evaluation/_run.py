@@ -108,7 +108,7 @@ class EvalConfig:
             raise EvalError(f"--replan-interval {loop.replan_interval} s is not a whole number of depth frames at "
                             f"{loop.depth_rate:g} Hz; use a multiple of {1 / loop.depth_rate:.4g} s")
         for option, value in (("--corridor", ex.corridor), ("--v-max", ex.v_max), ("--a-max", ex.a_max),
-                              ("--memory", ex.memory)):
+                              ("--memory", ex.memory), ("--turn-accel", ex.turn_accel), ("--stop-decel", ex.stop_decel)):
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise EvalError(f"{option} must be a positive number (0 turns it off), got {value}")
         for name, value in (("blocked_within", ex.blocked_within), ("subgoal_time", ex.subgoal_time)):
@@ -122,6 +122,8 @@ class EvalConfig:
         for option, value in (("--speed", ex.speed), ("--search-speed", ex.search_speed)):
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise EvalError(f"{option} must be a positive speed in m/s (or left out: the model's cruise speed), got {value}")
+        if not (math.isfinite(ex.turn_min_speed) and ex.turn_min_speed > 0):
+            raise EvalError(f"--turn-min-speed must be a positive speed in m/s, got {ex.turn_min_speed}")
         if not (math.isfinite(ex.search_ratio) and ex.search_ratio >= 1):
             raise EvalError(f"Execution.search_ratio must be >= 1 (flown path over progress), got {ex.search_ratio}")
         if not (math.isfinite(ex.search_margin) and ex.search_margin >= 0):

@@ -60,7 +60,7 @@ from mapkit.planner._model import (
     preprocess_depth,
 )
 from mapkit.planner._resnet import ResNet18, load_torchvision_state_dict, torchvision_resnet18_keys
-from mapkit.planner._timing import Allocation, Timing, plan_timing, total_time
+from mapkit.planner._timing import Allocation, Timing, plan_timing, total_time, turn_speed
 
 __all__ = [
     "Allocation",
@@ -98,6 +98,7 @@ __all__ = [
     "time_targets",
     "torchvision_resnet18_keys",
     "total_time",
+    "turn_speed",
     "plan_timing",
     "Timing",
 ]

@@ -44,11 +44,14 @@ def end_state(waypoints: torch.Tensor, end_speed: torch.Tensor) -> torch.Tensor:
 
 
 @torch.no_grad()
-def total_time(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.Tensor, config: PlannerConfig) -> torch.Tensor:
+def total_time(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.Tensor, config: PlannerConfig,
+               cruise_speed: torch.Tensor | None = None, decel: torch.Tensor | None = None) -> torch.Tensor:
     """(B,) seconds: the speed profile over the key-point path (:func:`mapkit.trajopt.profile_time`:
     from the start speed along the first segment to ``cruise_speed`` at ``accel``, then to
     ``end_speed``), at least ``min_total_time`` and M × ``min_segment_time``, at most
-    ``max_total_time``. No gradient: the time scale is a rule, the TAN learns the split.
+    ``max_total_time``; ``cruise_speed`` (B,) replaces the config's per plan (see :func:`turn_speed`),
+    ``decel`` (B,) its ``accel`` for slowing down to the end speed.
+    No gradient: the time scale is a rule, the TAN learns the split.
 
     A plan that ignored the current speed would ask a vehicle at rest for the cruise average (hard
     start) and one at cruise speed to slow down and speed up again every replanning interval."""
@@ -56,9 +59,31 @@ def total_time(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.Te
     length = seg.norm(dim=-1).sum(-1)
     first = seg[:, 0] / seg[:, 0].norm(dim=-1, keepdim=True).clamp_min(1e-9)
     v_along = (start[:, 0].to(waypoints.dtype) * first).sum(-1)
-    T = profile_time(length, v_along, end_speed, cruise_speed=config.cruise_speed, accel=config.accel)
+    cruise = config.cruise_speed if cruise_speed is None else cruise_speed
+    T = profile_time(length, v_along, end_speed, cruise_speed=cruise, accel=config.accel, decel=decel)
     floor = max(config.min_total_time, seg.shape[1] * config.min_segment_time)
     return T.to(waypoints.dtype).clamp(floor, config.max_total_time)
+
+
+def turn_speed(waypoints: torch.Tensor, lateral_accel: float) -> torch.Tensor:
+    """(B,) m/s at which the sharpest turn of each key-point path (B, M+1, 3) is flown at
+    ``lateral_accel`` m/s²: √(a R) for the arc tangent to both segments of a turn at half the shorter
+    one's length from the corner (R = that length / tan(turn angle / 2)); inf for a straight path.
+    The corridor lets a trajectory round a corner more widely than this arc; the key-points are
+    what the plan is known to pass near, so this is the cautious radius."""
+    seg = waypoints[:, 1:] - waypoints[:, :-1]
+    length = seg.norm(dim=-1)
+    if seg.shape[1] < 2:
+        return torch.full(waypoints.shape[:1], float("inf"), dtype=waypoints.dtype, device=waypoints.device)
+    unit = seg / length.unsqueeze(-1).clamp_min(1e-9)
+    cos = (unit[:, :-1] * unit[:, 1:]).sum(-1).clamp(-1.0, 1.0)
+    half = 0.5 * torch.arccos(cos)
+    tangent = 0.5 * torch.minimum(length[:, :-1], length[:, 1:])
+    # a turn of nearly 180° has a radius of nearly 0 (tan stays finite below π/2); a repeated
+    # key-point has no direction, hence no turn
+    turns = (half > 1e-9) & (tangent > 1e-9)
+    radius = torch.where(turns, tangent / torch.tan(half.clamp(max=1.5)), torch.full_like(half, float("inf")))
+    return torch.sqrt(lateral_accel * radius.min(dim=-1).values)
 
 
 def durations_from_shares(shares: torch.Tensor, total: torch.Tensor, min_segment: float) -> torch.Tensor:
@@ -77,12 +102,15 @@ def shares_from_durations(durations: torch.Tensor, min_segment: float) -> torch.
 
 def plan_timing(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.Tensor, config: PlannerConfig, *,
                 allocation: Allocation = "tan", tan: TimeAllocationNet | None = None,
-                gradient_iters: int = 30) -> Timing:
+                gradient_iters: int = 30, cruise_speed: torch.Tensor | None = None,
+                decel: torch.Tensor | None = None) -> Timing:
     """Segment times for waypoints (B, M+1, 3) from ``start`` (B, 3, 3) (velocity, acceleration,
     jerk) to ``end_speed`` (B,) m/s; ``tan`` is needed for ``allocation="tan"``; its shares keep
-    their gradient (the caller detaches what the trajectory uses)."""
+    their gradient (the caller detaches what the trajectory uses). ``cruise_speed`` (B,): each
+    plan's own cruise speed instead of the config's, ``decel`` (B,) its rate of slowing down to the
+    end speed (:func:`total_time`)."""
     t_min = config.min_segment_time
-    total = total_time(waypoints, start, end_speed, config)
+    total = total_time(waypoints, start, end_speed, config, cruise_speed, decel)
     end = end_state(waypoints, end_speed)
     M = waypoints.shape[1] - 1
     if allocation == "tan":

@@ -76,26 +76,31 @@ def _poly5_inverse(y: torch.Tensor) -> torch.Tensor:
     return tau - (val - y) / slope.clamp_min(1e-12)
 
 
-def profile_time(length: torch.Tensor, v_start: torch.Tensor, v_end: torch.Tensor, *, cruise_speed: float,
-                 accel: float) -> torch.Tensor:
+def profile_time(length: torch.Tensor, v_start: torch.Tensor, v_end: torch.Tensor, *,
+                 cruise_speed: float | torch.Tensor, accel: float,
+                 decel: float | torch.Tensor | None = None) -> torch.Tensor:
     """Seconds (B,) to cover ``length`` (B,) metres of path starting at ``v_start`` (B,) m/s and
-    arriving at ``v_end`` (B,) m/s: change speed at ``accel`` m/s² towards ``cruise_speed``, cruise,
-    then change to the end speed (a trapezoid in speed; triangular when the path is too short to
-    reach the cruise speed, constant acceleration when it is too short even for that).
+    arriving at ``v_end`` (B,) m/s: change speed at ``accel`` m/s² towards ``cruise_speed`` (a scalar
+    or (B,)), cruise, then change to the end speed at ``decel`` (scalar or (B,); None: ``accel``) —
+    a trapezoid in speed; triangular when the path is too short to reach the cruise speed, constant
+    acceleration when it is too short even for that.
 
     Start speeds above the cruise speed count as the cruise speed; end speeds are clipped to
     [0, cruise_speed].
     """
-    if not (cruise_speed > 0 and accel > 0):
-        raise TrajoptError(f"cruise_speed and accel must be > 0, got {cruise_speed} and {accel}")
+    vc = torch.as_tensor(cruise_speed, dtype=_WORK)
+    d = torch.as_tensor(accel if decel is None else decel, dtype=_WORK)
+    if not (bool((vc > 0).all()) and bool(torch.isfinite(vc).all()) and accel > 0 and bool((d > 0).all())):
+        raise TrajoptError(f"cruise_speed, accel and decel must be > 0, got {cruise_speed}, {accel} and {decel}")
     L = torch.as_tensor(length, dtype=_WORK).clamp_min(0.0)
-    v0 = torch.as_tensor(v_start, dtype=_WORK).clamp(0.0, cruise_speed)
-    ve = torch.as_tensor(v_end, dtype=_WORK).clamp(0.0, cruise_speed)
-    vc, a = float(cruise_speed), float(accel)
-    d_up, d_down = (vc ** 2 - v0 ** 2) / (2 * a), (vc ** 2 - ve ** 2) / (2 * a)
-    trapezoid = (vc - v0) / a + (vc - ve) / a + (L - d_up - d_down) / vc
-    peak = torch.sqrt(a * L + 0.5 * (v0 ** 2 + ve ** 2))
-    triangle = (peak - v0) / a + (peak - ve) / a
+    v0 = torch.minimum(torch.as_tensor(v_start, dtype=_WORK).clamp_min(0.0), vc)
+    ve = torch.minimum(torch.as_tensor(v_end, dtype=_WORK).clamp_min(0.0), vc)
+    a = float(accel)
+    d_up, d_down = (vc ** 2 - v0 ** 2) / (2 * a), (vc ** 2 - ve ** 2) / (2 * d)
+    trapezoid = (vc - v0) / a + (vc - ve) / d + (L - d_up - d_down) / vc
+    # the peak speed whose speeding-up and slowing-down distances add up to L
+    peak = torch.sqrt((L + v0 ** 2 / (2 * a) + ve ** 2 / (2 * d)) / (1 / (2 * a) + 1 / (2 * d)))
+    triangle = (peak - v0) / a + (peak - ve) / d
     ramp = 2.0 * L / (v0 + ve).clamp_min(1e-9)
     return torch.where(d_up + d_down <= L, trapezoid, torch.where(peak >= torch.maximum(v0, ve), triangle, ramp))
 
