@@ -254,7 +254,7 @@ def test_every_click_default_equals_the_library_default():
                "export-rerun": [FoxgloveConfig]}
     renamed = {("fuse", "frame_stride"): "stride"}
     parsed = {("dataset", "cameras"): parse_cameras}  # options the library parses from text
-    off_means_none = {"corridor", "v_max", "a_max", "memory", "speed"}  # eval: 0 on the command line = None in Execution
+    off_means_none = {"corridor", "v_max", "a_max", "memory", "speed", "stop_decel"}  # eval: 0 on the command line = None in Execution
     compared, mismatched = 0, []
     for command, classes in sources.items():
         for param in main.commands[command].params:
