@@ -63,6 +63,19 @@ def test_plan_costs_use_the_planners_timing_and_the_analytic_cost():
     with torch.no_grad():
         for tan in (net.tan, None):
             assert float(plan_costs(tan, config, plans)[0]) == pytest.approx(100800 * 9.0 / T ** 7, rel=1e-6)
+    # A plan flown slower (a turn's cruise speed, a gentler stop) is timed and costed as it was flown;
+    # NaN (a recording without them) is the model's own profile.
+    slow, gentle = torch.tensor([1.0], dtype=torch.float64), torch.tensor([0.5], dtype=torch.float64)
+    recorded = PlanInputs(wp, plans.start, plans.end_speed, slow, gentle)
+    T_slow = float(total_time(wp, plans.start, plans.end_speed, config, slow, gentle)[0])
+    assert T_slow > T
+    unknown = torch.full((1,), float("nan"), dtype=torch.float64)
+    with torch.no_grad():
+        for tan in (net.tan, None):
+            assert float(plan_costs(tan, config, recorded)[0]) == pytest.approx(100800 * 9.0 / T_slow ** 7, rel=1e-6)
+            assert float(plan_costs(tan, config, PlanInputs(wp, plans.start, plans.end_speed, unknown, unknown))[0]) == \
+                pytest.approx(100800 * 9.0 / T ** 7, rel=1e-6)
+    assert len(recorded.take(torch.tensor([0, 0]))) == 2
 
 
 @pytest.mark.slow
@@ -82,6 +95,9 @@ def test_record_plans_then_tune_timing_through_the_cli(tmp_path: Path):
             # every plan the learned method timed: at least one per replan it made
             assert len(z["end_speed"]) >= sum(e["plans"] for e in learned) > 0
             assert z["waypoints"].shape[1:] == (CONFIG.num_keypoints + 1, 3) and set(z["world"]) == {"office"}
+            # each plan's speed profile as flown: turns slowed (at least the 1 m/s floor), stops at the model's rate
+            assert np.all((z["cruise_speed"] >= 1.0 - 1e-9) & (z["cruise_speed"] <= CONFIG.cruise_speed + 1e-9))
+            assert np.allclose(z["decel"], CONFIG.accel) and np.all(z["end_speed"] <= z["cruise_speed"] + 1e-9)
         assert "record_plans" not in doc["config"]  # results.json does not depend on it
     out = CliRunner().invoke(main, ["tune-timing", "--model", str(run), "--plans", str(tmp_path / "e3"),
                                     "--val", str(tmp_path / "e4"), "-o", str(tmp_path / "tuned"), "--steps", "20"])

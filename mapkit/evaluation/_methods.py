@@ -28,7 +28,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -361,7 +361,7 @@ def open_direction(depth: np.ndarray, camera: CameraInput, goal_body: np.ndarray
 
 def _pick(timing: Timing, m: int) -> Timing:
     """Row ``m`` of a batched timing, as a batch of one."""
-    return Timing(*(None if v is None else v[m:m + 1] for v in (timing.durations, timing.shares, timing.total, timing.end)))
+    return Timing(**{f.name: getattr(timing, f.name)[m:m + 1] for f in fields(timing)})
 
 
 class _Memory:
@@ -495,6 +495,10 @@ class PlanInput:
     """(3, 3) velocity, acceleration and jerk rows at the start, body frame."""
     end_speed: float
     """m/s at the last key-point (0: rest at the goal)."""
+    cruise_speed: float
+    """m/s: the cruise speed of the plan's speed profile (slowed for its turns, :attr:`Execution.turn_accel`)."""
+    decel: float
+    """m/s²: the rate at which the plan's speed profile slows down to the end speed."""
 
 
 @dataclass
@@ -583,8 +587,8 @@ class LearnedMethod:
             timing = self._timed(wpt, st, es)
         attempt = _Attempt(kp, float(out.eta[0]), timing, 1e3 * (time.perf_counter() - t_alloc))
         if self.plan_log is not None:
-            self.plan_log.append(PlanInput(waypoints=wp, start=np.array(start[1:]),
-                                           end_speed=float(timing.end[0, 0].norm())))
+            self.plan_log.append(PlanInput(waypoints=wp, start=np.array(start[1:]), end_speed=float(timing.end[0, 0].norm()),
+                                           cruise_speed=float(timing.cruise_speed[0]), decel=float(timing.decel[0])))
         if self.spline:
             return attempt
         how = self.execution

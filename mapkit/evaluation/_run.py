@@ -753,15 +753,18 @@ PLANS_FILE = "plans.npz"
 
 
 def write_plans(path: Path, plans: list[tuple[str, int, PlanInput]]) -> None:
-    """plans.npz: ``waypoints`` (P, K+1, 3), ``start`` (P, 3, 3), ``end_speed`` (P,), ``world`` (P,)
-    and ``pair`` (P,) of every recorded plan (body frame, metres and seconds)."""
+    """plans.npz: ``waypoints`` (P, K+1, 3), ``start`` (P, 3, 3), ``end_speed`` (P,), ``cruise_speed``
+    (P,), ``decel`` (P,), ``world`` (P,) and ``pair`` (P,) of every recorded plan (body frame, metres
+    and seconds)."""
     if plans:
         waypoints = np.stack([p.waypoints for _, _, p in plans])
         start = np.stack([p.start for _, _, p in plans])
     else:
         waypoints, start = np.zeros((0, 0, 3)), np.zeros((0, 3, 3))
+    def per_plan(name: str) -> np.ndarray:
+        return np.array([getattr(p, name) for _, _, p in plans], np.float64)
     np.savez_compressed(path, waypoints=waypoints.astype(np.float64), start=start.astype(np.float64),
-                        end_speed=np.array([p.end_speed for _, _, p in plans], np.float64),
+                        end_speed=per_plan("end_speed"), cruise_speed=per_plan("cruise_speed"), decel=per_plan("decel"),
                         world=np.array([w for w, _, _ in plans], dtype=str),
                         pair=np.array([i for _, i, _ in plans], np.int64))
 

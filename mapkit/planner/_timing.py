@@ -32,6 +32,10 @@ class Timing:
     """(B,) seconds."""
     end: torch.Tensor
     """(B, 3, 3) end velocity / acceleration / jerk rows."""
+    cruise_speed: torch.Tensor
+    """(B,) m/s: the cruise speed of each plan's speed profile (the total-time rule's)."""
+    decel: torch.Tensor
+    """(B,) m/s²: the rate at which each plan's speed profile changes to the end speed."""
 
 
 def end_state(waypoints: torch.Tensor, end_speed: torch.Tensor) -> torch.Tensor:
@@ -112,6 +116,9 @@ def plan_timing(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.T
     t_min = config.min_segment_time
     total = total_time(waypoints, start, end_speed, config, cruise_speed, decel)
     end = end_state(waypoints, end_speed)
+    profile = {name: (torch.full_like(total, default) if value is None else value.to(total.dtype).expand_as(total).clone())
+               for name, value, default in (("cruise_speed", cruise_speed, config.cruise_speed),
+                                            ("decel", decel, config.accel))}
     M = waypoints.shape[1] - 1
     if allocation == "tan":
         if tan is None:
@@ -125,7 +132,7 @@ def plan_timing(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.T
         shares = shares.to(waypoints.dtype).clamp_min(1e-4)
         shares = shares / shares.sum(-1, keepdim=True)
         durations = durations_from_shares(shares.detach(), total, t_min)
-        return Timing(durations=durations, shares=shares, total=total, end=end)
+        return Timing(durations=durations, shares=shares, total=total, end=end, **profile)
     if allocation == "uniform":
         durations = (total / M).reshape(-1, 1).expand(-1, M).clone()
     elif allocation == "poly5":
@@ -137,4 +144,4 @@ def plan_timing(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.T
                                    max_iters=gradient_iters).to(waypoints.dtype)
     else:
         raise ValueError(f"unknown allocation {allocation!r}")
-    return Timing(durations=durations, shares=shares_from_durations(durations, t_min), total=total, end=end)
+    return Timing(durations=durations, shares=shares_from_durations(durations, t_min), total=total, end=end, **profile)

@@ -74,12 +74,27 @@ class PlanInputs:
     """(P, 3, 3) velocity, acceleration, jerk at the start."""
     end_speed: torch.Tensor
     """(P,) m/s."""
+    cruise_speed: torch.Tensor | None = None
+    """(P,) m/s: each plan's cruise speed in flight (slowed for its turns); NaN or None: the model's."""
+    decel: torch.Tensor | None = None
+    """(P,) m/s²: each plan's rate of slowing down to its end speed; NaN or None: the model's ``accel``."""
 
     def __len__(self) -> int:
         return int(self.waypoints.shape[0])
 
     def take(self, index: torch.Tensor) -> PlanInputs:
-        return PlanInputs(self.waypoints[index], self.start[index], self.end_speed[index])
+        def rows(v: torch.Tensor | None) -> torch.Tensor | None:
+            return None if v is None else v[index]
+        return PlanInputs(self.waypoints[index], self.start[index], self.end_speed[index],
+                          rows(self.cruise_speed), rows(self.decel))
+
+    def profile(self, config: PlannerConfig) -> tuple[torch.Tensor, torch.Tensor]:
+        """(cruise speed, deceleration) of each plan, the model's where the recording has none."""
+        def filled(value: torch.Tensor | None, default: float) -> torch.Tensor:
+            if value is None:
+                return torch.full_like(self.end_speed, default)
+            return torch.where(torch.isnan(value), torch.full_like(value, default), value)
+        return filled(self.cruise_speed, config.cruise_speed), filled(self.decel, config.accel)
 
 
 @dataclass(frozen=True)
@@ -110,6 +125,8 @@ def load_plan_inputs(folders: Sequence[Path], *, num_segments: int) -> PlanInput
                                   "--record-plans -o FOLDER` (any seed that is not a held-out one)")
         with np.load(path) as z:
             part = {k: z[k] for k in ("waypoints", "start", "end_speed")}
+            # plans recorded before 2026-12-03 have no speed profile: NaN, the model's own
+            part.update({k: z[k] if k in z else np.full(len(part["end_speed"]), np.nan) for k in ("cruise_speed", "decel")})
         if len(part["end_speed"]) and part["waypoints"].shape[1] != num_segments + 1:
             raise TimingTuneError(f"{path} holds plans of {part['waypoints'].shape[1] - 1} segments; the model's TAN "
                                   f"allocates {num_segments}: record the plans with the same model")
@@ -117,18 +134,21 @@ def load_plan_inputs(folders: Sequence[Path], *, num_segments: int) -> PlanInput
     if not parts or sum(len(p["end_speed"]) for p in parts) == 0:
         raise TimingTuneError(f"no recorded plans in {', '.join(map(str, folders)) or '(no folder)'}")
     cat = {k: torch.from_numpy(np.concatenate([p[k] for p in parts if len(p["end_speed"])])).double()
-           for k in ("waypoints", "start", "end_speed")}
-    return PlanInputs(cat["waypoints"], cat["start"], cat["end_speed"])
+           for k in ("waypoints", "start", "end_speed", "cruise_speed", "decel")}
+    return PlanInputs(cat["waypoints"], cat["start"], cat["end_speed"], cat["cruise_speed"], cat["decel"])
 
 
 def plan_costs(tan: TimeAllocationNet | None, config: PlannerConfig, plans: PlanInputs) -> torch.Tensor:
     """(P,) snap cost of each plan's minimum-snap trajectory through its key-points, timed by ``tan``
-    (None: the gradient-descent allocation, 30 iterations), as the planner times it in flight."""
+    (None: the gradient-descent allocation, 30 iterations), as the planner times it in flight (each
+    plan at its recorded cruise speed and deceleration)."""
     from mapkit.planner import plan_timing
     from mapkit.trajopt import min_snap
 
+    cruise_speed, decel = plans.profile(config)
     timing = plan_timing(plans.waypoints, plans.start, plans.end_speed, config,
-                         allocation="tan" if tan is not None else "gradient", tan=tan, gradient_iters=30)
+                         allocation="tan" if tan is not None else "gradient", tan=tan, gradient_iters=30,
+                         cruise_speed=cruise_speed, decel=decel)
     durations = timing.durations if tan is None else _durations(timing.shares, timing.total, config)
     return min_snap(plans.waypoints, durations, start=plans.start, end=timing.end).snap_cost()
 
