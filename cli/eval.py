@@ -57,8 +57,8 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @click.option("--speed", type=FINITE, default=0.0, show_default=True,
               help="Cruise speed (m/s) of the speed profile that times learned plans; 0 = the model's cruise speed "
                    "(2 m/s for the shipped model). Slower is smoother (the effort grows with the 7th power of the "
-                   "pace) but slower: 1.5 m/s costs a fifth of the effort and 0.6 points of success, 1.2 m/s is the "
-                   "oracle's pace.")
+                   "pace) but slower; the time limit follows it (4x the straight distance at this speed). "
+                   "Smooth flights: --speed 1.2 --stop-decel 0.75 (the oracle's pace, 1.7x its effort).")
 @click.option("--search-speed", type=FINITE, default=None,
               help="Cruise speed (m/s) for the rest of a flight once it searches for its way (stalled, or flown "
                    "1.4x its progress toward the goal + 1 m); default: the model's cruise speed.")

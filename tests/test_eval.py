@@ -959,3 +959,19 @@ def test_the_corridor_keeps_clear_of_a_remembered_door_jamb():
     kept = _execute(wp, T, start, end, how, recalled)
     assert near_jamb(kept) == 0
     assert not torch.allclose(kept.coeffs, widest.coeffs)
+
+
+@pytest.mark.slow
+def test_time_limit_follows_the_pace_the_flights_are_asked_for(tiny_run: Path, tmp_path: Path):
+    """The time limit is timeout_factor × distance / cruise speed: the model's cruise speed, or --speed."""
+    from mapkit.evaluation import Execution
+
+    docs = {}
+    for name, speed in (("model", None), ("slow", 0.8)):
+        config = EvalConfig(worlds=("office",), pairs=1, seed=3, methods=("straight",), execution=Execution(speed=speed),
+                            loop=LoopConfig(timeout_min=0.0))
+        evaluate(tiny_run, tmp_path / name, config, progress=False)
+        docs[name] = json.loads((tmp_path / name / "results.json").read_text())
+    assert docs["model"]["config"]["loop"]["cruise_speed"] == planner_preset("cpu").cruise_speed
+    assert docs["slow"]["config"]["loop"]["cruise_speed"] == 0.8
+    assert "4 × distance / 0.8 m/s" in (tmp_path / "slow" / "report.md").read_text()

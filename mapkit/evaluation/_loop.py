@@ -52,7 +52,8 @@ class LoopConfig:
     timeout_min: float = 20.0
     """Seconds, the smallest time limit."""
     cruise_speed: float = 2.0
-    """m/s of the planners' total-time rule; sets the time limit."""
+    """m/s of the planners' total-time rule; sets the time limit. ``mapkit eval`` sets it to the
+    learned model's cruise speed, or to ``--speed`` when given (the pace the flights are asked for)."""
     tracking_bandwidth: float = 5.0
     """ω, rad/s: all four poles of the tracking error at −ω."""
     respect_eta: bool = True

@@ -157,8 +157,10 @@ class Execution:
     the model's own cruise speed. The same path flown in 1/k of the time costs k⁷ the snap, so this
     trades time for effort: at 1.2 m/s (the oracle's pace) the flights of dev seeds 7 / 13 cost 1.6 /
     1.7× the oracle's effort against 23 / 21× at 2 m/s, but office dev seeds 200–219 reached 1091 of
-    1200 against 1139 (66 timeouts against 28), hence not the default ("Speed" in docs/evaluation.md).
-    At 1.5 m/s: 1135 of 1200; on thirteen held-out seeds 96.9 against 97.5 % at about a fifth of the effort."""
+    1200 against 1139 (66 timeouts against 28) with the model's 2 m/s clock. The time limit now
+    follows this speed (``LoopConfig.cruise_speed``); with that clock office dev seeds 200–210 reach
+    641 of 660 against 631 at 2 m/s ("The clock" in docs/evaluation.md). At 1.5 m/s (2 m/s clock):
+    1135 of 1200; on thirteen held-out seeds 96.9 against 97.5 % at about a fifth of the effort."""
     turn_accel: float | None = 1.5
     """m/s²: each plan's cruise speed (and its speed at a passed goal) is at most √(``turn_accel`` R),
     R the radius of the sharpest turn of its key-points (:func:`mapkit.planner.turn_speed`), and at

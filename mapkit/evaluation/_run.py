@@ -519,7 +519,10 @@ def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> 
     loss = run_cfg.get("loss", {}) or {}
     if "robot_radius" in loss:
         context.loop = dataclasses.replace(context.loop, robot_radius=float(loss["robot_radius"]))
-    context.loop = dataclasses.replace(context.loop, cruise_speed=float(net.config.cruise_speed))
+    # The time limit is a multiple of the straight flight at the pace the planner is asked to fly: a
+    # flight slowed by --speed is not judged by the clock of a faster one.
+    pace = net.config.cruise_speed if config.execution.speed is None else config.execution.speed
+    context.loop = dataclasses.replace(context.loop, cruise_speed=float(pace))
     context.trained_worlds = _training_worlds(run_cfg)
     context.model_info = {"path": str(run_dir.resolve()), "sha256": _sha256(run_dir / "model.pt"),
                           "planner_config": net.config.to_dict(),
