@@ -21,3 +21,7 @@ GoalFrame = Literal["body", "world"]
 """The frame a planning goal is given in: the body frame of the frame planned from, or the world frame
 (``mapkit plan --goal-frame``, :func:`mapkit.planning.plan_from_frame`)."""
 GOAL_FRAMES: tuple[GoalFrame, ...] = get_args(GoalFrame)
+
+TimingObjective = Literal["snap", "imitate"]
+"""What `mapkit tune-timing` fits the Time Allocation Net to (``TimingTuneConfig.objective``)."""
+TIMING_OBJECTIVES: tuple[TimingObjective, ...] = get_args(TimingObjective)
