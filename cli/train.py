@@ -8,7 +8,7 @@ from typing import Any
 
 import click
 
-from mapkit._choices import PRESET_NAMES, TIMING_OBJECTIVES, TRAINED_WEIGHTS, TimingObjective
+from mapkit._choices import BOUNDARY_SCALES, PRESET_NAMES, TIMING_OBJECTIVES, TRAINED_WEIGHTS, BoundaryScale, TimingObjective
 from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, STORE_PATH, library_call, main
 
 
@@ -126,6 +126,9 @@ def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val
 @click.option("--lr", type=POSITIVE, default=1e-3, show_default=True, help="Learning rate.")
 @click.option("--boundary-inputs", is_flag=True,
               help="Replace the TAN by a new one that also reads the start velocity, acceleration and end speed.")
+@click.option("--boundary-scale", type=click.Choice(BOUNDARY_SCALES), default="limits", show_default=True,
+              help="With --boundary-inputs: limits = divided by the cruise speed and acceleration; duration = "
+                   "scaled by each plan's total time and path length (the same split at every --speed).")
 @click.option("--objective", type=click.Choice(TIMING_OBJECTIVES), default="snap", show_default=True,
               help="snap: each plan's whole snap cost; imitate: each segment's duration against the "
                    "gradient-descent split's (squared log ratio), the first segment (the one flown) weighted more.")
@@ -134,13 +137,13 @@ def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
 def tune_timing_cmd(model: Path, plans: tuple[Path, ...], val: tuple[Path, ...], output: Path, steps: int, lr: float,
-                    boundary_inputs: bool, objective: TimingObjective, first_weight: float,
+                    boundary_inputs: bool, boundary_scale: BoundaryScale, objective: TimingObjective, first_weight: float,
                     overwrite: bool) -> None:
     """Fine-tune the Time Allocation Net alone on plans the planner made in flight (lower snap per plan)."""
     from mapkit.train import TimingTuneConfig, tune_timing
 
-    config = TimingTuneConfig(steps=steps, lr=lr, boundary_inputs=boundary_inputs, objective=objective,
-                              first_weight=first_weight)
+    config = TimingTuneConfig(steps=steps, lr=lr, boundary_inputs=boundary_inputs, boundary_scale=boundary_scale,
+                              objective=objective, first_weight=first_weight)
     s = tune_timing(model, plans, val, output, config, overwrite=overwrite)
     click.echo(f"{s.train_plans} plans to learn from, {s.val_plans} to validate; snap per plan against the "
                f"gradient-descent split (median / summed): {s.before[0]:.2f}× / {s.before[1]:.3f}× before, "

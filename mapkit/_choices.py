@@ -25,3 +25,8 @@ GOAL_FRAMES: tuple[GoalFrame, ...] = get_args(GoalFrame)
 TimingObjective = Literal["snap", "imitate"]
 """What `mapkit tune-timing` fits the Time Allocation Net to (``TimingTuneConfig.objective``)."""
 TIMING_OBJECTIVES: tuple[TimingObjective, ...] = get_args(TimingObjective)
+
+BoundaryScale = Literal["limits", "duration"]
+"""How a Time Allocation Net makes its boundary inputs unitless
+(:attr:`mapkit.trajopt.TimeAllocationNetConfig.boundary_scale`)."""
+BOUNDARY_SCALES: tuple[BoundaryScale, ...] = get_args(BoundaryScale)

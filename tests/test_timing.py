@@ -137,6 +137,32 @@ def test_a_tan_with_boundary_inputs_reads_the_start_and_the_end():
     assert plain.mlp[0].in_features + 7 == tan.mlp[0].in_features
 
 
+def test_a_duration_scaled_tan_splits_a_slower_flight_alike():
+    """A path flown k times slower from a start k (k²) times slower, to an end k times slower, has the
+    same minimum-snap split (gradient descent finds the same shares); a TAN with
+    ``boundary_scale="duration"`` sees the same inputs, one with ``limits`` does not."""
+    wp = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.2, 0.0], [2.2, 1.0, 0.1], [3.0, 2.2, 0.0], [3.5, 3.5, 0.2],
+                        [4.5, 4.0, 0.0]]], dtype=F64)
+    start = torch.tensor([[[1.2, 0.3, 0.0], [0.4, -0.6, 0.1], [0.0, 0.0, 0.0]]], dtype=F64)
+    end_speed, T, k = torch.tensor([1.0], dtype=F64), torch.tensor([4.0], dtype=F64), 1.7
+    slow = start / torch.tensor([k, k**2, k**3], dtype=F64).reshape(1, 3, 1)
+    gd = [allocate_times(wp, "gradient", total_time=t, start=s, end=end_state(wp, e), max_iters=200) / t
+          for t, s, e in ((T, start, end_speed), (k * T, slow, end_speed / k))]
+    assert torch.allclose(gd[0], gd[1], atol=1e-3)
+    torch.manual_seed(0)
+    for scale, alike in (("duration", True), ("limits", False)):
+        tan = TimeAllocationNet(TimeAllocationNetConfig(num_segments=5, boundary_inputs=True,
+                                                        boundary_scale=scale)).double()
+        shares = [tan.shares(wp, start=s, end_speed=e, total_time=t)
+                  for t, s, e in ((T, start, end_speed), (k * T, slow, end_speed / k))]
+        assert torch.allclose(shares[0], shares[1], atol=1e-12) == alike
+    with pytest.raises(TrajoptError, match="total_time"):
+        tan = TimeAllocationNet(TimeAllocationNetConfig(num_segments=5, boundary_inputs=True, boundary_scale="duration"))
+        tan.shares(wp.float(), start=start.float())
+    with pytest.raises(TrajoptError, match="boundary_scale"):
+        TimeAllocationNet(TimeAllocationNetConfig(num_segments=5, boundary_scale="metres"))  # type: ignore[arg-type]
+
+
 def test_speed_and_acceleration_limits_hold_at_1khz():
     wp = torch.tensor([[[0.0, 0.0, 0.0], [2.0, 1.5, 0.0], [4.0, -1.0, 0.5], [6.0, 0.0, 0.0]]], dtype=F64)
     T = torch.tensor([[0.9, 0.8, 1.0]], dtype=F64)

@@ -76,7 +76,8 @@ def test_imitation_fits_the_gradient_descent_split_on_unseen_plans():
 
 
 def test_bad_tuning_options_are_refused():
-    for bad in ({"objective": "fast"}, {"first_weight": 0.0}, {"first_weight": float("nan")}, {"steps": 0}):
+    for bad in ({"objective": "fast"}, {"first_weight": 0.0}, {"first_weight": float("nan")}, {"steps": 0},
+                {"boundary_scale": "metres", "boundary_inputs": True}, {"boundary_scale": "duration"}):
         with pytest.raises(TimingTuneError, match="--"):
             TimingTuneConfig(**bad).validate()
 
@@ -148,6 +149,16 @@ def test_record_plans_then_tune_timing_through_the_cli(tmp_path: Path):
     assert boundary.config.tan_boundary and boundary.tan.config.boundary_inputs
     for (name, a), b in zip(net.state_dict().items(), boundary.state_dict().values(), strict=False):
         assert name.startswith("tan.") or torch.equal(a, b), name
+    # ... scaled by each plan's duration, imitating gradient descent: a new TAN again, from the one above
+    out = CliRunner().invoke(main, ["tune-timing", "--model", str(tmp_path / "tunedB"), "--plans", str(tmp_path / "e3"),
+                                    "--val", str(tmp_path / "e4"), "-o", str(tmp_path / "tunedD"), "--steps", "20",
+                                    "--boundary-inputs", "--boundary-scale", "duration", "--objective", "imitate"])
+    assert out.exit_code == 0, out.output
+    assert "duration error against the gradient-descent split" in out.output
+    scaled = Planner.load(tmp_path / "tunedD").net
+    assert scaled.config.tan_boundary_scale == "duration" and scaled.tan.config.boundary_scale == "duration"
+    record = json.loads((tmp_path / "tunedD" / "config.json").read_text())["timing_tune"]
+    assert record["config"]["objective"] == "imitate" and record["val_after"]["objective"] >= 0
 
 
 def test_folders_without_recorded_plans_are_refused_in_one_line(tmp_path: Path):

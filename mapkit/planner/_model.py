@@ -24,7 +24,7 @@ from mapkit.planner._depthcheck import (
 )
 from mapkit.planner._errors import PlannerError
 from mapkit.planner._resnet import ResNet18
-from mapkit.trajopt import TimeAllocationNet, TimeAllocationNetConfig, Trajectory, min_snap
+from mapkit.trajopt import BoundaryScale, TimeAllocationNet, TimeAllocationNetConfig, Trajectory, min_snap
 
 log = logging.getLogger(__name__)
 
@@ -91,6 +91,10 @@ class PlannerConfig:
     but flies with 4.5× the effort (4250 vs 948 m²/s⁷, median) and lower success (53.9 vs 55.0 %):
     only a plan's first half second is flown, and the rest-to-rest split's long first segment keeps
     that part gentle. Off in the presets."""
+    tan_boundary_scale: BoundaryScale = "limits"
+    """With ``tan_boundary``: how the boundary inputs are made unitless (``limits``: by the cruise
+    speed and ``accel``; ``duration``: by each plan's total time and path length, the same split
+    at every pace; :attr:`mapkit.trajopt.TimeAllocationNetConfig.boundary_scale`)."""
     cruise_speed: float = 2.0
     """m/s. Total time: a speed profile over the key-point path (origin → k1 → ... → kK) that
     changes speed at ``accel`` towards this speed (see :func:`mapkit.planner.total_time`)."""
@@ -472,7 +476,8 @@ class PlannerNet(nn.Module):
             last.bias.zero_()
         self.tan = TimeAllocationNet(TimeAllocationNetConfig(num_segments=K, hidden=tuple(c.tan_hidden),
                                                              v_max=c.cruise_speed, a_max=c.accel,
-                                                             boundary_inputs=c.tan_boundary))
+                                                             boundary_inputs=c.tan_boundary,
+                                                             boundary_scale=c.tan_boundary_scale))
 
     # ------------------------------------------------------------------ deployment
 

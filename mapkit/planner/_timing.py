@@ -125,7 +125,8 @@ def plan_timing(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.T
             raise ValueError("allocation 'tan' needs the TimeAllocationNet")
         dtype = next(tan.parameters()).dtype
         if tan.config.boundary_inputs:
-            shares = tan.shares(waypoints.to(dtype), start=start.to(dtype), end_speed=end_speed.to(dtype))
+            shares = tan.shares(waypoints.to(dtype), start=start.to(dtype), end_speed=end_speed.to(dtype),
+                                total_time=total.to(dtype))
         else:
             shares = tan.shares(waypoints.to(dtype))
         # A tiny floor: the softmax can underflow for a degenerate input.

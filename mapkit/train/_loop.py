@@ -277,7 +277,7 @@ def _camera_or_none(workspace: str | Path) -> dict[str, Any] | None:
         return None
 
 
-_TAN_FIELDS = frozenset({"tan_boundary", "tan_hidden", "accel", "min_segment_time", "min_total_time", "max_total_time"})
+_TAN_FIELDS = frozenset({"tan_boundary", "tan_boundary_scale", "tan_hidden", "accel", "min_segment_time", "min_total_time", "max_total_time"})
 """PlannerConfig fields that only change the time allocation (may differ from --init's with --only tan)."""
 
 

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from mapkit._choices import TIMING_OBJECTIVES, TimingObjective
+from mapkit._choices import BOUNDARY_SCALES, TIMING_OBJECTIVES, BoundaryScale, TimingObjective
 from mapkit.errors import MapkitError
 from mapkit.workspace import atomic_output
 
@@ -62,6 +62,10 @@ class TimingTuneConfig:
     """Replace the TAN by a new one that also reads the start velocity and acceleration and the end
     speed (``PlannerConfig.tan_boundary``), trained from scratch on the plans. A TAN without them
     cannot tell a plan started at cruise speed from one started at rest."""
+    boundary_scale: BoundaryScale = "limits"
+    """With ``boundary_inputs``: how the new TAN makes them unitless (``PlannerConfig.tan_boundary_scale``;
+    ``duration`` gives the same split at every pace). A model whose TAN reads them on the other scale
+    gets a new TAN too."""
     objective: TimingObjective = "snap"
     """``snap``: the mean log ratio of each plan's snap cost to the gradient-descent split's.
     ``imitate``: the weighted mean squared log ratio of each segment's duration to the gradient-descent
@@ -78,6 +82,10 @@ class TimingTuneConfig:
             raise TimingTuneError(f"--lr must be > 0, got {self.lr}")
         if self.objective not in TIMING_OBJECTIVES:
             raise TimingTuneError(f"--objective must be one of {', '.join(TIMING_OBJECTIVES)}, got {self.objective!r}")
+        if self.boundary_scale not in BOUNDARY_SCALES:
+            raise TimingTuneError(f"--boundary-scale must be one of {', '.join(BOUNDARY_SCALES)}, got {self.boundary_scale!r}")
+        if self.boundary_scale != "limits" and not self.boundary_inputs:
+            raise TimingTuneError(f"--boundary-scale {self.boundary_scale} scales the boundary inputs: add --boundary-inputs")
         if not (math.isfinite(self.first_weight) and self.first_weight > 0):
             raise TimingTuneError(f"--first-weight must be > 0, got {self.first_weight}")
 
@@ -305,12 +313,12 @@ def _tune_and_write(model: str | Path, plans: Sequence[Path], val: Sequence[Path
     M = net.tan.config.num_segments
     train_set, val_set = load_plan_inputs(plans, num_segments=M), load_plan_inputs(val, num_segments=M)
     own: tuple[tuple[float, float], float] | None = None
-    if config.boundary_inputs and not net.config.tan_boundary:
+    if config.boundary_inputs and (not net.config.tan_boundary or net.config.tan_boundary_scale != config.boundary_scale):
         # "before" is the model's own TAN, not the new one's random start
         reference = _Reference.of(net.config, val_set)
         own = (_snap_ratios(net.tan, net.config, val_set, reference),
                _score(net.tan, net.config, val_set, reference, config))
-        net = _with_boundary_tan(net, seed=config.seed)
+        net = _with_boundary_tan(net, seed=config.seed, scale=config.boundary_scale)
     outcome = tune_tan(net.tan, net.config, train_set, val_set, config, progress=progress)
     before, score_before = own or (outcome.before, outcome.objective[0])
     after, score_after = outcome.after, outcome.objective[1]
@@ -324,14 +332,14 @@ def _tune_and_write(model: str | Path, plans: Sequence[Path], val: Sequence[Path
                              after=after, best_step=outcome.best_step, objective=(score_before, score_after))
 
 
-def _with_boundary_tan(net: PlannerNet, *, seed: int) -> PlannerNet:
-    """The same network with a new, untrained TAN that reads the boundary conditions."""
+def _with_boundary_tan(net: PlannerNet, *, seed: int, scale: BoundaryScale) -> PlannerNet:
+    """The same network with a new, untrained TAN that reads the boundary conditions on ``scale``."""
     from dataclasses import replace
 
     from mapkit.planner import PlannerNet
 
     torch.manual_seed(seed)
-    out = PlannerNet(replace(net.config, tan_boundary=True))
+    out = PlannerNet(replace(net.config, tan_boundary=True, tan_boundary_scale=scale))
     kept = {k: v for k, v in net.state_dict().items() if not k.startswith("tan.")}
     missing, unexpected = out.load_state_dict(kept, strict=False)
     assert not unexpected and all(k.startswith("tan.") for k in missing)  # only the TAN is new

@@ -29,6 +29,7 @@ from mapkit.trajopt._minsnap import TrajoptWarning, min_snap
 from mapkit.trajopt._qp import DEFAULT_SOLVER, SOLVERS
 from mapkit.trajopt._timealloc import (
     ALLOCATION_METHODS,
+    BoundaryScale,
     TimeAllocationNet,
     TimeAllocationNetConfig,
     allocate_times,
@@ -39,6 +40,7 @@ from mapkit.trajopt._trajectory import Feasibility, Trajectory, TrajectorySample
 
 __all__ = [
     "ALLOCATION_METHODS",
+    "BoundaryScale",
     "DEFAULT_SOLVER",
     "Feasibility",
     "SOLVERS",

@@ -12,6 +12,7 @@ import torch
 from numpy.typing import ArrayLike
 from torch import nn
 
+from mapkit._choices import BOUNDARY_SCALES, BoundaryScale
 from mapkit.trajopt._basis import knot_cost_matrix
 from mapkit.trajopt._errors import TrajoptError
 from mapkit.trajopt._system import knot_values, layout, solve_knots, time_powers
@@ -455,9 +456,15 @@ class TimeAllocationNetConfig:
     a_max: float = 2.0
     """m/s², see ``v_max``."""
     boundary_inputs: bool = False
-    """The net also reads the boundary conditions: start velocity (÷ ``v_max``) and acceleration
-    (÷ ``a_max``), and the end speed (÷ ``v_max``; 0 = rest at the last key-point). The best split
-    of a plan that starts at cruise speed and passes its end is not that of a rest-to-rest plan."""
+    """The net also reads the boundary conditions: start velocity and acceleration, and the end speed
+    (0 = rest at the last key-point), made unitless by ``boundary_scale``. The best split of a plan
+    that starts at cruise speed and passes its end is not that of a rest-to-rest plan."""
+    boundary_scale: BoundaryScale = "limits"
+    """``limits``: velocities ÷ ``v_max``, accelerations ÷ ``a_max``. ``duration``: velocities × T / L and
+    accelerations × T² / L, with T the plan's total time and L its path length. Flying a path k times
+    slower from a start k (k²) times slower has the same minimum-snap split, and those inputs do not
+    change with k, so one net serves every pace (``limits`` cannot tell a plan flown at 1.2 m/s from
+    the same plan at 2 m/s). Needs the total time (:meth:`TimeAllocationNet.shares`)."""
     extra: dict[str, Any] = field(default_factory=dict)
     """Free-form notes stored with the config (ignored by the module)."""
 
@@ -477,6 +484,8 @@ class TimeAllocationNet(nn.Module):
         M = self.config.num_segments
         if M < 1:
             raise TrajoptError(f"num_segments must be >= 1, got {M}")
+        if self.config.boundary_scale not in BOUNDARY_SCALES:
+            raise TrajoptError(f"boundary_scale must be one of {BOUNDARY_SCALES}, got {self.config.boundary_scale!r}")
         dims = [4 * M + 1 + (7 if self.config.boundary_inputs else 0), *self.config.hidden, M]
         layers: list[nn.Module] = []
         for i in range(len(dims) - 1):
@@ -486,10 +495,11 @@ class TimeAllocationNet(nn.Module):
         self.mlp = nn.Sequential(*layers)
 
     def shares(self, waypoints: torch.Tensor, *, start: torch.Tensor | None = None,
-               end_speed: torch.Tensor | None = None) -> torch.Tensor:
+               end_speed: torch.Tensor | None = None, total_time: torch.Tensor | None = None) -> torch.Tensor:
         """(B, M) softmax shares of the total time for waypoints (B, M+1, 3); a net with
         ``boundary_inputs`` also takes ``start`` (B, 3, 3) velocity/acceleration/jerk rows (default
-        rest) and ``end_speed`` (B,) m/s (default 0, rest)."""
+        rest) and ``end_speed`` (B,) m/s (default 0, rest), and with ``boundary_scale="duration"``
+        ``total_time`` (B,) seconds."""
         M = self.config.num_segments
         if waypoints.ndim != 3 or waypoints.shape[1] != M + 1 or waypoints.shape[2] != 3:
             raise TrajoptError(
@@ -501,12 +511,21 @@ class TimeAllocationNet(nn.Module):
         L = lengths.sum(-1, keepdim=True).clamp_min(1e-6)
         parts = [(seg / L.unsqueeze(-1)).flatten(1), lengths / L, torch.log(L)]
         if self.config.boundary_inputs:
-            B = waypoints.shape[0]
-            st = torch.zeros(B, 3, 3, dtype=waypoints.dtype, device=waypoints.device) if start is None else start
-            es = torch.zeros(B, dtype=waypoints.dtype, device=waypoints.device) if end_speed is None else end_speed
-            parts += [st[:, 0].to(waypoints.dtype) / self.config.v_max, st[:, 1].to(waypoints.dtype) / self.config.a_max,
-                      es.to(waypoints.dtype).reshape(B, 1) / self.config.v_max]
+            parts += self._boundary(waypoints, L, start, end_speed, total_time)
         return torch.softmax(self.mlp(torch.cat(parts, dim=-1)), dim=-1)
+
+    def _boundary(self, waypoints: torch.Tensor, L: torch.Tensor, start: torch.Tensor | None,
+                  end_speed: torch.Tensor | None, total_time: torch.Tensor | None) -> list[torch.Tensor]:
+        """The unitless boundary inputs: start velocity (B, 3), acceleration (B, 3), end speed (B, 1)."""
+        B, dtype, device = waypoints.shape[0], waypoints.dtype, waypoints.device
+        st = torch.zeros(B, 3, 3, dtype=dtype, device=device) if start is None else start.to(dtype)
+        es = torch.zeros(B, dtype=dtype, device=device) if end_speed is None else end_speed.to(dtype)
+        if self.config.boundary_scale == "limits":
+            return [st[:, 0] / self.config.v_max, st[:, 1] / self.config.a_max, es.reshape(B, 1) / self.config.v_max]
+        if total_time is None:
+            raise TrajoptError("a TimeAllocationNet with boundary_scale='duration' needs the plans' total_time")
+        T = torch.as_tensor(total_time, dtype=dtype, device=device).reshape(B, 1)
+        return [st[:, 0] * T / L, st[:, 1] * T**2 / L, es.reshape(B, 1) * T / L]
 
     def forward(self, waypoints: torch.Tensor, total_time: torch.Tensor | None = None) -> torch.Tensor:
         """Durations (B, M) for waypoints (B, M+1, 3); ``total_time`` (B,) seconds, default the
