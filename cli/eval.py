@@ -54,11 +54,11 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
 @click.option("--subgoal-speed", type=FINITE, default=None,
               help="m/s at which learned plans pass a way out toward open space (when nothing leads on toward "
                    "the goal); default: the cruise speed; 0 = stop there.")
-@click.option("--speed", type=FINITE, default=0.0, show_default=True,
-              help="Cruise speed (m/s) of the speed profile that times learned plans; 0 = the model's cruise speed "
-                   "(2 m/s for the shipped model). Slower is smoother (the effort grows with the 7th power of the "
-                   "pace) but slower; the time limit follows it (4x the straight distance at this speed). "
-                   "Smooth flights: --speed 1.2 --stop-decel 0.75 (the oracle's pace, 1.7x its effort).")
+@click.option("--speed", type=FINITE, default=1.2, show_default=True,
+              help="Cruise speed (m/s) of the speed profile that times learned plans (the oracle's pace); 0 = the "
+                   "model's cruise speed (2 m/s for the shipped model: flights about a third shorter, at 10-20x "
+                   "the effort; the effort grows with the 7th power of the pace). The time limit follows it "
+                   "(4x the straight distance at this speed).")
 @click.option("--search-speed", type=FINITE, default=None,
               help="Cruise speed (m/s) for the rest of a flight once it searches for its way (stalled, or flown "
                    "1.4x its progress toward the goal + 1 m); default: the model's cruise speed.")
@@ -68,10 +68,9 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
                    "speed; 0 = every plan at the cruise speed.")
 @click.option("--turn-min-speed", type=FINITE, default=1.0, show_default=True,
               help="m/s: the slowest cruise speed --turn-accel sets.")
-@click.option("--stop-decel", type=FINITE, default=0.0, show_default=True,
+@click.option("--stop-decel", type=FINITE, default=0.75, show_default=True,
               help="m/s²: until a flight searches for its way, learned plans that end at rest at the goal slow "
-                   "down to it at this rate (0.75 cuts the effort by about a tenth and costs a few office "
-                   "flights); 0 = the model's acceleration.")
+                   "down to it at this rate; 0 = the model's acceleration.")
 @click.option("--follow", type=FRACTION, default=0.75, show_default=True,
               help="Fraction of the way each key-point of a new plan moves toward the reference being flown "
                    "(at most the corridor's width): smoother replanning; 0 = the network's key-points.")

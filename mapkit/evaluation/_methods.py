@@ -150,17 +150,17 @@ class Execution:
     height (which closed doorways under their lintels) and 1032 without a map; nine held-out seeds 11–53:
     office 92.4 against 82.8 and 82.4 %, overall 97.35 against 94.1 and 93.7 % (docs/evaluation.md,
     "Flight map"). With the ground counted as seen (``RouteConfig.ground``, 2026-12-03): 1149 of 1200."""
-    speed: float | None = None
+    speed: float | None = 1.2
     """m/s: the cruise speed of the speed profile that times learned plans (and the speed at which a
-    plan passes a local goal beyond the horizon) while the flight makes its way. None: the model's
-    ``cruise_speed`` (2 m/s for the shipped model). The network still reads the velocity scaled by
-    the model's own cruise speed. The same path flown in 1/k of the time costs k⁷ the snap, so this
-    trades time for effort: at 1.2 m/s (the oracle's pace) the flights of dev seeds 7 / 13 cost 1.6 /
-    1.7× the oracle's effort against 23 / 21× at 2 m/s, but office dev seeds 200–219 reached 1091 of
-    1200 against 1139 (66 timeouts against 28) with the model's 2 m/s clock. The time limit now
-    follows this speed (``LoopConfig.cruise_speed``); with that clock office dev seeds 200–210 reach
-    641 of 660 against 631 at 2 m/s ("The clock" in docs/evaluation.md). At 1.5 m/s (2 m/s clock):
-    1135 of 1200; on thirteen held-out seeds 96.9 against 97.5 % at about a fifth of the effort."""
+    plan passes a local goal beyond the horizon) while the flight makes its way: the oracle's pace.
+    None: the model's ``cruise_speed`` (2 m/s for the shipped model, the default until 2026-12-04).
+    The network still reads the velocity scaled by the model's own cruise speed. The same path flown
+    in 1/k of the time costs k⁷ the snap, so this trades time for effort. The time limit follows
+    this speed (``LoopConfig.cruise_speed``). With the shipped TAN of 2026-12-03 (tuned at 2 m/s)
+    and ``stop_decel`` 0.75: held-out seeds 11–29 98.8 % (offices 290 of 300) at 1.00–1.98× the
+    oracle's effort, against 96.0 % (265) at 16.8–22× with the model's 2 m/s and its clock; office dev
+    seeds 200–210 642 of 660 against 631; median flights 15–17 s instead of 10–11 s ("The clock" in
+    docs/evaluation.md). The TAN shipped since 2026-12-04 was tuned at this pace (docs/train.md)."""
     turn_accel: float | None = 1.5
     """m/s²: each plan's cruise speed (and its speed at a passed goal) is at most √(``turn_accel`` R),
     R the radius of the sharpest turn of its key-points (:func:`mapkit.planner.turn_speed`), and at
@@ -173,14 +173,13 @@ class Execution:
     96.0 against 96.7 % ("Turns" in docs/evaluation.md)."""
     turn_min_speed: float = 1.0
     """m/s: the slowest cruise speed ``turn_accel`` sets (the cruise speed itself when slower)."""
-    stop_decel: float | None = None
+    stop_decel: float | None = 0.75
     """m/s²: until a flight searches for its way, plans that end at rest (at the goal) slow down to
     it at this rate instead of the model's ``accel`` (None). A garage flight's costliest half second
-    was often its approach to the goal. Not the default: with 0.75 (and ``turn_accel`` 1.5) office
-    dev seeds 200–219 reached 1148 of 1200 against 1149 (×0.91 the effort), the held-out offices of
-    seeds 11–29 262 against 265 of 300 (28 timeouts against 22); applied in searching flights too,
-    1145 and 260, at 12.5–14.4× the oracle's effort on seeds 11–29 against 16.5–21.4× ("Turns" in
-    docs/evaluation.md)."""
+    was often its approach to the goal. At the model's 2 m/s (and ``turn_accel`` 1.5) office dev
+    seeds 200–219 reached 1148 of 1200 against 1149 with None (×0.91 the effort), the held-out offices
+    of seeds 11–29 262 against 265 of 300; applied in searching flights too, 1145 and 260 ("Turns" in
+    docs/evaluation.md). The default since 2026-12-04, with ``speed`` 1.2."""
     search_speed: float | None = None
     """m/s for the rest of a flight once it searches for its way: it has stalled (no 0.5 m of
     progress for ``route.after`` seconds), or flown more than ``search_ratio`` × the distance it has
@@ -834,8 +833,9 @@ def make_methods(names: list[str], net: PlannerNet | None, world: World, graph: 
                                      execution=execution))
         elif name == "iplanner-style":
             assert net is not None  # likewise
-            # iPlanner's spline flies the model's speed profile, as it did before turns were slowed
-            out.append(LearnedMethod(name, net, spline=True, camera=camera, execution=Execution(turn_accel=None)))
+            # iPlanner's spline flies the learned plans' pace, without the turns' slowing (which came later)
+            pace = Execution(turn_accel=None, speed=execution.speed, stop_decel=execution.stop_decel)
+            out.append(LearnedMethod(name, net, spline=True, camera=camera, execution=pace))
         elif name == "straight":
             out.append(StraightMethod(cfg))
         elif name == "oracle":
