@@ -8,7 +8,14 @@ from typing import Any
 
 import click
 
-from mapkit._choices import BOUNDARY_SCALES, PRESET_NAMES, TIMING_OBJECTIVES, TRAINED_WEIGHTS, BoundaryScale, TimingObjective
+from mapkit._choices import (
+    BOUNDARY_SCALES,
+    PRESET_NAMES,
+    TIMING_OBJECTIVES,
+    TRAINED_WEIGHTS,
+    BoundaryScale,
+    TimingObjective,
+)
 from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, STORE_PATH, library_call, main
 
 

@@ -14,7 +14,8 @@
   execution, other splits (Table III of the paper; ``gradient`` is the TAN's supervision,
   Mellinger & Kumar descent under the same boundary conditions).
 - ``iplanner-style``: the same network outputs, iPlanner's way: a cubic spline through the key-points
-  timed by arc length at the cruise speed (no dynamics, no time allocation), clamped to the vehicle's
+  timed by arc length at the learned plans' cruise speed (``Execution.speed``; no dynamics, no time
+  allocation, no slowing for turns), clamped to the vehicle's
   velocity at the start and to the same end velocity as the others.
 - ``straight``: no perception; one minimum-snap segment from the vehicle's state to the local goal,
   timed by the same speed profile (the optimum through any points of the straight line; pinning

@@ -359,4 +359,4 @@ def _write_run(source: Path, net: PlannerNet, record: dict, out: Path, *, overwr
     with atomic_output(out, overwrite=overwrite) as tmp:
         tmp.mkdir(parents=True)
         torch.save(saved, tmp / "model.pt")
-        (tmp / "config.json").write_text(json.dumps(run_config, indent=1) + "\n")
+        (tmp / "config.json").write_text(json.dumps(run_config, indent=2) + "\n")

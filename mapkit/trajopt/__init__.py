@@ -24,12 +24,12 @@ out, with exact gradients back to both.
 torch.Size([])
 """
 
+from mapkit._choices import BoundaryScale
 from mapkit.trajopt._errors import TrajoptError
 from mapkit.trajopt._minsnap import TrajoptWarning, min_snap
 from mapkit.trajopt._qp import DEFAULT_SOLVER, SOLVERS
 from mapkit.trajopt._timealloc import (
     ALLOCATION_METHODS,
-    BoundaryScale,
     TimeAllocationNet,
     TimeAllocationNetConfig,
     allocate_times,
