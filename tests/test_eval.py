@@ -818,7 +818,7 @@ def test_plans_that_turn_are_timed_at_the_speed_of_their_sharpest_turn():
     bent[3:, 0], bent[3:, 1] = bent[2, 0], x[1:4] - x[0]  # a right angle after 2.4 m, then 3.6 m sideways
     wp, start = torch.stack([line, bent]), torch.zeros(2, 3, 3, dtype=torch.float64)
     passing = torch.full((2,), 2.0, dtype=torch.float64)
-    method = _tiny_learned_method(Execution(turn_accel=1.0, turn_min_speed=0.5))
+    method = _tiny_learned_method(Execution(turn_accel=1.0, turn_min_speed=0.5, speed=None))
     cruise = method.config.cruise_speed
     slow = (1.0 * 0.6) ** 0.5  # R = half the 1.2 m segment / tan 45°
     timing = method._timed(wp, start, passing)
@@ -826,9 +826,9 @@ def test_plans_that_turn_are_timed_at_the_speed_of_their_sharpest_turn():
                            tan=method.net.tan, cruise_speed=torch.tensor([cruise, slow], dtype=torch.float64))
     assert torch.allclose(timing.total, expected.total, rtol=1e-12) and float(timing.total[1]) > 1.5 * float(timing.total[0])
     assert timing.end[:, 0].norm(dim=-1).tolist() == pytest.approx([2.0, slow], rel=1e-12)
-    floor = _tiny_learned_method(Execution(turn_accel=0.1, turn_min_speed=1.5))._timed(wp, start, passing)
+    floor = _tiny_learned_method(Execution(turn_accel=0.1, turn_min_speed=1.5, speed=None))._timed(wp, start, passing)
     assert floor.end[1, 0].norm() == pytest.approx(1.5, rel=1e-12)
-    plain = _tiny_learned_method(Execution(turn_accel=None))._timed(wp, start, passing)
+    plain = _tiny_learned_method(Execution(turn_accel=None, speed=None))._timed(wp, start, passing)
     assert torch.allclose(plain.total, plan_timing(wp, start, passing, method.config, tan=method.net.tan).total, rtol=1e-12)
     assert plain.end[:, 0].norm(dim=-1).tolist() == pytest.approx([2.0, 2.0], rel=1e-12)
 
@@ -844,12 +844,12 @@ def test_plans_to_rest_slow_down_at_the_stop_deceleration():
     start = torch.zeros(2, 3, 3, dtype=torch.float64)
     start[:, 0, 0] = 2.0
     end_speed = torch.tensor([0.0, 2.0], dtype=torch.float64)
-    method = _tiny_learned_method(Execution(stop_decel=0.5))
+    method = _tiny_learned_method(Execution(stop_decel=0.5, speed=None))
     timing = method._timed(wp, start, end_speed)
     expected = plan_timing(wp, start, end_speed, method.config, tan=method.net.tan,
                            decel=torch.tensor([0.5, method.config.accel], dtype=torch.float64))
     assert torch.allclose(timing.total, expected.total, rtol=1e-12)
-    plain = _tiny_learned_method(Execution(stop_decel=None))._timed(wp, start, end_speed)
+    plain = _tiny_learned_method(Execution(stop_decel=None, speed=None))._timed(wp, start, end_speed)
     assert float(timing.total[0]) > float(plain.total[0]) and float(timing.total[1]) == float(plain.total[1])
 
 
@@ -899,7 +899,7 @@ def test_plans_toward_a_way_out_pass_it_at_the_subgoal_speed(monkeypatch, speed:
     from mapkit.evaluation import Execution
     from mapkit.evaluation import _methods as methods
 
-    method = _tiny_learned_method(Execution(subgoal_speed=speed))
+    method = _tiny_learned_method(Execution(subgoal_speed=speed, speed=None))
     speeds: list[float] = []
     attempt = methods.LearnedMethod._attempt
 

@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from mapkit.cli.main import main
 from mapkit.evaluation import PLANS_FILE, EvalConfig, evaluate
-from mapkit.planner import PlannerNet, planner_preset
+from mapkit.planner import PlannerConfig, PlannerNet, planner_preset
 from mapkit.planning import Planner
 from mapkit.train import PlanInputs, TimingTuneConfig, TimingTuneError, load_plan_inputs, tune_tan
 from mapkit.train._timing_tune import _objective, _Reference, _timed, plan_costs
@@ -117,7 +117,7 @@ def test_record_plans_then_tune_timing_through_the_cli(tmp_path: Path):
     torch.manual_seed(0)
     net = PlannerNet(CONFIG)
     torch.save({"state_dict": net.state_dict(), "planner_config": CONFIG.to_dict()}, run / "model.pt")
-    (run / "config.json").write_text(json.dumps({}))
+    (run / "config.json").write_text(json.dumps({"planner": {}, "planner_resolved": CONFIG.to_dict()}))
     for seed in (3, 4):
         config = EvalConfig(worlds=("office",), pairs=1, seed=seed, methods=("learned", "straight"), record_plans=True)
         evaluate(run, tmp_path / f"e{seed}", config, progress=False)
@@ -147,6 +147,10 @@ def test_record_plans_then_tune_timing_through_the_cli(tmp_path: Path):
     assert out.exit_code == 0, out.output
     boundary = Planner.load(tmp_path / "tunedB").net
     assert boundary.config.tan_boundary and boundary.tan.config.boundary_inputs
+    # config.json says so too: the net its resolved planner config builds takes the new weights
+    run_config = json.loads((tmp_path / "tunedB" / "config.json").read_text())
+    assert run_config["planner"] == {"tan_boundary": True, "tan_boundary_scale": "limits"}
+    PlannerNet(PlannerConfig.from_dict(run_config["planner_resolved"])).load_state_dict(boundary.state_dict())
     for (name, a), b in zip(net.state_dict().items(), boundary.state_dict().values(), strict=False):
         assert name.startswith("tan.") or torch.equal(a, b), name
     # ... scaled by each plan's duration, imitating gradient descent: a new TAN again, from the one above

@@ -356,7 +356,19 @@ def _write_run(source: Path, net: PlannerNet, record: dict, out: Path, *, overwr
              "timing_tune": json.loads(json.dumps(record))}
     run_config = json.loads((source / "config.json").read_text()) if (source / "config.json").is_file() else {}
     run_config["timing_tune"] = record
+    _note_new_tan(run_config, net.config)
     with atomic_output(out, overwrite=overwrite) as tmp:
         tmp.mkdir(parents=True)
         torch.save(saved, tmp / "model.pt")
         (tmp / "config.json").write_text(json.dumps(run_config, indent=2) + "\n")
+
+
+def _note_new_tan(run_config: dict, planner: PlannerConfig) -> None:
+    """A TAN that reads the boundary conditions has another shape: config.json's training options
+    (``planner``) and resolved config (``planner_resolved``) say so, so the run's config builds a net
+    its weights fit."""
+    if not planner.tan_boundary:
+        return  # the TAN kept its shape
+    for key in ("planner", "planner_resolved"):
+        if isinstance(run_config.get(key), dict):
+            run_config[key].update(tan_boundary=True, tan_boundary_scale=planner.tan_boundary_scale)
