@@ -203,9 +203,12 @@ class _Reference:
 
     @classmethod
     def of(cls, config: PlannerConfig, plans: PlanInputs) -> _Reference:
-        with torch.no_grad():
-            durations, _ = _timed(None, config, plans)
-            return cls(plan_costs(None, config, plans), durations)
+        from mapkit.trajopt import min_snap
+
+        with torch.no_grad():  # one gradient descent (the slow part) for both
+            durations, end = _timed(None, config, plans)
+            cost = min_snap(plans.waypoints, durations, start=plans.start, end=end).snap_cost()
+        return cls(cost, durations)
 
     def take(self, index: torch.Tensor) -> _Reference:
         return _Reference(self.cost[index], self.durations[index])
