@@ -56,7 +56,7 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
                    "the goal); default: the cruise speed; 0 = stop there.")
 @click.option("--speed", type=FINITE, default=1.2, show_default=True,
               help="Cruise speed (m/s) of the speed profile that times learned plans (the oracle's pace); 0 = the "
-                   "model's cruise speed (2 m/s for the shipped model: flights about a third shorter, at 10-20x "
+                   "model's cruise speed (2 m/s for the shipped model: flights about a third shorter, at about 20x "
                    "the effort; the effort grows with the 7th power of the pace). The time limit follows it "
                    "(4x the straight distance at this speed).")
 @click.option("--search-speed", type=FINITE, default=None,
