@@ -85,6 +85,24 @@ INDEX = Number(0, integer=True)
 """An integer >= 0."""
 
 
+class Widths(click.ParamType):
+    """Layer widths separated by commas (``256,256,256``), each an integer >= 1."""
+
+    name = "widths"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, tuple):
+            return value
+        parts = [p.strip() for p in str(value).split(",")]
+        if not all(p.isdigit() and int(p) >= 1 for p in parts):
+            self.fail(f"{value!r} is not widths >= 1 separated by commas (e.g. 256,256,256)", param, ctx)
+        return tuple(int(p) for p in parts)
+
+
+WIDTHS = Widths()
+"""Layer widths, e.g. ``256,256,256``."""
+
+
 class StorePath(click.ParamType):
     """A local path (a :class:`~pathlib.Path`, as before) or an fsspec URL such as ``s3://bucket/ws``
     (kept as text: click's path type would fold its ``//``)."""

@@ -16,7 +16,7 @@ from mapkit._choices import (
     BoundaryScale,
     TimingObjective,
 )
-from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, STORE_PATH, library_call, main
+from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, STORE_PATH, WIDTHS, library_call, main
 
 
 def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
@@ -136,6 +136,10 @@ def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val
 @click.option("--boundary-scale", type=click.Choice(BOUNDARY_SCALES), default="limits", show_default=True,
               help="With --boundary-inputs: limits = divided by the cruise speed and acceleration; duration = "
                    "scaled by each plan's total time and path length (the same split at every --speed).")
+@click.option("--tan-hidden", type=WIDTHS, default=None,
+              help="Hidden widths of a new TAN trained from scratch, e.g. 256,256,256 (default: the model's TAN).")
+@click.option("--lr-decay/--no-lr-decay", default=True, show_default=True,
+              help="Cosine decay of the learning rate to 1 % of --lr over the steps.")
 @click.option("--objective", type=click.Choice(TIMING_OBJECTIVES), default="snap", show_default=True,
               help="snap: each plan's whole snap cost; imitate: each segment's duration against the "
                    "gradient-descent split's (squared log ratio), the first segment (the one flown) weighted more.")
@@ -144,13 +148,13 @@ def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
 def tune_timing_cmd(model: Path, plans: tuple[Path, ...], val: tuple[Path, ...], output: Path, steps: int, lr: float,
-                    boundary_inputs: bool, boundary_scale: BoundaryScale, objective: TimingObjective, first_weight: float,
-                    overwrite: bool) -> None:
+                    boundary_inputs: bool, boundary_scale: BoundaryScale, tan_hidden: tuple[int, ...] | None,
+                    lr_decay: bool, objective: TimingObjective, first_weight: float, overwrite: bool) -> None:
     """Fine-tune the Time Allocation Net alone on plans the planner made in flight (lower snap per plan)."""
     from mapkit.train import TimingTuneConfig, tune_timing
 
     config = TimingTuneConfig(steps=steps, lr=lr, boundary_inputs=boundary_inputs, boundary_scale=boundary_scale,
-                              objective=objective, first_weight=first_weight)
+                              tan_hidden=tan_hidden, lr_decay=lr_decay, objective=objective, first_weight=first_weight)
     s = tune_timing(model, plans, val, output, config, overwrite=overwrite)
     click.echo(f"{s.train_plans} plans to learn from, {s.val_plans} to validate; snap per plan against the "
                f"gradient-descent split (median / summed): {s.before[0]:.2f}× / {s.before[1]:.3f}× before, "

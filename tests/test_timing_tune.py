@@ -77,7 +77,8 @@ def test_imitation_fits_the_gradient_descent_split_on_unseen_plans():
 
 def test_bad_tuning_options_are_refused():
     for bad in ({"objective": "fast"}, {"first_weight": 0.0}, {"first_weight": float("nan")}, {"steps": 0},
-                {"boundary_scale": "metres", "boundary_inputs": True}, {"boundary_scale": "duration"}):
+                {"boundary_scale": "metres", "boundary_inputs": True}, {"boundary_scale": "duration"},
+                {"tan_hidden": ()}, {"tan_hidden": (64, 0)}):
         with pytest.raises(TimingTuneError, match="--"):
             TimingTuneConfig(**bad).validate()
 
@@ -149,18 +150,23 @@ def test_record_plans_then_tune_timing_through_the_cli(tmp_path: Path):
     assert boundary.config.tan_boundary and boundary.tan.config.boundary_inputs
     # config.json says so too: the net its resolved planner config builds takes the new weights
     run_config = json.loads((tmp_path / "tunedB" / "config.json").read_text())
-    assert run_config["planner"] == {"tan_boundary": True, "tan_boundary_scale": "limits"}
+    assert run_config["planner"] == {"tan_boundary": True, "tan_boundary_scale": "limits",
+                                     "tan_hidden": list(CONFIG.tan_hidden)}
     PlannerNet(PlannerConfig.from_dict(run_config["planner_resolved"])).load_state_dict(boundary.state_dict())
     for (name, a), b in zip(net.state_dict().items(), boundary.state_dict().values(), strict=False):
         assert name.startswith("tan.") or torch.equal(a, b), name
-    # ... scaled by each plan's duration, imitating gradient descent: a new TAN again, from the one above
+    # ... scaled by each plan's duration, wider, imitating gradient descent: a new TAN again, from the one above
     out = CliRunner().invoke(main, ["tune-timing", "--model", str(tmp_path / "tunedB"), "--plans", str(tmp_path / "e3"),
                                     "--val", str(tmp_path / "e4"), "-o", str(tmp_path / "tunedD"), "--steps", "20",
-                                    "--boundary-inputs", "--boundary-scale", "duration", "--objective", "imitate"])
+                                    "--boundary-inputs", "--boundary-scale", "duration", "--objective", "imitate",
+                                    "--tan-hidden", "24,16,8"])
     assert out.exit_code == 0, out.output
     assert "duration error against the gradient-descent split" in out.output
     scaled = Planner.load(tmp_path / "tunedD").net
     assert scaled.config.tan_boundary_scale == "duration" and scaled.tan.config.boundary_scale == "duration"
+    assert scaled.config.tan_hidden == (24, 16, 8) and [m.out_features for m in scaled.tan.mlp[::2]] == [24, 16, 8, 5]
+    run_config = json.loads((tmp_path / "tunedD" / "config.json").read_text())
+    PlannerNet(PlannerConfig.from_dict(run_config["planner_resolved"])).load_state_dict(scaled.state_dict())
     record = json.loads((tmp_path / "tunedD" / "config.json").read_text())["timing_tune"]
     assert record["config"]["objective"] == "imitate" and record["val_after"]["objective"] >= 0
 

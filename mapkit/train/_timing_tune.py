@@ -66,6 +66,12 @@ class TimingTuneConfig:
     """With ``boundary_inputs``: how the new TAN makes them unitless (``PlannerConfig.tan_boundary_scale``;
     ``duration`` gives the same split at every pace). A model whose TAN reads them on the other scale
     gets a new TAN too."""
+    tan_hidden: tuple[int, ...] | None = None
+    """Hidden widths of a new TAN trained from scratch on the plans (None: the model's TAN, or with
+    ``boundary_inputs`` a new one of its width). The shipped model's (64, 64) TAN fitted the
+    gradient-descent split to 3.7 % in summed snap on unseen plans, a (256, 256, 256) one to 1.5 %."""
+    lr_decay: bool = True
+    """Cosine decay of the learning rate to 1 % of ``lr`` over ``steps`` (off: constant)."""
     objective: TimingObjective = "snap"
     """``snap``: the mean log ratio of each plan's snap cost to the gradient-descent split's.
     ``imitate``: the weighted mean squared log ratio of each segment's duration to the gradient-descent
@@ -86,6 +92,8 @@ class TimingTuneConfig:
             raise TimingTuneError(f"--boundary-scale must be one of {', '.join(BOUNDARY_SCALES)}, got {self.boundary_scale!r}")
         if self.boundary_scale != "limits" and not self.boundary_inputs:
             raise TimingTuneError(f"--boundary-scale {self.boundary_scale} scales the boundary inputs: add --boundary-inputs")
+        if self.tan_hidden is not None and (not self.tan_hidden or min(self.tan_hidden) < 1):
+            raise TimingTuneError(f"--tan-hidden must be widths >= 1 separated by commas (e.g. 256,256,256), got {self.tan_hidden}")
         if not (math.isfinite(self.first_weight) and self.first_weight > 0):
             raise TimingTuneError(f"--first-weight must be > 0, got {self.first_weight}")
 
@@ -270,6 +278,7 @@ def tune_tan(tan: TimeAllocationNet, config: PlannerConfig, train: PlanInputs, v
     best, best_step, best_state = before, 0, {k: v.clone() for k, v in tan.state_dict().items()}
     snap_before = _snap_ratios(tan, config, val, ref_val)
     optimiser = torch.optim.Adam(tan.parameters(), lr=tune.lr)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, tune.steps, eta_min=tune.lr / 100) if tune.lr_decay else None
     generator = torch.Generator().manual_seed(tune.seed)
     tan.train()
     bar = tqdm(range(1, tune.steps + 1), desc="tune-timing", unit="step", disable=not progress, dynamic_ncols=True)
@@ -279,6 +288,8 @@ def tune_tan(tan: TimeAllocationNet, config: PlannerConfig, train: PlanInputs, v
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
+        if schedule is not None:
+            schedule.step()
         if step % tune.check_every == 0 or step == tune.steps:
             now = _score(tan, config, val, ref_val, tune)
             if now < best:
@@ -316,12 +327,12 @@ def _tune_and_write(model: str | Path, plans: Sequence[Path], val: Sequence[Path
     M = net.tan.config.num_segments
     train_set, val_set = load_plan_inputs(plans, num_segments=M), load_plan_inputs(val, num_segments=M)
     own: tuple[tuple[float, float], float] | None = None
-    if config.boundary_inputs and (not net.config.tan_boundary or net.config.tan_boundary_scale != config.boundary_scale):
+    if _needs_new_tan(net.config, config):
         # "before" is the model's own TAN, not the new one's random start
         reference = _Reference.of(net.config, val_set)
         own = (_snap_ratios(net.tan, net.config, val_set, reference),
                _score(net.tan, net.config, val_set, reference, config))
-        net = _with_boundary_tan(net, seed=config.seed, scale=config.boundary_scale)
+        net = _with_new_tan(net, config)
     outcome = tune_tan(net.tan, net.config, train_set, val_set, config, progress=progress)
     before, score_before = own or (outcome.before, outcome.objective[0])
     after, score_after = outcome.after, outcome.objective[1]
@@ -335,14 +346,24 @@ def _tune_and_write(model: str | Path, plans: Sequence[Path], val: Sequence[Path
                              after=after, best_step=outcome.best_step, objective=(score_before, score_after))
 
 
-def _with_boundary_tan(net: PlannerNet, *, seed: int, scale: BoundaryScale) -> PlannerNet:
-    """The same network with a new, untrained TAN that reads the boundary conditions on ``scale``."""
+def _needs_new_tan(planner: PlannerConfig, tune: TimingTuneConfig) -> bool:
+    """Whether the model's TAN cannot take the tuning: other inputs, another scale or another width."""
+    other_inputs = tune.boundary_inputs and (not planner.tan_boundary or planner.tan_boundary_scale != tune.boundary_scale)
+    return other_inputs or (tune.tan_hidden is not None and tuple(tune.tan_hidden) != tuple(planner.tan_hidden))
+
+
+def _with_new_tan(net: PlannerNet, tune: TimingTuneConfig) -> PlannerNet:
+    """The same network with a new, untrained TAN: reading the boundary conditions (on the tuning's
+    scale) if asked or if the model's did, of the tuning's width if given."""
     from dataclasses import replace
 
     from mapkit.planner import PlannerNet
 
-    torch.manual_seed(seed)
-    out = PlannerNet(replace(net.config, tan_boundary=True, tan_boundary_scale=scale))
+    torch.manual_seed(tune.seed)
+    boundary = tune.boundary_inputs or net.config.tan_boundary
+    scale = tune.boundary_scale if tune.boundary_inputs else net.config.tan_boundary_scale
+    hidden = tuple(tune.tan_hidden) if tune.tan_hidden is not None else tuple(net.config.tan_hidden)
+    out = PlannerNet(replace(net.config, tan_boundary=boundary, tan_boundary_scale=scale, tan_hidden=hidden))
     kept = {k: v for k, v in net.state_dict().items() if not k.startswith("tan.")}
     missing, unexpected = out.load_state_dict(kept, strict=False)
     assert not unexpected and all(k.startswith("tan.") for k in missing)  # only the TAN is new
@@ -367,11 +388,14 @@ def _write_run(source: Path, net: PlannerNet, record: dict, out: Path, *, overwr
 
 
 def _note_new_tan(run_config: dict, planner: PlannerConfig) -> None:
-    """A TAN that reads the boundary conditions has another shape: config.json's training options
+    """A new TAN may have another shape (boundary inputs, width): config.json's training options
     (``planner``) and resolved config (``planner_resolved``) say so, so the run's config builds a net
     its weights fit."""
-    if not planner.tan_boundary:
+    shape = {"tan_boundary": planner.tan_boundary, "tan_boundary_scale": planner.tan_boundary_scale,
+             "tan_hidden": list(planner.tan_hidden)}
+    resolved = run_config.get("planner_resolved")
+    if isinstance(resolved, dict) and all(resolved.get(k) == v for k, v in shape.items()):
         return  # the TAN kept its shape
     for key in ("planner", "planner_resolved"):
         if isinstance(run_config.get(key), dict):
-            run_config[key].update(tan_boundary=True, tan_boundary_scale=planner.tan_boundary_scale)
+            run_config[key].update(shape)
