@@ -163,3 +163,22 @@ def tune_timing_cmd(model: Path, plans: tuple[Path, ...], val: tuple[Path, ...],
         click.echo(f"duration error against the gradient-descent split (weighted mean squared log ratio): "
                    f"{s.objective[0]:.4f} before, {s.objective[1]:.4f} after")
     click.echo(f"wrote {output}/model.pt and config.json")
+
+
+@main.command("compare-timing")
+@click.option("--model", "model", type=click.Path(path_type=Path), default=Path("pretrained"), show_default=True,
+              help="Run directory with model.pt, or \"pretrained\".")
+@click.option("--plans", "plans", multiple=True, required=True, type=click.Path(path_type=Path),
+              help="Eval folder made with `mapkit eval --methods learned --record-plans` (repeatable).")
+@click.option("--window", type=POSITIVE, default=0.5, show_default=True,
+              help="Seconds of each plan a replanning flight flies (mapkit eval replans every 0.5 s).")
+@library_call
+def compare_timing_cmd(model: Path, plans: tuple[Path, ...], window: float) -> None:
+    """The model's Time Allocation Net against gradient descent on the same recorded plans (Table III)."""
+    from mapkit.train import compare_timing
+
+    c = compare_timing(model, plans, window=window)
+    click.echo(f"{c.plans} plans; snap of the TAN's split against gradient descent's on the same plans "
+               "(summed / median / geometric mean of the per-plan ratios):")
+    for label, r in (("whole plan", c.whole), (f"first {c.window:g} s (flown)", c.flown)):
+        click.echo(f"  {label + ':':<20} {r.summed:.3f}× / {r.median:.3f}× / {r.geomean:.3f}×")

@@ -4,6 +4,7 @@ from mapkit.train._config import PRESETS, TrainConfig, TrainConfigError, preset
 from mapkit.train._data import TrainDataError, TupleSamples, TupleStore
 from mapkit.train._loop import TrainSummary, set_threads, train, validate
 from mapkit.train._provenance import simulated_worlds, workspace_camera
+from mapkit.train._timing_compare import CostRatios, TimingComparison, compare_timing
 from mapkit.train._timing_tune import (
     PlanInputs,
     TimingTuneConfig,
@@ -17,7 +18,9 @@ from mapkit.train._timing_tune import (
 
 __all__ = [
     "PRESETS",
+    "CostRatios",
     "PlanInputs",
+    "TimingComparison",
     "TimingTuneConfig",
     "TimingTuneError",
     "TimingTuneSummary",
@@ -33,6 +36,7 @@ __all__ = [
     "simulated_worlds",
     "train",
     "validate",
+    "compare_timing",
     "load_plan_inputs",
     "tune_tan",
     "tune_timing",

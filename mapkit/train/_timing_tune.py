@@ -158,7 +158,7 @@ def load_plan_inputs(folders: Sequence[Path], *, num_segments: int) -> PlanInput
         path = Path(folder) / PLANS_FILE
         if not path.is_file():
             raise TimingTuneError(f"{folder} has no {PLANS_FILE}; make it with `mapkit eval --methods learned "
-                                  "--record-plans -o FOLDER` (any seed that is not a held-out one)")
+                                  "--record-plans -o FOLDER`")
         with np.load(path) as z:
             part = {k: z[k] for k in ("waypoints", "start", "end_speed")}
             # plans recorded before 2026-12-03 have no speed profile: NaN, the model's own
