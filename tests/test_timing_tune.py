@@ -126,8 +126,8 @@ def test_flown_snap_integrates_the_rest_to_rest_segment_analytically():
     for window in (0.5, 1.3, T, 5.0):
         s_end = min(window, T) / T
         exact = float((snap**2).integ()(s_end)) * T
-        assert float(flown_snap(trajectory, window)[0]) == pytest.approx(exact, rel=1e-4)
-    assert float(flown_snap(trajectory, 5.0)[0]) == pytest.approx(100800 * d**2 / T**7, rel=1e-4)
+        assert float(flown_snap(trajectory, window)[0]) == pytest.approx(exact, rel=1e-6)
+    assert float(flown_snap(trajectory, 5.0)[0]) == pytest.approx(100800 * d**2 / T**7, rel=1e-6)
     assert float(trajectory.snap_cost()[0]) == pytest.approx(100800 * d**2 / T**7, rel=1e-9)
 
 

@@ -24,8 +24,8 @@ if TYPE_CHECKING:
     from mapkit.trajopt import TimeAllocationNet, Trajectory
 
 WINDOW_SAMPLES = 201
-"""Simpson samples over the flown window (odd): a minimum-snap trajectory's snap is a smooth cubic per
-segment, and 200 intervals integrate its square to about 1e-9 relative."""
+"""Simpson samples over the flown window (odd): snap is a cubic within a segment and continuous across
+the knots, and its square integrates to about 1e-6 relative or better."""
 
 
 @dataclass(frozen=True)
@@ -41,6 +41,7 @@ class CostRatios:
 
     @classmethod
     def of(cls, tan: torch.Tensor, reference: torch.Tensor) -> CostRatios:
+        """The ratios of the (P,) costs ``tan`` to the (P,) costs ``reference`` of the same plans."""
         ratio = tan.clamp_min(1e-300) / reference.clamp_min(1e-300)
         return cls(float(tan.sum() / reference.sum()), float(ratio.median()), float(torch.exp(torch.log(ratio).mean())))
 
