@@ -19,8 +19,16 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
               help="Seed of the evaluation worlds and pairs (must not be a training world's seed).")
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @click.option("--methods", default="all", show_default=True,
-              help="Comma list of: learned, learned+uniform, learned+poly5, learned+gradient, iplanner-style, "
-                   "straight, oracle.")
+              help="Comma list of: learned, learned+uniform, learned+poly5, learned+gradient, untrained (the model's "
+                   "architecture at its initial weights), straight-keypoints (key-points on the straight line to the "
+                   "goal), iplanner-style, straight, oracle.")
+@click.option("--stack", "stacks", default="full", show_default=True,
+              help="Comma list of flight stacks the learned methods fly under: full (every layer below: memory, checked "
+                   "corridor, turn toward open space, routing, follow) and/or none (the paper's protocol: the "
+                   "network's key-points through the corridor, replanned every interval). Each method flies under "
+                   "each; runs under none are labelled NAME@none.")
+@click.option("--untrained-seed", type=INDEX, default=0, show_default=True,
+              help="Seed of the untrained method's initial weights.")
 @click.option("--workers", type=COUNT, default=1, show_default=True,
               help="Processes running pairs in parallel (with --scheduler local: the local Dask cluster's size).")
 @click.option("--scheduler", metavar="ADDRESS", default=None,
@@ -85,16 +93,28 @@ from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
                    "(for `mapkit tune-timing`).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
-def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, workers: int, scheduler: str | None,
+def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, stacks: str,
+             untrained_seed: int, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
              corridor_check: bool, check_memory: bool, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
              record_plans: bool, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
-    from mapkit.evaluation import METHODS, WORLD_ORDER, EvalConfig, Execution, LoopConfig, RouteConfig, evaluate
+    from mapkit.evaluation import (
+        METHODS,
+        WORLD_ORDER,
+        EvalConfig,
+        Execution,
+        LoopConfig,
+        RouteConfig,
+        comparison_lines,
+        evaluate,
+        parse_stacks,
+    )
 
     worlds = WORLD_ORDER if world.strip() == "all" else tuple(w.strip() for w in world.split(",") if w.strip())
     names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
     config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
+                        stacks=parse_stacks(stacks), untrained_seed=untrained_seed,
                         workers=workers, scheduler=scheduler, record_plans=record_plans,
                         execution=Execution(corridor=corridor or None, check_corridor=corridor_check,
                                             check_memory=check_memory, v_max=v_max or None,
@@ -109,12 +129,15 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
     result = evaluate(run_dir, output, config, overwrite=overwrite)
     s, lat = result.summary["success"], result.summary["latency"]
     cols = [*config.worlds, "overall"]
-    click.echo(f"{'method':<18}" + "".join(f"{c:>10}" for c in cols) + f"{'effort':>12}{'latency':>11}")
-    for m in config.methods:
+    width = max(18, *(len(m) + 2 for m in s))
+    click.echo(f"{'method':<{width}}" + "".join(f"{c:>10}" for c in cols) + f"{'effort':>12}{'latency':>11}")
+    for m in s:  # every run, in report order
         eff = s[m]["overall"]["control_effort"]["median"]
         ms = lat[m]["overall"]["mean_ms"]
-        click.echo(f"{m:<18}" + "".join(f"{100 * (s[m][c]['success_rate'] or 0):>9.1f}%" for c in cols)
+        click.echo(f"{m:<{width}}" + "".join(f"{100 * (s[m][c]['success_rate'] or 0):>9.1f}%" for c in cols)
                    + (f"{eff:>12.4g}" if eff is not None else f"{'–':>12}") + (f"{ms:>9.2f}ms" if ms is not None else ""))
     click.echo("effort: median ∫‖snap‖² dt (m²/s⁷) of the successful flights")
+    if result.ablation is not None:
+        click.echo("\n".join(comparison_lines(result.ablation)))
     click.echo(f"wrote {output}/results.json, latency.json, report.md, trajectories.npz and "
                f"{sum(p.suffix == '.png' for p in result.files)} PNGs" + (" (and plans.npz)" if record_plans else ""))

@@ -30,3 +30,10 @@ BoundaryScale = Literal["limits", "duration"]
 """How a Time Allocation Net makes its boundary inputs unitless
 (:attr:`mapkit.trajopt.TimeAllocationNetConfig.boundary_scale`)."""
 BOUNDARY_SCALES: tuple[BoundaryScale, ...] = get_args(BoundaryScale)
+
+FlightStack = Literal["full", "none"]
+"""The layers around a replanning learned method in `mapkit eval` (``EvalConfig.stacks``): ``full``, every
+layer of :class:`mapkit.evaluation.Execution` as configured (memory, checked corridor, turn toward open
+space, routing, follow); ``none``, the paper's protocol: the network's key-points through the corridor,
+replanned every interval, nothing else."""
+FLIGHT_STACKS: tuple[FlightStack, ...] = get_args(FlightStack)

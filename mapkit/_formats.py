@@ -68,6 +68,10 @@ class EpisodeRecord:
     """Largest acceleration norm, m/s²."""
     peak_jerk: float | None = None
     """Largest jerk norm, m/s³."""
+    stack: str | None = None
+    """The flight stack the method flew under (``full``, ``none``); None for methods no stack changes
+    (``straight``, ``oracle``) and in files written before stacks. ``method`` is the run's label:
+    ``NAME@STACK`` under a stack other than ``full``."""
 
     def to_dict(self) -> dict[str, Any]:
         """The results.json row: every field in declaration order (the file's key order)."""

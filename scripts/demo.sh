@@ -29,7 +29,7 @@ echo "== mapkit train (cpu preset, a few steps on the sample flights; the shippe
 $MAPKIT train -w "$WS/forest" -w "$WS/garage" -w "$WS/office" --preset cpu --name demo --max-steps 40 --overwrite
 echo "== mapkit eval of the planner shipped with mapkit (closed loop in unseen worlds; the paper's protocol is --world all --pairs 60)"
 $MAPKIT eval --model pretrained --world all --pairs 2 --seed 0 \
-  --methods learned,iplanner-style,straight,oracle -o "$WS/eval" --overwrite
+  --methods learned,untrained,straight-keypoints,iplanner-style,straight,oracle --stack full,none -o "$WS/eval" --overwrite
 echo "== mapkit export-foxglove -w $WS/forest -o $WS/forest.mcap (open it in Foxglove: flight, cloud, ESDF, plans, eval paths)"
 $MAPKIT export-foxglove -w "$WS/forest" -o "$WS/forest.mcap" --model pretrained --eval "$WS/eval" --overwrite
 echo "== mapkit export-rerun -w $WS/forest -o $WS/forest.rrd (the same for Rerun)"

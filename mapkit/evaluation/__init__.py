@@ -11,6 +11,10 @@ Building blocks for other loops: :func:`run_episode` with any object that has ``
 ``needs_depth``, ``replans`` and ``plan(Observation) -> MethodPlan``; :class:`Pieces` (world-frame
 piecewise polynomials with exact snap effort); :func:`sample_pairs`.
 
+Flight stacks and ablations: :func:`under_stack` (``full`` or ``none``), :func:`plan_runs` (every method
+under every stack, each a :class:`Run` labelled ``NAME`` or ``NAME@STACK``), :func:`ablation` (every
+run's outcomes and learned − untrained / straight-key-points with bootstrap intervals over pairs).
+
 Reading results.json: :class:`EpisodeRecord` (one row of ``episodes``), :data:`Outcome`,
 :data:`EVAL_FORMAT`; :func:`compare_effort` (two methods on the pairs both reached, also at equal
 flight time: :func:`effort_at_time`); :func:`success_by_detour` (outcomes by how long the oracle's way
@@ -18,6 +22,15 @@ round was).
 """
 
 from mapkit._formats import EVAL_FORMAT, OUTCOMES, EpisodeRecord, Outcome
+from mapkit.evaluation._ablation import (
+    Ablation,
+    Interval,
+    RunSummary,
+    ablation,
+    comparison_lines,
+    paired_ratio,
+    success_difference,
+)
 from mapkit.evaluation._loop import Episode, LoopConfig, MethodPlan, Observation, level_pose, run_episode
 from mapkit.evaluation._methods import (
     METHODS,
@@ -41,7 +54,17 @@ from mapkit.evaluation._report import (
     success_by_detour,
 )
 from mapkit.evaluation._route import Aim, FlightMap, Progress, RouteConfig
-from mapkit.evaluation._run import PLANS_FILE, WORLD_ORDER, CameraSpec, EvalConfig, EvalResult, evaluate, summarise
+from mapkit.evaluation._run import (
+    PLANS_FILE,
+    WORLD_ORDER,
+    CameraSpec,
+    EvalConfig,
+    EvalResult,
+    evaluate,
+    summarise,
+    untrained_copy,
+)
+from mapkit.evaluation._stack import STACKED_METHODS, Run, parse_stacks, plan_runs, split_label, under_stack
 
 __all__ = [
     "METHODS", "WORLD_ORDER", "EVAL_FORMAT", "OUTCOMES",
@@ -54,4 +77,6 @@ __all__ = [
     "Pieces", "hold", "pieces_from_body",
     "EffortComparison", "compare_effort", "effort_at_time", "DETOUR_EDGES", "DetourBin", "OutcomeCounts",
     "success_by_detour",
+    "Ablation", "Interval", "RunSummary", "ablation", "comparison_lines", "paired_ratio", "success_difference",
+    "STACKED_METHODS", "Run", "parse_stacks", "plan_runs", "split_label", "under_stack", "untrained_copy",
 ]

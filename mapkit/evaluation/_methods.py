@@ -13,10 +13,16 @@
 - ``learned+uniform`` / ``learned+poly5`` / ``learned+gradient``: the same key-points, total time and
   execution, other splits (Table III of the paper; ``gradient`` is the TAN's supervision,
   Mellinger & Kumar descent under the same boundary conditions).
+- ``untrained``: ``learned`` with the same architecture at its initial weights (seeded,
+  ``EvalConfig.untrained_seed``): what the flight stack and the anchors do without any training.
+- ``straight-keypoints``: ``learned`` with the key-points evenly spaced on the straight line to the
+  (local or routed) goal, η = 0, timed and flown through the same corridor, memory and routing.
 - ``iplanner-style``: the same network outputs, iPlanner's way: a cubic spline through the key-points
   timed by arc length at the learned plans' cruise speed (``Execution.speed``; no dynamics, no time
   allocation, no slowing for turns), clamped to the vehicle's
-  velocity at the start and to the same end velocity as the others.
+  velocity at the start and to the same end velocity as the others. Under a flight stack its memory,
+  routing and ways out pick the key-points as for ``learned`` (the corridor's layers do not apply to a
+  spline).
 - ``straight``: no perception; one minimum-snap segment from the vehicle's state to the local goal,
   timed by the same speed profile (the optimum through any points of the straight line; pinning
   interior points at fixed times only adds snap).
@@ -30,7 +36,7 @@ import itertools
 import math
 import time
 from dataclasses import dataclass, field, fields, replace
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -47,9 +53,14 @@ from mapkit.trajopt import Trajectory, allocate_times, min_snap
 
 LEARNED_ALLOCATIONS: dict[str, Allocation] = {"learned": "tan", "learned+uniform": "uniform",
                                               "learned+poly5": "poly5", "learned+gradient": "gradient"}
-METHODS = ("learned", "learned+uniform", "learned+poly5", "learned+gradient", "iplanner-style", "straight", "oracle")
+METHODS = ("learned", "learned+uniform", "learned+poly5", "learned+gradient", "untrained", "straight-keypoints",
+           "iplanner-style", "straight", "oracle")
 """Every method name, in report order."""
-NEEDS_MODEL = frozenset({*LEARNED_ALLOCATIONS, "iplanner-style"})
+NEEDS_MODEL = frozenset({*LEARNED_ALLOCATIONS, "untrained", "straight-keypoints", "iplanner-style"})
+"""Methods that need ``--model`` (``untrained`` copies its architecture, ``straight-keypoints`` its
+configuration, time allocation and image preprocessing)."""
+KeypointSource = Literal["network", "straight"]
+"""Where a :class:`LearnedMethod`'s key-points come from."""
 ROBOT_RADIUS = 0.3
 """Metres: the evaluation's collision radius (:attr:`LoopConfig.robot_radius`)."""
 ROBOT_CLEARANCE = 0.35
@@ -506,7 +517,7 @@ class PlanInput:
 
 @dataclass
 class _Attempt:
-    """One network pass toward a goal, timed and (unless a spline) executed."""
+    """One network pass toward a goal, timed and executed (minimum snap, or iPlanner's spline)."""
 
     kp: np.ndarray
     eta: float
@@ -527,8 +538,10 @@ class LearnedMethod:
     replans = True
 
     def __init__(self, name: str, net: PlannerNet, *, allocation: Allocation = "tan", spline: bool = False,
-                 camera: CameraInput | None = None, execution: Execution = Execution()) -> None:
+                 camera: CameraInput | None = None, execution: Execution = Execution(),
+                 keypoints: KeypointSource = "network") -> None:
         self.name = name
+        self.keypoint_source = keypoints
         self.camera = camera
         self.net = net.eval()
         self.allocation = allocation
@@ -543,14 +556,15 @@ class LearnedMethod:
         self._subgoal: tuple[np.ndarray, float] | None = None  # (world point, until)
         self._flight: tuple[np.ndarray, float] | None = None  # (goal, time) of the last plan
         self._image: tuple[Observation, ImageFeatures] | None = None  # the last frame's encoding
-        self._memory = (None if execution.memory is None or camera is None or spline
-                        else _Memory(camera, execution.memory))
+        self._memory = None if execution.memory is None or camera is None else _Memory(camera, execution.memory)
         self._route = None if execution.route is None or self._memory is None else FlightMap(execution.route)
         self._progress = Progress()
 
     def _keypoints(self, obs: Observation, start: np.ndarray, goal: np.ndarray):
         """The network's pass toward ``goal``; a second goal from the same frame (a way out) reuses
         the first pass's encoding of the image."""
+        if self.keypoint_source == "straight":
+            return self._straight_keypoints(obs, goal)
         with torch.inference_mode():
             image = self._image[1] if self._image is not None and self._image[0] is obs else None
             if image is None:
@@ -562,6 +576,16 @@ class LearnedMethod:
             out = self.net(x, g, camera=self.camera, velocity=v, image=image)
             self._image = None if out.image is None else (obs, out.image)
             return x, out
+
+    def _straight_keypoints(self, obs: Observation, goal: np.ndarray) -> tuple[torch.Tensor, PlannerOutput]:
+        """The preprocessed depth and an output with one candidate: the network's K key-points' places
+        on the straight line to ``goal``, η = 0."""
+        with torch.inference_mode():
+            x = self.net.preprocess(torch.from_numpy(np.asarray(obs.depth, dtype=np.float32)[None]))
+            line = self.net.straight_line(torch.from_numpy(np.asarray(goal, dtype=np.float32)[None]))
+        logit = torch.full((1,), -30.0)
+        return x, PlannerOutput(keypoints=line, eta=torch.sigmoid(logit), eta_logit=logit,
+                                candidates=line[:, None], candidate_eta_logits=logit[:, None])
 
     def _timed(self, wp: torch.Tensor, start: torch.Tensor, end_speed: torch.Tensor) -> Timing:
         """Segment times of plans (B, K+1, 3) at the flight's cruise speed, each slowed for its
@@ -592,7 +616,9 @@ class LearnedMethod:
         if self.plan_log is not None:
             self.plan_log.append(PlanInput(waypoints=wp, start=np.array(start[1:]), end_speed=float(timing.end[0, 0].norm()),
                                            cruise_speed=float(timing.cruise_speed[0]), decel=float(timing.decel[0])))
+        attempt.out, attempt.end_speed = out, end_speed
         if self.spline:
+            attempt.traj = _spline_trajectory(wp, start, timing)
             return attempt
         how = self.execution
         if self.camera is not None and how.check_corridor:
@@ -604,7 +630,6 @@ class LearnedMethod:
             wpt = follow_reference(wpt, timing.durations, obs, how.follow, how.corridor)
         with torch.inference_mode():
             attempt.traj = _execute(wpt, timing.durations, st, timing.end, how, attempt.check)
-        attempt.out, attempt.end_speed = out, end_speed
         return attempt
 
     def _remembered(self, obs: Observation, start: np.ndarray, attempt: _Attempt) -> _Attempt:
@@ -633,7 +658,10 @@ class LearnedMethod:
         scores = out.scores[0].numpy() if out.scores is not None else np.zeros(M)
         m = int(np.argmax(np.where(clear, scores, -np.inf)))
         with torch.inference_mode():
-            traj = _execute(wp[m:m + 1], timing.durations[m:m + 1], st[:1], timing.end[m:m + 1], how, attempt.check)
+            if self.spline:
+                traj = _spline_trajectory(wp[m].numpy(), start, _pick(timing, m))
+            else:
+                traj = _execute(wp[m:m + 1], timing.durations[m:m + 1], st[:1], timing.end[m:m + 1], how, attempt.check)
         eta = float(torch.sigmoid(out.candidate_eta_logits[0, m]))
         return _Attempt(out.candidates[0, m].double().numpy(), eta, _pick(timing, m), attempt.allocation_ms,
                         traj, attempt.check, False, out, attempt.end_speed)
@@ -711,13 +739,10 @@ class LearnedMethod:
                     point = obs.T_world_body[:3, :3] @ body + obs.T_world_body[:3, 3]
                     self._subgoal = (point, obs.t + self.execution.subgoal_time)
                     attempt = self._remembered(obs, start, self._attempt(obs, start, body, self._subgoal_speed()))
-        if self.spline:
-            timing = attempt.timing
-            coeffs, durations = _clamped_spline(np.concatenate([start[:1], attempt.kp]), start[1],
-                                                timing.end[0, 0].numpy(), float(timing.total[0]))
-        else:
-            assert attempt.traj is not None  # executed unless a spline
-            coeffs, durations = attempt.traj.coeffs[0].numpy(), attempt.timing.durations[0].numpy()
+        assert attempt.traj is not None  # every attempt is executed (a spline, or minimum snap)
+        # a spline's knots follow its chords; a minimum-snap reference keeps the allocation's durations
+        durations = (attempt.traj if self.spline else attempt.timing).durations[0].numpy()
+        coeffs = attempt.traj.coeffs[0].numpy()
         overrides = False
         if attempt.eta >= 0.5 and attempt.check is not None and obs.reference is not None:
             with torch.inference_mode():
@@ -732,6 +757,13 @@ class LearnedMethod:
         return MethodPlan(pieces=pieces, latency_ms=latency, eta=attempt.eta, keypoints_world=kp_world,
                           allocation_ms=None if self.spline else attempt.allocation_ms, overrides_eta=overrides,
                           blocked=attempt.blocked, brake_direction=brake, turn_side=side, look_at=aim)
+
+
+def _spline_trajectory(wp: np.ndarray, start: np.ndarray, timing: Timing) -> Trajectory:
+    """iPlanner's reference: :func:`_clamped_spline` through the waypoints (K+1, 3) from the start
+    state (4, 3) over a (batch of one) timing's total time, as a batch-of-one cubic trajectory."""
+    coeffs, durations = _clamped_spline(wp, start[1], timing.end[0, 0].numpy(), float(timing.total[0]))
+    return Trajectory(torch.from_numpy(coeffs)[None], torch.from_numpy(durations)[None])
 
 
 def _clamped_spline(wp: np.ndarray, v0: np.ndarray, v1: np.ndarray, total: float) -> tuple[np.ndarray, np.ndarray]:
@@ -822,10 +854,10 @@ def _split_long(poly: np.ndarray, max_len: float) -> np.ndarray:
 
 def make_methods(names: list[str], net: PlannerNet | None, world: World, graph: FreeSpaceGraph | None, *,
                  oracle_corridor: float = 0.1, robot_radius: float = 0.3, camera: CameraInput | None = None,
-                 execution: Execution = Execution()) -> list:
-    """Instantiate the named methods (``net`` needed by the learned ones, ``graph`` by the oracle,
-    ``camera`` by models that check their paths against the depth image; ``execution`` how the
-    learned allocations fly their key-points)."""
+                 execution: Execution = Execution(), untrained: PlannerNet | None = None) -> list:
+    """Instantiate the named methods (``net`` needed by the learned ones, ``untrained`` by ``untrained``,
+    ``graph`` by the oracle, ``camera`` by models that check their paths against the depth image;
+    ``execution`` how the learned methods fly their key-points: the flight stack)."""
     cfg = net.config if net is not None else None
     out: list[LearnedMethod | StraightMethod | OracleMethod] = []
     for name in names:
@@ -833,11 +865,16 @@ def make_methods(names: list[str], net: PlannerNet | None, world: World, graph: 
             assert net is not None  # evaluate() refuses learned methods without a model
             out.append(LearnedMethod(name, net, allocation=LEARNED_ALLOCATIONS[name], camera=camera,
                                      execution=execution))
+        elif name == "untrained":
+            assert untrained is not None  # evaluate() builds it from the model's architecture
+            out.append(LearnedMethod(name, untrained, camera=camera, execution=execution))
+        elif name == "straight-keypoints":
+            assert net is not None  # likewise: its configuration and time allocation
+            out.append(LearnedMethod(name, net, camera=camera, execution=execution, keypoints="straight"))
         elif name == "iplanner-style":
             assert net is not None  # likewise
             # iPlanner's spline flies the learned plans' pace, without the turns' slowing (which came later)
-            pace = Execution(turn_accel=None, speed=execution.speed, stop_decel=execution.stop_decel)
-            out.append(LearnedMethod(name, net, spline=True, camera=camera, execution=pace))
+            out.append(LearnedMethod(name, net, spline=True, camera=camera, execution=replace(execution, turn_accel=None)))
         elif name == "straight":
             out.append(StraightMethod(cfg))
         elif name == "oracle":

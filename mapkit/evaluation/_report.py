@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from mapkit._formats import EpisodeRecord
+from mapkit.evaluation._ablation import ablation, ablation_lines
+from mapkit.evaluation._stack import LABEL_SEPARATOR
 from mapkit.sim import World
 
 PAPER_SUCCESS = {  # % office / garage / forest / overall, from the paper
@@ -22,6 +24,7 @@ PAPER_TIME_ALLOCATION = {"uniform": ("601.50", "13.13"), "poly5": ("22.93", "11.
                          "gradient": ("26.99", "118.19"), "TAN": ("21.16", "13.16")}
 METHOD_COLOURS = {"learned": "tab:blue", "learned+uniform": "tab:cyan", "learned+poly5": "tab:olive",
                   "learned+gradient": "tab:purple", "iplanner-style": "tab:orange", "straight": "tab:gray",
+                  "untrained": "tab:brown", "straight-keypoints": "tab:pink",
                   "oracle": "tab:green"}
 OUTCOME_COLOURS = {"success": "tab:green", "collision": "tab:red", "timeout": "tab:orange"}
 
@@ -70,6 +73,7 @@ def _markdown(path: Path, doc: dict, episodes: list[EpisodeRecord], latency: dic
     methods = doc["methods"]
     L = _setup_lines(doc)
     L += _success_table(doc)
+    L += _ablation_section(doc, episodes)
     L += _effort_table(doc, latency)
     for other, paper in (("iplanner-style", "paper: 30.9 % lower than iPlanner"),
                          ("learned+gradient", "paper: TAN 21.16 vs gradient descent 26.99"),
@@ -83,6 +87,15 @@ def _markdown(path: Path, doc: dict, episodes: list[EpisodeRecord], latency: dic
     L += [f"Versions: {', '.join(f'{k} {v}' for k, v in doc['versions'].items())}.", ""]
     path.write_text("\n".join(L))
     return path
+
+
+def _ablation_section(doc: dict, episodes: list[EpisodeRecord]) -> list[str]:
+    """What the network adds (every run, learned against untrained and straight key-points under each
+    stack): only when the evaluation flew an ablation."""
+    methods = doc["methods"]
+    if not any(LABEL_SEPARATOR in m or m in ("untrained", "straight-keypoints") for m in methods):
+        return []
+    return ["## Ablation — what the network adds", "", *ablation_lines(ablation(episodes, methods)), ""]
 
 
 def _setup_lines(doc: dict) -> list[str]:

@@ -23,12 +23,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from mapkit._choices import FLIGHT_STACKS, FlightStack
 from mapkit._formats import EVAL_FORMAT, EpisodeRecord
 from mapkit._version import __version__
+from mapkit.evaluation._ablation import Ablation, ablation
 from mapkit.evaluation._loop import LoopConfig, run_episode
 from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, Execution, LearnedMethod, PlanInput, make_methods
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
 from mapkit.evaluation._route import RouteConfig
+from mapkit.evaluation._stack import Run, plan_runs, split_label, under_stack
 from mapkit.workspace import atomic_output, check_writable
 
 if TYPE_CHECKING:
@@ -62,6 +65,12 @@ class EvalConfig:
     """Seed of the worlds and the pairs; must differ from the seeds of the training worlds."""
     methods: tuple[str, ...] = METHODS
     """Methods to compare (see :data:`mapkit.evaluation.METHODS`)."""
+    stacks: tuple[FlightStack, ...] = ("full",)
+    """Flight stacks every learned method flies under (:func:`~mapkit.evaluation.under_stack`): one
+    run per method and stack, labelled ``NAME@STACK`` under a stack other than ``full``; ``straight``
+    and ``oracle`` fly once."""
+    untrained_seed: int = 0
+    """Seed of the ``untrained`` method's initial weights (the model's architecture)."""
     min_distance: float = 8.0
     """Metres between start and goal, at least."""
     pair_clearance: float = 0.6
@@ -93,6 +102,10 @@ class EvalConfig:
         bad = [m for m in self.methods if m not in METHODS]
         if bad or not self.methods:
             raise EvalError(f"unknown method {bad[0] if bad else '(none)'!r}; use some of {', '.join(METHODS)}")
+        stacks = [s for s in self.stacks if s not in FLIGHT_STACKS]
+        if stacks or not self.stacks or len(set(self.stacks)) != len(self.stacks):
+            what = f"unknown flight stack {stacks[0]!r}" if stacks else f"flight stacks {list(self.stacks)}"
+            raise EvalError(f"{what}; --stack takes a comma list of distinct {', '.join(FLIGHT_STACKS)}")
         if self.pairs < 1:
             raise EvalError(f"--pairs must be >= 1, got {self.pairs}")
         if self.workers < 1:
@@ -174,6 +187,8 @@ class EvalResult:
     out_dir: Path
     summary: dict[str, Any]
     files: list[Path]
+    ablation: Ablation | None = None
+    """Every run and learned against its untrained / straight-key-point twins (:func:`ablation`)."""
 
 
 # ------------------------------------------------------------------------------------ set-up
@@ -252,11 +267,13 @@ class _WorkerSetup:
     seed: int
     pair_clearance: float
     camera: CameraSpec
-    methods: tuple[str, ...]
+    runs: tuple[Run, ...]
+    """Every method under every stack (:func:`~mapkit.evaluation.plan_runs`)."""
     oracle_corridor: float
     execution: Execution
     loop: LoopConfig
     record_plans: bool = False
+    untrained_seed: int = 0
 
 
 @dataclass(frozen=True)
@@ -276,6 +293,8 @@ class _WorkerState:
 
     setup: _WorkerSetup
     net: Any
+    untrained: Any = None
+    """The model's architecture at its seeded initial weights (the ``untrained`` method), else None."""
     worlds: dict[str, _WorldBundle] = field(default_factory=dict)
 
 
@@ -305,12 +324,26 @@ def _init_worker(setup: _WorkerSetup) -> None:
 
     global _WORKER
     torch.set_num_threads(1)
-    net = None
+    net = untrained = None
     if setup.model is not None:
         from mapkit.planning import Planner
 
         net = Planner.load(setup.model).net.prepare_inference()  # every process plans hundreds of frames
-    _WORKER = _WorkerState(setup=setup, net=net)
+        if any(run.method == "untrained" for run in setup.runs):
+            untrained = untrained_copy(net, setup.untrained_seed).prepare_inference()
+    _WORKER = _WorkerState(setup=setup, net=net, untrained=untrained)
+
+
+def untrained_copy(net: Any, seed: int) -> Any:
+    """A new :class:`~mapkit.planner.PlannerNet` of ``net``'s configuration at the initial weights that
+    ``seed`` gives (the same in every process; the global torch generator is left as it was)."""
+    import torch
+
+    from mapkit.planner import PlannerNet
+
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        return PlannerNet(net.config).eval()
 
 
 def _worker() -> _WorkerState:
@@ -339,9 +372,14 @@ def _world_bundle(kind: str) -> _WorldBundle:
         from mapkit.planner import CameraInput
 
         calibration = CameraInput.from_calibration(K, cam.width, cam.height, np.asarray(cam.T_body_camera))
-        methods = make_methods(list(setup.methods), state.net, world, graph,
-                               oracle_corridor=setup.oracle_corridor, robot_radius=setup.loop.robot_radius,
-                               camera=calibration, execution=dataclasses.replace(setup.execution))
+        methods = []
+        for run in setup.runs:
+            execution = setup.execution if run.stack is None else under_stack(setup.execution, run.stack)
+            (method,) = make_methods([run.method], state.net, world, graph, oracle_corridor=setup.oracle_corridor,
+                                     robot_radius=setup.loop.robot_radius, camera=calibration,
+                                     execution=dataclasses.replace(execution), untrained=state.untrained)
+            method.name = run.label
+            methods.append(method)
         for method in methods:
             if setup.record_plans and isinstance(method, LearnedMethod) and method.name == "learned":
                 method.plan_log = []
@@ -386,7 +424,7 @@ def _run_pair(kind: str, pair: dict) -> list[_EpisodeRun]:
             collision_point=ep.collision_point,
             collision_time=ep.collision_time, plans=ep.plans, rejected_plans=ep.rejected_plans,
             plan_effort=ep.plan_effort, peak_speed=ep.peak_speed, peak_acceleration=ep.peak_acceleration,
-            peak_jerk=ep.peak_jerk,
+            peak_jerk=ep.peak_jerk, stack=split_label(method.name).stack,
         )
         plans = getattr(method, "plan_log", None) or []
         out.append(_EpisodeRun(record=record, latencies_ms=ep.latencies_ms, allocation_ms=ep.allocation_ms,
@@ -494,7 +532,8 @@ def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> 
                             model_info=None)
     need_model = [m for m in config.methods if m in NEEDS_MODEL]
     if need_model and model is None:
-        raise EvalError(f"methods {need_model} need a trained model: pass --model RUN")
+        raise EvalError(f"methods {need_model} need a model: pass --model RUN_DIR (a run of `mapkit train`) or "
+                        f"--model pretrained (untrained copies its architecture, straight-keypoints its timing)")
     if model is None:
         return context
     run_dir = resolve_model(model)
@@ -741,7 +780,7 @@ def _results_doc(config: EvalConfig, context: _ModelContext, pairs: dict[str, li
         "camera": dataclasses.asdict(context.camera),
         "worlds": {k: {"seed": config.seed, "world_json": f"worlds/{k}.world.json",
                        "pairs": [p.to_dict() for p in pairs[k]]} for k in config.worlds},
-        "methods": list(config.methods),
+        "methods": run_labels(config),
         "summary": summary,
         "episodes": [e.to_dict() for e in episodes],
     }
@@ -749,6 +788,11 @@ def _results_doc(config: EvalConfig, context: _ModelContext, pairs: dict[str, li
     del doc["config"]["scheduler"]
     del doc["config"]["record_plans"]
     return doc
+
+
+def run_labels(config: EvalConfig) -> list[str]:
+    """results.json's ``methods``: the label of every run, in report order."""
+    return [run.label for run in plan_runs(config.methods, config.stacks)]
 
 
 PLANS_FILE = "plans.npz"
@@ -840,13 +884,14 @@ def evaluate(
         setup = _WorkerSetup(model=_model_for_workers(model, config),
                              model_sha256=context.model_info["sha256"] if context.model_info else None,
                              seed=config.seed, pair_clearance=config.pair_clearance, camera=context.camera,
-                             methods=tuple(config.methods), oracle_corridor=config.oracle_corridor,
-                             execution=config.execution, loop=config.loop, record_plans=config.record_plans)
+                             runs=tuple(plan_runs(config.methods, config.stacks)), oracle_corridor=config.oracle_corridor,
+                             execution=config.execution, loop=config.loop, record_plans=config.record_plans,
+                             untrained_seed=config.untrained_seed)
         tasks = [(k, p.to_dict()) for k in config.worlds for p in pairs[k]]
         flown = _fly_all(setup, tasks, config.workers, progress, cluster)
     collected = _collect(config, pairs, flown.results)
 
-    worlds_list, methods = list(config.worlds), list(config.methods)
+    worlds_list, methods = list(config.worlds), run_labels(config)
     summary = summarise(collected.episodes, worlds_list, methods)
     lat = latency_summary(collected.latencies, worlds_list, methods)
     alloc = latency_summary(collected.allocations, worlds_list, methods)
@@ -854,7 +899,8 @@ def evaluate(
     _write_outputs(out_dir, doc, lat, alloc, worlds, collected.paths, flown.workers, overwrite=overwrite,
                    plans=collected.plans if config.record_plans else None)
     files = sorted(p for p in out_dir.rglob("*") if p.is_file())
-    return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat, "allocation": alloc}, files=files)
+    return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat, "allocation": alloc}, files=files,
+                      ablation=ablation(collected.episodes, methods))
 
 
 def _validate_route(route: RouteConfig) -> None:

@@ -1,0 +1,197 @@
+"""What the network adds: every run (method × flight stack) side by side, and paired differences
+with bootstrap intervals over the start–goal pairs.
+
+Each comparison pairs the flights two runs made from the same start and goal. Intervals resample the
+pairs with replacement within each world (the worlds' shares stay fixed) and take the 2.5th and
+97.5th percentiles of the statistic: 95 % percentile intervals."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from mapkit._formats import EpisodeRecord
+from mapkit.evaluation._stack import Run, split_label
+
+BOOTSTRAP_RESAMPLES = 10_000
+"""Resamples of each interval (the percentiles move by well under a point between seeds)."""
+PairKey = tuple[str, int]
+"""(world, pair index): one start–goal pair."""
+Paired = Literal["control_effort", "time_s"]
+"""The measured quantities compared as ratios on the pairs both runs reached."""
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """One run's flights: its outcomes and the medians of its successful flights."""
+
+    label: str
+    """The run's name in results.json (``NAME`` or ``NAME@STACK``)."""
+    method: str
+    stack: str | None
+    """The flight stack it flew under (None: a method no stack changes)."""
+    flights: int
+    success: int
+    collisions: int
+    timeouts: int
+    effort_median: float | None
+    """Median executed ∫‖snap‖² dt of the successful flights, m²/s⁷."""
+    time_median: float | None
+    """Median flight time to the goal of the successful flights, s."""
+
+    @property
+    def success_rate(self) -> float:
+        return self.success / self.flights if self.flights else float("nan")
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A paired statistic of run ``a`` against run ``b`` with its 95 % bootstrap interval."""
+
+    a: str
+    b: str
+    estimate: float
+    low: float
+    high: float
+    pairs: int
+    """Pairs it was computed over."""
+
+    def __str__(self) -> str:
+        return f"{self.estimate:+.1f} [{self.low:+.1f}, {self.high:+.1f}]"
+
+
+@dataclass(frozen=True)
+class Ablation:
+    """Every run, and each learned run against its untrained and straight-key-point twins."""
+
+    runs: list[RunSummary]
+    success_difference: list[Interval]
+    """Percentage points of success, learned − other, over every pair both flew."""
+    effort_ratio: list[Interval]
+    """Geometric mean over the pairs both reached of learned / other executed effort."""
+    time_ratio: list[Interval]
+    """Likewise for the flight time to the goal."""
+
+
+def summarise_runs(episodes: list[EpisodeRecord], labels: list[str]) -> list[RunSummary]:
+    """One :class:`RunSummary` per label, in the given order."""
+    out = []
+    for label in labels:
+        eps = [e for e in episodes if e.method == label]
+        ok = [e for e in eps if e.outcome == "success"]
+        efforts = [e.control_effort for e in ok if e.control_effort is not None]
+        times = [e.time_s for e in ok if e.time_s is not None]
+        run = split_label(label)
+        out.append(RunSummary(
+            label=label, method=run.method, stack=run.stack, flights=len(eps), success=len(ok),
+            collisions=sum(e.outcome == "collision" for e in eps), timeouts=sum(e.outcome == "timeout" for e in eps),
+            effort_median=float(np.median(efforts)) if efforts else None,
+            time_median=float(np.median(times)) if times else None))
+    return out
+
+
+def _by_pair(episodes: list[EpisodeRecord], label: str) -> dict[PairKey, EpisodeRecord]:
+    return {(e.world, e.pair): e for e in episodes if e.method == label}
+
+
+def _bootstrap_mean(values: np.ndarray, worlds: np.ndarray, resamples: int, seed: int) -> tuple[float, float]:
+    """2.5th and 97.5th percentiles of the mean of ``values`` over resamples drawn with replacement
+    within each world."""
+    rng = np.random.default_rng(seed)
+    groups = [np.flatnonzero(worlds == w) for w in np.unique(worlds)]
+    draws = np.concatenate([g[rng.integers(0, len(g), size=(resamples, len(g)))] for g in groups], axis=1)
+    low, high = np.percentile(values[draws].mean(axis=1), [2.5, 97.5])
+    return float(low), float(high)
+
+
+def success_difference(episodes: list[EpisodeRecord], a: str, b: str, *, resamples: int = BOOTSTRAP_RESAMPLES,
+                       seed: int = 0) -> Interval | None:
+    """Success of run ``a`` minus run ``b`` in percentage points over the pairs both flew, with its
+    interval (None when they share no pair)."""
+    ea, eb = _by_pair(episodes, a), _by_pair(episodes, b)
+    keys = sorted(ea.keys() & eb.keys())
+    if not keys:
+        return None
+    diff = np.array([float(ea[k].outcome == "success") - float(eb[k].outcome == "success") for k in keys])
+    worlds = np.array([k[0] for k in keys])
+    low, high = _bootstrap_mean(diff, worlds, resamples, seed)
+    return Interval(a, b, 100.0 * float(diff.mean()), 100.0 * low, 100.0 * high, len(keys))
+
+
+def paired_ratio(episodes: list[EpisodeRecord], a: str, b: str, quantity: Paired, *,
+                 resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> Interval | None:
+    """Geometric mean of ``quantity`` of ``a`` over that of ``b`` on the pairs both reached (where both
+    are positive), with its interval; None without such pairs."""
+    ea, eb = _by_pair(episodes, a), _by_pair(episodes, b)
+    keys, logs = [], []
+    for k in sorted(ea.keys() & eb.keys()):
+        x, y = getattr(ea[k], quantity), getattr(eb[k], quantity)
+        if ea[k].outcome == eb[k].outcome == "success" and x and y and x > 0 and y > 0:
+            keys.append(k)
+            logs.append(np.log(x / y))
+    if not keys:
+        return None
+    values, worlds = np.array(logs), np.array([k[0] for k in keys])
+    low, high = _bootstrap_mean(values, worlds, resamples, seed)
+    return Interval(a, b, float(np.exp(values.mean())), float(np.exp(low)), float(np.exp(high)), len(keys))
+
+
+def ablation(episodes: list[EpisodeRecord], labels: list[str], *, resamples: int = BOOTSTRAP_RESAMPLES,
+             seed: int = 0) -> Ablation:
+    """Every run of ``labels``, and ``learned`` under each stack against ``untrained`` and
+    ``straight-keypoints`` under the same stack (the comparisons whose runs are present)."""
+    runs = summarise_runs(episodes, labels)
+    present = {r.label for r in runs}
+    pairs = []
+    for run in runs:
+        if run.method != "learned":
+            continue
+        for other in ("untrained", "straight-keypoints"):
+            twin = Run(other, run.stack).label
+            if twin in present:
+                pairs.append((run.label, twin))
+    kw = {"resamples": resamples, "seed": seed}
+    return Ablation(
+        runs=runs,
+        success_difference=[d for a, b in pairs if (d := success_difference(episodes, a, b, **kw)) is not None],
+        effort_ratio=[d for a, b in pairs if (d := paired_ratio(episodes, a, b, "control_effort", **kw)) is not None],
+        time_ratio=[d for a, b in pairs if (d := paired_ratio(episodes, a, b, "time_s", **kw)) is not None])
+
+
+def ablation_lines(result: Ablation) -> list[str]:
+    """Markdown: the runs' table, then the paired comparisons."""
+    return run_lines(result.runs) + comparison_lines(result)
+
+
+def run_lines(runs: list[RunSummary]) -> list[str]:
+    """Markdown table of every run's outcomes, effort and time to goal."""
+    L = ["| method | stack | success % | collisions | timeouts | effort (median, m²/s⁷) | time to goal (median, s) |",
+         "|---|---|---|---|---|---|---|"]
+    for r in runs:
+        effort = f"{r.effort_median:.4g}" if r.effort_median is not None else "–"
+        t = f"{r.time_median:.1f}" if r.time_median is not None else "–"
+        L.append(f"| {r.method} | {r.stack or '–'} | {100 * r.success_rate:.1f} | {r.collisions} | {r.timeouts} "
+                 f"| {effort} | {t} |")
+    return L
+
+
+def comparison_lines(result: Ablation) -> list[str]:
+    """Markdown table of learned against its twins under each stack ([] without comparisons)."""
+    L: list[str] = []
+    if result.success_difference:
+        L += ["", "| learned against | success difference, points [95 % CI] | effort ratio [95 % CI] | "
+                  "time ratio [95 % CI] |", "|---|---|---|---|"]
+        effort = {(d.a, d.b): d for d in result.effort_ratio}
+        times = {(d.a, d.b): d for d in result.time_ratio}
+        for d in result.success_difference:
+            e, t = effort.get((d.a, d.b)), times.get((d.a, d.b))
+            L.append(f"| {d.a} − {d.b} | {d} ({d.pairs} pairs) | {_ratio(e)} | {_ratio(t)} |")
+        L += ["", "Ratios: geometric mean of learned / other over the pairs both reached (below 1: learned "
+                  "spends less). Intervals: 95 % bootstrap over the pairs, resampled within each world."]
+    return L
+
+
+def _ratio(d: Interval | None) -> str:
+    return "–" if d is None else f"{d.estimate:.3f}× [{d.low:.3f}, {d.high:.3f}] ({d.pairs} pairs)"

@@ -1,0 +1,188 @@
+"""Flight stacks and ablations in `mapkit eval`: stacks, runs and labels, the untrained and
+straight-key-point methods, paired differences with bootstrap intervals (analytic answers), and an
+ablation run end to end through the CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from mapkit._formats import EpisodeRecord
+from mapkit.cli.main import main
+from mapkit.evaluation import (
+    EvalConfig,
+    EvalError,
+    Execution,
+    Run,
+    ablation,
+    paired_ratio,
+    parse_stacks,
+    plan_runs,
+    split_label,
+    success_difference,
+    under_stack,
+    untrained_copy,
+)
+from mapkit.planner import PlannerNet, planner_preset
+
+
+# ------------------------------------------------------------------------------ stacks and runs
+def test_stack_none_turns_off_exactly_the_layers_around_the_planner():
+    full = Execution()
+    none = under_stack(full, "none")
+    assert under_stack(full, "full") is full
+    changed = {f.name for f in dataclasses.fields(Execution) if getattr(full, f.name) != getattr(none, f.name)}
+    assert changed == {"memory", "route", "check_corridor", "check_memory", "turn_toward_open", "follow"}
+    assert none.memory is None and none.route is None and none.follow == 0.0 and not none.check_corridor
+    # the corridor, the pace and the limits stay
+    assert (none.corridor, none.speed, none.v_max, none.a_max) == (full.corridor, full.speed, full.v_max, full.a_max)
+
+
+def test_every_stacked_method_flies_under_every_stack_and_the_others_once():
+    runs = plan_runs(("learned", "untrained", "straight", "oracle"), ("full", "none"))
+    assert [r.label for r in runs] == ["learned", "learned@none", "untrained", "untrained@none", "straight", "oracle"]
+    for r in runs:
+        assert split_label(r.label) == r
+    assert Run("oracle", None).label == "oracle" and split_label("iplanner-style@none") == Run("iplanner-style", "none")
+    with pytest.raises(ValueError, match="unknown flight stack 'lots'"):
+        split_label("learned@lots")
+
+
+@pytest.mark.parametrize("text, message", [("full,bogus", "unknown flight stack 'bogus'"),
+                                           ("none,none", "given twice: 'none'"), (" , ", "--stack is empty")])
+def test_bad_stacks_are_refused_with_the_choices(text: str, message: str):
+    with pytest.raises(EvalError, match=message) as err:
+        parse_stacks(text)
+    assert "full, none" in str(err.value)
+    assert parse_stacks("none, full") == ("none", "full")
+
+
+def test_an_evaluation_config_with_an_unknown_stack_is_refused():
+    with pytest.raises(EvalError, match="unknown flight stack 'half'.*full, none"):
+        EvalConfig(stacks=("full", "half")).validate()  # type: ignore[arg-type]  # a bad value on purpose
+
+
+def test_cli_refuses_an_unknown_stack_and_untrained_without_a_model(tmp_path: Path):
+    r = CliRunner().invoke(main, ["eval", "--stack", "paper", "--methods", "straight", "-o", str(tmp_path / "a")])
+    assert r.exit_code == 1 and "Traceback" not in r.output
+    assert r.output.strip().splitlines()[-1].endswith("use a comma list of full, none")
+    r = CliRunner().invoke(main, ["eval", "--methods", "untrained", "-o", str(tmp_path / "b")])
+    assert r.exit_code == 1 and "--model pretrained" in r.output and "untrained copies its architecture" in r.output
+
+
+# ------------------------------------------------------------------------------ the twins of learned
+def _tiny_net() -> PlannerNet:
+    torch.manual_seed(5)
+    return PlannerNet(planner_preset("cpu", input_size=(48, 64), num_candidates=4))
+
+
+def test_the_untrained_copy_is_seeded_the_same_everywhere_and_leaves_the_generator_alone():
+    net = _tiny_net()
+    torch.manual_seed(123)
+    before = torch.rand(3)
+    torch.manual_seed(123)
+    a, b, c = untrained_copy(net, 0), untrained_copy(net, 0), untrained_copy(net, 1)
+    assert torch.equal(torch.rand(3), before)  # the global generator continues as if nothing happened
+    sa, sb, sc, trained = a.state_dict(), b.state_dict(), c.state_dict(), net.state_dict()
+    assert a.config == net.config and sa.keys() == trained.keys()
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert any(not torch.equal(sa[k], sc[k]) for k in sa if sa[k].is_floating_point())
+
+
+def test_straight_keypoints_lie_evenly_on_the_line_to_the_goal():
+    from mapkit.evaluation import LearnedMethod, Observation
+
+    net = _tiny_net()
+    method = LearnedMethod("straight-keypoints", net, keypoints="straight")
+    obs = Observation(t=0.0, T_world_body=np.eye(4), state_world=np.zeros((4, 3)), goal_world=np.array([6.0, 3.0, 0.6]),
+                      local_goal_body=np.array([6.0, 3.0, 0.6]), depth=np.full((48, 64), 4.0, dtype=np.float32))
+    plan = method.plan(obs)
+    K = net.config.num_keypoints
+    expected = np.arange(1, K + 1)[:, None] / K * np.array([6.0, 3.0, 0.6])
+    assert np.allclose(plan.keypoints_world, expected, atol=1e-6)
+    assert plan.eta is not None and plan.eta < 1e-6
+    assert np.allclose(plan.pieces.state(plan.pieces.t_end)[0], [6.0, 3.0, 0.6], atol=1e-6)
+
+
+# ------------------------------------------------------------------------------ paired statistics
+def _episodes(label: str, outcomes: list[str], efforts: list[float], world: str = "office") -> list[EpisodeRecord]:
+    return [EpisodeRecord(world=world, pair=i, method=label, outcome=o, start=[0, 0, 0], goal=[1, 0, 0],  # type: ignore[arg-type]
+                          control_effort=e, time_s=10.0 + i) for i, (o, e) in enumerate(zip(outcomes, efforts))]
+
+
+def test_success_difference_is_the_paired_mean_and_its_interval_covers_it():
+    a = _episodes("learned@none", ["success"] * 20, [1.0] * 20)
+    b = _episodes("untrained@none", ["success", "collision"] * 10, [1.0] * 20)
+    d = success_difference(a + b, "learned@none", "untrained@none")
+    assert d is not None and d.pairs == 20 and d.estimate == pytest.approx(50.0)
+    # the resampled mean of 20 draws of {0, 1}: the binomial's 95 % range, about ±22 points
+    assert 25.0 < d.low < 40.0 and 60.0 < d.high < 75.0
+    same = success_difference(a + a, "learned@none", "learned@none")
+    assert same is not None and (same.estimate, same.low, same.high) == (0.0, 0.0, 0.0)
+    assert success_difference(a, "learned@none", "missing") is None
+
+
+def test_a_constant_effort_ratio_has_a_degenerate_interval_and_failed_pairs_are_left_out():
+    a = _episodes("learned", ["success"] * 6, [2.0, 4.0, 6.0, 8.0, 10.0, 12.0])
+    b = _episodes("untrained", ["success"] * 5 + ["timeout"], [4.0, 8.0, 12.0, 16.0, 20.0, 1.0])
+    r = paired_ratio(a + b, "learned", "untrained", "control_effort")
+    assert r is not None and r.pairs == 5
+    assert r.estimate == pytest.approx(0.5) and r.low == pytest.approx(0.5) and r.high == pytest.approx(0.5)
+    t = paired_ratio(a + b, "learned", "untrained", "time_s")
+    assert t is not None and t.estimate == pytest.approx(1.0)
+
+
+def test_the_interval_resamples_within_each_world():
+    """Two worlds, learned better only in one: every resample keeps 10 pairs of each, so the
+    difference never leaves what the better world alone can vary."""
+    a = _episodes("learned", ["success"] * 10, [1.0] * 10, "forest") + _episodes("learned", ["success"] * 10, [1.0] * 10, "office")
+    b = (_episodes("untrained", ["success"] * 10, [1.0] * 10, "forest")
+         + _episodes("untrained", ["collision"] * 10, [1.0] * 10, "office"))
+    d = success_difference(a + b, "learned", "untrained")
+    assert d is not None and (d.estimate, d.low, d.high) == (50.0, 50.0, 50.0)
+
+
+def test_the_ablation_compares_learned_with_its_twins_under_the_same_stack():
+    eps = (_episodes("learned", ["success"] * 4, [1.0] * 4) + _episodes("untrained", ["success"] * 4, [2.0] * 4)
+           + _episodes("learned@none", ["success"] * 4, [1.0] * 4)
+           + _episodes("untrained@none", ["collision"] * 4, [1.0] * 4)
+           + _episodes("straight-keypoints@none", ["success", "collision"] * 2, [4.0] * 4))
+    labels = ["learned", "learned@none", "untrained", "untrained@none", "straight-keypoints@none"]
+    result = ablation(eps, labels, resamples=200)
+    assert [r.label for r in result.runs] == labels
+    assert result.runs[3].collisions == 4 and result.runs[3].stack == "none" and result.runs[2].stack == "full"
+    assert [(d.a, d.b, d.estimate) for d in result.success_difference] == [
+        ("learned", "untrained", 0.0), ("learned@none", "untrained@none", 100.0),
+        ("learned@none", "straight-keypoints@none", 50.0)]
+    assert [(d.a, d.estimate) for d in result.effort_ratio] == [("learned", 0.5), ("learned@none", 0.25)]
+
+
+# ------------------------------------------------------------------------------ end to end
+@pytest.mark.slow
+def test_an_ablation_run_records_the_stack_of_every_episode_and_reports_the_differences(tmp_path: Path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    cfg = planner_preset("cpu", input_size=(48, 64), num_candidates=4, depth_check=True)
+    torch.manual_seed(0)
+    torch.save({"state_dict": PlannerNet(cfg).state_dict(), "planner_config": cfg.to_dict()}, run_dir / "model.pt")
+    (run_dir / "config.json").write_text("{}")
+    out = tmp_path / "ev"
+    r = CliRunner().invoke(main, ["eval", "--model", str(run_dir), "--world", "forest", "--pairs", "1", "--seed", "3",
+                                  "--methods", "learned,untrained,straight-keypoints,oracle",
+                                  "--stack", "full,none", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((out / "results.json").read_text())
+    labels = ["learned", "learned@none", "untrained", "untrained@none", "straight-keypoints", "straight-keypoints@none",
+              "oracle"]
+    assert doc["methods"] == labels and doc["config"]["stacks"] == ["full", "none"]
+    assert [(e["method"], e["stack"]) for e in doc["episodes"]] == [(m, split_label(m).stack) for m in labels]
+    assert set(doc["summary"]) == set(labels)
+    report = (out / "report.md").read_text()
+    assert "## Ablation" in report and "learned@none − untrained@none" in report
+    assert "learned − straight-keypoints" in r.output
