@@ -1,9 +1,9 @@
-# make demo | make test | make lint | make bench — each sets up .venv first when needed.
+# make demo | make test | make lint | make bench | make docs — each sets up .venv first when needed.
 VENV ?= .venv
 PY := $(VENV)/bin/python
 DEMO_WS ?= demo_ws
 
-.PHONY: setup demo test lint bench clean
+.PHONY: setup demo test lint bench docs clean
 
 setup:
 	@bash scripts/setup_env.sh
@@ -19,6 +19,9 @@ lint: setup
 
 bench: setup
 	@bash scripts/bench.sh
+
+docs: setup
+	$(PY) scripts/cli_reference.py > docs/commands.md.tmp && mv docs/commands.md.tmp docs/commands.md
 
 clean:
 	rm -rf $(DEMO_WS) .pytest_cache

@@ -7,8 +7,8 @@ from typing import Any
 
 import click
 
+from mapkit.cli._group import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, library_call, main
 from mapkit.cli.ingest import build_config, ingest_options
-from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, library_call, main
 
 
 @main.command()

@@ -3,14 +3,48 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
 from mapkit._choices import ON_REJECT, OnReject
-from mapkit.cli.main import COUNT, FINITE, FRACTION, INDEX, library_call, main
+from mapkit.cli._group import COUNT, FINITE, FRACTION, INDEX, library_call, main
+
+if TYPE_CHECKING:
+    from mapkit.evaluation import Execution
 
 
-@main.command("eval")
+_SECTIONS: dict[str, tuple[str, ...]] = {
+    "What to fly": ("run_dir", "world", "pairs", "seed", "min_distance", "methods", "stacks", "untrained_seed"),
+    "Output and parallelism": ("output", "workers", "scheduler", "record_plans", "overwrite"),
+    "The closed loop (every method)": ("replan_interval", "horizon", "ignore_eta", "on_reject", "plan_latency",
+                                       "final_approach", "look_ahead"),
+    "Flight stack: corridor": ("corridor", "corridor_check", "check_memory"),
+    "Flight stack: depth memory": ("memory", "subgoal_speed", "turn_toward_open"),
+    "Flight stack: routing": ("route_after",),
+    "Flight stack: follow the reference": ("follow",),
+    "Flight stack: speed profile": ("speed", "search_speed", "turn_accel", "turn_min_speed", "stop_decel", "v_max",
+                                    "a_max"),
+}
+"""`mapkit eval --help` in sections: the flight stack's layers (``--stack none`` turns off all but the
+corridor's width and the speed profile) apart from what is flown and the loop every method shares."""
+
+
+class _SectionedCommand(click.Command):
+    """A command whose --help lists its options under the headings of :data:`_SECTIONS`."""
+
+    def format_options(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        rows = {p.name: p.get_help_record(ctx) for p in self.get_params(ctx)}
+        placed = {name for names in _SECTIONS.values() for name in names}
+        sections = [*_SECTIONS.items(), ("Other", tuple(n for n in rows if n and n not in placed))]
+        for title, names in sections:
+            records = [r for n in names if (r := rows.get(n)) is not None]
+            if records:
+                with formatter.section(title):
+                    formatter.write_dl(records)
+
+
+@main.command("eval", cls=_SectionedCommand)
 @click.option("--model", "run_dir", type=click.Path(path_type=Path), default=None,
               help="Run directory with model.pt, or \"pretrained\" for the model shipped with mapkit (needed by every method but straight and oracle).")
 @click.option("--world", "world", default="all", show_default=True, help="forest, office, garage, all, or a comma list.")
@@ -103,9 +137,7 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
         METHODS,
         WORLD_ORDER,
         EvalConfig,
-        Execution,
         LoopConfig,
-        RouteConfig,
         comparison_lines,
         evaluate,
         parse_stacks,
@@ -113,16 +145,14 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
 
     worlds = WORLD_ORDER if world.strip() == "all" else tuple(w.strip() for w in world.split(",") if w.strip())
     names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
+    execution = _flight_stack(corridor=corridor, corridor_check=corridor_check, check_memory=check_memory,
+                              memory=memory, subgoal_speed=subgoal_speed, turn_toward_open=turn_toward_open,
+                              route_after=route_after, follow=follow, speed=speed, search_speed=search_speed,
+                              turn_accel=turn_accel, turn_min_speed=turn_min_speed, stop_decel=stop_decel,
+                              v_max=v_max, a_max=a_max)
     config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
                         stacks=parse_stacks(stacks), untrained_seed=untrained_seed,
-                        workers=workers, scheduler=scheduler, record_plans=record_plans,
-                        execution=Execution(corridor=corridor or None, check_corridor=corridor_check,
-                                            check_memory=check_memory, v_max=v_max or None,
-                                            a_max=a_max or None, memory=memory or None, subgoal_speed=subgoal_speed,
-                                            follow=follow, turn_toward_open=turn_toward_open, speed=speed or None,
-                                            search_speed=search_speed, turn_accel=turn_accel or None,
-                                            turn_min_speed=turn_min_speed, stop_decel=stop_decel or None,
-                                            route=None if route_after == 0 else RouteConfig(after=route_after)),
+                        workers=workers, scheduler=scheduler, record_plans=record_plans, execution=execution,
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
                                         on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,
                                         look_ahead=look_ahead))
@@ -141,3 +171,20 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
         click.echo("\n".join(comparison_lines(result.ablation)))
     click.echo(f"wrote {output}/results.json, latency.json, report.md, trajectories.npz and "
                f"{sum(p.suffix == '.png' for p in result.files)} PNGs" + (" (and plans.npz)" if record_plans else ""))
+
+
+def _flight_stack(*, corridor: float, corridor_check: bool, check_memory: bool, memory: float,
+                  subgoal_speed: float | None, turn_toward_open: bool, route_after: float, follow: float, speed: float,
+                  search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float,
+                  v_max: float, a_max: float) -> Execution:
+    """The flight stack the options describe, layer by layer (0 turns a layer or a limit off)."""
+    from mapkit.evaluation import Corridor, Execution, Memory, RouteConfig, SpeedProfile
+
+    return Execution(
+        corridor=Corridor(width=corridor or None, check=corridor_check, check_memory=check_memory),
+        memory=Memory(seconds=memory, subgoal_speed=subgoal_speed, turn_toward_open=turn_toward_open) if memory else None,
+        route=None if route_after == 0 else RouteConfig(after=route_after),
+        follow=follow,
+        speed=SpeedProfile(cruise=speed or None, search_speed=search_speed, turn_accel=turn_accel or None,
+                           turn_min_speed=turn_min_speed, stop_decel=stop_decel or None, v_max=v_max or None,
+                           a_max=a_max or None))

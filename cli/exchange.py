@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli.main import COUNT, POSITIVE, library_call, main, workspace_option
+from mapkit.cli._group import COUNT, POSITIVE, library_call, main, workspace_option
 
 
 @main.command("export-foxglove")

@@ -8,7 +8,7 @@ from typing import Any
 
 import click
 
-from mapkit.cli.main import COUNT, POSITIVE, library_call, main, workspace_option
+from mapkit.cli._group import COUNT, POSITIVE, library_call, main, workspace_option
 from mapkit.ingest import IngestConfig, IngestError, ingest, inspect_recordings
 from mapkit.ingest._decode import parse_extrinsic, parse_intrinsics
 

@@ -8,8 +8,8 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from mapkit._stores import Location
+from mapkit.cli._group import COUNT, FINITE, NONNEGATIVE, POSITIVE, library_call, main, workspace_option
 from mapkit.cli.ingest import build_config, ingest_options
-from mapkit.cli.main import COUNT, FINITE, NONNEGATIVE, POSITIVE, library_call, main, workspace_option
 
 if TYPE_CHECKING:
     from mapkit.esdf import Backend

@@ -8,7 +8,7 @@ import click
 import numpy as np
 
 from mapkit._choices import GOAL_FRAMES, GoalFrame
-from mapkit.cli.main import FINITE, INDEX, library_call, main, workspace_option
+from mapkit.cli._group import FINITE, INDEX, library_call, main, workspace_option
 
 
 @main.command("plan")

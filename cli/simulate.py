@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli.main import INDEX, NONNEGATIVE, POSITIVE, Number, library_call, main
+from mapkit.cli._group import INDEX, NONNEGATIVE, POSITIVE, Number, library_call, main
 
 
 @main.command()

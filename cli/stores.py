@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from mapkit.cli.main import library_call, main
+from mapkit.cli._group import library_call, main
 
 
 @main.command("copy-store")

@@ -16,7 +16,7 @@ from mapkit._choices import (
     BoundaryScale,
     TimingObjective,
 )
-from mapkit.cli.main import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, STORE_PATH, WIDTHS, library_call, main
+from mapkit.cli._group import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, STORE_PATH, WIDTHS, library_call, main
 
 
 def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:

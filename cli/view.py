@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli.main import FINITE, INDEX, STORE_PATH, library_call, main, refuse_url
+from mapkit.cli._group import FINITE, INDEX, STORE_PATH, library_call, main, refuse_url
 
 
 def _local_workspace(ctx: click.Context, param: click.Parameter, value: Path | str | None) -> Path | str | None:

@@ -10,6 +10,9 @@ from typing import Any, Literal, get_args
 
 EVAL_FORMAT = "mapkit-eval/1"
 """``format`` of a `mapkit eval` folder's results.json and latency.json."""
+PLANS_FILE = "plans.npz"
+"""``mapkit eval --record-plans``: the learned method's time allocation inputs (``mapkit tune-timing``
+reads them)."""
 
 Outcome = Literal["success", "collision", "timeout"]
 """How a closed-loop flight ended."""

@@ -241,7 +241,7 @@ def test_every_click_default_equals_the_library_default():
     dashes as underscores), so the CLI and the library never disagree silently."""
     from mapkit.dataset import DatasetConfig, parse_cameras
     from mapkit.esdf import EsdfConfig
-    from mapkit.evaluation import EvalConfig, Execution, LoopConfig
+    from mapkit.evaluation import Corridor, EvalConfig, Execution, LoopConfig, Memory, SpeedProfile
     from mapkit.exchange import FoxgloveConfig
     from mapkit.export import ExportConfig
     from mapkit.fusion import FuseConfig
@@ -250,11 +250,13 @@ def test_every_click_default_equals_the_library_default():
 
     sources = {"fuse": [FuseConfig, IngestConfig], "esdf": [EsdfConfig], "ingest": [IngestConfig],
                "export": [ExportConfig], "simulate": [SimConfig], "dataset": [DatasetConfig],
-               "eval": [EvalConfig, Execution, LoopConfig], "export-foxglove": [FoxgloveConfig],
+               "eval": [EvalConfig, Execution, Corridor, Memory, SpeedProfile, LoopConfig],
+               "export-foxglove": [FoxgloveConfig],
                "export-rerun": [FoxgloveConfig]}
-    renamed = {("fuse", "frame_stride"): "stride"}
+    renamed = {("fuse", "frame_stride"): "stride", ("eval", "corridor"): "width", ("eval", "corridor_check"): "check",
+               ("eval", "memory"): "seconds", ("eval", "speed"): "cruise"}  # eval: the flight stack's layers
     parsed = {("dataset", "cameras"): parse_cameras}  # options the library parses from text
-    off_means_none = {"corridor", "v_max", "a_max", "memory", "speed", "stop_decel"}  # eval: 0 on the command line = None in Execution
+    off_means_none = {"width", "v_max", "a_max", "seconds", "cruise", "stop_decel"}  # eval: 0 on the command line = None
     compared, mismatched = 0, []
     for command, classes in sources.items():
         for param in main.commands[command].params:

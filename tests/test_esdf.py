@@ -337,6 +337,47 @@ def test_damaged_chunks_are_one_line_for_every_reader(tmp_path):
     assert len(r.output.strip().splitlines()) == 1 and not (tmp_path / "s.png").exists()
 
 
+@pytest.mark.parametrize("damage", ["truncated", "deleted"])
+def test_slice_of_a_map_with_one_damaged_chunk_is_one_line_naming_it(tmp_path, damage):
+    """A chunk cut short or deleted (which zarr reads as NaN, without an error) under `mapkit slice`:
+    exit 1, one line naming the store, the grid, the chunk, the damage and the fix, no traceback."""
+    from click.testing import CliRunner
+
+    from mapkit.cli.main import main
+
+    path, *_ = small_map(tmp_path, shape=(70, 30, 20))  # two 64-voxel chunks along x
+    chunk = path / "esdf" / "c" / "1" / "0" / "0"
+    if damage == "truncated":
+        chunk.write_bytes(chunk.read_bytes()[:20])
+    else:
+        chunk.unlink()
+    out = tmp_path / "s.png"
+    r = CliRunner().invoke(main, ["slice", "-w", str(tmp_path), "-o", str(out), "--z", "1.0"])
+    assert r.exit_code == 1 and "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1, r.output
+    words = ["error: cannot read 'esdf' of map", str(path), "chunk c/1/0/0 is", "the store is damaged",
+             "re-run `mapkit esdf --overwrite`"]
+    words.append("undecodable" if damage == "truncated" else "missing")
+    assert all(w in r.output for w in words), r.output
+    assert not out.exists()
+    # a slice that stays in the sound chunk is drawn as before
+    r = CliRunner().invoke(main, ["slice", "-w", str(tmp_path), "-o", str(out), "--x", "0.0"])
+    assert r.exit_code == 0 and out.exists(), r.output
+
+
+def test_observed_chunks_left_out_by_zarr_are_not_damage(tmp_path):
+    """zarr stores no chunk that holds only the fill value (0 for observed): not a missing chunk."""
+    path, *_ = small_map(tmp_path, shape=(70, 30, 20))
+    (path / "observed" / "c" / "1" / "0" / "0").unlink()  # as if never observed
+    m = EsdfMap.open(path)
+    assert not m.read("observed", (slice(None), slice(None), 0))[64:].any()
+    m.check_stored("esdf")
+    (path / "esdf" / "c" / "1" / "0" / "0").unlink()
+    with pytest.raises(EsdfError, match=r"chunk c/1/0/0 is missing .* re-run `mapkit esdf --overwrite`"):
+        m.check_stored("esdf")
+    m.load()
+    m.check_stored("esdf")  # in memory: nothing to check
+
+
 # ----------------------------------------------------------------------------- queries
 def linear_map(shape=(12, 10, 9), origin=(0.3, -0.2, 1.0), vs=0.25, coef=(0.7, -1.3, 0.4), c0=0.5):
     p = centres(shape, origin, vs)

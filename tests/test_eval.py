@@ -756,6 +756,13 @@ def test_a_bad_flight_map_setting_is_refused_by_name(route: dict[str, float], me
         EvalConfig(execution=Execution(route=RouteConfig(**route))).validate()
 
 
+def _pace(**speed_profile: object):
+    """The default flight stack with these :class:`SpeedProfile` settings."""
+    from mapkit.evaluation import Execution, SpeedProfile
+
+    return Execution(speed=SpeedProfile(**speed_profile))  # type: ignore[arg-type]  # each test's own values
+
+
 def _tiny_learned_method(execution):
     from mapkit.evaluation._methods import LearnedMethod
     from mapkit.planner import CameraInput
@@ -778,11 +785,10 @@ def _open_view_at_start(t: float = 0.0) -> Observation:
 
 
 def test_plans_are_timed_at_the_execution_speed_and_at_the_search_speed_once_stalled(monkeypatch):
-    """Plans toward a local goal beyond the horizon pass it at ``Execution.speed``, and the speed
+    """Plans toward a local goal beyond the horizon pass it at ``SpeedProfile.cruise``, and the speed
     profile cruises at it (so the same plan at 1 m/s takes longer than at the model's 2 m/s). Once the
     flight has stalled, the rest of it flies at ``search_speed`` (None: the model's); a new flight
     starts at ``speed`` again."""
-    from mapkit.evaluation import Execution
     from mapkit.evaluation import _methods as methods
     from mapkit.evaluation._route import Progress
 
@@ -794,11 +800,11 @@ def test_plans_are_timed_at_the_execution_speed_and_at_the_search_speed_once_sta
         return attempt(self, obs, start, goal, end_speed)
 
     monkeypatch.setattr(methods.LearnedMethod, "_attempt", recorded)
-    slow, model = _tiny_learned_method(Execution(speed=1.0)), _tiny_learned_method(Execution(speed=None))
+    slow, model = _tiny_learned_method(_pace(cruise=1.0)), _tiny_learned_method(_pace(cruise=None))
     durations = [m.plan(_open_view_at_start()).pieces.t_end for m in (slow, model)]
     assert speeds == [1.0, model.config.cruise_speed] and durations[0] > 1.5 * durations[1]
     monkeypatch.setattr(Progress, "update", lambda self, t, distance, config: t >= 0.5)  # stalled from 0.5 s
-    fast = _tiny_learned_method(Execution(speed=1.0, search_speed=1.5))
+    fast = _tiny_learned_method(_pace(cruise=1.0, search_speed=1.5))
     for t in (0.0, 0.5, 1.0):
         fast.plan(_open_view_at_start(t))
     fast.plan(_open_view_at_start(0.0))  # a new flight (time starts over): not stalled yet
@@ -809,7 +815,6 @@ def test_plans_that_turn_are_timed_at_the_speed_of_their_sharpest_turn():
     """With ``turn_accel`` a plan's cruise speed and its speed at a passed goal are √(a R) of its
     sharpest turn (at least ``turn_min_speed``); a straight plan keeps the cruise speed, and without
     ``turn_accel`` every plan does."""
-    from mapkit.evaluation import Execution
     from mapkit.planner import plan_timing
 
     x = torch.linspace(0.0, 6.0, 6, dtype=torch.float64)
@@ -818,7 +823,7 @@ def test_plans_that_turn_are_timed_at_the_speed_of_their_sharpest_turn():
     bent[3:, 0], bent[3:, 1] = bent[2, 0], x[1:4] - x[0]  # a right angle after 2.4 m, then 3.6 m sideways
     wp, start = torch.stack([line, bent]), torch.zeros(2, 3, 3, dtype=torch.float64)
     passing = torch.full((2,), 2.0, dtype=torch.float64)
-    method = _tiny_learned_method(Execution(turn_accel=1.0, turn_min_speed=0.5, speed=None))
+    method = _tiny_learned_method(_pace(turn_accel=1.0, turn_min_speed=0.5, cruise=None))
     cruise = method.config.cruise_speed
     slow = (1.0 * 0.6) ** 0.5  # R = half the 1.2 m segment / tan 45°
     timing = method._timed(wp, start, passing)
@@ -826,9 +831,9 @@ def test_plans_that_turn_are_timed_at_the_speed_of_their_sharpest_turn():
                            tan=method.net.tan, cruise_speed=torch.tensor([cruise, slow], dtype=torch.float64))
     assert torch.allclose(timing.total, expected.total, rtol=1e-12) and float(timing.total[1]) > 1.5 * float(timing.total[0])
     assert timing.end[:, 0].norm(dim=-1).tolist() == pytest.approx([2.0, slow], rel=1e-12)
-    floor = _tiny_learned_method(Execution(turn_accel=0.1, turn_min_speed=1.5, speed=None))._timed(wp, start, passing)
+    floor = _tiny_learned_method(_pace(turn_accel=0.1, turn_min_speed=1.5, cruise=None))._timed(wp, start, passing)
     assert floor.end[1, 0].norm() == pytest.approx(1.5, rel=1e-12)
-    plain = _tiny_learned_method(Execution(turn_accel=None, speed=None))._timed(wp, start, passing)
+    plain = _tiny_learned_method(_pace(turn_accel=None, cruise=None))._timed(wp, start, passing)
     assert torch.allclose(plain.total, plan_timing(wp, start, passing, method.config, tan=method.net.tan).total, rtol=1e-12)
     assert plain.end[:, 0].norm(dim=-1).tolist() == pytest.approx([2.0, 2.0], rel=1e-12)
 
@@ -836,7 +841,6 @@ def test_plans_that_turn_are_timed_at_the_speed_of_their_sharpest_turn():
 def test_plans_to_rest_slow_down_at_the_stop_deceleration():
     """A plan that ends at rest at its goal slows down at ``stop_decel`` (the model's ``accel``
     without it); a plan that passes its goal at speed keeps ``accel``."""
-    from mapkit.evaluation import Execution
     from mapkit.planner import plan_timing
 
     x = torch.linspace(0.0, 6.0, 6, dtype=torch.float64)
@@ -844,12 +848,12 @@ def test_plans_to_rest_slow_down_at_the_stop_deceleration():
     start = torch.zeros(2, 3, 3, dtype=torch.float64)
     start[:, 0, 0] = 2.0
     end_speed = torch.tensor([0.0, 2.0], dtype=torch.float64)
-    method = _tiny_learned_method(Execution(stop_decel=0.5, speed=None))
+    method = _tiny_learned_method(_pace(stop_decel=0.5, cruise=None))
     timing = method._timed(wp, start, end_speed)
     expected = plan_timing(wp, start, end_speed, method.config, tan=method.net.tan,
                            decel=torch.tensor([0.5, method.config.accel], dtype=torch.float64))
     assert torch.allclose(timing.total, expected.total, rtol=1e-12)
-    plain = _tiny_learned_method(Execution(stop_decel=None, speed=None))._timed(wp, start, end_speed)
+    plain = _tiny_learned_method(_pace(stop_decel=None, cruise=None))._timed(wp, start, end_speed)
     assert float(timing.total[0]) > float(plain.total[0]) and float(timing.total[1]) == float(plain.total[1])
 
 
@@ -870,23 +874,23 @@ def test_a_flight_searches_once_it_has_flown_much_farther_than_it_came_closer():
     assert search.update(np.array([5.0, 2.0, 1.0]), 5.0, 1.4, 1.0) and search.searching
 
 
-@pytest.mark.parametrize("option, value", [("speed", 0.0), ("speed", float("nan")), ("search_speed", -2.0),
+@pytest.mark.parametrize("option, value", [("cruise", 0.0), ("cruise", float("nan")), ("search_speed", -2.0),
                                            ("turn_min_speed", float("inf"))])
 def test_a_speed_that_is_not_positive_is_refused_by_name(option: str, value: float):
-    from mapkit.evaluation import EvalError, Execution
+    from mapkit.evaluation import EvalError
 
-    flag = "--" + option.replace("_", "-")
+    flag = "--" + {"cruise": "speed"}.get(option, option).replace("_", "-")
     with pytest.raises(EvalError, match=f"{flag} must be a positive speed in m/s"):
-        EvalConfig(execution=Execution(**{option: value})).validate()
+        EvalConfig(execution=_pace(**{option: value})).validate()
 
 
-@pytest.mark.parametrize("setting, message", [({"search_ratio": 0.9}, "Execution.search_ratio must be >= 1"),
-                                              ({"search_margin": float("nan")}, "Execution.search_margin must be >= 0")])
+@pytest.mark.parametrize("setting, message", [({"search_ratio": 0.9}, "SpeedProfile.search_ratio must be >= 1"),
+                                              ({"search_margin": float("nan")}, "SpeedProfile.search_margin must be >= 0")])
 def test_a_bad_search_setting_is_refused_by_name(setting: dict[str, float], message: str):
-    from mapkit.evaluation import EvalError, Execution
+    from mapkit.evaluation import EvalError
 
     with pytest.raises(EvalError, match=re.escape(message)):
-        EvalConfig(execution=Execution(**setting)).validate()
+        EvalConfig(execution=_pace(**setting)).validate()
 
 
 @pytest.mark.parametrize("speed, expected", [(None, 2.0), (0.0, 0.0), (1.0, 1.0)])
@@ -896,10 +900,10 @@ def test_plans_toward_a_way_out_pass_it_at_the_subgoal_speed(monkeypatch, speed:
     model's cruise speed, 2 m/s)."""
     import dataclasses
 
-    from mapkit.evaluation import Execution
+    from mapkit.evaluation import Execution, Memory, SpeedProfile
     from mapkit.evaluation import _methods as methods
 
-    method = _tiny_learned_method(Execution(subgoal_speed=speed, speed=None))
+    method = _tiny_learned_method(Execution(memory=Memory(subgoal_speed=speed), speed=SpeedProfile(cruise=None)))
     speeds: list[float] = []
     attempt = methods.LearnedMethod._attempt
 
@@ -921,19 +925,19 @@ def test_plans_toward_a_way_out_pass_it_at_the_subgoal_speed(monkeypatch, speed:
 
 @pytest.mark.parametrize("speed", [-1.0, float("nan")])
 def test_a_negative_subgoal_speed_is_refused_by_name(speed: float):
-    from mapkit.evaluation import EvalError, Execution
+    from mapkit.evaluation import EvalError, Execution, Memory
 
     with pytest.raises(EvalError, match="--subgoal-speed must be >= 0"):
-        EvalConfig(execution=Execution(subgoal_speed=speed)).validate()
+        EvalConfig(execution=Execution(memory=Memory(subgoal_speed=speed))).validate()
 
 
 def test_the_corridor_keeps_clear_of_a_remembered_door_jamb():
     """Key-points turn left around a door jamb the camera no longer sees: the widest corridor cuts
     the corner into it. Checked against the depth image alone it is kept; with the memory
-    (``Execution.check_memory``) the corridor narrows until it keeps as clear as the key-points."""
+    (``Corridor.check_memory``) the corridor narrows until it keeps as clear as the key-points."""
     from scipy.spatial import cKDTree
 
-    from mapkit.evaluation import Execution
+    from mapkit.evaluation import Memory
     from mapkit.evaluation._methods import _Checker, _execute, _Memory, _samples
     from mapkit.planner import preprocess_depth
 
@@ -946,12 +950,13 @@ def test_the_corridor_keeps_clear_of_a_remembered_door_jamb():
                       dtype=torch.float64)
     T = torch.full((1, 4), 0.6, dtype=torch.float64)
     start, end = torch.zeros(1, 3, 3, dtype=torch.float64), torch.zeros(1, 3, 3, dtype=torch.float64)
-    how = Execution(v_max=None, a_max=None)
+    how = _pace(v_max=None, a_max=None)
     in_view = _Checker(x, _forward_camera(w, h), 10.0, None)
-    recalled = _Checker(x, _forward_camera(w, h), 10.0, None, recall=(memory, np.eye(4), how.blocked_within))
+    within = Memory().blocked_within
+    recalled = _Checker(x, _forward_camera(w, h), 10.0, None, recall=(memory, np.eye(4), within))
 
     def near_jamb(traj) -> int:
-        return int(memory.conflicts(_samples(traj, within=how.blocked_within)[0], np.eye(4))[0])
+        return int(memory.conflicts(_samples(traj, within=within)[0], np.eye(4))[0])
 
     pinned = min_snap(wp, T, start=start, end=end)
     widest = _execute(wp, T, start, end, how, in_view)
@@ -964,11 +969,10 @@ def test_the_corridor_keeps_clear_of_a_remembered_door_jamb():
 @pytest.mark.slow
 def test_time_limit_follows_the_pace_the_flights_are_asked_for(tiny_run: Path, tmp_path: Path):
     """The time limit is timeout_factor × distance / cruise speed: the model's cruise speed, or --speed."""
-    from mapkit.evaluation import Execution
 
     docs = {}
     for name, speed in (("model", None), ("slow", 0.8)):
-        config = EvalConfig(worlds=("office",), pairs=1, seed=3, methods=("straight",), execution=Execution(speed=speed),
+        config = EvalConfig(worlds=("office",), pairs=1, seed=3, methods=("straight",), execution=_pace(cruise=speed),
                             loop=LoopConfig(timeout_min=0.0))
         evaluate(tiny_run, tmp_path / name, config, progress=False)
         docs[name] = json.loads((tmp_path / name / "results.json").read_text())

@@ -38,10 +38,11 @@ def test_stack_none_turns_off_exactly_the_layers_around_the_planner():
     none = under_stack(full, "none")
     assert under_stack(full, "full") is full
     changed = {f.name for f in dataclasses.fields(Execution) if getattr(full, f.name) != getattr(none, f.name)}
-    assert changed == {"memory", "route", "check_corridor", "check_memory", "turn_toward_open", "follow"}
-    assert none.memory is None and none.route is None and none.follow == 0.0 and not none.check_corridor
-    # the corridor, the pace and the limits stay
-    assert (none.corridor, none.speed, none.v_max, none.a_max) == (full.corridor, full.speed, full.v_max, full.a_max)
+    assert changed == {"memory", "route", "corridor", "follow"}
+    assert none.memory is None and none.route is None and none.follow == 0.0
+    assert not none.corridor.check and not none.corridor.check_memory
+    # the corridor's width, the pace and the limits stay
+    assert none.corridor.width == full.corridor.width and none.speed == full.speed
 
 
 def test_every_stacked_method_flies_under_every_stack_and_the_others_once():
@@ -64,7 +65,7 @@ def test_bad_stacks_are_refused_with_the_choices(text: str, message: str):
 
 
 def test_an_evaluation_config_with_an_unknown_stack_is_refused():
-    with pytest.raises(EvalError, match="unknown flight stack 'half'.*full, none"):
+    with pytest.raises(EvalError, match=r"unknown flight stack 'half'.*full, none"):
         EvalConfig(stacks=("full", "half")).validate()  # type: ignore[arg-type]  # a bad value on purpose
 
 
@@ -113,7 +114,7 @@ def test_straight_keypoints_lie_evenly_on_the_line_to_the_goal():
 # ------------------------------------------------------------------------------ paired statistics
 def _episodes(label: str, outcomes: list[str], efforts: list[float], world: str = "office") -> list[EpisodeRecord]:
     return [EpisodeRecord(world=world, pair=i, method=label, outcome=o, start=[0, 0, 0], goal=[1, 0, 0],  # type: ignore[arg-type]
-                          control_effort=e, time_s=10.0 + i) for i, (o, e) in enumerate(zip(outcomes, efforts))]
+                          control_effort=e, time_s=10.0 + i) for i, (o, e) in enumerate(zip(outcomes, efforts, strict=True))]
 
 
 def test_success_difference_is_the_paired_mean_and_its_interval_covers_it():
@@ -186,3 +187,18 @@ def test_an_ablation_run_records_the_stack_of_every_episode_and_reports_the_diff
     report = (out / "report.md").read_text()
     assert "## Ablation" in report and "learned@none − untrained@none" in report
     assert "learned − straight-keypoints" in r.output
+
+
+def test_eval_help_lists_every_option_once_under_its_layer():
+    import re
+
+    r = CliRunner().invoke(main, ["eval", "--help"])
+    assert r.exit_code == 0
+    headings = re.findall(r"^(\S[^\n]*):$", r.output, flags=re.M)
+    assert headings[:3] == ["What to fly", "Output and parallelism", "The closed loop (every method)"]
+    assert {"Flight stack: corridor", "Flight stack: depth memory", "Flight stack: speed profile"} <= set(headings)
+    for param in main.commands["eval"].params:
+        for opt in param.opts:
+            assert len(re.findall(rf"(?<![\w-]){re.escape(opt)}(?![\w-])", r.output)) >= 1, opt
+    section = r.output.split("Flight stack: speed profile:")[1].split("\n\n")[0]
+    assert "--speed" in section and "--v-max" in section and "--memory" not in section

@@ -103,13 +103,14 @@ def test_cli_bad_scheduler_settings(tiny_run: Path, tmp_path: Path,  # noqa: F81
 
 def test_a_worker_refuses_a_model_file_other_than_the_one_evaluated(tiny_run: Path) -> None:  # noqa: F811 - fixture
     """A remote worker that reads another model.pt at the run's path names itself and the fix."""
+    from mapkit.evaluation import plan_runs
     from mapkit.evaluation._run import CameraSpec, EvalError, _check_worker_model, _WorkerSetup
 
     config = small_config()
     camera = CameraSpec(width=64, height=48, K=[[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1]], T_body_camera=np.eye(4).tolist(),
                         source="test")
     setup = _WorkerSetup(model=str(tiny_run.resolve()), model_sha256="0" * 64, seed=3, pair_clearance=0.6,
-                         camera=camera, methods=config.methods, oracle_corridor=0.1, execution=config.execution,
+                         camera=camera, runs=tuple(plan_runs(config.methods, config.stacks)), oracle_corridor=0.1, execution=config.execution,
                          loop=config.loop)
     with pytest.raises(EvalError, match=r"reads another .*model\.pt than the one evaluated.*storage every worker shares"):
         _check_worker_model(setup)

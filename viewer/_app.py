@@ -13,7 +13,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 import numpy as np
 
@@ -21,7 +21,11 @@ from mapkit.errors import MapkitError
 from mapkit.viewer._panels import CloudPanel, EvalPanel, FlightPanel, Panels, PlanPanel, SlicePanel, built
 
 if TYPE_CHECKING:
+    from viser import GuiInputHandle
+
     from mapkit.viz import MapSlicer
+
+_T = TypeVar("_T")
 
 LAYERS = ("cloud", "slice", "flight", "plan", "corridor", "eval")
 _LAYER_LABELS = {
@@ -37,6 +41,12 @@ _COLORS = {
     "goal": (255, 190, 0), "corridor": (60, 150, 255), "collision": (220, 0, 0), "start": (0, 170, 0),
     "eval_goal": (255, 190, 0), "world": (185, 185, 185),
 }
+
+
+def _set_value(handle: GuiInputHandle[_T], value: _T) -> None:
+    """Set a viser input's value: the clients show it and its update callbacks run (viser's ``value``
+    setter, which mypy reads as a read-only property)."""
+    handle.value = value  # type: ignore[misc]  # viser's setter, unseen by mypy
 
 
 class ViewerError(MapkitError):
@@ -497,7 +507,7 @@ class ViewerApp:
             centre = self._need_slicer().snap(axis, self._flight_slice_height())
         sl.min, sl.max, sl.step, sl.precision = lo, hi, step, _decimals(step)
         before = sl.value
-        sl.value = centre  # type: ignore[misc]  # viser: mypy misses value's setter
+        _set_value(sl, centre)
         if sl.value == before:  # no change event fired
             self.update_slice()
 
@@ -538,8 +548,8 @@ class ViewerApp:
         if self._slice_range_auto:
             self._setting_range = True
             try:
-                panel.vmin.value = round(float(tex.norm.vmin), 3)  # type: ignore[misc]  # viser: mypy misses value's setter
-                panel.vmax.value = round(float(tex.norm.vmax), 3)  # type: ignore[misc]  # viser: mypy misses value's setter
+                _set_value(panel.vmin, round(float(tex.norm.vmin), 3))
+                _set_value(panel.vmax, round(float(tex.norm.vmax), 3))
             finally:
                 self._setting_range = False
             self._slice_range_auto = False  # the range stays put while sliding; "auto range" recomputes
@@ -660,11 +670,11 @@ class ViewerApp:
                     fps = float(flight.fps.value)
                     sl = flight.frame
                     nxt = (int(sl.value) + 1) % len(self._need_frames())
-                    sl.value = nxt  # type: ignore[misc]  # viser: mypy misses value's setter; fires update_frame through the slider's callback
+                    _set_value(sl, nxt)  # fires update_frame through the slider's callback
             except Exception as exc:  # noqa: BLE001 - keep the player alive; report in the panel
                 self._message(f"playback stopped: {type(exc).__name__}: {exc}")
                 if flight is not None:
-                    flight.play.value = False  # type: ignore[misc]  # viser: mypy misses value's setter
+                    _set_value(flight.play, False)
             self._stop_event.wait(1.0 / max(fps, 1.0))
 
     # ------------------------------------------------------------------------------------- plan
@@ -727,7 +737,7 @@ class ViewerApp:
         if tuple(goal_handle.value) == goal:
             self.plan_to(goal)
         else:
-            goal_handle.value = goal  # type: ignore[misc]  # fires plan_to; viser's setter is hidden from mypy
+            _set_value(goal_handle, goal)  # fires plan_to
         return p
 
     def plan_to(self, goal_world: Any) -> dict[str, Any]:
@@ -827,7 +837,7 @@ class ViewerApp:
         opts = self._pair_options(panel.world.value)
         panel.pair.options = opts
         if panel.pair.value != "all":
-            panel.pair.value = "all"  # type: ignore[misc]  # viser: mypy misses value's setter; fires update_eval
+            _set_value(panel.pair, "all")  # fires update_eval
         else:
             self.update_eval()
 

@@ -18,11 +18,12 @@ Large grids: :func:`signed_distance_chunked` runs a Dask graph of chunks with a 
 on a cluster) straight into :func:`create_map`'s arrays, bit for bit the whole-grid result up to max_dist.
 """
 
-from mapkit.esdf._build import MAP, EsdfBuildError, EsdfConfig, EsdfSummary, build_esdf
+from mapkit.esdf._build import build_esdf
 from mapkit.esdf._chunked import ChunkedSummary, chunk_halo, signed_distance_chunked
 from mapkit.esdf._distance import BACKENDS, Backend, signed_distance, smooth
 from mapkit.esdf._errors import EsdfError
 from mapkit.esdf._map import OUTSIDE_POLICIES, EsdfMap
+from mapkit.esdf._shared import MAP, EsdfBuildError, EsdfConfig, EsdfSummary
 from mapkit.esdf._slice import Slice, render_slices, slice_plane
 from mapkit.esdf._store import UNKNOWN_POLICIES, MapWriter, create_map, write_map
 

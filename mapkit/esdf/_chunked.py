@@ -122,22 +122,33 @@ def signed_distance_chunked(
     tr = _checks.positive("truncate", truncate, unit="standard deviations")
     n_threads = _checks.threads(threads)
     chunk, shape = _check_grids(occupied, out, out_raw, chunk)
-    if client is not None:
-        for name, arr in (("out", out), ("out_raw", out_raw)):
-            if isinstance(arr, np.ndarray):
-                raise EsdfError(f"{name} is a numpy array, which Dask workers cannot write into; pass zarr arrays "
-                                "(create_map's esdf / esdf_raw) on storage the workers share, or run without a client")
+    _check_writable_by_client(client, out, out_raw)
     halo = chunk_halo(voxel_size=vs, max_dist=md, sigma=sg, truncate=tr)
     t0 = time.perf_counter()
     tasks = _chunk_tasks(occupied, out, out_raw, shape, chunk, halo, (vs, md, sg, tr), n_threads)
     if isinstance(local_workers, bool) or not isinstance(local_workers, int) or local_workers < 1:
         raise EsdfError(f"local_workers={local_workers!r} must be a positive number of chunks at once (e.g. 1)")
     results = compute_tasks(tasks, client, desc="esdf", unit="chunk", progress=progress, local_threads=local_workers)
+    return _summary(results, shape=shape, chunks=len(tasks), halo=halo, seconds=time.perf_counter() - t0)
+
+
+def _check_writable_by_client(client: Client | None, out: Any, out_raw: Any) -> None:
+    """Raise :class:`EsdfError` when a cluster's workers would have to write into this process's numpy arrays."""
+    if client is not None:
+        for name, arr in (("out", out), ("out_raw", out_raw)):
+            if isinstance(arr, np.ndarray):
+                raise EsdfError(f"{name} is a numpy array, which Dask workers cannot write into; pass zarr arrays "
+                                "(create_map's esdf / esdf_raw) on storage the workers share, or run without a client")
+
+
+def _summary(results: list[Any], *, shape: tuple[int, int, int], chunks: int, halo: int,
+             seconds: float) -> ChunkedSummary:
+    """The :class:`ChunkedSummary` of the chunk tasks' results ``(n_prevented, process id, peak RSS)``."""
     peaks: dict[int, int] = {}
     for _, pid, peak in results:
         peaks[pid] = max(peaks.get(pid, 0), peak)
-    return ChunkedSummary(shape=shape, chunks=len(tasks), halo=halo, n_prevented=sum(r[0] for r in results),
-                          seconds=time.perf_counter() - t0, workers=len(peaks), peak_rss_bytes=max(peaks.values(), default=0))
+    return ChunkedSummary(shape=shape, chunks=chunks, halo=halo, n_prevented=sum(r[0] for r in results),
+                          seconds=seconds, workers=len(peaks), peak_rss_bytes=max(peaks.values(), default=0))
 
 
 def _chunk_tasks(occupied: Any, out: Any, out_raw: Any, shape: tuple[int, int, int], chunk: int, halo: int,

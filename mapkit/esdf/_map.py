@@ -9,6 +9,7 @@ import numpy as np
 
 from mapkit._stores import Location, StoreError
 from mapkit.esdf import _checks
+from mapkit.esdf._damage import damaged_chunks, describe
 from mapkit.esdf._errors import EsdfError
 from mapkit.esdf._store import FIELDS, KIND
 
@@ -187,7 +188,18 @@ class EsdfMap:
         try:
             return np.asarray(arr[index])
         except Exception as exc:  # noqa: BLE001 - zarr/numcodecs raise many kinds for damaged chunks
-            raise EsdfError(f"cannot read {name!r} of map {str(self.path)!r} ({type(exc).__name__}: {exc}); {_FIX}") from None
+            found = damaged_chunks(arr, index, missing_ok=name == "observed")
+            what = f"{describe(found)}: the store is damaged" if found else f"{type(exc).__name__}: {exc}"
+            raise EsdfError(f"cannot read {name!r} of map {str(self.path)!r} ({what}); {_FIX}") from None
+
+    def check_stored(self, name: str, index: Any = ...) -> None:
+        """Raise :class:`EsdfError` naming the store, the grid and the chunks when a chunk of ``name`` that
+        ``index`` reads is missing or does not decode (a missing chunk reads as NaN without an error);
+        nothing to check for a grid in memory."""
+        found = damaged_chunks(getattr(self, name), index) if name not in self._dense else {}
+        if found:
+            raise EsdfError(f"cannot read {name!r} of map {str(self.path)!r} ({describe(found)}: the store is "
+                            f"damaged); {_FIX}")
 
     def distance_at_voxel(self, i: int, j: int, k: int, *, raw: bool = False) -> float:
         """Stored signed distance (metres) of voxel [i, j, k] (reads one chunk if not loaded)."""

@@ -36,6 +36,23 @@ def slice_plane(map: EsdfMap, *, axis: str, position: float, raw: bool = False) 
     when `position` is beyond the grid (the message gives the valid range).
     """
     a = _axis_index(axis)
+    index = _plane_index(map, axis, position)
+    k = index[a]
+    assert isinstance(k, int)
+    vs = map.voxel_size
+    values = map.read("esdf_raw" if raw else "esdf", index).astype(np.float32)
+    observed = np.ones(values.shape, dtype=bool) if map.observed is None else map.read("observed", index) > 0
+    u_ax, v_ax = (_axis_index(s) for s in _PLANE_AXES[axis])
+    ext = []
+    for b in (u_ax, v_ax):
+        ext += [float(map.origin[b] - 0.5 * vs), float(map.origin[b] + (map.shape[b] - 0.5) * vs)]
+    return Slice(values, (ext[0], ext[1], ext[2], ext[3]), float(map.origin[a] + k * vs), observed)
+
+
+def _plane_index(map: EsdfMap, axis: str, position: float) -> tuple[slice | int, ...]:
+    """The index (``[:, :, k]`` for z) of the plane of voxels nearest to ``axis = position``; raises
+    :class:`EsdfError` when `position` is not a number or beyond the grid."""
+    a = _axis_index(axis)
     try:
         pos = float(position)
     except (TypeError, ValueError):
@@ -48,16 +65,9 @@ def slice_plane(map: EsdfMap, *, axis: str, position: float, raw: bool = False) 
             f"{axis}={position!r} m is outside the map: valid {axis} is {lo_edge:.3f} .. {hi_edge:.3f} m "
             f"(voxel centres {map.origin[a]:.3f} .. {map.origin[a] + (n - 1) * vs:.3f} m)"
         )
-    k = int(min(max(round((pos - map.origin[a]) / vs), 0), n - 1))
     index: list[slice | int] = [slice(None)] * 3
-    index[a] = k
-    values = map.read("esdf_raw" if raw else "esdf", tuple(index)).astype(np.float32)
-    observed = np.ones(values.shape, dtype=bool) if map.observed is None else map.read("observed", tuple(index)) > 0
-    u_ax, v_ax = (_axis_index(s) for s in _PLANE_AXES[axis])
-    ext = []
-    for b in (u_ax, v_ax):
-        ext += [float(map.origin[b] - 0.5 * vs), float(map.origin[b] + (map.shape[b] - 0.5) * vs)]
-    return Slice(values, (ext[0], ext[1], ext[2], ext[3]), float(map.origin[a] + k * vs), observed)
+    index[a] = int(min(max(round((pos - map.origin[a]) / vs), 0), n - 1))
+    return tuple(index)
 
 
 def render_slices(
@@ -111,6 +121,9 @@ def _slice_figure(
 
     requests = _slice_requests(z=z, x=x, y=y, cmap=cmap, columns=columns)
     slices = [(ax, slice_plane(map, axis=ax, position=v, raw=raw)) for ax, v in requests]
+    for (ax, v), (_, s) in zip(requests, slices, strict=True):
+        if np.isnan(s.values).any():  # mapkit stores no NaN distance: a chunk of the store may be missing
+            map.check_stored("esdf_raw" if raw else "esdf", _plane_index(map, ax, v))
     norm = _colour_norm([s for _, s in slices], cmap=cmap, vmin=vmin, vmax=vmax, voxel_size=map.voxel_size)
     cols = min(columns, len(slices))
     rows = math.ceil(len(slices) / cols)

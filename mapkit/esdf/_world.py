@@ -20,7 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from mapkit.esdf._build import (
+from mapkit.esdf._chunked import signed_distance_chunked
+from mapkit.esdf._pockets import free_obstacles
+from mapkit.esdf._shared import (
     _CHUNK,
     _CHUNKED_DEFAULT_MAX_DIST,
     MAP,
@@ -30,8 +32,6 @@ from mapkit.esdf._build import (
     _chunks_at_once,
     _dask_runner,
 )
-from mapkit.esdf._chunked import signed_distance_chunked
-from mapkit.esdf._pockets import free_obstacles
 from mapkit.esdf._store import create_map
 from mapkit.fusion import FusionError
 from mapkit.fusion._world import open_world
@@ -92,7 +92,8 @@ def build_world_esdf(directory: Path, config: EsdfConfig, *, overwrite: bool, pr
         result = signed_distance_chunked(
             solid, writer.esdf, out_raw=writer.esdf_raw, voxel_size=config.voxel, max_dist=max_dist,
             sigma=config.sigma, chunk=_CHUNK, threads=runner.threads, client=runner.client, progress=progress,
-            local_workers=_chunks_at_once(runner, voxel=config.voxel, max_dist=max_dist, sigma=config.sigma),
+            local_workers=_chunks_at_once(runner, chunk=_CHUNK, voxel=config.voxel, max_dist=max_dist,
+                                          sigma=config.sigma),
         )
         writer.finalize()
     n = float(np.prod(shape))

@@ -31,10 +31,10 @@ from mapkit.evaluation._ablation import (
     paired_ratio,
     success_difference,
 )
+from mapkit.evaluation._layers import Corridor, Execution, Memory, SpeedProfile
 from mapkit.evaluation._loop import Episode, LoopConfig, MethodPlan, Observation, level_pose, run_episode
 from mapkit.evaluation._methods import (
     METHODS,
-    Execution,
     LearnedMethod,
     OracleMethod,
     PlanInput,
@@ -71,7 +71,7 @@ __all__ = [
     "EpisodeRecord", "Outcome",
     "CameraSpec", "EvalConfig", "EvalError", "EvalResult", "evaluate", "summarise",
     "Episode", "LoopConfig", "MethodPlan", "Observation", "level_pose", "run_episode",
-    "Execution", "LearnedMethod", "OracleMethod", "PlanInput", "StraightMethod", "make_methods", "PLANS_FILE",
+    "Execution", "Corridor", "Memory", "SpeedProfile", "LearnedMethod", "OracleMethod", "PlanInput", "StraightMethod", "make_methods", "PLANS_FILE",
     "Aim", "FlightMap", "Progress", "RouteConfig",
     "Pair", "sample_pairs", "load_paths",
     "Pieces", "hold", "pieces_from_body",

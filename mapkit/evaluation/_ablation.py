@@ -12,6 +12,7 @@ from typing import Literal
 
 import numpy as np
 
+from mapkit._choices import FlightStack
 from mapkit._formats import EpisodeRecord
 from mapkit.evaluation._stack import Run, split_label
 
@@ -30,7 +31,7 @@ class RunSummary:
     label: str
     """The run's name in results.json (``NAME`` or ``NAME@STACK``)."""
     method: str
-    stack: str | None
+    stack: FlightStack | None
     """The flight stack it flew under (None: a method no stack changes)."""
     flights: int
     success: int

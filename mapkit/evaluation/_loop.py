@@ -78,7 +78,7 @@ class LoopConfig:
     look_turn_deg: float = 60.0
     """Degrees the vehicle turns when hovering and a plan is rejected. Learned planner, office on dev
     seeds 7 / 13 / 31 / 37 (60 pairs each, 2026-11-30): 30° 90.0 / 88.3 / 78.3 / 61.7 %, 60° 90.0 / 85.0
-    / 80.0 / 63.3 %, 90° 88.3 / 88.3 / 81.7 / 61.7 %. With ``Execution.turn_toward_open`` (same seeds, same
+    / 80.0 / 63.3 %, 90° 88.3 / 88.3 / 81.7 / 61.7 %. With ``Memory.turn_toward_open`` (same seeds, same
     day): 60° 90.0 / 88.3 / 83.3 / 65.0 %, 90° 91.7 / 88.3 / 85.0 / 66.7 % (199 against 196 of 240
     flights), but on held-out seeds 11 / 17 / 19 / 23 / 29 / 41 / 43 (all worlds) 90° reached 93.2 % on
     average against 93.7 % (office 76.7 / 83.3 / 93.3 / 78.3 / 61.7 / 85.0 / 88.3 % against 81.7 / 83.3 /

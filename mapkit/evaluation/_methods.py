@@ -18,7 +18,7 @@
 - ``straight-keypoints``: ``learned`` with the key-points evenly spaced on the straight line to the
   (local or routed) goal, η = 0, timed and flown through the same corridor, memory and routing.
 - ``iplanner-style``: the same network outputs, iPlanner's way: a cubic spline through the key-points
-  timed by arc length at the learned plans' cruise speed (``Execution.speed``; no dynamics, no time
+  timed by arc length at the learned plans' cruise speed (``Execution.speed.cruise``; no dynamics, no time
   allocation, no slowing for turns), clamped to the vehicle's
   velocity at the start and to the same end velocity as the others. Under a flight stack its memory,
   routing and ways out pick the key-points as for ``learned`` (the corridor's layers do not apply to a
@@ -35,7 +35,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -43,9 +43,10 @@ import torch
 from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 
+from mapkit.evaluation._layers import Execution
 from mapkit.evaluation._loop import MethodPlan, Observation
 from mapkit.evaluation._pieces import Pieces, pieces_from_body
-from mapkit.evaluation._route import FlightMap, Progress, RouteConfig, depth_points
+from mapkit.evaluation._route import FlightMap, Progress, depth_points
 from mapkit.planner import Allocation, CameraInput, ImageFeatures, PlannerConfig, Timing, plan_timing, turn_speed
 from mapkit.planner._model import PlannerNet, PlannerOutput
 from mapkit.sim import FreeSpaceGraph, World
@@ -59,156 +60,17 @@ METHODS = ("learned", "learned+uniform", "learned+poly5", "learned+gradient", "u
 NEEDS_MODEL = frozenset({*LEARNED_ALLOCATIONS, "untrained", "straight-keypoints", "iplanner-style"})
 """Methods that need ``--model`` (``untrained`` copies its architecture, ``straight-keypoints`` its
 configuration, time allocation and image preprocessing)."""
+_FULL_STACK = Execution()
+"""The default flight stack (immutable, shared)."""
 KeypointSource = Literal["network", "straight"]
 """Where a :class:`LearnedMethod`'s key-points come from."""
 ROBOT_RADIUS = 0.3
 """Metres: the evaluation's collision radius (:attr:`LoopConfig.robot_radius`)."""
 ROBOT_CLEARANCE = 0.35
-"""Metres a plan's first ``Execution.blocked_within`` seconds must keep from every remembered surface
+"""Metres a plan's first ``Memory.blocked_within`` seconds must keep from every remembered surface
 (the robot's radius, 0.3 m, and a margin for tracking error). Office, dev seeds 7 / 13 / 31 / 37 (60
 pairs each, 2026-11-30): 0.32 m 91.7 / 85.0 / 75.0 / 63.3 %, 0.35 m 90.0 / 85.0 / 80.0 / 63.3 %, 0.40 m
 83.3 / 90.0 / 76.7 / 61.7 %."""
-
-
-@dataclass(frozen=True)
-class Execution:
-    """How a replanning method turns its timed key-points into the reference it flies."""
-
-    corridor: float | None = 1.0
-    """Widest half-width (m) of the flight corridor around the key-point segments: the trajectory may
-    leave the interior key-points by up to this (per world axis) instead of passing through them,
-    which absorbs the key-points' jitter from one plan to the next (most of a flight's effort).
-    None: through the key-points. Office, dev seeds 7 / 13 / 31 / 37 (2026-11-30): 0.75 m 91.7 / 86.7 /
-    83.3 / 65.0 %, 1.0 m 90.0 / 85.0 / 80.0 / 63.3 %, 1.5 m 85.0 / 90.0 / 81.7 / 63.3 %. On the seven
-    held-out and fresh seeds 11 / 17 / 19 / 23 / 29 / 41 / 43, 0.75 m against 1.0 m: office 81.7 / 78.3 /
-    88.3 / 81.7 / 68.3 / 83.3 / 80.0 % against 78.3 / 75.0 / 88.3 / 78.3 / 65.0 / 83.3 / 86.7 %, overall
-    92.7 against 92.5 % on average, at ×1.19–1.37 the effort on the pairs both reached: 1.0 m stays."""
-    check_corridor: bool = True
-    """Check each corridor trajectory against the depth image it was planned from and halve the
-    width (1, ½, ¼, ⅒ of ``corridor``, then through the key-points) while it has more points in view
-    closer than the robot's size to a seen surface (or behind one) than the trajectory through the
-    key-points: a wide corridor cuts the corners the key-points went around. Needs the camera."""
-    check_memory: bool = True
-    """With ``check_corridor`` and ``memory``: the check also counts the points of a trajectory's first
-    ``blocked_within`` seconds that come closer than the robot's size to a remembered surface, for the
-    corridor and for the trajectory through the key-points alike. The depth image no longer shows the
-    jamb of a doorway the vehicle is passing, and a wide corridor cut its corner. Office, dev seeds
-    7 / 13 / 31 / 37 (60 pairs): 83.3 / 81.7 / 71.7 / 58.3 → 90.0 / 85.0 / 80.0 / 63.3 %, collisions 21
-    → 13 of 240, effort ×1.00–1.86 on the pairs both reached."""
-    v_max: float | None = 3.0
-    """Per-axis speed limit, m/s (None: none)."""
-    a_max: float | None = 4.0
-    """Per-axis acceleration limit, m/s² (None: none)."""
-    memory: float | None = 8.0
-    """Seconds of depth images remembered (as world-frame points) during a flight. A plan whose first
-    ``blocked_within`` seconds come closer than the robot's size to a remembered surface is replaced
-    by the best-scored candidate that keeps clear; when none does, by a plan toward open space (see
-    ``subgoal_time``); when that is blocked too, the vehicle brakes to rest and turns to look elsewhere
-    (:attr:`MethodPlan.blocked`), turned by up to 60° when that keeps the brake clear of remembered
-    surfaces. None: fly the network's choice."""
-    subgoal_time: float = 1.0
-    """Seconds a blocked plan's way out is kept: with ``memory``, when nothing leads on toward the goal,
-    the network plans toward the most open direction of the depth image (:func:`open_direction`)
-    instead, until it gets within a metre of that point or this time passes. Office and garage on
-    seeds 7 / 13 (120 pairs each): 1 s 80.8 / 75.0 %, 1.5 s 79.2 / 69.2 %, 2 s 77.5 / 75.0 %,
-    3 s 75.8 / 70.8 %, 5 s 71.7 / 68.3 %."""
-    subgoal_speed: float | None = None
-    """m/s at which plans pass the way-out point of ``subgoal_time`` (None: the plans' cruise speed;
-    0: stop there, as until 2026-11-29). Stopping at every way out made a stop-and-go of the office's
-    blocked stretches, and flying toward open space was half of a flight's effort. Office, dev seeds
-    31 / 37 (60 pairs, `accel` 1.5): 0 → 80.0 / 60.0 %, 1 m/s 70.0 / 58.3 %, cruise 71.7 / 58.3 % at
-    ×0.49 / ×0.39 the effort on the pairs both reached; the five held-out seeds in the README."""
-    follow: float = 0.75
-    """Fraction of the way each interior key-point of a plan moves toward where the reference being
-    flown will be when the new plan reaches that key-point (by at most ``corridor`` per axis; the
-    start and the last key-point stay) before the plan is executed: the corridor, its depth check and
-    its last fallback then use the moved key-points. Receding-horizon plans otherwise restart from
-    key-points that jitter from one plan to the next, and each correction costs snap. The memory's
-    other candidates are not moved: they exist to leave the reference. 0, or no corridor: the
-    network's key-points. Office / garage / forest on dev seeds 7 and 13 (20 pairs each; success,
-    median effort of successful flights, and the median per-pair effort ratio to 0 on the pairs both
-    reached):
-
-    | follow | seed 7 | seed 13 |
-    |---|---|---|
-    | 0 | 75 / 95 / 100 %, 8525 m²/s⁷ | 85 / 100 / 100 %, 9669 m²/s⁷ |
-    | 0.25 | 90 / 90 / 100 %, 3593, ×0.60 | – |
-    | 0.5 | 90 / 95 / 100 %, 2396, ×0.37 | 75 / 90 / 100 %, 1886, ×0.66 |
-    | 0.75 | 95 / 100 / 100 %, 2671, ×0.46 | 85 / 100 / 100 %, 1517, ×0.55 |
-    | 1.0 | 90 / 95 / 100 %, 2573, ×0.59 | – |
-
-    Moving the candidates too (0.5, seed 7): 80 / 95 / 95 %, ×0.35. Centring the corridor on the moved
-    key-points but keeping the network's for the depth check's baseline and the fallback (0.5, seed 7):
-    80 / 90 / 100 %, ×1.0."""
-    turn_toward_open: bool = True
-    """With ``memory``: a blocked vehicle that hovers and turns to look elsewhere
-    (:attr:`LoopConfig.look_turn_deg` at a time) turns toward the side with fewer remembered surfaces
-    within 3 m (:attr:`MethodPlan.turn_side`) instead of always counter-clockwise. Stopped at a wall
-    with the goal beyond it, the vehicle turned toward the corner it stood in, found its way out behind
-    itself, flew there, turned back toward the goal and stopped at the same wall again until the time
-    ran out. Office, dev seeds 7 / 13 / 31 / 37 (60 pairs, 2026-11-30): 90.0 / 88.3 / 83.3 / 65.0 %
-    against 90.0 / 85.0 / 80.0 / 63.3 % always counter-clockwise, and 93.3 / 85.0 / 81.7 / 63.3 % turning
-    each stop the other way from the last. Surfaces counted within 2 m: 90.0 / 90.0 / 81.7 / 65.0 %,
-    4.5 m: 90.0 / 88.3 / 81.7 / 65.0 % (measured after the choice of 3 m). Choosing the side for every
-    hovering plan, not only blocked ones (a look-around after an η veto too): 90.0 / 86.7 / 81.7 / 65.0 %."""
-    route: RouteConfig | None = field(default_factory=RouteConfig)
-    """With ``memory``: while a flight has not come 0.5 m closer to its goal than ever before for
-    ``route.after`` seconds, the network's goal is a point on a route around every surface seen since
-    the flight began (:class:`~mapkit.evaluation._route.FlightMap`, a 3-D grid; unseen space counts as
-    free; a column is passable at any clear height, and the point's height is the one that passes the
-    route's next column closed at the vehicle's own), as long as that route is a detour, and a hovering
-    vehicle faces that point. None: the local goal on the straight line. Office, dev seeds 200–219 (1200
-    flights, 2026-12-02): 1139 against 1070 with a level map of the surfaces within 0.5 m of the vehicle's
-    height (which closed doorways under their lintels) and 1032 without a map; nine held-out seeds 11–53:
-    office 92.4 against 82.8 and 82.4 %, overall 97.35 against 94.1 and 93.7 % (docs/evaluation.md,
-    "Flight map"). With the ground counted as seen (``RouteConfig.ground``, 2026-12-03): 1149 of 1200."""
-    speed: float | None = 1.2
-    """m/s: the cruise speed of the speed profile that times learned plans (and the speed at which a
-    plan passes a local goal beyond the horizon) while the flight makes its way: the oracle's pace.
-    None: the model's ``cruise_speed`` (2 m/s for the shipped model, the default until 2026-12-04).
-    The network still reads the velocity scaled by the model's own cruise speed. The same path flown
-    in 1/k of the time costs k⁷ the snap, so this trades time for effort. The time limit follows
-    this speed (``LoopConfig.cruise_speed``). With the shipped TAN of 2026-12-03 (tuned at 2 m/s)
-    and ``stop_decel`` 0.75: held-out seeds 11–29 98.8 % (offices 290 of 300) at 1.00–1.98× the
-    oracle's effort, against 96.0 % (265) at 16.8–22× with the model's 2 m/s and its clock; office dev
-    seeds 200–210 642 of 660 against 631; median flights 15–17 s instead of 10–11 s ("The clock" in
-    docs/evaluation.md). With the TAN shipped since 2026-12-04, tuned at this pace (docs/train.md):
-    held-out seeds 17 / 19 / 23 / 29 / 83 / 89 1070 of 1080 flights at 0.50–0.87× the oracle's effort."""
-    turn_accel: float | None = 1.5
-    """m/s²: each plan's cruise speed (and its speed at a passed goal) is at most √(``turn_accel`` R),
-    R the radius of the sharpest turn of its key-points (:func:`mapkit.planner.turn_speed`), and at
-    least ``turn_min_speed``; None: every plan at the cruise speed. A turn's snap grows with the
-    seventh power of the speed it is flown at, and a straight path has none, so this slows the plans
-    that turn and leaves the straight ones at cruise speed. Chosen on office dev seeds 200–205 (360
-    flights; success, effort on the pairs all reached against none): 1.0 338 ×0.32, 1.5 346 ×0.45,
-    2.5 350 ×0.89, none 347. Office dev seeds 200–219: 1149 of 1200 either way (17 collisions / 34
-    timeouts against 31 / 20) at ×0.52 the effort; held-out seeds 11–29 ×0.78–0.87 per pair at
-    96.0 against 96.7 % ("Turns" in docs/evaluation.md)."""
-    turn_min_speed: float = 1.0
-    """m/s: the slowest cruise speed ``turn_accel`` sets (the cruise speed itself when slower)."""
-    stop_decel: float | None = 0.75
-    """m/s²: until a flight searches for its way, plans that end at rest (at the goal) slow down to
-    it at this rate instead of the model's ``accel`` (None). A garage flight's costliest half second
-    was often its approach to the goal. At the model's 2 m/s (and ``turn_accel`` 1.5) office dev
-    seeds 200–219 reached 1148 of 1200 against 1149 with None (×0.91 the effort), the held-out offices
-    of seeds 11–29 262 against 265 of 300; applied in searching flights too, 1145 and 260 ("Turns" in
-    docs/evaluation.md). The default since 2026-12-04, with ``speed`` 1.2."""
-    search_speed: float | None = None
-    """m/s for the rest of a flight once it searches for its way: it has stalled (no 0.5 m of
-    progress for ``route.after`` seconds), or flown more than ``search_ratio`` × the distance it has
-    come toward the goal plus ``search_margin``. None: the model's ``cruise_speed``. Matters only
-    with a slower ``speed``: a flight that looks for its way through an office covers 1.6–3× the
-    straight distance, and at the oracle's pace those flights ran out of time."""
-    search_ratio: float = 1.4
-    """Flown path over progress toward the goal above which a flight counts as searching (a flight
-    weaving between trees flies 1.05–1.15×)."""
-    search_margin: float = 1.0
-    """Metres of flown path allowed before the ratio counts (turning toward the way at the start)."""
-    blocked_within: float = 2.0
-    """Seconds of each candidate that must keep clear of remembered surfaces for the way ahead to count
-    as open: braking from cruise speed takes about 2.7 s and 2.7 m. Office and garage on seeds 7 and 13
-    (120 pairs each): 1.0 s 62.5 % (seed 7), 1.5 s 70.8 / 66.7 %, 2.0 s 75.8 / 70.8 %, 2.5 s 71.7 %,
-    3.0 s 70.8 %."""
 
 
 @dataclass
@@ -255,12 +117,13 @@ def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
         traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", **kw)
         if not bool(traj.solved.all()):
             return min_snap(wp, T, start=start, end=end)
-        over_v = how.v_max is not None and float(traj.max_velocity(per_axis=True, samples_per_segment=256).max()) > how.v_max
-        over_a = how.a_max is not None and float(traj.max_acceleration(per_axis=True, samples_per_segment=256).max()) > how.a_max
+        limits = how.speed
+        over_v = limits.v_max is not None and float(traj.max_velocity(per_axis=True, samples_per_segment=256).max()) > limits.v_max
+        over_a = limits.a_max is not None and float(traj.max_acceleration(per_axis=True, samples_per_segment=256).max()) > limits.a_max
         if not (over_v or over_a):
             return traj
         limited = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", limits_everywhere=True,
-                           v_max=how.v_max, a_max=how.a_max, **kw)
+                           v_max=limits.v_max, a_max=limits.a_max, **kw)
         return limited if bool(limited.solved.all()) else traj
 
 
@@ -331,11 +194,12 @@ def _execute(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
              check: _Checker | None = None) -> Trajectory:
     """The reference a plan flies: the widest corridor of ``how`` that ``check`` does not find
     closer to what the camera sees than the trajectory through the key-points."""
-    if how.corridor is None:
+    width = how.corridor.width
+    if width is None:
         return _limited(wp, T, start, end, how, None)
-    if check is None or not how.check_corridor:
-        return _limited(wp, T, start, end, how, how.corridor)
-    widest = _limited(wp, T, start, end, how, how.corridor)
+    if check is None or not how.corridor.check:
+        return _limited(wp, T, start, end, how, width)
+    widest = _limited(wp, T, start, end, how, width)
     conflicts = check(widest)
     if conflicts == 0:  # the usual case, decided without the reference trajectory
         return widest
@@ -344,7 +208,7 @@ def _execute(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
     if conflicts <= allowed:
         return widest
     for scale in (0.5, 0.25, 0.1):
-        traj = _limited(wp, T, start, end, how, how.corridor * scale)
+        traj = _limited(wp, T, start, end, how, width * scale)
         if check(traj) <= allowed:
             return traj
     return _limited(wp, T, start, end, how, None)
@@ -510,7 +374,7 @@ class PlanInput:
     end_speed: float
     """m/s at the last key-point (0: rest at the goal)."""
     cruise_speed: float
-    """m/s: the cruise speed of the plan's speed profile (slowed for its turns, :attr:`Execution.turn_accel`)."""
+    """m/s: the cruise speed of the plan's speed profile (slowed for its turns, :attr:`SpeedProfile.turn_accel`)."""
     decel: float
     """m/s²: the rate at which the plan's speed profile slows down to the end speed."""
 
@@ -538,7 +402,7 @@ class LearnedMethod:
     replans = True
 
     def __init__(self, name: str, net: PlannerNet, *, allocation: Allocation = "tan", spline: bool = False,
-                 camera: CameraInput | None = None, execution: Execution = Execution(),
+                 camera: CameraInput | None = None, execution: Execution = _FULL_STACK,
                  keypoints: KeypointSource = "network") -> None:
         self.name = name
         self.keypoint_source = keypoints
@@ -548,7 +412,7 @@ class LearnedMethod:
         self.spline = spline
         self.config = net.config
         self.execution = execution
-        self._timing_config = _at_speed(net.config, execution.speed)
+        self._timing_config = _at_speed(net.config, execution.speed.cruise)
         """The planner config whose cruise speed times the plans: ``speed``, ``search_speed`` once searching."""
         self._search = _Search()
         self.plan_log: list[PlanInput] | None = None
@@ -556,7 +420,7 @@ class LearnedMethod:
         self._subgoal: tuple[np.ndarray, float] | None = None  # (world point, until)
         self._flight: tuple[np.ndarray, float] | None = None  # (goal, time) of the last plan
         self._image: tuple[Observation, ImageFeatures] | None = None  # the last frame's encoding
-        self._memory = None if execution.memory is None or camera is None else _Memory(camera, execution.memory)
+        self._memory = None if execution.memory is None or camera is None else _Memory(camera, execution.memory.seconds)
         self._route = None if execution.route is None or self._memory is None else FlightMap(execution.route)
         self._progress = Progress()
 
@@ -589,9 +453,9 @@ class LearnedMethod:
 
     def _timed(self, wp: torch.Tensor, start: torch.Tensor, end_speed: torch.Tensor) -> Timing:
         """Segment times of plans (B, K+1, 3) at the flight's cruise speed, each slowed for its
-        sharpest turn (:attr:`Execution.turn_accel`), its speed at a passed goal too; plans to rest
-        slow down at :attr:`Execution.stop_decel` until the flight searches."""
-        config, how = self._timing_config, self.execution
+        sharpest turn (:attr:`SpeedProfile.turn_accel`), its speed at a passed goal too; plans to rest
+        slow down at :attr:`SpeedProfile.stop_decel` until the flight searches."""
+        config, how = self._timing_config, self.execution.speed
         cruise = decel = None
         if how.turn_accel is not None:
             slowest = min(how.turn_min_speed, config.cruise_speed)
@@ -621,13 +485,13 @@ class LearnedMethod:
             attempt.traj = _spline_trajectory(wp, start, timing)
             return attempt
         how = self.execution
-        if self.camera is not None and how.check_corridor:
+        if self.camera is not None and how.corridor.check:
             recall = None
-            if how.check_memory and self._memory is not None:
-                recall = (self._memory, obs.T_world_body, how.blocked_within)
+            if how.corridor.check_memory and self._memory is not None and how.memory is not None:
+                recall = (self._memory, obs.T_world_body, how.memory.blocked_within)
             attempt.check = _Checker(x, self.camera, self.config.max_depth, out.pyramid, recall)
-        if how.corridor is not None:
-            wpt = follow_reference(wpt, timing.durations, obs, how.follow, how.corridor)
+        if how.corridor.width is not None:
+            wpt = follow_reference(wpt, timing.durations, obs, how.follow, how.corridor.width)
         with torch.inference_mode():
             attempt.traj = _execute(wpt, timing.durations, st, timing.end, how, attempt.check)
         return attempt
@@ -637,9 +501,10 @@ class LearnedMethod:
         choice when its first ``blocked_within`` seconds keep clear of them, else the best-scored
         candidate that does, else ``blocked``."""
         memory, how = self._memory, self.execution
-        assert memory is not None  # called only with a memory
+        assert memory is not None and how.memory is not None  # called only with a memory
+        within = how.memory.blocked_within
         T = obs.T_world_body
-        if attempt.traj is None or memory.conflicts(_samples(attempt.traj, within=how.blocked_within)[0], T)[0] == 0:
+        if attempt.traj is None or memory.conflicts(_samples(attempt.traj, within=within)[0], T)[0] == 0:
             return attempt
         out = attempt.out
         # a network pass: a model with a memory judges several candidates
@@ -651,7 +516,7 @@ class LearnedMethod:
         with torch.inference_mode():
             timing = self._timed(wp, st, es)
             paths = min_snap(wp, timing.durations, start=st, end=timing.end)
-        clear = memory.conflicts(_samples(paths, within=how.blocked_within)[0], T) == 0
+        clear = memory.conflicts(_samples(paths, within=within)[0], T) == 0
         if not clear.any():
             attempt.blocked = True
             return attempt
@@ -702,14 +567,14 @@ class LearnedMethod:
 
     def _speed_config(self, obs: Observation) -> PlannerConfig:
         """The planner config timed at ``speed``, or at ``search_speed`` once the flight searches."""
-        how = self.execution
+        how = self.execution.speed
         p = obs.T_world_body[:3, 3]
         searching = self._search.update(p, float(np.linalg.norm(np.asarray(obs.goal_world) - p)),
                                         how.search_ratio, how.search_margin)
-        return _at_speed(self.config, how.search_speed if searching else how.speed)
+        return _at_speed(self.config, how.search_speed if searching else how.cruise)
 
     def _subgoal_speed(self) -> float:
-        speed = self.execution.subgoal_speed
+        speed = None if self.execution.memory is None else self.execution.memory.subgoal_speed
         return self._timing_config.cruise_speed if speed is None else speed
 
     def plan(self, obs: Observation) -> MethodPlan:
@@ -737,7 +602,8 @@ class LearnedMethod:
                 body = open_direction(np.asarray(obs.depth), self.camera, goal_body, self.config.max_depth)
                 if body is not None:
                     point = obs.T_world_body[:3, :3] @ body + obs.T_world_body[:3, 3]
-                    self._subgoal = (point, obs.t + self.execution.subgoal_time)
+                    assert self.execution.memory is not None  # a memory found it blocked
+                    self._subgoal = (point, obs.t + self.execution.memory.subgoal_time)
                     attempt = self._remembered(obs, start, self._attempt(obs, start, body, self._subgoal_speed()))
         assert attempt.traj is not None  # every attempt is executed (a spline, or minimum snap)
         # a spline's knots follow its chords; a minimum-snap reference keeps the allocation's durations
@@ -750,7 +616,8 @@ class LearnedMethod:
         brake = side = None
         if attempt.blocked and self._memory is not None:
             brake = self._memory.clearest(obs.T_world_body, start)
-            side = self._memory.open_side(obs.T_world_body) if self.execution.turn_toward_open else None
+            toward_open = self.execution.memory is not None and self.execution.memory.turn_toward_open
+            side = self._memory.open_side(obs.T_world_body) if toward_open else None
         latency = 1e3 * (time.perf_counter() - t0)
         pieces = pieces_from_body(coeffs, durations, obs.T_world_body, obs.t)
         kp_world = attempt.kp @ obs.T_world_body[:3, :3].T + obs.T_world_body[:3, 3]
@@ -854,7 +721,7 @@ def _split_long(poly: np.ndarray, max_len: float) -> np.ndarray:
 
 def make_methods(names: list[str], net: PlannerNet | None, world: World, graph: FreeSpaceGraph | None, *,
                  oracle_corridor: float = 0.1, robot_radius: float = 0.3, camera: CameraInput | None = None,
-                 execution: Execution = Execution(), untrained: PlannerNet | None = None) -> list:
+                 execution: Execution = _FULL_STACK, untrained: PlannerNet | None = None) -> list:
     """Instantiate the named methods (``net`` needed by the learned ones, ``untrained`` by ``untrained``,
     ``graph`` by the oracle, ``camera`` by models that check their paths against the depth image;
     ``execution`` how the learned methods fly their key-points: the flight stack)."""
@@ -874,7 +741,8 @@ def make_methods(names: list[str], net: PlannerNet | None, world: World, graph: 
         elif name == "iplanner-style":
             assert net is not None  # likewise
             # iPlanner's spline flies the learned plans' pace, without the turns' slowing (which came later)
-            out.append(LearnedMethod(name, net, spline=True, camera=camera, execution=replace(execution, turn_accel=None)))
+            pace = replace(execution, speed=replace(execution.speed, turn_accel=None))
+            out.append(LearnedMethod(name, net, spline=True, camera=camera, execution=pace))
         elif name == "straight":
             out.append(StraightMethod(cfg))
         elif name == "oracle":

@@ -24,11 +24,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from mapkit._choices import FLIGHT_STACKS, FlightStack
-from mapkit._formats import EVAL_FORMAT, EpisodeRecord
+from mapkit._formats import EVAL_FORMAT, PLANS_FILE, EpisodeRecord
 from mapkit._version import __version__
 from mapkit.evaluation._ablation import Ablation, ablation
+from mapkit.evaluation._layers import Execution, Memory
 from mapkit.evaluation._loop import LoopConfig, run_episode
-from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, Execution, LearnedMethod, PlanInput, make_methods
+from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, LearnedMethod, PlanInput, make_methods
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
 from mapkit.evaluation._route import RouteConfig
 from mapkit.evaluation._stack import Run, plan_runs, split_label, under_stack
@@ -120,29 +121,7 @@ class EvalConfig:
         if not (math.isfinite(frames) and frames >= 1 - 1e-9 and abs(frames - round(frames)) < 1e-6):
             raise EvalError(f"--replan-interval {loop.replan_interval} s is not a whole number of depth frames at "
                             f"{loop.depth_rate:g} Hz; use a multiple of {1 / loop.depth_rate:.4g} s")
-        for option, value in (("--corridor", ex.corridor), ("--v-max", ex.v_max), ("--a-max", ex.a_max),
-                              ("--memory", ex.memory), ("--turn-accel", ex.turn_accel), ("--stop-decel", ex.stop_decel)):
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise EvalError(f"{option} must be a positive number (0 turns it off), got {value}")
-        for name, value in (("blocked_within", ex.blocked_within), ("subgoal_time", ex.subgoal_time)):
-            if not (math.isfinite(value) and value > 0):
-                raise EvalError(f"Execution.{name} must be a positive number of seconds, got {value}")
-        if ex.route is not None:
-            _validate_route(ex.route)
-        if ex.subgoal_speed is not None and not (math.isfinite(ex.subgoal_speed) and ex.subgoal_speed >= 0):
-            raise EvalError(f"--subgoal-speed must be >= 0 m/s (0: stop at the way out; default: the cruise speed), "
-                            f"got {ex.subgoal_speed}")
-        for option, value in (("--speed", ex.speed), ("--search-speed", ex.search_speed)):
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise EvalError(f"{option} must be a positive speed in m/s (or left out: the model's cruise speed), got {value}")
-        if not (math.isfinite(ex.turn_min_speed) and ex.turn_min_speed > 0):
-            raise EvalError(f"--turn-min-speed must be a positive speed in m/s, got {ex.turn_min_speed}")
-        if not (math.isfinite(ex.search_ratio) and ex.search_ratio >= 1):
-            raise EvalError(f"Execution.search_ratio must be >= 1 (flown path over progress), got {ex.search_ratio}")
-        if not (math.isfinite(ex.search_margin) and ex.search_margin >= 0):
-            raise EvalError(f"Execution.search_margin must be >= 0 metres, got {ex.search_margin}")
-        if not (math.isfinite(ex.follow) and 0 <= ex.follow <= 1):
-            raise EvalError(f"--follow must be in [0, 1] (the fraction of the way toward the reference), got {ex.follow}")
+        _validate_execution(ex)
         if not (math.isfinite(loop.plan_latency) and 0 <= loop.plan_latency < loop.replan_interval):
             raise EvalError(f"--plan-latency must be in [0, replan interval {loop.replan_interval} s), got {loop.plan_latency}")
         if not (math.isfinite(loop.look_ahead) and loop.look_ahead >= 0):
@@ -560,7 +539,8 @@ def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> 
         context.loop = dataclasses.replace(context.loop, robot_radius=float(loss["robot_radius"]))
     # The time limit is a multiple of the straight flight at the pace the planner is asked to fly: a
     # flight slowed by --speed is not judged by the clock of a faster one.
-    pace = net.config.cruise_speed if config.execution.speed is None else config.execution.speed
+    cruise = config.execution.speed.cruise
+    pace = net.config.cruise_speed if cruise is None else cruise
     context.loop = dataclasses.replace(context.loop, cruise_speed=float(pace))
     context.trained_worlds = _training_worlds(run_cfg)
     context.model_info = {"path": str(run_dir.resolve()), "sha256": _sha256(run_dir / "model.pt"),
@@ -795,10 +775,6 @@ def run_labels(config: EvalConfig) -> list[str]:
     return [run.label for run in plan_runs(config.methods, config.stacks)]
 
 
-PLANS_FILE = "plans.npz"
-"""``mapkit eval --record-plans``: the learned method's time allocation inputs."""
-
-
 def write_plans(path: Path, plans: list[tuple[str, int, PlanInput]]) -> None:
     """plans.npz: ``waypoints`` (P, K+1, 3), ``start`` (P, 3, 3), ``end_speed`` (P,), ``cruise_speed``
     (P,), ``decel`` (P,), ``world`` (P,) and ``pair`` (P,) of every recorded plan (body frame, metres
@@ -901,6 +877,42 @@ def evaluate(
     files = sorted(p for p in out_dir.rglob("*") if p.is_file())
     return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat, "allocation": alloc}, files=files,
                       ablation=ablation(collected.episodes, methods))
+
+
+def _validate_execution(ex: Execution) -> None:
+    """One line naming the flight stack's first bad setting (its option, where it has one)."""
+    pace, memory = ex.speed, ex.memory
+    for option, value in (("--corridor", ex.corridor.width), ("--v-max", pace.v_max), ("--a-max", pace.a_max),
+                          ("--memory", None if memory is None else memory.seconds), ("--turn-accel", pace.turn_accel),
+                          ("--stop-decel", pace.stop_decel)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise EvalError(f"{option} must be a positive number (0 turns it off), got {value}")
+    if memory is not None:
+        _validate_memory(memory)
+    if ex.route is not None:
+        _validate_route(ex.route)
+    for option, value in (("--speed", pace.cruise), ("--search-speed", pace.search_speed)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise EvalError(f"{option} must be a positive speed in m/s (or left out: the model's cruise speed), got {value}")
+    if not (math.isfinite(pace.turn_min_speed) and pace.turn_min_speed > 0):
+        raise EvalError(f"--turn-min-speed must be a positive speed in m/s, got {pace.turn_min_speed}")
+    if not (math.isfinite(pace.search_ratio) and pace.search_ratio >= 1):
+        raise EvalError(f"SpeedProfile.search_ratio must be >= 1 (flown path over progress), got {pace.search_ratio}")
+    if not (math.isfinite(pace.search_margin) and pace.search_margin >= 0):
+        raise EvalError(f"SpeedProfile.search_margin must be >= 0 metres, got {pace.search_margin}")
+    if not (math.isfinite(ex.follow) and 0 <= ex.follow <= 1):
+        raise EvalError(f"--follow must be in [0, 1] (the fraction of the way toward the reference), got {ex.follow}")
+
+
+def _validate_memory(memory: Memory) -> None:
+    """One line naming the memory layer's first bad setting."""
+    for name, value in (("blocked_within", memory.blocked_within), ("subgoal_time", memory.subgoal_time)):
+        if not (math.isfinite(value) and value > 0):
+            raise EvalError(f"Memory.{name} must be a positive number of seconds, got {value}")
+    speed = memory.subgoal_speed
+    if speed is not None and not (math.isfinite(speed) and speed >= 0):
+        raise EvalError(f"--subgoal-speed must be >= 0 m/s (0: stop at the way out; default: the cruise speed), "
+                        f"got {speed}")
 
 
 def _validate_route(route: RouteConfig) -> None:

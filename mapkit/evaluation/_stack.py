@@ -10,7 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from mapkit._choices import FLIGHT_STACKS, FlightStack
-from mapkit.evaluation._methods import LEARNED_ALLOCATIONS, Execution
+from mapkit.evaluation._layers import Execution
+from mapkit.evaluation._methods import LEARNED_ALLOCATIONS
 from mapkit.evaluation._pairs import EvalError
 
 STACKED_METHODS = frozenset({*LEARNED_ALLOCATIONS, "untrained", "straight-keypoints", "iplanner-style"})
@@ -37,15 +38,15 @@ def parse_stacks(text: str) -> tuple[FlightStack, ...]:
 
 def under_stack(execution: Execution, stack: FlightStack) -> Execution:
     """``execution`` as flown under ``stack``: ``full`` keeps every layer as configured; ``none`` keeps
-    the corridor, the speed profile and the limits and turns off the depth memory, the corridor's
-    check against the depth image and the memory, the turn toward open space, the flight map's
-    routing and following the reference (the paper's protocol: the network's key-points through the
-    corridor, replanned every interval)."""
+    the corridor's width and the speed profile and turns off the depth memory (with its ways out and
+    the turn toward open space), the corridor's check, the flight map's routing and following the
+    reference (the paper's protocol: the network's key-points through the corridor, replanned every
+    interval)."""
     if stack == "full":
         return execution
     if stack == "none":
-        return replace(execution, memory=None, route=None, check_corridor=False, check_memory=False,
-                       turn_toward_open=False, follow=0.0)
+        return replace(execution, memory=None, route=None, follow=0.0,
+                       corridor=replace(execution.corridor, check=False, check_memory=False))
     raise ValueError(f"unknown flight stack {stack!r}; use one of {', '.join(FLIGHT_STACKS)}")
 
 

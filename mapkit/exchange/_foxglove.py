@@ -233,7 +233,7 @@ def _plan_entity(result: Any, T_wb: NDArray[np.float64], ns: int, world: str, co
 
 
 PLAN_CORRIDOR = 1.0
-"""Metres: the flight corridor of exported plans (``mapkit eval``'s default, ``Execution.corridor``)."""
+"""Metres: the flight corridor of exported plans (``mapkit eval``'s default, ``Corridor.width``)."""
 
 
 def _plan_results(frames: Any, config: FoxgloveConfig) -> Iterator[tuple[int, NDArray[np.float64], Any, float]]:

@@ -150,41 +150,11 @@ def carve_free_space(
     n = len(store)
     frame_step = max(1, int(np.ceil(n / max_frames)))
     pix_step = max(1, int(np.floor(grid.voxel_size * min(K[0, 0], K[1, 1]) / max_depth)))
-    H, W = store.height, store.width
-    v, u = np.mgrid[0:H:pix_step, 0:W:pix_step]
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, dtype=float)], -1).reshape(-1, 3)
-    step = 0.8 * grid.voxel_size
-    window = window or Window.whole(grid)
-    lo, hi = np.asarray(window.lo), np.asarray(window.hi)
-    strides = np.array([window.shape[1] * window.shape[2], window.shape[2], 1])
+    rays = _pixel_rays(K, store.height, store.width, pix_step)
+    marker = _RayMarker.on(grid, window or Window.whole(grid), step=0.8 * grid.voxel_size)
+    step = marker.step
     flat = observed.reshape(-1)
     used = 0
-
-    tile = window != Window.whole(grid)
-
-    def mark(target: NDArray[np.bool_], origin: NDArray[np.float64], dirs: NDArray[np.float64],
-             z0: NDArray[np.float64], counts: NDArray[np.int64]) -> None:
-        """Set the voxels at optical depths z0 + (n + 0.5) * step, n < counts, along each ray."""
-        start = np.cumsum(counts) - counts
-        # Voxel coordinates directly (float32 halves the memory traffic of this hot loop).
-        scaled_dirs = (dirs / grid.voxel_size).astype(np.float32)
-        base = ((origin - grid.origin) / grid.voxel_size).astype(np.float32)
-        if tile:  # only the samples that can land in the window, each computed as for the whole grid
-            first, stop = _samples_in_box(base, scaled_dirs, z0, counts, step, lo - 1.0, hi.astype(np.float64))
-            kept = stop - first
-            ray_id = np.repeat(np.arange(len(kept)), kept)
-            # sample n of a ray is element start + n of the whole grid's enumeration (float32 there too)
-            element = np.repeat(start + first - (np.cumsum(kept) - kept), kept) + np.arange(kept.sum())
-            offset = element.astype(np.float32) - np.repeat(start, kept).astype(np.float32)
-            z = np.repeat(z0.astype(np.float32), kept) + (offset + 0.5) * np.float32(step)
-        else:
-            ray_id = np.repeat(np.arange(len(counts)), counts)
-            z = np.repeat(z0.astype(np.float32), counts) + (
-                np.arange(counts.sum(), dtype=np.float32) - np.repeat(start, counts).astype(np.float32) + 0.5
-            ) * np.float32(step)
-        idx = np.rint(base + scaled_dirs[ray_id] * z[:, None]).astype(np.int64)
-        inside = np.all((idx >= lo) & (idx < hi), axis=1)
-        target[(idx[inside] - lo) @ strides] = True
 
     focal = 0.5 * (K[0, 0] + K[1, 1]) / pix_step  # focal length in strided pixels
     chosen = [i for i in range(0, n, frame_step) if frames is None or i in frames]
@@ -198,7 +168,7 @@ def carve_free_space(
         T = store.T_world_camera[i]
         dirs = rays[ok] @ T[:3, :3].T  # world-frame ray per unit optical depth
         counts = np.maximum((z_end / step).astype(np.int64), 0)
-        mark(flat, T[:3, 3], dirs, np.zeros_like(z_end), counts)
+        marker.mark(flat, T[:3, 3], dirs, np.zeros_like(z_end), counts)
         if behind is not None and solid_depth > 0:
             # Go deeper behind surfaces seen head-on than behind grazing ones (cos of the view angle
             # from the depth gradient): a grazing ray leaves a thin object within centimetres.
@@ -207,9 +177,61 @@ def carve_free_space(
             cos = 1.0 / np.sqrt(1.0 + np.nan_to_num(tan, nan=1e6) ** 2)
             hit = depth[ok] <= max_depth
             n_behind = np.floor(solid_depth * cos[hit] / step).astype(np.int64)
-            mark(behind.reshape(-1), T[:3, 3], dirs[hit], depth[ok][hit] + step, n_behind)
+            marker.mark(behind.reshape(-1), T[:3, 3], dirs[hit], depth[ok][hit] + step, n_behind)
         used += 1
     return used
+
+
+def _pixel_rays(K: NDArray[np.float64], H: int, W: int, pix_step: int) -> NDArray[np.float64]:
+    """(N, 3) optical-frame ray per unit optical depth through every `pix_step`-th pixel (row-major)."""
+    v, u = np.mgrid[0:H:pix_step, 0:W:pix_step]
+    return np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, dtype=float)], -1).reshape(-1, 3)
+
+
+@dataclass(frozen=True)
+class _RayMarker:
+    """Sets the voxels of a window of a grid that samples along rays land in (:func:`carve_free_space`)."""
+
+    grid: Grid
+    step: float
+    """Metres of optical depth between samples."""
+    lo: NDArray[np.int64]
+    hi: NDArray[np.int64]
+    strides: NDArray[np.int64]
+    """Of the window's flattened array."""
+    tile: bool
+    """The window is part of the grid: only samples that can land in it are computed."""
+
+    @classmethod
+    def on(cls, grid: Grid, window: Window, *, step: float) -> _RayMarker:
+        strides = np.array([window.shape[1] * window.shape[2], window.shape[2], 1])
+        return cls(grid, step, np.asarray(window.lo), np.asarray(window.hi), strides, window != Window.whole(grid))
+
+    def mark(self, target: NDArray[np.bool_], origin: NDArray[np.float64], dirs: NDArray[np.float64],
+             z0: NDArray[np.float64], counts: NDArray[np.int64]) -> None:
+        """Set the voxels at optical depths z0 + (n + 0.5) * step, n < counts, along each ray."""
+        grid, step, lo, hi = self.grid, self.step, self.lo, self.hi
+        start = np.cumsum(counts) - counts
+        # Voxel coordinates directly (float32 halves the memory traffic of this hot loop).
+        scaled_dirs = (dirs / grid.voxel_size).astype(np.float32)
+        base = ((origin - grid.origin) / grid.voxel_size).astype(np.float32)
+        if self.tile:  # only the samples that can land in the window, each computed as for the whole grid
+            first, stop = _samples_in_box(base, scaled_dirs, z0, counts, step, lo.astype(np.float64) - 1.0,
+                                          hi.astype(np.float64))
+            kept = stop - first
+            ray_id = np.repeat(np.arange(len(kept)), kept)
+            # sample n of a ray is element start + n of the whole grid's enumeration (float32 there too)
+            element = np.repeat(start + first - (np.cumsum(kept) - kept), kept) + np.arange(kept.sum())
+            offset = element.astype(np.float32) - np.repeat(start, kept).astype(np.float32)
+            z = np.repeat(z0.astype(np.float32), kept) + (offset + 0.5) * np.float32(step)
+        else:
+            ray_id = np.repeat(np.arange(len(counts)), counts)
+            z = np.repeat(z0.astype(np.float32), counts) + (
+                np.arange(counts.sum(), dtype=np.float32) - np.repeat(start, counts).astype(np.float32) + 0.5
+            ) * np.float32(step)
+        idx = np.rint(base + scaled_dirs[ray_id] * z[:, None]).astype(np.int64)
+        inside = np.all((idx >= lo) & (idx < hi), axis=1)
+        target[(idx[inside] - lo) @ self.strides] = True
 
 
 def _samples_in_box(base: NDArray[np.float32], dirs: NDArray[np.float32], z0: NDArray[np.float64],

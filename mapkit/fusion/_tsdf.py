@@ -9,7 +9,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +22,10 @@ from mapkit.errors import MapkitError
 from mapkit.geometry import invert_transform
 from mapkit.ingest import FramesStore, IngestConfig, ingest, open_frames_store
 from mapkit.workspace import FRAMES, atomic_output, check_writable, clean_stale
+
+if TYPE_CHECKING:
+    import open3d as o3d
+    import open3d.core as o3c
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +115,26 @@ def _device(name: str) -> Any:
     raise FusionError(f"--device {name!r}: expected cpu or cuda:N")
 
 
+def _o3c_tensor(array: NDArray[Any], dtype: o3c.Dtype) -> o3c.Tensor:
+    """A copy of `array` as an Open3D tensor of `dtype` on the CPU: the constructor with its defaults
+    spelled out (its stubs list dtype and device as required)."""
+    import open3d.core as o3c
+
+    return o3c.Tensor(array, dtype, o3c.Device("CPU:0"))
+
+
+def _tsdf_grid(voxel: float, *, block_count: int, device: o3c.Device) -> o3d.t.geometry.VoxelBlockGrid:
+    """An empty TSDF on `device`: Open3D's VoxelBlockGrid of `voxel`-metre voxels in blocks of
+    ``BLOCK_RESOLUTION``³, room for `block_count` blocks, and one float32 channel each of ``tsdf`` and
+    ``weight``."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    channels = (o3c.SizeVector([1]), o3c.SizeVector([1]))
+    return o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight"), (o3c.float32, o3c.float32), channels, voxel_size=voxel,
+                                         block_resolution=BLOCK_RESOLUTION, block_count=block_count, device=device)
+
+
 def _o3d_ready(depth: NDArray[np.float32]) -> NDArray[np.float32]:
     """Native-endian float32 (zarr hands out explicit '<f4', which Open3D's buffer protocol
     rejects) with invalid pixels as 0 (Open3D's convention, not a measurement)."""
@@ -125,7 +149,7 @@ def _o3d_depth(depth: NDArray[np.float32], device: Any, *, ready: bool = False) 
     import open3d as o3d
     import open3d.core as o3c
 
-    return o3d.t.geometry.Image(o3c.Tensor(depth if ready else _o3d_ready(depth))).to(device)  # type: ignore[call-overload]  # stub: dtype, device required; they default
+    return o3d.t.geometry.Image(_o3c_tensor(depth if ready else _o3d_ready(depth), o3c.float32)).to(device)
 
 
 def _o3d_intrinsics(K: NDArray[np.float64]) -> Any:
@@ -141,7 +165,7 @@ def _o3d_intrinsics(K: NDArray[np.float64]) -> Any:
     K = np.array(K, dtype=np.float64)
     K[0, 2] += 0.5
     K[1, 2] += 0.5
-    return o3c.Tensor(K, o3c.float64)  # type: ignore[call-overload]  # stub: dtype, device required; they default
+    return _o3c_tensor(K, o3c.float64)
 
 
 def _touched_blocks(vbg: Any, image: Any, K: Any, extrinsic: Any, config: FuseConfig) -> Any:
@@ -161,15 +185,11 @@ def estimate_blocks(store: FramesStore, config: FuseConfig, *, sample: int = 24)
 
     Sized from the data, not a constant; Open3D's hash map also grows if this falls short.
     """
-    import open3d as o3d
     import open3d.core as o3c
 
     n = len(store)
     idx = np.unique(np.linspace(0, n - 1, min(sample, n)).round().astype(int))
-    probe = o3d.t.geometry.VoxelBlockGrid(
-        ("tsdf", "weight"), (o3c.float32, o3c.float32), ((1), (1)),  # type: ignore[arg-type]  # stub wants SizeVector; ints convert
-        voxel_size=config.voxel, block_resolution=BLOCK_RESOLUTION, block_count=1000,
-    )
+    probe = _tsdf_grid(config.voxel, block_count=1000, device=o3c.Device("CPU:0"))
     K = _o3d_intrinsics(store.K)
     seen = np.empty(0, dtype=np.int64)
     growth = []
@@ -178,7 +198,7 @@ def estimate_blocks(store: FramesStore, config: FuseConfig, *, sample: int = 24)
         if not np.any(depth <= config.max_depth):
             continue
         touched = _touched_blocks(probe, _o3d_depth(depth, o3c.Device("CPU:0")), K,
-                                  o3c.Tensor(invert_transform(store.T_world_camera[int(i)]), o3c.float64), config)  # type: ignore[call-overload]  # stub: dtype, device required; they default
+                                  _o3c_tensor(invert_transform(store.T_world_camera[int(i)]), o3c.float64), config)
         if touched is None:
             continue
         coords = touched.numpy()
@@ -312,9 +332,6 @@ def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overw
 
 def _voxel_grid(store: FramesStore, config: FuseConfig, device: Any) -> Any:
     """An empty VoxelBlockGrid sized for the surface the frames see; raises when it would not fit in memory."""
-    import open3d as o3d
-    import open3d.core as o3c
-
     blocks = estimate_blocks(store, config)
     block_bytes = BLOCK_RESOLUTION**3 * _BYTES_PER_VOXEL * 2  # hash map keeps ~2x headroom
     need = blocks * block_bytes
@@ -325,10 +342,7 @@ def _voxel_grid(store: FramesStore, config: FuseConfig, device: Any) -> Any:
             f"the TSDF at --voxel {config.voxel} needs about {need / 2**30:.1f} GiB ({blocks} blocks) but "
             f"{have / 2**30:.1f} GiB is available; use --voxel {fits:.3f} or larger"
         )
-    return o3d.t.geometry.VoxelBlockGrid(
-        ("tsdf", "weight"), (o3c.float32, o3c.float32), ((1), (1)),  # type: ignore[arg-type]  # stub wants SizeVector; ints convert
-        voxel_size=config.voxel, block_resolution=BLOCK_RESOLUTION, block_count=blocks, device=device,
-    )
+    return _tsdf_grid(config.voxel, block_count=blocks, device=device)
 
 
 def _depth_batches(store: FramesStore, indices: range, config: FuseConfig, size: int = 16) -> Any:
@@ -359,7 +373,7 @@ def _integrate(vbg: Any, store: FramesStore, indices: range, config: FuseConfig,
                 continue
             t = time.perf_counter()
             image = _o3d_depth(depth, device, ready=True)
-            extrinsic = o3c.Tensor(invert_transform(store.T_world_camera[i]), o3c.float64)  # type: ignore[call-overload]  # stub: dtype, device required; they default
+            extrinsic = _o3c_tensor(invert_transform(store.T_world_camera[i]), o3c.float64)
             coords = _touched_blocks(vbg, image, K, extrinsic, config)
             if coords is None:
                 skipped += 1

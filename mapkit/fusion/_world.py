@@ -39,10 +39,12 @@ from mapkit.fusion._tsdf import (
     BLOCK_RESOLUTION,
     FuseConfig,
     FusionError,
+    _o3c_tensor,
     _o3d_depth,
     _o3d_intrinsics,
     _o3d_ready,
     _touched_blocks,
+    _tsdf_grid,
 )
 from mapkit.geometry import invert_transform
 from mapkit.ingest import FramesStore, open_frames_store
@@ -294,7 +296,6 @@ def _tile_task(paths: list[str], grid: Grid, tile: _Tile, config: WorldConfig, a
 
 def _tile_tsdf(stores: list[FramesStore], grid: Grid, tile: _Tile, fc: FuseConfig) -> Any:
     """A VoxelBlockGrid holding only the TSDF blocks around `tile`, every reaching frame integrated in order."""
-    import open3d as o3d
     import open3d.core as o3c
 
     block = BLOCK_RESOLUTION * fc.voxel
@@ -304,10 +305,7 @@ def _tile_tsdf(stores: list[FramesStore], grid: Grid, tile: _Tile, fc: FuseConfi
     b_lo = np.floor(box_lo / block).astype(np.int64) - 1
     b_hi = np.floor(box_hi / block).astype(np.int64) + 1
     capacity = int(min(np.prod(b_hi - b_lo + 1), _MAX_TILE_BLOCKS))
-    vbg = o3d.t.geometry.VoxelBlockGrid(
-        ("tsdf", "weight"), (o3c.float32, o3c.float32), ((1), (1)),  # type: ignore[arg-type]  # stub wants SizeVector; ints convert
-        voxel_size=fc.voxel, block_resolution=BLOCK_RESOLUTION, block_count=capacity, device=o3c.Device("CPU:0"),
-    )
+    vbg = _tsdf_grid(fc.voxel, block_count=capacity, device=o3c.Device("CPU:0"))
     device = o3c.Device("CPU:0")
     for store, frames in zip(stores, tile.frames, strict=True):
         K = _o3d_intrinsics(store.K)
@@ -318,7 +316,7 @@ def _tile_tsdf(stores: list[FramesStore], grid: Grid, tile: _Tile, fc: FuseConfi
             if not np.any(raw <= fc.max_depth):  # as mapkit fuse: Open3D aborts on a frame that touches no block
                 continue
             image = _o3d_depth(_o3d_ready(raw), device, ready=True)
-            extrinsic = o3c.Tensor(invert_transform(store.T_world_camera[i]), o3c.float64)  # type: ignore[call-overload]  # stub: dtype, device required; they default
+            extrinsic = _o3c_tensor(invert_transform(store.T_world_camera[i]), o3c.float64)
             touched = _touched_blocks(vbg, image, K, extrinsic, fc)
             if touched is None:
                 continue
@@ -326,7 +324,7 @@ def _tile_tsdf(stores: list[FramesStore], grid: Grid, tile: _Tile, fc: FuseConfi
             mine = np.all((coords >= b_lo) & (coords <= b_hi), axis=1)
             if not mine.any():
                 continue
-            mine_coords = o3c.Tensor(np.ascontiguousarray(coords[mine]))  # type: ignore[call-overload]  # stub: dtype, device required; they default
+            mine_coords = _o3c_tensor(np.ascontiguousarray(coords[mine]), touched.dtype)
             vbg.integrate(mine_coords, image, K, extrinsic, 1.0, float(fc.max_depth), float(fc.trunc))
     return vbg
 

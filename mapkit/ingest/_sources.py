@@ -213,7 +213,7 @@ class _Rosbags:
                 yield RawMessage(normalize_topic(conn.topic), conn.msgtype, int(stamp), data)
 
     def deserialize(self, msg: RawMessage) -> Any:
-        return self._reader.deserialize(msg.data, msg.msgtype)  # type: ignore[arg-type]  # its own messages: bytes
+        return self._reader.deserialize(bytes(msg.data), msg.msgtype)  # rosbags hands out bytes: bytes() returns them as they are
 
 
 class _NoSummary(Exception):

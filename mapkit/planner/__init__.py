@@ -28,6 +28,7 @@ Loss: :func:`planner_loss` = γ1 U_O (:func:`obstacle_cost` on the ESDF) + γ2 U
 (torch.Size([1, 5, 3]), torch.Size([1]), 5)
 """
 
+from mapkit.planner._config import PLANNER_PRESETS, PlannerConfig, planner_preset
 from mapkit.planner._depthcheck import CameraInput, depth_margins, seen_conflicts
 from mapkit.planner._detour import DetourGrid, detour_excess
 from mapkit.planner._errors import PlannerError
@@ -48,15 +49,12 @@ from mapkit.planner._loss import (
     time_targets,
 )
 from mapkit.planner._model import (
-    PLANNER_PRESETS,
     ImageFeatures,
     Plan,
-    PlannerConfig,
     PlannerNet,
     PlannerOutput,
     count_parameters,
     plan,
-    planner_preset,
     preprocess_depth,
 )
 from mapkit.planner._resnet import ResNet18, load_torchvision_state_dict, torchvision_resnet18_keys

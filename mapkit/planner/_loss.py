@@ -415,8 +415,46 @@ def candidate_loss(
     cfg = config or LossConfig()
     cand = out.candidates if out.candidates is not None else out.keypoints[:, None]
     logits = out.candidate_eta_logits if out.candidate_eta_logits is not None else out.eta_logit[:, None]
-    B, M, K, _ = cand.shape
+    B, M = cand.shape[:2]
     goal = torch.as_tensor(goal, dtype=cand.dtype, device=cand.device)
+    plan, u_o, u_g, u_s, collided = _candidate_costs(net, cand, goal, T_world_body, esdf_map, cfg,
+                                                     start_velocity=start_velocity, end_speed=end_speed,
+                                                     corridor=corridor)
+    path = cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s
+    rows = torch.arange(B, device=cand.device)
+    ranked = path.detach() + cfg.winner_collision_penalty * collided.to(path.dtype)
+    winner = ranked.argmin(dim=1)
+    per = path[rows, winner]
+    if M > 1:
+        per = per + cfg.candidate_spread * path.mean(dim=1)
+        if cfg.candidate_anchor_pull > 0:
+            away = (cand - net.anchor_paths(goal)).square().sum(-1).mean(-1)  # (B, M) m²
+            losers = torch.ones_like(away).scatter(1, winner[:, None], 0.0)
+            per = per + cfg.candidate_anchor_pull * (away * losers).sum(dim=1) / (M - 1)
+    u_e = F.binary_cross_entropy_with_logits(logits, collided.to(logits.dtype), reduction="none").mean(dim=1)
+    u_score = _score_loss(out.scores, ranked, winner, like=per, config=cfg)
+    u_t = _winner_time_cost(plan, rows, winner, M=M, config=cfg)
+    per = per + cfg.gamma_escape * u_e + cfg.gamma_time * u_t + cfg.gamma_score * u_score
+    total = per.mean()
+    chosen = out.chosen if out.chosen is not None else torch.zeros(B, dtype=torch.long, device=cand.device)
+    coll_chosen = collided[rows, chosen]
+    f = functools.partial(_batch_mean, dtype=total.dtype)
+    terms = {
+        "obstacle": f(u_o[rows, chosen]), "goal": f(u_g[rows, chosen]), "smoothness": f(u_s[rows, chosen]),
+        "escape": f(u_e), "time": f(u_t), "score": f(u_score), "collision_rate": f(coll_chosen),
+        "winner_collision_rate": f(collided[rows, winner]), "score_accuracy": f(chosen == winner),
+        "total": total.detach(), "collided_chosen": coll_chosen, "goal_chosen": u_g[rows, chosen].detach(),
+    }
+    return total, terms
+
+
+def _candidate_costs(
+    net: PlannerNet, cand: torch.Tensor, goal: torch.Tensor, T_world_body: torch.Tensor, esdf_map: EsdfMap,
+    cfg: LossConfig, *, start_velocity: torch.Tensor | None, end_speed: torch.Tensor | None, corridor: float | None,
+) -> tuple[Plan, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every candidate's trajectory (a :class:`Plan` of B·M, sample-major) and its (B, M) obstacle, goal
+    and smoothness costs and collision labels (:func:`candidate_loss`)."""
+    B, M, K, _ = cand.shape
     plan = net.trajectory(cand.reshape(B * M, K, 3),
                           start_velocity=None if start_velocity is None else _per_candidate(start_velocity, M),
                           end_speed=None if end_speed is None else _per_candidate(end_speed, M), corridor=corridor)
@@ -434,45 +472,35 @@ def candidate_loss(
     u_s = smoothness_cost(smooth_pts, torch.zeros_like(goal_m), goal_m).reshape(B, M)
     collided = collision_labels(pts_world, esdf_map, threshold=cfg.collision_threshold,
                                 raw=cfg.label_from_raw).reshape(B, M)
-    path = cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s
-    rows = torch.arange(B, device=cand.device)
-    ranked = path.detach() + cfg.winner_collision_penalty * collided.to(path.dtype)
-    winner = ranked.argmin(dim=1)
-    per = path[rows, winner]
-    if M > 1:
-        per = per + cfg.candidate_spread * path.mean(dim=1)
-        if cfg.candidate_anchor_pull > 0:
-            away = (cand - net.anchor_paths(goal)).square().sum(-1).mean(-1)  # (B, M) m²
-            losers = torch.ones_like(away).scatter(1, winner[:, None], 0.0)
-            per = per + cfg.candidate_anchor_pull * (away * losers).sum(dim=1) / (M - 1)
-    u_e = F.binary_cross_entropy_with_logits(logits, collided.to(logits.dtype), reduction="none").mean(dim=1)
-    if out.scores is None or M == 1:
-        u_score = torch.zeros_like(per)
-    elif cfg.score_temperature > 0:
-        target = torch.softmax(-ranked / cfg.score_temperature, dim=1)
-        u_score = F.cross_entropy(out.scores, target, reduction="none")
-    else:
-        u_score = F.cross_entropy(out.scores, winner, reduction="none")
+    return plan, u_o, u_g, u_s, collided
+
+
+def _score_loss(scores: torch.Tensor | None, ranked: torch.Tensor, winner: torch.Tensor, *, like: torch.Tensor,
+                config: LossConfig) -> torch.Tensor:
+    """(B,) cross-entropy of the candidates' scores against the best one (softened by
+    ``score_temperature`` over the (B, M) ranking costs `ranked`); zeros shaped `like` without scores or
+    with one candidate."""
+    if scores is None or ranked.shape[1] == 1:
+        return torch.zeros_like(like)
+    if config.score_temperature > 0:
+        target = torch.softmax(-ranked / config.score_temperature, dim=1)
+        return F.cross_entropy(scores, target, reduction="none")
+    return F.cross_entropy(scores, winner, reduction="none")
+
+
+def _winner_time_cost(plan: Plan, rows: torch.Tensor, winner: torch.Tensor, *, M: int,
+                      config: LossConfig) -> torch.Tensor:
+    """(B,) U_T of each sample's `winner` candidate's time split in `plan` (B·M plans, sample-major;
+    `rows` = 0 … B−1)."""
+    B, K = len(rows), plan.shares.shape[-1]
     wp = plan.waypoints.reshape(B, M, K + 1, 3)[rows, winner]
     shares = plan.shares.reshape(B, M, K)[rows, winner]
     target = time_targets(wp, total_time=plan.total_time.reshape(B, M)[rows, winner],
                           start=plan.start.reshape(B, M, 3, 3)[rows, winner],
                           end=_plan_end(plan).reshape(B, M, 3, 3)[rows, winner],
-                          min_segment=plan.min_segment, max_iters=cfg.time_target_iters,
-                          rel_tol=cfg.time_target_tol)
-    u_t = time_cost(shares, target)
-    per = per + cfg.gamma_escape * u_e + cfg.gamma_time * u_t + cfg.gamma_score * u_score
-    total = per.mean()
-    chosen = out.chosen if out.chosen is not None else torch.zeros(B, dtype=torch.long, device=cand.device)
-    coll_chosen = collided[rows, chosen]
-    f = functools.partial(_batch_mean, dtype=total.dtype)
-    terms = {
-        "obstacle": f(u_o[rows, chosen]), "goal": f(u_g[rows, chosen]), "smoothness": f(u_s[rows, chosen]),
-        "escape": f(u_e), "time": f(u_t), "score": f(u_score), "collision_rate": f(coll_chosen),
-        "winner_collision_rate": f(collided[rows, winner]), "score_accuracy": f(chosen == winner),
-        "total": total.detach(), "collided_chosen": coll_chosen, "goal_chosen": u_g[rows, chosen].detach(),
-    }
-    return total, terms
+                          min_segment=plan.min_segment, max_iters=config.time_target_iters,
+                          rel_tol=config.time_target_tol)
+    return time_cost(shares, target)
 
 
 def time_allocation_loss(

@@ -13,7 +13,7 @@ import torch
 from mapkit.trajopt import allocate_times, profile_time
 
 if TYPE_CHECKING:
-    from mapkit.planner._model import PlannerConfig
+    from mapkit.planner._config import PlannerConfig
     from mapkit.trajopt import TimeAllocationNet
 
 Allocation = Literal["tan", "gradient", "uniform", "poly5"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -13,6 +14,7 @@ import torch
 
 from mapkit.errors import MapkitError
 from mapkit.geometry import quat_xyzw_from_matrix
+from mapkit.planning._camera import RUN_CONFIG, RunCamera, recorded_camera
 
 
 class PlanningError(MapkitError):
@@ -44,6 +46,9 @@ class PlanResult:
     goal_clipped: bool = False
     """True when the goal asked for lay beyond :data:`LOCAL_GOAL_RANGE` and the plan went to the point that
     far along the way to it (the model never saw farther goals; a receding-horizon loop replans)."""
+    camera_from_run: bool = False
+    """True when the depth image was checked with the camera the run recorded (:attr:`Planner.camera`),
+    the plan having been given no ``K`` / ``T_body_camera``."""
 
     @property
     def execute(self) -> bool:
@@ -74,9 +79,13 @@ class Planner:
     many frames on the CPU calls ``planner.net.prepare_inference()`` once (about a second): each plan
     then runs a frozen encoder, about 2 ms faster (``mapkit eval`` does this in every worker)."""
 
-    def __init__(self, net: Any, device: torch.device) -> None:
+    def __init__(self, net: Any, device: torch.device, *, camera: RunCamera | None = None) -> None:
         self.net = net.eval().to(device)
         self.device = device
+        self.camera = camera
+        """The depth camera the run recorded (:func:`~mapkit.planning.recorded_camera`; :meth:`load` reads
+        it): :meth:`plan` checks depth with it when it is given no calibration. None: none recorded."""
+        self._said_camera = False
 
     @property
     def needs_camera(self) -> bool:
@@ -106,7 +115,7 @@ class Planner:
             net.load_state_dict(saved["state_dict"])
         except Exception as exc:  # noqa: BLE001 - a foreign state dict fails in many ways: one message
             raise PlanningError(f"{path} is not a mapkit planner ({type(exc).__name__}: {exc})") from None
-        return cls(net, torch.device(device))
+        return cls(net, torch.device(device), camera=recorded_camera(path.parent))
 
     def plan(self, depth: np.ndarray, goal_body: np.ndarray, *, velocity_body: np.ndarray | None = None,
              rate_hz: float = 50.0, corridor: float | None = None, K: np.ndarray | None = None,
@@ -118,7 +127,10 @@ class Planner:
         interior key-points (see :func:`mapkit.trajopt.min_snap`). None: through the key-points.
 
         `K` (3, 3) and `T_body_camera` (4, 4) (optical camera → body): the depth camera's
-        calibration, needed by models that check their candidate paths against the depth image.
+        calibration, needed by models that check their candidate paths against the depth image
+        (:attr:`needs_camera`). Without them such a model uses the camera its run recorded
+        (:attr:`camera`, the one `mapkit eval` renders), says so once (a warning) and marks the result
+        (:attr:`PlanResult.camera_from_run`); depth must then have that camera's size.
 
         `widen`: factors of the widened candidates judged with the trained ones (:data:`WIDEN`; ()
         none; models with one candidate ignore it)."""
@@ -129,6 +141,7 @@ class Planner:
         clipped = distance > LOCAL_GOAL_RANGE
         goal = (asked * (LOCAL_GOAL_RANGE / distance) if clipped else asked).astype(np.float32)
         vel = np.zeros(3, np.float32) if velocity_body is None else np.asarray(velocity_body, np.float32).reshape(3)
+        K, T_body_camera, from_run = self._calibration(np.asarray(depth).shape, K, T_body_camera)
         d = torch.from_numpy(np.asarray(depth, dtype=np.float32)[None]).to(self.device)
         with torch.inference_mode():
             t0 = time.perf_counter()
@@ -138,9 +151,6 @@ class Planner:
 
                 h, w = np.asarray(depth).shape[-2:]
                 camera = CameraInput.from_calibration(np.asarray(K), int(w), int(h), np.asarray(T_body_camera))
-            elif self.needs_camera:
-                raise PlanningError("this model checks its paths against the depth image: pass the camera's K and "
-                                    "T_body_camera")
             p = self.net.plan(d, torch.from_numpy(goal[None]).to(self.device),
                               start_velocity=torch.from_numpy(vel[None]).to(self.device), corridor=corridor,
                               camera=None if camera is None else camera.to(self.device), widen=widen)
@@ -155,7 +165,33 @@ class Planner:
             samples_t=t, samples_body=pos.reshape(-1, 3).cpu().numpy(),
             control_effort=float(p.trajectory.snap_cost().reshape(-1)[0]), latency_ms=latency,
             goal_body=goal.astype(np.float64), goal_clipped=clipped, widened=bool(p.widened is not None and p.widened[0]),
+            camera_from_run=from_run,
         )
+
+    def _calibration(self, shape: tuple[int, ...], K: np.ndarray | None, T_body_camera: np.ndarray | None
+                     ) -> tuple[np.ndarray | None, np.ndarray | None, bool]:
+        """(K, T_body_camera, taken from the run's recorded camera) for a depth image of `shape`: those
+        given, else, for a model that needs them, the run's; raises when the model needs them and there
+        are none (or the image is not the recorded camera's size)."""
+        if (K is not None and T_body_camera is not None) or not self.needs_camera:
+            return K, T_body_camera, False
+        fix = "pass the camera's K and T_body_camera"
+        if K is not None or T_body_camera is not None:
+            raise PlanningError(f"this model checks its paths against the depth image: {fix} (both, or neither "
+                                "to use the camera its run recorded)")
+        cam = self.camera
+        if cam is None:
+            raise PlanningError(f"this model checks its paths against the depth image: {fix} (its run records no "
+                                f"camera to use instead: no `camera` in its {RUN_CONFIG})")
+        if tuple(shape[-2:]) != (cam.height, cam.width):
+            raise PlanningError(f"depth is {shape[-1]}x{shape[-2]} pixels but the camera this model's run recorded "
+                                f"({cam.source}) is {cam.width}x{cam.height}: {fix}")
+        if not self._said_camera:
+            self._said_camera = True
+            warnings.warn(f"no K / T_body_camera given: checking the depth image with the camera the model's run "
+                          f"recorded ({cam.width}x{cam.height}, from {cam.source}); pass K and T_body_camera for "
+                          "another camera", stacklevel=3)
+        return cam.K, cam.T_body_camera, True
 
 
 def check_output_folder(out_dir: Path) -> None:

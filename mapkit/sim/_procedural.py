@@ -148,11 +148,11 @@ def _office(rng: np.random.Generator, X: float, Y: float, Z: float, density: flo
     outer_and_inner, inner = structure[2:], structure[6:]
     placed: list[Primitive] = []
 
-    def try_place(make: Callable[[], Primitive], need: float, against: list[Primitive]) -> None:
+    def try_place(make: Callable[[], Box | Cylinder], need: float, against: list[Primitive]) -> None:
         """Place ``make()`` where it keeps ``need`` metres of floor from ``against`` + placed."""
         for _ in range(60):
             prim = make()
-            lo, hi = prim.aabb()  # type: ignore[misc]  # make() never builds a HalfSpace, whose aabb() is None
+            lo, hi = prim.aabb()
             if lo[0] < 0 or lo[1] < 0 or hi[0] > X or hi[1] > Y:
                 continue
             z = min(0.5 * (lo[2] + hi[2]), 1.0)
@@ -174,18 +174,18 @@ def _office(rng: np.random.Generator, X: float, Y: float, Z: float, density: flo
     return structure + placed, (0.6, Z - 0.6)
 
 
-def _pillar(rng: np.random.Generator, X: float, Y: float, Z: float, r: float) -> Primitive:
+def _pillar(rng: np.random.Generator, X: float, Y: float, Z: float, r: float) -> Cylinder:
     x, y = float(rng.uniform(1.5, X - 1.5)), float(rng.uniform(1.5, Y - 1.5))
     return Cylinder((x, y, -0.1), (x, y, Z + 0.1), r)
 
 
-def _desk(rng: np.random.Generator, X: float, Y: float) -> Primitive:
+def _desk(rng: np.random.Generator, X: float, Y: float) -> Box:
     hx, hy, hz = float(rng.uniform(0.6, 0.9)), float(rng.uniform(0.35, 0.45)), 0.375
     yaw = float(rng.choice([0.0, 0.5 * math.pi]) + rng.uniform(-0.3, 0.3))
     return Box((float(rng.uniform(1, X - 1)), float(rng.uniform(1, Y - 1)), hz), (hx, hy, hz), yaw)
 
 
-def _shelf(rng: np.random.Generator, X: float, Y: float) -> Primitive:
+def _shelf(rng: np.random.Generator, X: float, Y: float) -> Box:
     hx, hy, hz = float(rng.uniform(0.45, 0.6)), float(rng.uniform(0.17, 0.22)), float(rng.uniform(0.9, 1.1))
     side = int(rng.integers(4))
     if side < 2:  # along a wall parallel to x

@@ -151,7 +151,7 @@ class TimingTuneSummary:
 
 def load_plan_inputs(folders: Sequence[Path], *, num_segments: int) -> PlanInputs:
     """Every plan recorded in the eval ``folders`` (each holding plans.npz) for a TAN of ``num_segments``."""
-    from mapkit.evaluation import PLANS_FILE
+    from mapkit._formats import PLANS_FILE
 
     parts: list[dict[str, np.ndarray]] = []
     for folder in folders:

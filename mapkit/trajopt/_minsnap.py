@@ -486,29 +486,47 @@ def min_snap(
     """
     w, batched = _work_waypoints(waypoints)
     out_dtype = waypoints.dtype
-    B, M1, _ = w.shape
-    M = M1 - 1
-    T_in = _durations(durations, out_dtype, w, M)
+    T_in = _durations(durations, out_dtype, w, w.shape[1] - 1)
     T = T_in.to(_WORK)
+    start_t, end_t, corr, vm, am = _conditions(w, T, start, end, corridor, v_max, a_max,
+                                               corridor_samples=corridor_samples, solver=solver,
+                                               on_infeasible=on_infeasible)
+    X, solved, messages, info = _solve_knots(w, T, start_t, end_t, corr, corridor_samples, vm, am, solver,
+                                             limits_everywhere, on_infeasible)
+    coeffs = coefficients(X, T, 4).to(out_dtype)
+    yaw_c = None if yaw is None else _yaw_coefficients(yaw, w, T).to(out_dtype)
+    return Trajectory(coeffs, T_in, yaw_coeffs=yaw_c, solved=solved, messages=messages, batched=batched, info=info)
+
+
+def _conditions(
+    w: torch.Tensor, T: torch.Tensor, start: torch.Tensor | None, end: torch.Tensor | None,
+    corridor: float | torch.Tensor | None, v_max: float | torch.Tensor | None, a_max: float | torch.Tensor | None,
+    *, corridor_samples: int, solver: str, on_infeasible: str,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
+    """:func:`min_snap`'s inputs checked, and its (B, 3, 3) start and end derivatives and its inequalities
+    (corridor, v_max, a_max; None where not asked) in the work precision."""
+    B, M = w.shape[0], w.shape[1] - 1
     _check_finite(w, "waypoints")
     _check_positive_durations(T)
     start_t, end_t = _boundary(start, "start", B, w), _boundary(end, "end", B, w)
     _check_options(corridor_samples, solver, on_infeasible)
     corr, vm, am = _inequalities(corridor, v_max, a_max, B, M, w)
+    return start_t, end_t, corr, vm, am
 
+
+def _solve_knots(
+    w: torch.Tensor, T: torch.Tensor, start_t: torch.Tensor, end_t: torch.Tensor, corr: torch.Tensor | None,
+    corridor_samples: int, vm: torch.Tensor | None, am: torch.Tensor | None, solver: str, limits_everywhere: bool,
+    on_infeasible: str,
+) -> tuple[torch.Tensor, torch.Tensor, tuple[str, ...], dict[str, Any]]:
+    """(knot values, solved (B,), messages, info) of :func:`min_snap`: the closed form without inequalities,
+    else :func:`_solve_constrained`."""
     if corr is None and vm is None and am is None:
+        B, M = w.shape[0], w.shape[1] - 1
         X = solve_knots(T, knot_values(w, start_t, end_t, 4), layout(M, 4, False))
-        solved = torch.ones(B, dtype=torch.bool, device=w.device)
-        messages: tuple[str, ...] = ()
-        info: dict[str, Any] = {"path": "closed_form"}
-    else:
-        X, solved, messages, info = _solve_constrained(w, T, start_t, end_t, corr, corridor_samples, vm, am, solver,
-                                                       limits_everywhere, on_infeasible)
-    coeffs = coefficients(X, T, 4).to(out_dtype)
-    yaw_c = None if yaw is None else _yaw_coefficients(yaw, w, T).to(out_dtype)
-    return Trajectory(
-        coeffs, T_in, yaw_coeffs=yaw_c, solved=solved, messages=messages, batched=batched, info=info
-    )
+        return X, torch.ones(B, dtype=torch.bool, device=w.device), (), {"path": "closed_form"}
+    return _solve_constrained(w, T, start_t, end_t, corr, corridor_samples, vm, am, solver, limits_everywhere,
+                              on_infeasible)
 
 
 def _work_waypoints(waypoints: torch.Tensor) -> tuple[torch.Tensor, bool]:
@@ -603,7 +621,7 @@ def _solve_constrained(
         if on_infeasible == "raise":
             raise TrajoptError(text)
         if on_infeasible == "warn":
-            warnings.warn(text, TrajoptWarning, stacklevel=3)  # at min_snap's caller
+            warnings.warn(text, TrajoptWarning, stacklevel=4)  # at min_snap's caller (through _solve_knots)
     return X, solved, messages, info
 
 

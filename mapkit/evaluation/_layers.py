@@ -1,0 +1,118 @@
+"""The flight stack: the layers `mapkit eval` puts around a replanning learned method, as one typed
+config (:class:`Execution`) composed of named layers: the flight corridor and its check
+(:class:`Corridor`), the depth memory and its ways out (:class:`Memory`), the flight map's routing
+(:class:`~mapkit.evaluation.RouteConfig`), following the reference being flown (``follow``) and the
+speed profile that times the plans (:class:`SpeedProfile`). A layer set to None is off. How each
+default was chosen, with the flights that chose it: docs/results.md."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from mapkit.evaluation._route import RouteConfig
+
+
+@dataclass(frozen=True)
+class Corridor:
+    """The flight corridor around the key-point segments, and its check against what was seen."""
+
+    width: float | None = 1.0
+    """Widest half-width (m) of the corridor: the trajectory may leave the interior key-points by up to
+    this (per world axis) instead of passing through them, which absorbs the key-points' jitter from one
+    plan to the next (most of a flight's effort). None: through the key-points."""
+    check: bool = True
+    """Check each corridor trajectory against the depth image it was planned from and halve the width
+    (1, ½, ¼, ⅒ of ``width``, then through the key-points) while it has more points in view closer than
+    the robot's size to a seen surface (or behind one) than the trajectory through the key-points: a
+    wide corridor cuts the corners the key-points went around. Needs the camera."""
+    check_memory: bool = True
+    """With ``check`` and a :class:`Memory`: the check also counts the points of a trajectory's first
+    ``Memory.blocked_within`` seconds that come closer than the robot's size to a remembered surface
+    (the jamb of a doorway the camera no longer sees)."""
+
+
+@dataclass(frozen=True)
+class Memory:
+    """Surfaces seen in the last seconds of a flight, and what a plan that comes near them does instead."""
+
+    seconds: float = 8.0
+    """Seconds of depth images remembered (as world-frame points). A plan whose first ``blocked_within``
+    seconds come closer than the robot's size to a remembered surface is replaced by the best-scored
+    candidate that keeps clear; when none does, by a plan toward open space (``subgoal_time``); when
+    that is blocked too, the vehicle brakes to rest and turns to look elsewhere
+    (:attr:`MethodPlan.blocked`), turned by up to 60° when that keeps the brake clear."""
+    blocked_within: float = 2.0
+    """Seconds of each candidate that must keep clear of remembered surfaces for the way ahead to count
+    as open (braking from cruise speed takes about 2.7 s)."""
+    subgoal_time: float = 1.0
+    """Seconds a blocked plan's way out is kept: when nothing leads on toward the goal, the network
+    plans toward the most open direction of the depth image (:func:`open_direction`) until it gets
+    within a metre of that point or this time passes."""
+    subgoal_speed: float | None = None
+    """m/s at which plans pass the way-out point (None: the plans' cruise speed; 0: stop there)."""
+    turn_toward_open: bool = True
+    """A blocked vehicle that hovers and turns to look elsewhere (:attr:`LoopConfig.look_turn_deg` at a
+    time) turns toward the side with fewer remembered surfaces within 3 m
+    (:attr:`MethodPlan.turn_side`) instead of always counter-clockwise (which turned it into the
+    corner it stood in)."""
+
+
+@dataclass(frozen=True)
+class SpeedProfile:
+    """How fast learned plans fly: the cruise speed (slowed for turns, for stops, raised while
+    searching) and the per-axis limits."""
+
+    cruise: float | None = 1.2
+    """m/s: the cruise speed of the profile that times learned plans (and the speed at which a plan
+    passes a local goal beyond the horizon) while the flight makes its way: the oracle's pace. None: the
+    model's ``cruise_speed``. The network still reads the velocity scaled by the model's own cruise
+    speed. The same path flown in 1/k of the time costs k⁷ the snap. The time limit follows this speed
+    (``LoopConfig.cruise_speed``)."""
+    search_speed: float | None = None
+    """m/s for the rest of a flight once it searches for its way: it has stalled (no 0.5 m of progress
+    for ``route.after`` seconds), or flown more than ``search_ratio`` × the distance it has come toward
+    the goal plus ``search_margin``. None: the model's ``cruise_speed``."""
+    search_ratio: float = 1.4
+    """Flown path over progress toward the goal above which a flight counts as searching (a flight
+    weaving between trees flies 1.05–1.15×)."""
+    search_margin: float = 1.0
+    """Metres of flown path allowed before the ratio counts (turning toward the way at the start)."""
+    turn_accel: float | None = 1.5
+    """m/s²: each plan's cruise speed (and its speed at a passed goal) is at most √(``turn_accel`` R), R
+    the radius of the sharpest turn of its key-points (:func:`mapkit.planner.turn_speed`), and at least
+    ``turn_min_speed``; None: every plan at the cruise speed. A turn's snap grows with the seventh power
+    of its speed, and a straight path has none."""
+    turn_min_speed: float = 1.0
+    """m/s: the slowest cruise speed ``turn_accel`` sets (the cruise speed itself when slower)."""
+    stop_decel: float | None = 0.75
+    """m/s²: until a flight searches for its way, plans that end at rest (at the goal) slow down to it
+    at this rate instead of the model's ``accel`` (None)."""
+    v_max: float | None = 3.0
+    """Per-axis speed limit, m/s (None: none)."""
+    a_max: float | None = 4.0
+    """Per-axis acceleration limit, m/s² (None: none)."""
+
+
+@dataclass(frozen=True)
+class Execution:
+    """How a replanning method turns its timed key-points into the reference it flies: the flight
+    stack, layer by layer (None turns a layer off; :func:`~mapkit.evaluation.under_stack` turns off
+    every layer but the corridor and the speed profile)."""
+
+    corridor: Corridor = field(default_factory=Corridor)
+    """The flight corridor and its check (``Corridor(width=None)``: through the key-points)."""
+    memory: Memory | None = field(default_factory=Memory)
+    """The depth memory, its ways out and the turn toward open space; None: fly the network's choice."""
+    route: RouteConfig | None = field(default_factory=RouteConfig)
+    """With ``memory``: while a flight has not come 0.5 m closer to its goal for ``route.after`` seconds,
+    the network's goal is a point on a route around every surface seen since the flight began
+    (:class:`~mapkit.evaluation.FlightMap`, a 3-D grid; unseen space counts as free), as long as that
+    route is a detour, and a hovering vehicle faces that point. None: the local goal on the straight line."""
+    follow: float = 0.75
+    """Fraction of the way each interior key-point of a plan moves toward where the reference being
+    flown will be when the new plan reaches it (by at most ``corridor.width`` per axis; the start and
+    the last key-point stay) before the plan is executed: receding-horizon plans otherwise restart from
+    key-points that jitter from one plan to the next, and each correction costs snap. The memory's other
+    candidates are not moved. 0, or no corridor: the network's key-points."""
+    speed: SpeedProfile = field(default_factory=SpeedProfile)
+    """The speed profile and the limits of learned plans."""
