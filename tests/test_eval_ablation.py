@@ -202,3 +202,24 @@ def test_eval_help_lists_every_option_once_under_its_layer():
             assert len(re.findall(rf"(?<![\w-]){re.escape(opt)}(?![\w-])", r.output)) >= 1, opt
     section = r.output.split("Flight stack: speed profile:")[1].split("\n\n")[0]
     assert "--speed" in section and "--v-max" in section and "--memory" not in section
+
+
+@pytest.mark.parametrize("stack", ["full", "none"])
+def test_iplanner_style_flies_its_spline_under_either_stack(stack: str):
+    """Under the full stack the spline's key-points come through the memory (it remembers what it saw);
+    under none it has no memory. Either way the reference is iPlanner's cubic spline to the goal."""
+    from mapkit.evaluation import LearnedMethod, Observation
+    from mapkit.planner import CameraInput
+
+    net = _tiny_net()
+    K = np.array([[32.0, 0.0, 31.5], [0.0, 32.0, 23.5], [0.0, 0.0, 1.0]])
+    T_bc = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    method = LearnedMethod("iplanner-style", net, spline=True, camera=CameraInput.from_calibration(K, 64, 48, T_bc),
+                           execution=under_stack(Execution(), stack))  # type: ignore[arg-type]
+    obs = Observation(t=0.0, T_world_body=np.eye(4), state_world=np.zeros((4, 3)), goal_world=np.array([5.0, 0.0, 0.0]),
+                      local_goal_body=np.array([5.0, 0.0, 0.0]), depth=np.full((48, 64), 8.0, dtype=np.float32))
+    plan = method.plan(obs)
+    assert plan.pieces.degree == 3 and plan.allocation_ms is None
+    assert np.allclose(plan.pieces.state(plan.pieces.t_end)[0], plan.keypoints_world[-1], atol=1e-9)
+    memory = method._memory
+    assert (memory is not None and len(memory.frames) == 1) if stack == "full" else memory is None
