@@ -223,3 +223,15 @@ def test_iplanner_style_flies_its_spline_under_either_stack(stack: str):
     assert np.allclose(plan.pieces.state(plan.pieces.t_end)[0], plan.keypoints_world[-1], atol=1e-9)
     memory = method._memory
     assert (memory is not None and len(memory.frames) == 1) if stack == "full" else memory is None
+
+
+def test_the_run_table_gives_each_world_and_the_whole():
+    from mapkit.evaluation._ablation import run_lines, summarise_runs
+
+    eps = (_episodes("learned", ["success", "collision"], [1.0, 1.0], "office")
+           + _episodes("learned", ["success"] * 2, [1.0] * 2, "forest"))
+    (run,) = summarise_runs(eps, ["learned"])
+    assert run.success_by_world == {"office": 0.5, "forest": 1.0} and run.success_rate == 0.75
+    lines = run_lines([run])
+    assert lines[0].startswith("| method | stack | office | forest | success %")
+    assert lines[2].startswith("| learned | full | 50.0 | 100.0 | **75.0** | 1 | 0 |")

@@ -41,6 +41,8 @@ class RunSummary:
     """Median executed ∫‖snap‖² dt of the successful flights, m²/s⁷."""
     time_median: float | None
     """Median flight time to the goal of the successful flights, s."""
+    success_by_world: dict[str, float]
+    """World kind → share of its flights that reached the goal (in the episodes' world order)."""
 
     @property
     def success_rate(self) -> float:
@@ -85,11 +87,13 @@ def summarise_runs(episodes: list[EpisodeRecord], labels: list[str]) -> list[Run
         efforts = [e.control_effort for e in ok if e.control_effort is not None]
         times = [e.time_s for e in ok if e.time_s is not None]
         run = split_label(label)
+        worlds = dict.fromkeys(e.world for e in eps)
+        by_world = {w: float(np.mean([e.outcome == "success" for e in eps if e.world == w])) for w in worlds}
         out.append(RunSummary(
             label=label, method=run.method, stack=run.stack, flights=len(eps), success=len(ok),
             collisions=sum(e.outcome == "collision" for e in eps), timeouts=sum(e.outcome == "timeout" for e in eps),
             effort_median=float(np.median(efforts)) if efforts else None,
-            time_median=float(np.median(times)) if times else None))
+            time_median=float(np.median(times)) if times else None, success_by_world=by_world))
     return out
 
 
@@ -168,13 +172,15 @@ def ablation_lines(result: Ablation) -> list[str]:
 
 def run_lines(runs: list[RunSummary]) -> list[str]:
     """Markdown table of every run's outcomes, effort and time to goal."""
-    L = ["| method | stack | success % | collisions | timeouts | effort (median, m²/s⁷) | time to goal (median, s) |",
-         "|---|---|---|---|---|---|---|"]
+    worlds = list(dict.fromkeys(w for r in runs for w in r.success_by_world))
+    L = ["| method | stack | " + " | ".join(worlds) + " | success % | collisions | timeouts | effort (median, m²/s⁷) "
+         "| time to goal (median, s) |", "|---|---|" + "---|" * (len(worlds) + 5)]
     for r in runs:
         effort = f"{r.effort_median:.4g}" if r.effort_median is not None else "–"
         t = f"{r.time_median:.1f}" if r.time_median is not None else "–"
-        L.append(f"| {r.method} | {r.stack or '–'} | {100 * r.success_rate:.1f} | {r.collisions} | {r.timeouts} "
-                 f"| {effort} | {t} |")
+        per_world = " | ".join(f"{100 * r.success_by_world[w]:.1f}" if w in r.success_by_world else "–" for w in worlds)
+        L.append(f"| {r.method} | {r.stack or '–'} | {per_world} | **{100 * r.success_rate:.1f}** | {r.collisions} "
+                 f"| {r.timeouts} | {effort} | {t} |")
     return L
 
 
