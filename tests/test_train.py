@@ -72,6 +72,21 @@ def test_resume_continues_after_the_last_epoch(workspace: Path, tmp_path: Path) 
         train([workspace], tiny("r"), runs_dir=tmp_path, progress=False)
 
 
+def test_a_fine_tuned_run_records_the_worlds_its_init_model_trained_on(tmp_path: Path, caplog) -> None:
+    """`mapkit eval` refuses the seeds of every world a model has seen, its --init model's too."""
+    from mapkit.train._loop import _init_worlds
+
+    run = tmp_path / "base"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"training_worlds": [["forest", 1000], ["office", 1001]]}))
+    assert _init_worlds(str(run)) == {("forest", 1000), ("office", 1001)}
+    assert _init_worlds(str(run / "model.pt")) == {("forest", 1000), ("office", 1001)}
+    assert _init_worlds(None) == set()
+    assert ("forest", 1000) in _init_worlds("pretrained")  # the shipped model records its 96 worlds
+    (run / "config.json").write_text("not json")
+    assert _init_worlds(str(run)) == set() and "cannot refuse them" in caplog.text
+
+
 @pytest.mark.slow
 def test_init_starts_from_another_models_weights(workspace: Path, tmp_path: Path) -> None:
     train([workspace], tiny("a"), runs_dir=tmp_path, progress=False)

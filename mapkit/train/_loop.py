@@ -281,6 +281,24 @@ _TAN_FIELDS = frozenset({"tan_boundary", "tan_boundary_scale", "tan_hidden", "ac
 """PlannerConfig fields that only change the time allocation (may differ from --init's with --only tan)."""
 
 
+def _init_worlds(init: str | None) -> set[tuple[str, int]]:
+    """(kind, seed) of the simulated worlds the ``--init`` model trained on (its run's recorded
+    ``training_worlds``): a fine-tuned model has seen them too, so `mapkit eval` must refuse them."""
+    from mapkit.planning import resolve_model
+
+    if not init:
+        return set()
+    path = resolve_model(init)
+    run_config = (path if path.is_dir() else path.parent) / "config.json"
+    try:
+        recorded = json.loads(run_config.read_text()).get("training_worlds", [])
+        return {(str(kind), int(seed)) for kind, seed in recorded}
+    except (OSError, ValueError, TypeError, AttributeError) as exc:
+        log.warning("--init %s: its training worlds are not known (%s: %s); `mapkit eval` cannot refuse them",
+                    init, type(exc).__name__, exc)
+        return set()
+
+
 def _load_init(net: PlannerNet, init: str, *, tan_fresh: bool = False) -> None:
     """Weights of the model ``init`` (run directory, model.pt or "pretrained") into ``net``; with
     ``tan_fresh`` its TAN options may differ and the TAN keeps its new initial weights."""
@@ -495,7 +513,7 @@ def _start_run_dir(run: _Session, workspaces: Sequence[str | Path], val_workspac
                                                 "val_workspaces": [_where(w) for w in val_workspaces],
                                                 "camera": _camera_or_none(workspaces[0]),
                                                 "training_worlds": sorted(map(list, simulated_worlds(
-                                                    [*workspaces, *val_workspaces]))),
+                                                    [*workspaces, *val_workspaces]) | _init_worlds(config.init))),
                                                 "mapkit_version": __version__}, indent=2), run_dir / "config.json")
     run.publish("config.json")
     if (run_dir / "metrics.jsonl").exists():
