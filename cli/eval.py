@@ -22,7 +22,7 @@ _SECTIONS: dict[str, tuple[str, ...]] = {
     "Flight stack: corridor": ("corridor", "corridor_check", "check_memory"),
     "Flight stack: depth memory": ("memory", "subgoal_speed", "turn_toward_open"),
     "Flight stack: routing": ("route_after",),
-    "Flight stack: follow the reference": ("follow",),
+    "Flight stack: follow the reference": ("follow", "keep_choice"),
     "Flight stack: speed profile": ("speed", "search_speed", "turn_accel", "turn_min_speed", "stop_decel", "v_max",
                                     "a_max"),
 }
@@ -116,6 +116,9 @@ class _SectionedCommand(click.Command):
 @click.option("--follow", type=FRACTION, default=0.75, show_default=True,
               help="Fraction of the way each key-point of a new plan moves toward the reference being flown "
                    "(at most the corridor's width): smoother replanning; 0 = the network's key-points.")
+@click.option("--keep-choice", type=FINITE, default=3.0, show_default=True,
+              help="Score margin within which a replan keeps the candidate the last plan chose while the network "
+                   "still accepts it (η < 0.5), instead of switching to the best-scored one; 0 = switch every plan.")
 @click.option("--plan-latency", type=FINITE, default=0.02, show_default=True,
               help="Seconds from the depth frame to the plan taking over (the vehicle flies on meanwhile).")
 @click.option("--final-approach", type=FINITE, default=0.0, show_default=True,
@@ -130,7 +133,7 @@ class _SectionedCommand(click.Command):
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, stacks: str,
              untrained_seed: int, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
-             corridor_check: bool, check_memory: bool, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float, follow: float, plan_latency: float, final_approach: float, look_ahead: float,
+             corridor_check: bool, check_memory: bool, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float, follow: float, keep_choice: float, plan_latency: float, final_approach: float, look_ahead: float,
              record_plans: bool, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import (
@@ -147,8 +150,8 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
     names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
     execution = _flight_stack(corridor=corridor, corridor_check=corridor_check, check_memory=check_memory,
                               memory=memory, subgoal_speed=subgoal_speed, turn_toward_open=turn_toward_open,
-                              route_after=route_after, follow=follow, speed=speed, search_speed=search_speed,
-                              turn_accel=turn_accel, turn_min_speed=turn_min_speed, stop_decel=stop_decel,
+                              route_after=route_after, follow=follow, keep_choice=keep_choice, speed=speed,
+                              search_speed=search_speed, turn_accel=turn_accel, turn_min_speed=turn_min_speed, stop_decel=stop_decel,
                               v_max=v_max, a_max=a_max)
     config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
                         stacks=parse_stacks(stacks), untrained_seed=untrained_seed,
@@ -174,7 +177,8 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
 
 
 def _flight_stack(*, corridor: float, corridor_check: bool, check_memory: bool, memory: float,
-                  subgoal_speed: float | None, turn_toward_open: bool, route_after: float, follow: float, speed: float,
+                  subgoal_speed: float | None, turn_toward_open: bool, route_after: float, follow: float,
+                  keep_choice: float, speed: float,
                   search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float,
                   v_max: float, a_max: float) -> Execution:
     """The flight stack the options describe, layer by layer (0 turns a layer or a limit off)."""
@@ -185,6 +189,7 @@ def _flight_stack(*, corridor: float, corridor_check: bool, check_memory: bool, 
         memory=Memory(seconds=memory, subgoal_speed=subgoal_speed, turn_toward_open=turn_toward_open) if memory else None,
         route=None if route_after == 0 else RouteConfig(after=route_after),
         follow=follow,
+        keep_choice=keep_choice or None,
         speed=SpeedProfile(cruise=speed or None, search_speed=search_speed, turn_accel=turn_accel or None,
                            turn_min_speed=turn_min_speed, stop_decel=stop_decel or None, v_max=v_max or None,
                            a_max=a_max or None))

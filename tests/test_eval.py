@@ -979,3 +979,57 @@ def test_time_limit_follows_the_pace_the_flights_are_asked_for(tiny_run: Path, t
     assert docs["model"]["config"]["loop"]["cruise_speed"] == planner_preset("cpu").cruise_speed
     assert docs["slow"]["config"]["loop"]["cruise_speed"] == 0.8
     assert "4 × distance / 0.8 m/s" in (tmp_path / "slow" / "report.md").read_text()
+
+
+# ------------------------------------------------------------------------------ keeping the last plan's candidate
+def _three_candidates(scores: list[float], eta_logits: list[float]):
+    """A network answer with three candidates (distinct lateral offsets), chosen as the network does."""
+    from mapkit.planner import PlannerOutput
+    from mapkit.planner._model import choose_candidate
+
+    candidates = torch.zeros(1, 3, 2, 3)
+    candidates[0, :, :, 1] = torch.tensor([[0.0], [1.5], [-1.5]])
+    s, e = torch.tensor([scores]), torch.tensor([eta_logits])
+    chosen = choose_candidate(s, e)
+    logit = e[0, chosen]
+    return PlannerOutput(keypoints=candidates[:, int(chosen[0])], eta=torch.sigmoid(logit), eta_logit=logit,
+                         candidates=candidates, candidate_eta_logits=e, scores=s, chosen=chosen)
+
+
+@pytest.mark.parametrize("margin, previous, scores, eta_logits, expected", [
+    (3.0, 1, [2.0, 0.0, -5.0], [-1.0, -1.0, -1.0], 1),   # accepted and within the margin: kept
+    (3.0, 1, [4.0, 0.0, -5.0], [-1.0, -1.0, -1.0], 0),   # scored more than the margin below the best: switch
+    (3.0, 1, [2.0, 0.0, -5.0], [-1.0, 0.5, -1.0], 0),    # the judge rejects it now (η >= 0.5): switch
+    (None, 1, [2.0, 0.0, -5.0], [-1.0, -1.0, -1.0], 0),  # the layer off: the network's choice
+    (3.0, None, [2.0, 0.0, -5.0], [-1.0, -1.0, -1.0], 0),  # the first plan of a flight
+])
+def test_a_replan_keeps_the_last_candidate_only_while_accepted_and_within_the_margin(margin, previous, scores,
+                                                                                       eta_logits, expected):
+    from types import SimpleNamespace
+
+    from mapkit.evaluation import Execution
+    from mapkit.evaluation._methods import LearnedMethod
+
+    method = SimpleNamespace(execution=Execution(keep_choice=margin), _chosen=previous)
+    out = LearnedMethod._kept(method, _three_candidates(scores, eta_logits))  # type: ignore[arg-type]
+    assert int(out.chosen[0]) == expected
+    assert torch.equal(out.keypoints, out.candidates[:, expected])
+    assert float(out.eta_logit[0]) == eta_logits[expected]
+
+
+@pytest.mark.parametrize("margin", [-1.0, float("nan")])
+def test_a_negative_keep_choice_margin_is_refused_by_name(margin: float):
+    from mapkit.evaluation import EvalError, Execution
+
+    with pytest.raises(EvalError, match="--keep-choice must be a positive number"):
+        EvalConfig(execution=Execution(keep_choice=margin)).validate()
+
+
+def test_the_flown_candidate_is_found_among_the_networks_and_nothing_else_is():
+    from mapkit.evaluation._methods import _Attempt, _candidate_index
+
+    out = _three_candidates([0.0, 1.0, 2.0], [-1.0, -1.0, -1.0])
+    flown = _Attempt(out.candidates[0, 2].double().numpy(), 0.1, None, 0.0, out=out)  # type: ignore[arg-type]
+    assert _candidate_index(flown) == 2
+    elsewhere = _Attempt(out.candidates[0, 2].double().numpy() + 0.3, 0.1, None, 0.0, out=out)  # type: ignore[arg-type]
+    assert _candidate_index(elsewhere) is None  # key-points that are no candidate of that pass

@@ -38,8 +38,8 @@ def test_stack_none_turns_off_exactly_the_layers_around_the_planner():
     none = under_stack(full, "none")
     assert under_stack(full, "full") is full
     changed = {f.name for f in dataclasses.fields(Execution) if getattr(full, f.name) != getattr(none, f.name)}
-    assert changed == {"memory", "route", "corridor", "follow"}
-    assert none.memory is None and none.route is None and none.follow == 0.0
+    assert changed == {"memory", "route", "corridor", "follow", "keep_choice"}
+    assert none.memory is None and none.route is None and none.follow == 0.0 and none.keep_choice is None
     assert not none.corridor.check and not none.corridor.check_memory
     # the corridor's width, the pace and the limits stay
     assert none.corridor.width == full.corridor.width and none.speed == full.speed

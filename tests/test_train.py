@@ -82,7 +82,7 @@ def test_a_fine_tuned_run_records_the_worlds_its_init_model_trained_on(tmp_path:
     assert _init_worlds(str(run)) == {("forest", 1000), ("office", 1001)}
     assert _init_worlds(str(run / "model.pt")) == {("forest", 1000), ("office", 1001)}
     assert _init_worlds(None) == set()
-    assert ("forest", 1000) in _init_worlds("pretrained")  # the shipped model records its 96 worlds
+    assert ("forest", 1000) in _init_worlds("pretrained")  # the shipped model records the worlds of both its trainings
     (run / "config.json").write_text("not json")
     assert _init_worlds(str(run)) == set() and "cannot refuse them" in caplog.text
 

@@ -116,3 +116,8 @@ class Execution:
     candidates are not moved. 0, or no corridor: the network's key-points."""
     speed: SpeedProfile = field(default_factory=SpeedProfile)
     """The speed profile and the limits of learned plans."""
+    keep_choice: float | None = 3.0
+    """Score margin (the judge's score logits) within which a replan keeps the candidate the last plan
+    of the flight chose, while the judge still accepts it (η < 0.5), instead of switching to the
+    best-scored one. Candidates that stay apart (left and right detours metres apart) otherwise swap
+    from plan to plan and each swap costs snap. None: the network's choice every plan."""

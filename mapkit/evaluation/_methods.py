@@ -423,6 +423,7 @@ class LearnedMethod:
         self._memory = None if execution.memory is None or camera is None else _Memory(camera, execution.memory.seconds)
         self._route = None if execution.route is None or self._memory is None else FlightMap(execution.route)
         self._progress = Progress()
+        self._chosen: int | None = None  # the candidate the last plan of this flight flew
 
     def _keypoints(self, obs: Observation, start: np.ndarray, goal: np.ndarray):
         """The network's pass toward ``goal``; a second goal from the same frame (a way out) reuses
@@ -439,7 +440,22 @@ class LearnedMethod:
             v = torch.from_numpy(np.asarray(start[1], dtype=np.float32)[None])
             out = self.net(x, g, camera=self.camera, velocity=v, image=image)
             self._image = None if out.image is None else (obs, out.image)
-            return x, out
+            return x, self._kept(out)
+
+    def _kept(self, out: PlannerOutput) -> PlannerOutput:
+        """``out`` choosing the last plan's candidate when the judge accepts it and scores it within
+        :attr:`Execution.keep_choice` of the best; else ``out``."""
+        margin, prev = self.execution.keep_choice, self._chosen
+        if (margin is None or prev is None or out.scores is None or out.candidates is None
+                or out.candidate_eta_logits is None or out.chosen is None or prev >= out.candidates.shape[1]):
+            return out
+        best = int(out.chosen[0])
+        if (best == prev or float(out.candidate_eta_logits[0, prev]) >= 0.0
+                or float(out.scores[0, prev]) < float(out.scores[0, best]) - margin):
+            return out
+        logit = out.candidate_eta_logits[:, prev]
+        return replace(out, keypoints=out.candidates[:, prev], eta=torch.sigmoid(logit), eta_logit=logit,
+                       chosen=torch.full_like(out.chosen, prev))
 
     def _straight_keypoints(self, obs: Observation, goal: np.ndarray) -> tuple[torch.Tensor, PlannerOutput]:
         """The preprocessed depth and an output with one candidate: the network's K key-points' places
@@ -536,6 +552,7 @@ class LearnedMethod:
         starting over) first clears the memory and the subgoal of the last one."""
         if self._flight is None or obs.t <= self._flight[1] or not np.array_equal(self._flight[0], obs.goal_world):
             self._subgoal = None
+            self._chosen = None
             self._progress = Progress()
             self._search = _Search()
             if self._memory is not None:
@@ -606,6 +623,7 @@ class LearnedMethod:
                     self._subgoal = (point, obs.t + self.execution.memory.subgoal_time)
                     attempt = self._remembered(obs, start, self._attempt(obs, start, body, self._subgoal_speed()))
         assert attempt.traj is not None  # every attempt is executed (a spline, or minimum snap)
+        self._chosen = _candidate_index(attempt)
         # a spline's knots follow its chords; a minimum-snap reference keeps the allocation's durations
         durations = (attempt.traj if self.spline else attempt.timing).durations[0].numpy()
         coeffs = attempt.traj.coeffs[0].numpy()
@@ -624,6 +642,16 @@ class LearnedMethod:
         return MethodPlan(pieces=pieces, latency_ms=latency, eta=attempt.eta, keypoints_world=kp_world,
                           allocation_ms=None if self.spline else attempt.allocation_ms, overrides_eta=overrides,
                           blocked=attempt.blocked, brake_direction=brake, turn_side=side, look_at=aim)
+
+
+def _candidate_index(attempt: _Attempt) -> int | None:
+    """Which of the network's candidates ``attempt`` flies (None: no candidates, or none of them)."""
+    out = attempt.out
+    if out is None or out.candidates is None:
+        return None
+    gaps = (out.candidates[0].double() - torch.from_numpy(attempt.kp)[None]).abs().amax(dim=(1, 2))
+    m = int(gaps.argmin())
+    return m if float(gaps[m]) < 1e-6 else None
 
 
 def _spline_trajectory(wp: np.ndarray, start: np.ndarray, timing: Timing) -> Trajectory:

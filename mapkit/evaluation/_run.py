@@ -884,7 +884,7 @@ def _validate_execution(ex: Execution) -> None:
     pace, memory = ex.speed, ex.memory
     for option, value in (("--corridor", ex.corridor.width), ("--v-max", pace.v_max), ("--a-max", pace.a_max),
                           ("--memory", None if memory is None else memory.seconds), ("--turn-accel", pace.turn_accel),
-                          ("--stop-decel", pace.stop_decel)):
+                          ("--stop-decel", pace.stop_decel), ("--keep-choice", ex.keep_choice)):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise EvalError(f"{option} must be a positive number (0 turns it off), got {value}")
     if memory is not None:

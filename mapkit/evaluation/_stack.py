@@ -39,13 +39,13 @@ def parse_stacks(text: str) -> tuple[FlightStack, ...]:
 def under_stack(execution: Execution, stack: FlightStack) -> Execution:
     """``execution`` as flown under ``stack``: ``full`` keeps every layer as configured; ``none`` keeps
     the corridor's width and the speed profile and turns off the depth memory (with its ways out and
-    the turn toward open space), the corridor's check, the flight map's routing and following the
-    reference (the paper's protocol: the network's key-points through the corridor, replanned every
-    interval)."""
+    the turn toward open space), the corridor's check, the flight map's routing, following the
+    reference and keeping the last plan's candidate (the paper's protocol: the network's key-points
+    through the corridor, replanned every interval)."""
     if stack == "full":
         return execution
     if stack == "none":
-        return replace(execution, memory=None, route=None, follow=0.0,
+        return replace(execution, memory=None, route=None, follow=0.0, keep_choice=None,
                        corridor=replace(execution.corridor, check=False, check_memory=False))
     raise ValueError(f"unknown flight stack {stack!r}; use one of {', '.join(FLIGHT_STACKS)}")
 
