@@ -1,9 +1,10 @@
 """The flight stack: the layers `mapkit eval` puts around a replanning learned method, as one typed
 config (:class:`Execution`) composed of named layers: the flight corridor and its check
 (:class:`Corridor`), the depth memory and its ways out (:class:`Memory`), the flight map's routing
-(:class:`~mapkit.evaluation.RouteConfig`), following the reference being flown (``follow``) and the
-speed profile that times the plans (:class:`SpeedProfile`). A layer set to None is off. How each
-default was chosen, with the flights that chose it: docs/results.md."""
+(:class:`~mapkit.evaluation.RouteConfig`), following the reference being flown (``follow``), keeping
+the last plan's candidate (``keep_choice``) and the speed profile that times the plans
+(:class:`SpeedProfile`). A layer set to None is off. How each default was chosen, with the flights
+that chose it: docs/results.md."""
 
 from __future__ import annotations
 
