@@ -19,7 +19,7 @@ _SECTIONS: dict[str, tuple[str, ...]] = {
     "Output and parallelism": ("output", "workers", "scheduler", "record_plans", "overwrite"),
     "The closed loop (every method)": ("replan_interval", "horizon", "ignore_eta", "on_reject", "plan_latency",
                                        "final_approach", "look_ahead"),
-    "Flight stack: corridor": ("corridor", "corridor_check", "check_memory"),
+    "Flight stack: corridor": ("corridor", "corridor_check", "check_memory", "unchecked_corridor"),
     "Flight stack: depth memory": ("memory", "subgoal_speed", "turn_toward_open"),
     "Flight stack: routing": ("route_after",),
     "Flight stack: follow the reference": ("follow", "keep_choice"),
@@ -27,7 +27,7 @@ _SECTIONS: dict[str, tuple[str, ...]] = {
                                     "a_max"),
 }
 """`mapkit eval --help` in sections: the flight stack's layers (``--stack none`` turns off all but the
-corridor's width and the speed profile) apart from what is flown and the loop every method shares."""
+corridor, at its unchecked width, and the speed profile) apart from what is flown and the loop every method shares."""
 
 
 class _SectionedCommand(click.Command):
@@ -59,7 +59,7 @@ class _SectionedCommand(click.Command):
 @click.option("--stack", "stacks", default="full", show_default=True,
               help="Comma list of flight stacks the learned methods fly under: full (every layer below: memory, checked "
                    "corridor, turn toward open space, routing, follow) and/or none (the paper's protocol: the "
-                   "network's key-points through the corridor, replanned every interval). Each method flies under "
+                   "network's key-points through the unchecked corridor, replanned every interval). Each method flies under "
                    "each; runs under none are labelled NAME@none.")
 @click.option("--untrained-seed", type=INDEX, default=0, show_default=True,
               help="Seed of the untrained method's initial weights.")
@@ -82,6 +82,9 @@ class _SectionedCommand(click.Command):
 @click.option("--check-memory/--no-check-memory", default=True, show_default=True,
               help="The corridor's check also counts remembered surfaces near the trajectory's first seconds "
                    "(the jamb of a doorway the camera no longer sees).")
+@click.option("--unchecked-corridor", type=FINITE, default=0.3, show_default=True,
+              help="Widest half-width (m) of the corridor when it flies without its check (--no-corridor-check, "
+                   "--stack none), at most --corridor; 0 = through the key-points.")
 @click.option("--turn-toward-open/--no-turn-toward-open", default=True, show_default=True,
               help="A blocked learned planner that hovers turns toward the side with fewer remembered surfaces "
                    "(off: always counter-clockwise).")
@@ -133,7 +136,7 @@ class _SectionedCommand(click.Command):
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, stacks: str,
              untrained_seed: int, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
-             corridor_check: bool, check_memory: bool, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float, follow: float, keep_choice: float, plan_latency: float, final_approach: float, look_ahead: float,
+             corridor_check: bool, check_memory: bool, unchecked_corridor: float, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float, follow: float, keep_choice: float, plan_latency: float, final_approach: float, look_ahead: float,
              record_plans: bool, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import (
@@ -149,6 +152,7 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
     worlds = WORLD_ORDER if world.strip() == "all" else tuple(w.strip() for w in world.split(",") if w.strip())
     names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
     execution = _flight_stack(corridor=corridor, corridor_check=corridor_check, check_memory=check_memory,
+                              unchecked_corridor=unchecked_corridor,
                               memory=memory, subgoal_speed=subgoal_speed, turn_toward_open=turn_toward_open,
                               route_after=route_after, follow=follow, keep_choice=keep_choice, speed=speed,
                               search_speed=search_speed, turn_accel=turn_accel, turn_min_speed=turn_min_speed, stop_decel=stop_decel,
@@ -176,7 +180,7 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
                f"{sum(p.suffix == '.png' for p in result.files)} PNGs" + (" (and plans.npz)" if record_plans else ""))
 
 
-def _flight_stack(*, corridor: float, corridor_check: bool, check_memory: bool, memory: float,
+def _flight_stack(*, corridor: float, corridor_check: bool, check_memory: bool, unchecked_corridor: float, memory: float,
                   subgoal_speed: float | None, turn_toward_open: bool, route_after: float, follow: float,
                   keep_choice: float, speed: float,
                   search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float,
@@ -185,7 +189,8 @@ def _flight_stack(*, corridor: float, corridor_check: bool, check_memory: bool, 
     from mapkit.evaluation import Corridor, Execution, Memory, RouteConfig, SpeedProfile
 
     return Execution(
-        corridor=Corridor(width=corridor or None, check=corridor_check, check_memory=check_memory),
+        corridor=Corridor(width=corridor or None, check=corridor_check, check_memory=check_memory,
+                          unchecked_width=unchecked_corridor or None),
         memory=Memory(seconds=memory, subgoal_speed=subgoal_speed, turn_toward_open=turn_toward_open) if memory else None,
         route=None if route_after == 0 else RouteConfig(after=route_after),
         follow=follow,

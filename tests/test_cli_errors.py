@@ -254,9 +254,10 @@ def test_every_click_default_equals_the_library_default():
                "export-foxglove": [FoxgloveConfig],
                "export-rerun": [FoxgloveConfig]}
     renamed = {("fuse", "frame_stride"): "stride", ("eval", "corridor"): "width", ("eval", "corridor_check"): "check",
+               ("eval", "unchecked_corridor"): "unchecked_width",
                ("eval", "memory"): "seconds", ("eval", "speed"): "cruise"}  # eval: the flight stack's layers
     parsed = {("dataset", "cameras"): parse_cameras}  # options the library parses from text
-    off_means_none = {"width", "v_max", "a_max", "seconds", "cruise", "stop_decel"}  # eval: 0 on the command line = None
+    off_means_none = {"width", "unchecked_width", "v_max", "a_max", "seconds", "cruise", "stop_decel"}  # eval: 0 on the command line = None
     compared, mismatched = 0, []
     for command, classes in sources.items():
         for param in main.commands[command].params:

@@ -345,6 +345,7 @@ def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
     (["--world", "office", "--pairs", "3", "--min-distance", "200"], "could sample only 0 of 3"),
     (["--replan-interval", "0.01"], "whole number of depth frames"),
     (["--corridor", "-0.5"], "--corridor must be a positive number"),
+    (["--unchecked-corridor", "-1"], "--unchecked-corridor must be a positive number"),
     (["--v-max", "-1"], "--v-max must be a positive number"),
     (["--memory", "-8"], "--memory must be a positive number"),
     (["--plan-latency", "0.7"], "--plan-latency must be in"),
@@ -964,6 +965,34 @@ def test_the_corridor_keeps_clear_of_a_remembered_door_jamb():
     kept = _execute(wp, T, start, end, how, recalled)
     assert near_jamb(kept) == 0
     assert not torch.allclose(kept.coeffs, widest.coeffs)
+
+
+def test_an_unchecked_corridor_is_at_most_its_unchecked_width():
+    """Without its check the corridor flies at ``Corridor.unchecked_width`` (the narrower of it and
+    ``width``): the plan's reference is the one bounded by that width, closer to the key-points' path
+    around a turn than the 1 m corridor the check would have allowed."""
+    from dataclasses import replace
+
+    from mapkit.evaluation import Corridor
+    from mapkit.evaluation._methods import _execute, _limited
+
+    assert Corridor().widest(True) == 1.0 and Corridor().widest(False) == 0.3
+    assert Corridor(width=0.2).widest(False) == 0.2 and Corridor(unchecked_width=None).widest(False) is None
+    assert Corridor(width=None).widest(True) is None
+    wp = torch.tensor([[[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [2.0, 2.0, 0.0], [4.0, 2.0, 0.0]]], dtype=torch.float64)
+    T = torch.full((1, 3), 1.5, dtype=torch.float64)
+    start, end = torch.zeros(1, 3, 3, dtype=torch.float64), torch.zeros(1, 3, 3, dtype=torch.float64)
+    how = _pace(v_max=None, a_max=None)
+    unchecked = _execute(wp, T, start, end, replace(how, corridor=replace(how.corridor, check=False)))
+    narrow, wide = _limited(wp, T, start, end, how, 0.3), _limited(wp, T, start, end, how, 1.0)
+    assert torch.allclose(unchecked.coeffs, narrow.coeffs)
+    corner = torch.tensor([2.0, 0.0, 0.0], dtype=torch.float64)
+
+    def closest_to_corner(traj) -> float:
+        t = torch.linspace(0.0, float(T.sum()), 901, dtype=torch.float64)
+        return float((traj.position(t)[0] - corner).norm(dim=-1).min())
+
+    assert closest_to_corner(unchecked) < closest_to_corner(wide)  # the wide corridor cuts the corner more
 
 
 @pytest.mark.slow

@@ -41,8 +41,9 @@ def test_stack_none_turns_off_exactly_the_layers_around_the_planner():
     assert changed == {"memory", "route", "corridor", "follow", "keep_choice"}
     assert none.memory is None and none.route is None and none.follow == 0.0 and none.keep_choice is None
     assert not none.corridor.check and not none.corridor.check_memory
-    # the corridor's width, the pace and the limits stay
+    # the corridor's widths, the pace and the limits stay; unchecked, it flies at its unchecked width
     assert none.corridor.width == full.corridor.width and none.speed == full.speed
+    assert none.corridor.widest(False) == full.corridor.unchecked_width < full.corridor.widest(True)
 
 
 def test_every_stacked_method_flies_under_every_stack_and_the_others_once():

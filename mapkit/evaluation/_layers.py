@@ -30,6 +30,20 @@ class Corridor:
     """With ``check`` and a :class:`Memory`: the check also counts the points of a trajectory's first
     ``Memory.blocked_within`` seconds that come closer than the robot's size to a remembered surface
     (the jamb of a doorway the camera no longer sees)."""
+    unchecked_width: float | None = 0.3
+    """Widest half-width (m) of the corridor when it flies without its check (``check`` off, a method
+    without the camera, ``--stack none``): the narrower of this and ``width``. Unchecked, a wide
+    corridor grazes what the key-points went around (in the forest, trees beside the vehicle that the
+    camera no longer sees). None: through the key-points. Chosen on dev seeds 300 / 301 without the
+    stack (docs/results.md): 1.0 m 63.3 / 48.3 %, 0.5 m 71.7 / 61.7 %, 0.3 m 75.0 / 68.3 %, 0.2 m
+    63.3 / 65.0 %, 0.1 m 61.7 / 53.3 %."""
+
+    def widest(self, checked: bool) -> float | None:
+        """The widest half-width a plan may use: ``width`` when ``checked``, else the narrower of
+        ``width`` and ``unchecked_width`` (None: through the key-points)."""
+        if checked or self.width is None:
+            return self.width
+        return None if self.unchecked_width is None else min(self.width, self.unchecked_width)
 
 
 @dataclass(frozen=True)

@@ -194,10 +194,8 @@ def _execute(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
              check: _Checker | None = None) -> Trajectory:
     """The reference a plan flies: the widest corridor of ``how`` that ``check`` does not find
     closer to what the camera sees than the trajectory through the key-points."""
-    width = how.corridor.width
-    if width is None:
-        return _limited(wp, T, start, end, how, None)
-    if check is None or not how.corridor.check:
+    width = how.corridor.widest(check is not None and how.corridor.check)
+    if width is None or check is None or not how.corridor.check:
         return _limited(wp, T, start, end, how, width)
     widest = _limited(wp, T, start, end, how, width)
     conflicts = check(widest)
@@ -506,8 +504,9 @@ class LearnedMethod:
             if how.corridor.check_memory and self._memory is not None and how.memory is not None:
                 recall = (self._memory, obs.T_world_body, how.memory.blocked_within)
             attempt.check = _Checker(x, self.camera, self.config.max_depth, out.pyramid, recall)
-        if how.corridor.width is not None:
-            wpt = follow_reference(wpt, timing.durations, obs, how.follow, how.corridor.width)
+        width = how.corridor.widest(attempt.check is not None)
+        if width is not None:
+            wpt = follow_reference(wpt, timing.durations, obs, how.follow, width)
         with torch.inference_mode():
             attempt.traj = _execute(wpt, timing.durations, st, timing.end, how, attempt.check)
         return attempt

@@ -882,7 +882,8 @@ def evaluate(
 def _validate_execution(ex: Execution) -> None:
     """One line naming the flight stack's first bad setting (its option, where it has one)."""
     pace, memory = ex.speed, ex.memory
-    for option, value in (("--corridor", ex.corridor.width), ("--v-max", pace.v_max), ("--a-max", pace.a_max),
+    for option, value in (("--corridor", ex.corridor.width), ("--unchecked-corridor", ex.corridor.unchecked_width),
+                          ("--v-max", pace.v_max), ("--a-max", pace.a_max),
                           ("--memory", None if memory is None else memory.seconds), ("--turn-accel", pace.turn_accel),
                           ("--stop-decel", pace.stop_decel), ("--keep-choice", ex.keep_choice)):
         if value is not None and not (math.isfinite(value) and value > 0):

@@ -38,10 +38,11 @@ def parse_stacks(text: str) -> tuple[FlightStack, ...]:
 
 def under_stack(execution: Execution, stack: FlightStack) -> Execution:
     """``execution`` as flown under ``stack``: ``full`` keeps every layer as configured; ``none`` keeps
-    the corridor's width and the speed profile and turns off the depth memory (with its ways out and
-    the turn toward open space), the corridor's check, the flight map's routing, following the
-    reference and keeping the last plan's candidate (the paper's protocol: the network's key-points
-    through the corridor, replanned every interval)."""
+    the corridor's widths and the speed profile and turns off the depth memory (with its ways out and
+    the turn toward open space), the corridor's check (so the corridor flies at its
+    ``unchecked_width``), the flight map's routing, following the reference and keeping the last
+    plan's candidate (the paper's protocol: the network's key-points through a narrow corridor,
+    replanned every interval)."""
     if stack == "full":
         return execution
     if stack == "none":
