@@ -195,11 +195,12 @@ _BYTES_PER_PIXEL = 5.0
 _BYTES_PER_MAP_VOXEL = 2.0
 
 
-def estimate(config: DatasetConfig) -> tuple[float, float]:
-    """(bytes on disk, CPU-seconds) the dataset will take, from measured per-frame figures."""
+def estimate(config: DatasetConfig, specs: list[WorldSpec] | None = None) -> tuple[float, float]:
+    """(bytes on disk, CPU-seconds) the dataset will take, from measured per-frame figures (``specs``:
+    :func:`world_specs` of ``config``, when already made)."""
     size = 0.0
     seconds = 0.0
-    for spec in world_specs(config):
+    for spec in world_specs(config) if specs is None else specs:
         frames = config.duration * config.rate
         size += frames * spec.width * spec.height * _BYTES_PER_PIXEL
         size += float(np.prod(spec.size)) / config.esdf_voxel**3 * _BYTES_PER_MAP_VOXEL
@@ -212,11 +213,13 @@ def _spec_record(spec: WorldSpec, config: DatasetConfig) -> dict:
             "fuse_voxel": config.fuse_voxel, "esdf_voxel": config.esdf_voxel, "export": asdict(config.export)}
 
 
-def _is_done(ws: Path, record: dict) -> bool:
+def _is_done(ws: Path, spec: WorldSpec, config: DatasetConfig) -> bool:
     try:
-        return json.loads((ws / DONE).read_text()).get("spec") == json.loads(json.dumps(record))
+        done = json.loads((ws / DONE).read_text())
     except (OSError, ValueError):
         return False
+    # the record only for worlds that have one: a 200000-world request is refused in seconds
+    return done.get("spec") == json.loads(json.dumps(_spec_record(spec, config)))
 
 
 def build_world(spec: WorldSpec, config: DatasetConfig, ws: Path) -> tuple[int, int]:
@@ -270,10 +273,12 @@ def build_dataset(root: str | Path, config: DatasetConfig, *, progress: bool = T
     if root.exists() and not root.is_dir():
         raise DatasetError(f"-o {root} is a file; pass a directory")
     specs = world_specs(config)
-    need_bytes, need_seconds = estimate(config)
+    need_bytes, need_seconds = estimate(config, specs)
     root.mkdir(parents=True, exist_ok=True)
     free = shutil.disk_usage(root).free
-    todo = [s for s in specs if not _is_done(root / s.name, _spec_record(s, config))]
+    todo = [s for s in specs if not _is_done(root / s.name, s, config)]
+    waiting = {s.name for s in todo}
+    skipped = [s.name for s in specs if s.name not in waiting]
     workers = config.workers or available_cpus()
     frac = len(todo) / max(len(specs), 1)
     msg = (f"dataset: {len(specs)} worlds ({len(specs) - len(todo)} already complete), about "
@@ -284,7 +289,7 @@ def build_dataset(root: str | Path, config: DatasetConfig, *, progress: bool = T
                            f"{free / 1e9:.1f} GB free; lower --worlds or --duration, or choose another -o")
     _write_manifest(root, config, specs)
     if dry_run:
-        return DatasetSummary(root, [], [s.name for s in specs if s not in todo], {}, 0, 0, 0.0)
+        return DatasetSummary(root, [], skipped, {}, 0, 0, 0.0)
     t0 = time.perf_counter()
     done: list[str] = []
     failed: dict[str, str] = {}
@@ -307,7 +312,6 @@ def build_dataset(root: str | Path, config: DatasetConfig, *, progress: bool = T
                 bar.update(1)
                 bar.set_postfix(failed=len(failed))
     bar.close()
-    skipped = [s.name for s in specs if s not in todo]
     return DatasetSummary(root, done, skipped, failed, frames, tuples, time.perf_counter() - t0)
 
 
