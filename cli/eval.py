@@ -15,7 +15,7 @@ if TYPE_CHECKING:
 
 
 _SECTIONS: dict[str, tuple[str, ...]] = {
-    "What to fly": ("run_dir", "world", "pairs", "seed", "min_distance", "methods", "stacks", "untrained_seed"),
+    "What to fly": ("run_dir", "world", "pairs", "seed", "min_distance", "methods", "stacks", "untrained_seeds"),
     "Output and parallelism": ("output", "workers", "scheduler", "record_plans", "overwrite"),
     "The closed loop (every method)": ("replan_interval", "horizon", "ignore_eta", "on_reject", "plan_latency",
                                        "final_approach", "look_ahead"),
@@ -61,8 +61,9 @@ class _SectionedCommand(click.Command):
                    "corridor, turn toward open space, routing, follow) and/or none (the paper's protocol: the "
                    "network's key-points through the unchecked corridor, replanned every interval). Each method flies under "
                    "each; runs under none are labelled NAME@none.")
-@click.option("--untrained-seed", type=INDEX, default=0, show_default=True,
-              help="Seed of the untrained method's initial weights.")
+@click.option("--untrained-seeds", "--untrained-seed", "untrained_seeds", default="0,1,2,3", show_default=True,
+              help="Comma list of seeds of the untrained method's initial weights: each flies every pair "
+                   "(untrained#SEED) and the ablation pools them; one set of weights flies well or badly by chance.")
 @click.option("--workers", type=COUNT, default=1, show_default=True,
               help="Processes running pairs in parallel (with --scheduler local: the local Dask cluster's size).")
 @click.option("--scheduler", metavar="ADDRESS", default=None,
@@ -134,7 +135,7 @@ class _SectionedCommand(click.Command):
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, stacks: str,
-             untrained_seed: int, workers: int, scheduler: str | None,
+             untrained_seeds: str, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
              corridor_check: bool, check_memory: bool, unchecked_corridor: float, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float, follow: float, keep_choice: float, plan_latency: float, final_approach: float, look_ahead: float,
              record_plans: bool, overwrite: bool) -> None:
@@ -147,6 +148,7 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
         comparison_lines,
         evaluate,
         parse_stacks,
+        parse_untrained_seeds,
     )
 
     worlds = WORLD_ORDER if world.strip() == "all" else tuple(w.strip() for w in world.split(",") if w.strip())
@@ -158,7 +160,8 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
                               search_speed=search_speed, turn_accel=turn_accel, turn_min_speed=turn_min_speed, stop_decel=stop_decel,
                               v_max=v_max, a_max=a_max)
     config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
-                        stacks=parse_stacks(stacks), untrained_seed=untrained_seed,
+                        stacks=parse_stacks(stacks),
+                        untrained_seeds=parse_untrained_seeds(untrained_seeds),
                         workers=workers, scheduler=scheduler, record_plans=record_plans, execution=execution,
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
                                         on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,

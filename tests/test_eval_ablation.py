@@ -23,12 +23,14 @@ from mapkit.evaluation import (
     ablation,
     paired_ratio,
     parse_stacks,
+    parse_untrained_seeds,
     plan_runs,
     split_label,
     success_difference,
     under_stack,
     untrained_copy,
 )
+from mapkit.evaluation._ablation import ablation_lines
 from mapkit.planner import PlannerNet, planner_preset
 
 
@@ -54,6 +56,30 @@ def test_every_stacked_method_flies_under_every_stack_and_the_others_once():
     assert Run("oracle", None).label == "oracle" and split_label("iplanner-style@none") == Run("iplanner-style", "none")
     with pytest.raises(ValueError, match="unknown flight stack 'lots'"):
         split_label("learned@lots")
+
+
+def test_untrained_flies_each_of_several_initial_weights_as_its_own_run():
+    runs = plan_runs(("learned", "untrained"), ("full", "none"), (0, 5))
+    assert [r.label for r in runs] == ["learned", "learned@none", "untrained#0", "untrained#5", "untrained#0@none",
+                                       "untrained#5@none"]
+    for r in runs:
+        assert split_label(r.label) == r
+    assert runs[4].init_seed == 0 and runs[4].pooled == "untrained@none" and runs[1].pooled == "learned@none"
+    # one seed: the plain label, as before
+    assert [r.label for r in plan_runs(("untrained",), ("none",), (7,))] == ["untrained@none"]
+    with pytest.raises(ValueError, match="'x' that is not a whole number"):
+        split_label("untrained#x@none")
+
+
+@pytest.mark.parametrize("text, message", [("0,x", "'x' is not a whole number"), ("1,1", "distinct"),
+                                           (" , ", "distinct"), ("-1", "'-1' is not a whole number")])
+def test_bad_untrained_seeds_are_refused_with_an_example(text: str, message: str):
+    with pytest.raises(EvalError, match=message) as err:
+        parse_untrained_seeds(text)
+    assert "0,1,2,3" in str(err.value)
+    assert parse_untrained_seeds(" 3, 0") == (3, 0)
+    with pytest.raises(EvalError, match="distinct seeds >= 0"):
+        EvalConfig(untrained_seeds=(1, 1)).validate()
 
 
 @pytest.mark.parametrize("text, message", [("full,bogus", "unknown flight stack 'bogus'"),
@@ -150,6 +176,25 @@ def test_the_interval_resamples_within_each_world():
     assert d is not None and (d.estimate, d.low, d.high) == (50.0, 50.0, 50.0)
 
 
+def test_learned_is_compared_with_the_mean_over_the_untrained_initial_weights():
+    """Per pair, learned against the mean of the pooled untrained runs; a ratio over the weights that
+    reached the goal; the table shows each seed and the pool."""
+    eps = (_episodes("learned@none", ["success"] * 4, [1.0] * 4)
+           + _episodes("untrained#0@none", ["success"] * 4, [2.0] * 4)
+           + _episodes("untrained#1@none", ["collision", "collision", "success", "success"], [8.0] * 4))
+    labels = ["learned@none", "untrained#0@none", "untrained#1@none"]
+    result = ablation(eps, labels, resamples=200)
+    assert [(r.label, r.inits, r.flights) for r in result.runs] == [
+        ("learned@none", 1, 4), ("untrained#0@none", 1, 4), ("untrained#1@none", 1, 4), ("untrained@none", 2, 8)]
+    assert result.runs[3].success == 6 and result.runs[3].method == "untrained"
+    (d,) = result.success_difference
+    assert (d.a, d.b, d.estimate) == ("learned@none", "untrained@none", 25.0)
+    (e,) = result.effort_ratio  # pairs 0, 1: 1/2; pairs 2, 3: the mean log of 1/2 and 1/8 = 1/4
+    assert e.pairs == 4 and e.estimate == pytest.approx(np.exp(np.mean(np.log([0.5, 0.5, 0.25, 0.25]))))
+    table = "\n".join(ablation_lines(result))
+    assert "| untrained#1 | none |" in table and "| untrained, 2 initial weights pooled | none |" in table
+
+
 def test_the_ablation_compares_learned_with_its_twins_under_the_same_stack():
     eps = (_episodes("learned", ["success"] * 4, [1.0] * 4) + _episodes("untrained", ["success"] * 4, [2.0] * 4)
            + _episodes("learned@none", ["success"] * 4, [1.0] * 4)
@@ -177,16 +222,18 @@ def test_an_ablation_run_records_the_stack_of_every_episode_and_reports_the_diff
     out = tmp_path / "ev"
     r = CliRunner().invoke(main, ["eval", "--model", str(run_dir), "--world", "forest", "--pairs", "1", "--seed", "3",
                                   "--methods", "learned,untrained,straight-keypoints,oracle",
-                                  "--stack", "full,none", "-o", str(out)])
+                                  "--stack", "full,none", "--untrained-seeds", "0,5", "-o", str(out)])
     assert r.exit_code == 0, r.output
     doc = json.loads((out / "results.json").read_text())
-    labels = ["learned", "learned@none", "untrained", "untrained@none", "straight-keypoints", "straight-keypoints@none",
-              "oracle"]
+    labels = ["learned", "learned@none", "untrained#0", "untrained#5", "untrained#0@none", "untrained#5@none",
+              "straight-keypoints", "straight-keypoints@none", "oracle"]
     assert doc["methods"] == labels and doc["config"]["stacks"] == ["full", "none"]
     assert [(e["method"], e["stack"]) for e in doc["episodes"]] == [(m, split_label(m).stack) for m in labels]
     assert set(doc["summary"]) == set(labels)
     report = (out / "report.md").read_text()
     assert "## Ablation" in report and "learned@none − untrained@none" in report
+    assert "untrained, 2 initial weights pooled" in report
+    assert doc["config"]["untrained_seeds"] == [0, 5]
     assert "learned − straight-keypoints" in r.output
 
 

@@ -64,7 +64,16 @@ from mapkit.evaluation._run import (
     summarise,
     untrained_copy,
 )
-from mapkit.evaluation._stack import STACKED_METHODS, Run, parse_stacks, plan_runs, split_label, under_stack
+from mapkit.evaluation._stack import (
+    STACKED_METHODS,
+    UNTRAINED_SEEDS,
+    Run,
+    parse_stacks,
+    parse_untrained_seeds,
+    plan_runs,
+    split_label,
+    under_stack,
+)
 
 __all__ = [
     "METHODS", "WORLD_ORDER", "EVAL_FORMAT", "OUTCOMES",
@@ -78,5 +87,5 @@ __all__ = [
     "EffortComparison", "compare_effort", "effort_at_time", "DETOUR_EDGES", "DetourBin", "OutcomeCounts",
     "success_by_detour",
     "Ablation", "Interval", "RunSummary", "ablation", "comparison_lines", "paired_ratio", "success_difference",
-    "STACKED_METHODS", "Run", "parse_stacks", "plan_runs", "split_label", "under_stack", "untrained_copy",
+    "STACKED_METHODS", "UNTRAINED_SEEDS", "Run", "parse_stacks", "parse_untrained_seeds", "plan_runs", "split_label", "under_stack", "untrained_copy",
 ]

@@ -3,10 +3,12 @@ with bootstrap intervals over the start–goal pairs.
 
 Each comparison pairs the flights two runs made from the same start and goal. Intervals resample the
 pairs with replacement within each world (the worlds' shares stay fixed) and take the 2.5th and
-97.5th percentiles of the statistic: 95 % percentile intervals."""
+97.5th percentiles of the statistic: 95 % percentile intervals. ``untrained`` flown at several
+initial weights (``untrained#SEED``) is compared pooled: per pair, the mean over its weights."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -14,7 +16,7 @@ import numpy as np
 
 from mapkit._choices import FlightStack
 from mapkit._formats import EpisodeRecord
-from mapkit.evaluation._stack import Run, split_label
+from mapkit.evaluation._stack import LABEL_SEPARATOR, Run, split_label
 
 BOOTSTRAP_RESAMPLES = 10_000
 """Resamples of each interval (the percentiles move by well under a point between seeds)."""
@@ -29,7 +31,8 @@ class RunSummary:
     """One run's flights: its outcomes and the medians of its successful flights."""
 
     label: str
-    """The run's name in results.json (``NAME`` or ``NAME@STACK``)."""
+    """The run's name in results.json (``NAME``, ``NAME@STACK``, ``untrained#SEED@STACK``); for a pooled
+    row, the name its runs are pooled under (``untrained@STACK``)."""
     method: str
     stack: FlightStack | None
     """The flight stack it flew under (None: a method no stack changes)."""
@@ -43,6 +46,8 @@ class RunSummary:
     """Median flight time to the goal of the successful flights, s."""
     success_by_world: dict[str, float]
     """World kind → share of its flights that reached the goal (in the episodes' world order)."""
+    inits: int = 1
+    """Initial weights pooled in this row (``untrained`` flown at several seeds: their flights together)."""
 
     @property
     def success_rate(self) -> float:
@@ -78,27 +83,48 @@ class Ablation:
     """Likewise for the flight time to the goal."""
 
 
-def summarise_runs(episodes: list[EpisodeRecord], labels: list[str]) -> list[RunSummary]:
-    """One :class:`RunSummary` per label, in the given order."""
-    out = []
+def pooled_labels(labels: Sequence[str]) -> dict[str, list[str]]:
+    """Each run's comparison name → the labels it pools, in order: a run's own label, or for
+    ``untrained#SEED`` runs their common label without the seed (``untrained@none``)."""
+    out: dict[str, list[str]] = {}
     for label in labels:
-        eps = [e for e in episodes if e.method == label]
-        ok = [e for e in eps if e.outcome == "success"]
-        efforts = [e.control_effort for e in ok if e.control_effort is not None]
-        times = [e.time_s for e in ok if e.time_s is not None]
-        run = split_label(label)
-        worlds = dict.fromkeys(e.world for e in eps)
-        by_world = {w: float(np.mean([e.outcome == "success" for e in eps if e.world == w])) for w in worlds}
-        out.append(RunSummary(
-            label=label, method=run.method, stack=run.stack, flights=len(eps), success=len(ok),
-            collisions=sum(e.outcome == "collision" for e in eps), timeouts=sum(e.outcome == "timeout" for e in eps),
-            effort_median=float(np.median(efforts)) if efforts else None,
-            time_median=float(np.median(times)) if times else None, success_by_world=by_world))
+        out.setdefault(split_label(label).pooled, []).append(label)
     return out
 
 
-def _by_pair(episodes: list[EpisodeRecord], label: str) -> dict[PairKey, EpisodeRecord]:
-    return {(e.world, e.pair): e for e in episodes if e.method == label}
+def summarise_runs(episodes: list[EpisodeRecord], labels: list[str]) -> list[RunSummary]:
+    """One :class:`RunSummary` per label, in the given order, each pool of initial weights followed by
+    a row of all its flights together."""
+    out = []
+    for name, members in pooled_labels(labels).items():
+        out += [_summary(episodes, [label], label) for label in members]
+        if len(members) > 1:
+            out.append(_summary(episodes, members, name))
+    return out
+
+
+def _summary(episodes: list[EpisodeRecord], members: list[str], label: str) -> RunSummary:
+    """The flights of the runs ``members`` as one row named ``label``."""
+    eps = [e for e in episodes if e.method in members]
+    ok = [e for e in eps if e.outcome == "success"]
+    efforts = [e.control_effort for e in ok if e.control_effort is not None]
+    times = [e.time_s for e in ok if e.time_s is not None]
+    run = split_label(label)
+    worlds = dict.fromkeys(e.world for e in eps)
+    by_world = {w: float(np.mean([e.outcome == "success" for e in eps if e.world == w])) for w in worlds}
+    return RunSummary(
+        label=label, method=run.method, stack=run.stack, flights=len(eps), success=len(ok),
+        collisions=sum(e.outcome == "collision" for e in eps), timeouts=sum(e.outcome == "timeout" for e in eps),
+        effort_median=float(np.median(efforts)) if efforts else None,
+        time_median=float(np.median(times)) if times else None, success_by_world=by_world, inits=len(members))
+
+
+def _by_pair(episodes: list[EpisodeRecord], labels: str | Sequence[str]) -> dict[PairKey, list[EpisodeRecord]]:
+    """(world, pair) → the flights of ``labels`` from it, for the pairs every one of them flew."""
+    names = [labels] if isinstance(labels, str) else list(labels)
+    each = [{(e.world, e.pair): e for e in episodes if e.method == name} for name in names]
+    common = set(each[0]).intersection(*each[1:])
+    return {k: [flights[k] for flights in each] for k in common}
 
 
 def _bootstrap_mean(values: np.ndarray, worlds: np.ndarray, resamples: int, seed: int) -> tuple[float, float]:
@@ -111,52 +137,62 @@ def _bootstrap_mean(values: np.ndarray, worlds: np.ndarray, resamples: int, seed
     return float(low), float(high)
 
 
-def success_difference(episodes: list[EpisodeRecord], a: str, b: str, *, resamples: int = BOOTSTRAP_RESAMPLES,
-                       seed: int = 0) -> Interval | None:
-    """Success of run ``a`` minus run ``b`` in percentage points over the pairs both flew, with its
-    interval (None when they share no pair)."""
+def _name(labels: str | Sequence[str]) -> str:
+    return labels if isinstance(labels, str) else split_label(labels[0]).pooled
+
+
+def success_difference(episodes: list[EpisodeRecord], a: str, b: str | Sequence[str], *,
+                       resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> Interval | None:
+    """Success of run ``a`` minus run ``b`` (or the mean of the runs ``b``: one pool of initial weights)
+    in percentage points over the pairs all flew, with its interval (None when they share no pair)."""
     ea, eb = _by_pair(episodes, a), _by_pair(episodes, b)
     keys = sorted(ea.keys() & eb.keys())
     if not keys:
         return None
-    diff = np.array([float(ea[k].outcome == "success") - float(eb[k].outcome == "success") for k in keys])
+    diff = np.array([float(ea[k][0].outcome == "success") - np.mean([e.outcome == "success" for e in eb[k]])
+                     for k in keys])
     worlds = np.array([k[0] for k in keys])
     low, high = _bootstrap_mean(diff, worlds, resamples, seed)
-    return Interval(a, b, 100.0 * float(diff.mean()), 100.0 * low, 100.0 * high, len(keys))
+    return Interval(a, _name(b), 100.0 * float(diff.mean()), 100.0 * low, 100.0 * high, len(keys))
 
 
-def paired_ratio(episodes: list[EpisodeRecord], a: str, b: str, quantity: Paired, *,
+def paired_ratio(episodes: list[EpisodeRecord], a: str, b: str | Sequence[str], quantity: Paired, *,
                  resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> Interval | None:
     """Geometric mean of ``quantity`` of ``a`` over that of ``b`` on the pairs both reached (where both
-    are positive), with its interval; None without such pairs."""
+    are positive), with its interval; None without such pairs. With several runs ``b`` (one pool of
+    initial weights) a pair counts where ``a`` and at least one of them reached the goal, with the
+    mean log ratio over those that did."""
     ea, eb = _by_pair(episodes, a), _by_pair(episodes, b)
     keys, logs = [], []
     for k in sorted(ea.keys() & eb.keys()):
-        x, y = getattr(ea[k], quantity), getattr(eb[k], quantity)
-        if ea[k].outcome == eb[k].outcome == "success" and x and y and x > 0 and y > 0:
+        x = getattr(ea[k][0], quantity)
+        ys = [getattr(e, quantity) for e in eb[k] if e.outcome == "success"]
+        ys = [y for y in ys if y and y > 0]
+        if ea[k][0].outcome == "success" and x and x > 0 and ys:
             keys.append(k)
-            logs.append(np.log(x / y))
+            logs.append(float(np.mean(np.log(x / np.asarray(ys)))))
     if not keys:
         return None
     values, worlds = np.array(logs), np.array([k[0] for k in keys])
     low, high = _bootstrap_mean(values, worlds, resamples, seed)
-    return Interval(a, b, float(np.exp(values.mean())), float(np.exp(low)), float(np.exp(high)), len(keys))
+    return Interval(a, _name(b), float(np.exp(values.mean())), float(np.exp(low)), float(np.exp(high)), len(keys))
 
 
 def ablation(episodes: list[EpisodeRecord], labels: list[str], *, resamples: int = BOOTSTRAP_RESAMPLES,
              seed: int = 0) -> Ablation:
-    """Every run of ``labels``, and ``learned`` under each stack against ``untrained`` and
-    ``straight-keypoints`` under the same stack (the comparisons whose runs are present)."""
+    """Every run of ``labels``, and ``learned`` under each stack against ``untrained`` (all its initial
+    weights pooled) and ``straight-keypoints`` under the same stack (the comparisons whose runs are
+    present)."""
     runs = summarise_runs(episodes, labels)
-    present = {r.label for r in runs}
-    pairs = []
+    pools = pooled_labels(labels)
+    pairs: list[tuple[str, list[str]]] = []
     for run in runs:
         if run.method != "learned":
             continue
         for other in ("untrained", "straight-keypoints"):
             twin = Run(other, run.stack).label
-            if twin in present:
-                pairs.append((run.label, twin))
+            if twin in pools:
+                pairs.append((run.label, pools[twin]))
     kw = {"resamples": resamples, "seed": seed}
     return Ablation(
         runs=runs,
@@ -179,7 +215,9 @@ def run_lines(runs: list[RunSummary]) -> list[str]:
         effort = f"{r.effort_median:.4g}" if r.effort_median is not None else "–"
         t = f"{r.time_median:.1f}" if r.time_median is not None else "–"
         per_world = " | ".join(f"{100 * r.success_by_world[w]:.1f}" if w in r.success_by_world else "–" for w in worlds)
-        L.append(f"| {r.method} | {r.stack or '–'} | {per_world} | **{100 * r.success_rate:.1f}** | {r.collisions} "
+        name = r.label.partition(LABEL_SEPARATOR)[0]  # the method, with its seed of initial weights
+        method = name if r.inits == 1 else f"{name}, {r.inits} initial weights pooled"
+        L.append(f"| {method} | {r.stack or '–'} | {per_world} | **{100 * r.success_rate:.1f}** | {r.collisions} "
                  f"| {r.timeouts} | {effort} | {t} |")
     return L
 

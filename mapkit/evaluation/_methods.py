@@ -14,7 +14,7 @@
   execution, other splits (Table III of the paper; ``gradient`` is the TAN's supervision,
   Mellinger & Kumar descent under the same boundary conditions).
 - ``untrained``: ``learned`` with the same architecture at its initial weights (seeded,
-  ``EvalConfig.untrained_seed``): what the flight stack and the anchors do without any training.
+  ``EvalConfig.untrained_seeds``): what the flight stack and the anchors do without any training.
 - ``straight-keypoints``: ``learned`` with the key-points evenly spaced on the straight line to the
   (local or routed) goal, η = 0, timed and flown through the same corridor, memory and routing.
 - ``iplanner-style``: the same network outputs, iPlanner's way: a cubic spline through the key-points

@@ -10,7 +10,7 @@ import numpy as np
 
 from mapkit._formats import EpisodeRecord
 from mapkit.evaluation._ablation import ablation, ablation_lines
-from mapkit.evaluation._stack import LABEL_SEPARATOR
+from mapkit.evaluation._stack import LABEL_SEPARATOR, split_label
 from mapkit.sim import World
 
 PAPER_SUCCESS = {  # % office / garage / forest / overall, from the paper
@@ -93,7 +93,7 @@ def _ablation_section(doc: dict, episodes: list[EpisodeRecord]) -> list[str]:
     """What the network adds (every run, learned against untrained and straight key-points under each
     stack): only when the evaluation flew an ablation."""
     methods = doc["methods"]
-    if not any(LABEL_SEPARATOR in m or m in ("untrained", "straight-keypoints") for m in methods):
+    if not any(LABEL_SEPARATOR in m or split_label(m).method in ("untrained", "straight-keypoints") for m in methods):
         return []
     return ["## Ablation — what the network adds", "", *ablation_lines(ablation(episodes, methods)), ""]
 

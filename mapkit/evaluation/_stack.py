@@ -3,7 +3,9 @@ ablation flies (every method under every stack asked for).
 
 A *run* is one method under one stack. Its label names it in results.json (``methods``, each
 episode's ``method``, the summary's keys): the method's name under ``full``, ``NAME@STACK`` under
-any other stack, and the bare name for methods no stack changes (``straight``, ``oracle``)."""
+any other stack, and the bare name for methods no stack changes (``straight``, ``oracle``). When
+``untrained`` flies several initial weights, each is a run of its own, ``untrained#SEED`` (and
+``untrained#SEED@STACK``); the ablation pools them under the plain label."""
 
 from __future__ import annotations
 
@@ -17,6 +19,9 @@ from mapkit.evaluation._pairs import EvalError
 STACKED_METHODS = frozenset({*LEARNED_ALLOCATIONS, "untrained", "straight-keypoints", "iplanner-style"})
 """Methods whose flights a flight stack changes; the others fly once whatever ``stacks`` says."""
 LABEL_SEPARATOR = "@"
+INIT_SEPARATOR = "#"
+UNTRAINED_SEEDS = (0, 1, 2, 3)
+"""The initial weights ``untrained`` flies by default (``EvalConfig.untrained_seeds``)."""
 _STACK_BY_NAME: dict[str, FlightStack] = {name: name for name in FLIGHT_STACKS}
 
 
@@ -34,6 +39,18 @@ def parse_stacks(text: str) -> tuple[FlightStack, ...]:
     if not out:
         raise EvalError(f"--stack is empty; use a comma list of {', '.join(FLIGHT_STACKS)}")
     return tuple(out)
+
+
+def parse_untrained_seeds(text: str) -> tuple[int, ...]:
+    """``--untrained-seeds``' comma list (``"0,1,2,3"``) → the seeds; :class:`EvalError` names a part
+    that is not a whole number >= 0, or a repeated one."""
+    parts = [part.strip() for part in text.split(",") if part.strip()]
+    bad = [part for part in parts if not part.isdigit()]
+    if bad or not parts or len(set(map(int, parts))) != len(parts):
+        what = f"{bad[0]!r} is not a whole number >= 0" if bad else "give distinct seeds"
+        raise EvalError(f"--untrained-seeds {text!r}: {what}; use a comma list such as "
+                        f"{','.join(map(str, UNTRAINED_SEEDS))}")
+    return tuple(int(part) for part in parts)
 
 
 def under_stack(execution: Execution, stack: FlightStack) -> Execution:
@@ -59,32 +76,49 @@ class Run:
     """The method's name (:data:`~mapkit.evaluation.METHODS`)."""
     stack: FlightStack | None
     """The stack it flies under; None for methods no stack changes."""
+    init_seed: int | None = None
+    """The seed of ``untrained``'s initial weights when an evaluation flies several; None otherwise
+    (one seed, or another method)."""
 
     @property
     def label(self) -> str:
-        """Its name in results.json: ``method``, or ``method@stack`` under a stack other than full."""
+        """Its name in results.json: ``method`` (``method#seed``), with ``@stack`` under a stack other
+        than full."""
+        name = self.method if self.init_seed is None else f"{self.method}{INIT_SEPARATOR}{self.init_seed}"
         if self.stack is None or self.stack == "full":
-            return self.method
-        return f"{self.method}{LABEL_SEPARATOR}{self.stack}"
+            return name
+        return f"{name}{LABEL_SEPARATOR}{self.stack}"
+
+    @property
+    def pooled(self) -> str:
+        """The label its initial weights are pooled under (its own label when it has no ``init_seed``)."""
+        return replace(self, init_seed=None).label
 
 
-def plan_runs(methods: tuple[str, ...], stacks: tuple[FlightStack, ...]) -> list[Run]:
-    """Every method under every stack (stacks inner), methods no stack changes once."""
+def plan_runs(methods: tuple[str, ...], stacks: tuple[FlightStack, ...], untrained_seeds: tuple[int, ...] = (0,)) -> list[Run]:
+    """Every method under every stack (stacks inner; ``untrained`` once per seed of
+    ``untrained_seeds`` under each stack, seeds inner, when there are several), methods no stack
+    changes once."""
     out: list[Run] = []
     for method in methods:
-        if method in STACKED_METHODS:
-            out.extend(Run(method, stack) for stack in stacks)
-        else:
+        if method not in STACKED_METHODS:
             out.append(Run(method, None))
+            continue
+        seeds: tuple[int | None, ...] = untrained_seeds if method == "untrained" and len(untrained_seeds) > 1 else (None,)
+        out.extend(Run(method, stack, seed) for stack in stacks for seed in seeds)
     return out
 
 
 def split_label(label: str) -> Run:
     """The run a results.json label names (labels without ``@`` fly the full stack or none)."""
-    method, _, stack = label.partition(LABEL_SEPARATOR)
+    name, _, stack = label.partition(LABEL_SEPARATOR)
+    method, separator, seed = name.partition(INIT_SEPARATOR)
+    if separator and not seed.isdigit():
+        raise ValueError(f"label {label!r} names an initial-weights seed {seed!r} that is not a whole number")
+    init_seed = int(seed) if separator else None
     if not stack:
-        return Run(method, "full" if method in STACKED_METHODS else None)
+        return Run(method, "full" if method in STACKED_METHODS else None, init_seed)
     named = _STACK_BY_NAME.get(stack)
     if named is None:
         raise ValueError(f"label {label!r} names an unknown flight stack {stack!r}")
-    return Run(method, named)
+    return Run(method, named, init_seed)
