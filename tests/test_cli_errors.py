@@ -241,7 +241,15 @@ def test_every_click_default_equals_the_library_default():
     dashes as underscores), so the CLI and the library never disagree silently."""
     from mapkit.dataset import DatasetConfig, parse_cameras
     from mapkit.esdf import EsdfConfig
-    from mapkit.evaluation import Corridor, EvalConfig, Execution, LoopConfig, Memory, SpeedProfile
+    from mapkit.evaluation import (
+        Corridor,
+        EvalConfig,
+        Execution,
+        LoopConfig,
+        Memory,
+        SpeedProfile,
+        parse_untrained_seeds,
+    )
     from mapkit.exchange import FoxgloveConfig
     from mapkit.export import ExportConfig
     from mapkit.fusion import FuseConfig
@@ -256,7 +264,8 @@ def test_every_click_default_equals_the_library_default():
     renamed = {("fuse", "frame_stride"): "stride", ("eval", "corridor"): "width", ("eval", "corridor_check"): "check",
                ("eval", "unchecked_corridor"): "unchecked_width",
                ("eval", "memory"): "seconds", ("eval", "speed"): "cruise"}  # eval: the flight stack's layers
-    parsed = {("dataset", "cameras"): parse_cameras}  # options the library parses from text
+    parsed = {("dataset", "cameras"): parse_cameras,  # options the library parses from text
+              ("eval", "untrained_seeds"): parse_untrained_seeds}
     off_means_none = {"width", "unchecked_width", "v_max", "a_max", "seconds", "cruise", "stop_decel"}  # eval: 0 on the command line = None
     compared, mismatched = 0, []
     for command, classes in sources.items():
