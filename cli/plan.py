@@ -21,9 +21,11 @@ from mapkit.cli._group import FINITE, INDEX, library_call, main, workspace_optio
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda.")
 @click.option("--widen/--no-widen", default=True, show_default=True,
               help="Also judge each candidate with its detour widened ×1.5 and ×2.5 (mapkit.planning.WIDEN).")
+@click.option("--shift/--no-shift", default=True, show_default=True,
+              help="Also judge every candidate shifted sideways by ±0.3 and ±0.6 m (mapkit.planning.SHIFT).")
 @library_call
 def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float, float, float], goal_frame: GoalFrame,
-             output: Path | None, device: str, widen: bool) -> None:
+             output: Path | None, device: str, widen: bool, shift: bool) -> None:
     """Plan from a recorded frame; writes the trajectory as JSON, TUM and MCAP (nav_msgs/Path)."""
     from mapkit.export import body_velocities
     from mapkit.ingest import open_frames_store
@@ -40,7 +42,7 @@ def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float
     planner = Planner.load(run_dir, device=device)
     planned = plan_from_frame(planner, np.asarray(store.depth[frame_index]), T_wb, store.T_world_camera[frame_index],
                               store.K, goal, goal_frame=goal_frame, velocity_body=velocity,
-                              widen=None if widen else ())
+                              widen=None if widen else (), shift=None if shift else ())
     g, result = planned.goal_body, planned.result
     paths = write_plan_outputs(result, T_wb, int(store.stamp_ns[frame_index]), out,
                                world_frame=str(store.attrs.get("world_frame", "world")), stem=f"plan_{frame_index:06d}")
@@ -49,8 +51,8 @@ def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float
                    f"the point {LOCAL_GOAL_RANGE:g} m along the way (body {np.round(result.goal_body, 3).tolist()}); "
                    "replan from a later frame to go on")
     verdict = "execute" if result.execute else "do NOT execute (eta >= 0.5)"
-    if result.widened:
-        verdict += " (a widened candidate, mapkit.planning.WIDEN)"
+    if result.variant:
+        verdict += f" (a {result.variant} candidate)"
     click.echo(
         f"eta {result.eta:.3f} → {verdict}; segment times {np.round(result.durations.astype(float), 2).tolist()} s "
         f"(total {result.durations.sum():.2f} s); control effort {result.control_effort:.2f} m²/s⁷; "

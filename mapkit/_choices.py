@@ -37,3 +37,7 @@ layer of :class:`mapkit.evaluation.Execution` as configured (memory, checked cor
 space, routing, follow); ``none``, the paper's protocol: the network's key-points through the corridor,
 replanned every interval, nothing else."""
 FLIGHT_STACKS: tuple[FlightStack, ...] = get_args(FlightStack)
+
+CANDIDATE_SHIFTS: tuple[float, ...] = (-0.6, -0.3, 0.3, 0.6)
+"""Metres: the sideways shifts of the extra candidates a plan judges by default, single plans
+(:data:`mapkit.planning.SHIFT`) and the full flight stack (``Execution.shift``) alike."""

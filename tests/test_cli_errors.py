@@ -239,6 +239,7 @@ def _dataclass_defaults(cls) -> dict:
 def test_every_click_default_equals_the_library_default():
     """A command's option default is the default of the dataclass field it fills (same name, with
     dashes as underscores), so the CLI and the library never disagree silently."""
+    from mapkit._choices import CANDIDATE_SHIFTS
     from mapkit.dataset import DatasetConfig, parse_cameras
     from mapkit.esdf import EsdfConfig
     from mapkit.evaluation import (
@@ -265,7 +266,8 @@ def test_every_click_default_equals_the_library_default():
                ("eval", "unchecked_corridor"): "unchecked_width",
                ("eval", "memory"): "seconds", ("eval", "speed"): "cruise"}  # eval: the flight stack's layers
     parsed = {("dataset", "cameras"): parse_cameras,  # options the library parses from text
-              ("eval", "untrained_seeds"): parse_untrained_seeds}
+              ("eval", "untrained_seeds"): parse_untrained_seeds,
+              ("eval", "shift"): lambda on: CANDIDATE_SHIFTS if on else ()}  # a flag: the default shifts, or none
     off_means_none = {"width", "unchecked_width", "v_max", "a_max", "seconds", "cruise", "stop_decel"}  # eval: 0 on the command line = None
     compared, mismatched = 0, []
     for command, classes in sources.items():

@@ -40,8 +40,9 @@ def test_stack_none_turns_off_exactly_the_layers_around_the_planner():
     none = under_stack(full, "none")
     assert under_stack(full, "full") is full
     changed = {f.name for f in dataclasses.fields(Execution) if getattr(full, f.name) != getattr(none, f.name)}
-    assert changed == {"memory", "route", "corridor", "follow", "keep_choice"}
+    assert changed == {"memory", "route", "corridor", "follow", "keep_choice", "shift"}
     assert none.memory is None and none.route is None and none.follow == 0.0 and none.keep_choice is None
+    assert none.shift == () and len(full.shift) > 0
     assert not none.corridor.check and not none.corridor.check_memory
     # the corridor's widths, the pace and the limits stay; unchecked, it flies at its unchecked width
     assert none.corridor.width == full.corridor.width and none.speed == full.speed
@@ -271,6 +272,23 @@ def test_iplanner_style_flies_its_spline_under_either_stack(stack: str):
     assert np.allclose(plan.pieces.state(plan.pieces.t_end)[0], plan.keypoints_world[-1], atol=1e-9)
     memory = method._memory
     assert (memory is not None and len(memory.frames) == 1) if stack == "full" else memory is None
+
+
+@pytest.mark.parametrize("stack", ["full", "none"])
+def test_the_full_stack_judges_the_shifted_candidates_and_none_the_trained_ones_alone(stack: str):
+    from mapkit.evaluation import LearnedMethod, Observation
+    from mapkit.planner import CameraInput
+
+    net = _tiny_net()
+    K = np.array([[32.0, 0.0, 31.5], [0.0, 32.0, 23.5], [0.0, 0.0, 1.0]])
+    T_bc = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    execution = under_stack(Execution(shift=(-0.5, 0.5)), stack)  # type: ignore[arg-type]
+    method = LearnedMethod("learned", net, camera=CameraInput.from_calibration(K, 64, 48, T_bc), execution=execution)
+    obs = Observation(t=0.0, T_world_body=np.eye(4), state_world=np.zeros((4, 3)), goal_world=np.array([5.0, 0.0, 0.0]),
+                      local_goal_body=np.array([5.0, 0.0, 0.0]), depth=np.full((48, 64), 8.0, dtype=np.float32))
+    _, out = method._keypoints(obs, obs.start_body(), np.array([5.0, 0.0, 0.0]))
+    assert out.candidates is not None
+    assert out.candidates.shape[1] == (4 * 3 if stack == "full" else 4)
 
 
 def test_the_run_table_gives_each_world_and_the_whole():

@@ -413,13 +413,18 @@ def test_anchors_detour_both_ways_and_end_at_the_goal():
     assert torch.equal(out.keypoints, out.candidates[torch.arange(2), out.chosen])
 
 
-def test_widened_candidates_scale_the_detour_and_are_judged_like_the_trained_ones():
+def _six_candidates() -> tuple[PlannerConfig, PlannerNet, torch.Tensor, torch.Tensor]:
+    """A net with six candidates, two goals and candidates (2, 6, K, 3) near its anchors."""
     cfg = planner_preset("cpu", num_candidates=6)
     torch.manual_seed(0)
     net = PlannerNet(cfg).eval()
     goal = torch.tensor([[6.0, 0.0, 0.0], [2.0, 3.0, 0.5]])
+    return cfg, net, goal, net.anchor_paths(goal) + 0.1 * torch.randn(2, 6, cfg.num_keypoints, 3)
+
+
+def test_widened_candidates_scale_the_detour_and_are_judged_like_the_trained_ones():
+    cfg, net, goal, cands = _six_candidates()
     K = cfg.num_keypoints
-    cands = net.anchor_paths(goal) + 0.1 * torch.randn(2, 6, K, 3)
     wide = net.widened(cands, goal, (1.5, 2.5))
     assert wide.shape == (2, 18, K, 3)
     assert torch.equal(wide[:, :6], cands)
@@ -444,6 +449,33 @@ def test_widened_candidates_scale_the_detour_and_are_judged_like_the_trained_one
     assert torch.equal(out.chosen, choose_candidate(out.scores, out.candidate_eta_logits))
     assert torch.equal(out.keypoints, out.candidates[torch.arange(2), out.chosen])
     assert torch.equal(planned.widened, out.chosen >= 6)
+
+
+def test_shifted_candidates_move_every_candidate_sideways_along_the_anchor_bump():
+    cfg, net, goal, cands = _six_candidates()
+    K = cfg.num_keypoints
+    moved = net.shifted(cands, goal, (-0.6, 0.3))
+    assert moved.shape == (2, 18, K, 3) and torch.equal(moved[:, :6], cands)
+    bump = torch.sin(torch.pi * torch.arange(1, K + 1) / K)  # zero at the last key-point
+    scale = (goal.norm(dim=-1) / 6.0).clamp(0.3, 1.5)
+    horizontal = torch.nn.functional.normalize(goal[:, :2], dim=-1)
+    left = torch.stack([-horizontal[:, 1], horizontal[:, 0], torch.zeros(2)], dim=-1)  # up × goal, level
+    for i, s in enumerate((-0.6, 0.3), start=1):
+        expected = s * scale[:, None, None] * bump[None, :, None] * left[:, None, :]  # (2, K, 3)
+        torch.testing.assert_close(moved[:, 6 * i:6 * (i + 1)] - cands, expected[:, None].expand(2, 6, K, 3))
+    with pytest.raises(PlannerError, match="candidate shifts"):
+        net.shifted(cands, goal, (float("inf"),))
+    depth, _ = _inputs(2, cfg)
+    with torch.no_grad():
+        plain = net(net.preprocess(depth), goal, widen=(1.5,))
+        out = net(net.preprocess(depth), goal, widen=(1.5,), shift=(-0.3, 0.3))
+        planned = net.plan(depth, goal, widen=(1.5,), shift=(-0.3, 0.3))
+    # trained, widened, then all twelve of those shifted by each; the judge reads each alone
+    assert out.candidates.shape == (2, 36, K, 3)
+    torch.testing.assert_close(out.scores[:, :12], plain.scores)
+    torch.testing.assert_close(out.candidates, net.shifted(plain.candidates, goal, (-0.3, 0.3)))
+    assert torch.equal(planned.shifted, out.chosen >= 12)
+    assert torch.equal(planned.widened, out.chosen % 12 >= 6)
 
 
 @pytest.mark.slow

@@ -787,8 +787,8 @@ class ViewerApp:
                      "keypoints_world": kp_w, "speed": speed, "corridor": geo, "corridor_width": corridor,
                      "infeasible": infeasible}
         verdict = "execute" if result.execute else "do NOT execute (η ≥ 0.5)"
-        if result.widened:
-            verdict += " (a widened candidate)"
+        if result.variant:
+            verdict += f" (a {result.variant} candidate)"
         solve = (f"min-snap in a ±{W:g} m corridor ({geo.num_segments} prisms)" if geo is not None
                  else "min-snap through the key-points (as `mapkit plan`)")
         if infeasible:

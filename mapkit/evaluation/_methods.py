@@ -436,7 +436,7 @@ class LearnedMethod:
                 x = image.x
             g = torch.from_numpy(np.asarray(goal, dtype=np.float32)[None])
             v = torch.from_numpy(np.asarray(start[1], dtype=np.float32)[None])
-            out = self.net(x, g, camera=self.camera, velocity=v, image=image)
+            out = self.net(x, g, camera=self.camera, velocity=v, image=image, shift=self.execution.shift)
             self._image = None if out.image is None else (obs, out.image)
             return x, self._kept(out)
 

@@ -911,6 +911,8 @@ def _validate_execution(ex: Execution) -> None:
         raise EvalError(f"SpeedProfile.search_ratio must be >= 1 (flown path over progress), got {pace.search_ratio}")
     if not (math.isfinite(pace.search_margin) and pace.search_margin >= 0):
         raise EvalError(f"SpeedProfile.search_margin must be >= 0 metres, got {pace.search_margin}")
+    if not all(math.isfinite(s) for s in ex.shift):
+        raise EvalError(f"Execution.shift must be finite metres, got {ex.shift}")
     if not (math.isfinite(ex.follow) and 0 <= ex.follow <= 1):
         raise EvalError(f"--follow must be in [0, 1] (the fraction of the way toward the reference), got {ex.follow}")
 

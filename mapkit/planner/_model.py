@@ -101,7 +101,7 @@ class PlannerOutput:
     """(B,) the logit of ``eta`` (for numerically exact BCE)."""
     candidates: torch.Tensor | None = None
     """(B, M, K, 3) every candidate path (M = ``num_candidates``, then any widened ones: ``forward``'s
-    ``widen``); ``keypoints`` is the chosen one."""
+    ``widen``, then all of those shifted sideways: ``shift``); ``keypoints`` is the chosen one."""
     candidate_eta_logits: torch.Tensor | None = None
     """(B, M) collision logits of each candidate."""
     scores: torch.Tensor | None = None
@@ -155,6 +155,8 @@ class Plan:
     """(B,) its logit, likewise."""
     widened: torch.Tensor | None = None
     """(B,) bool: the chosen candidate is a widened one (``widen``), when from :meth:`PlannerNet.plan`."""
+    shifted: torch.Tensor | None = None
+    """(B,) bool: the chosen candidate is a shifted one (``shift``), when from :meth:`PlannerNet.plan`."""
 
 
 # ----------------------------------------------------------------------------------- network
@@ -370,8 +372,9 @@ class PlannerNet(nn.Module):
         frac = torch.arange(1, K + 1, dtype=goal.dtype, device=goal.device) / K
         return frac.reshape(1, K, 1) * goal.unsqueeze(1)
 
-    def anchor_paths(self, goal: torch.Tensor) -> torch.Tensor:
-        """(B, M, K, 3): each candidate's anchor, the straight line bent by its detour.
+    def anchor_paths(self, goal: torch.Tensor, peaks: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, M, K, 3): each candidate's anchor, the straight line bent by its detour (``peaks`` (M, 2):
+        other (lateral, vertical) peaks than the candidates' own).
 
         The detour is peak × sin(π i / K) (zero at the goal) along the horizontal normal of the goal
         direction (lateral, left positive) and up (vertical), scaled by |goal| / 6 m within [0.3, 1.5]."""
@@ -387,7 +390,7 @@ class PlannerNet(nn.Module):
         fallback[:, 1] = 1.0
         left = torch.where(norm > 1e-6, left / norm.clamp_min(1e-6), fallback)
         scale = (goal.norm(dim=-1) / 6.0).clamp(0.3, 1.5)  # (B,)
-        peaks = self.anchor_peaks.to(goal.dtype)  # (M, 2)
+        peaks = (self.anchor_peaks if peaks is None else peaks).to(goal.dtype)  # (M, 2)
         offset = peaks[None, :, 0, None] * left[:, None] + peaks[None, :, 1, None] * up[:, None]  # (B, M, 3)
         offset = offset * scale[:, None, None]
         return line[:, None] + bump[None, None, :, None] * offset[:, :, None, :]
@@ -403,9 +406,28 @@ class PlannerNet(nn.Module):
         detour[..., -1, :] = 0.0
         return torch.cat([candidates] + [candidates + detour * (f - 1.0) for f in factors], dim=1)
 
+    def shifted(self, candidates: torch.Tensor, goal: torch.Tensor, shifts: tuple[float, ...]) -> torch.Tensor:
+        """(B, M (1 + S), K, 3): ``candidates`` (B, M, K, 3) followed by all of them moved sideways by
+        each of the S ``shifts`` (metres, left positive) at the middle of the path, along the anchors'
+        bump (zero at the start and at the last key-point) and their scale with the goal's distance.
+
+        The trained candidates sit near anchors 1.2 m apart; a doorway or a gap between trunks that
+        needs a path 0.3–0.6 m beside the nearest one is missed without these."""
+        if not all(math.isfinite(s) for s in shifts):
+            raise PlannerError(f"candidate shifts must be finite metres, got {shifts}")
+        unit = self._lateral_bump(goal)[:, None]  # (B, 1, K, 3)
+        return torch.cat([candidates] + [candidates + s * unit for s in shifts], dim=1)
+
+    def _lateral_bump(self, goal: torch.Tensor) -> torch.Tensor:
+        """(B, K, 3): the offset of a 1 m left detour anchor from the straight line to ``goal``."""
+        line = self.straight_line(goal)
+        left = self.anchor_paths(goal, torch.tensor([[1.0, 0.0]], dtype=goal.dtype, device=goal.device))
+        return left[:, 0] - line
+
     def forward(self, x: torch.Tensor, goal: torch.Tensor, image_index: torch.Tensor | None = None,
                 camera: CameraInput | None = None, velocity: torch.Tensor | None = None,
-                image: ImageFeatures | None = None, widen: tuple[float, ...] = ()) -> PlannerOutput:
+                image: ImageFeatures | None = None, widen: tuple[float, ...] = (),
+                shift: tuple[float, ...] = ()) -> PlannerOutput:
         """Predict key-points and η.
 
         Args:
@@ -420,6 +442,8 @@ class PlannerNet(nn.Module):
                 features and pyramid are reused (a second goal from the same frame).
             widen: factors of :meth:`widened` candidates judged and chosen among like the trained ones
                 (several candidates only; () none).
+            shift: sideways shifts (m) of :meth:`shifted` candidates (of the trained and the widened
+                ones), judged and chosen among likewise (several candidates only; () none).
 
         Returns:
             :class:`PlannerOutput` with keypoints (B, K, 3), eta (B,), eta_logit (B,).
@@ -448,7 +472,9 @@ class PlannerNet(nn.Module):
         candidates = self.anchor_paths(goal) + offsets
         if widen and M > 1:
             candidates = self.widened(candidates, goal, widen)
-            M = candidates.shape[1]
+        if shift and M > 1:
+            candidates = self.shifted(candidates, goal, shift)
+        M = candidates.shape[1]
         pyramid: torch.Tensor | None = None
         scores: torch.Tensor | None = None
         if self.judge_mlp is None:
@@ -577,6 +603,7 @@ class PlannerNet(nn.Module):
         corridor: float | None = None,
         camera: CameraInput | None = None,
         widen: tuple[float, ...] = (),
+        shift: tuple[float, ...] = (),
     ) -> Plan:
         """Depth image(s) in metres + goal → :class:`Plan` (preprocess, forward, trajectory).
 
@@ -586,7 +613,7 @@ class PlannerNet(nn.Module):
             start_velocity, start_acceleration: (B, 3) body frame, see :meth:`trajectory`.
             end_speed: (B,) m/s at the last key-point (0: rest; a receding-horizon loop passes the local
                 goal at cruise speed while the real goal lies beyond it).
-            widen: widened candidates, see :meth:`forward`.
+            widen, shift: widened and shifted candidates, see :meth:`forward`.
 
         Gradients flow as usual; wrap the call in ``torch.inference_mode()`` and put the net in
         ``eval()`` mode for deployment.
@@ -595,11 +622,14 @@ class PlannerNet(nn.Module):
         goal = torch.as_tensor(goal, dtype=x.dtype, device=x.device)
         if goal.ndim == 1:
             goal = goal.unsqueeze(0)
-        out = self(x, goal, camera=camera, velocity=start_velocity, widen=widen)
+        out = self(x, goal, camera=camera, velocity=start_velocity, widen=widen, shift=shift)
         p = self.trajectory(out.keypoints, start_velocity=start_velocity, start_acceleration=start_acceleration,
                             end_speed=end_speed, corridor=corridor)
         p.eta, p.eta_logit = out.eta, out.eta_logit
-        p.widened = (out.chosen >= self.config.num_candidates) if out.chosen is not None else None
+        if out.chosen is not None:
+            unshifted = self.config.num_candidates * (1 + (len(widen) if self.config.num_candidates > 1 else 0))
+            p.widened = (out.chosen % unshifted) >= self.config.num_candidates
+            p.shifted = out.chosen >= unshifted
         return p
 
 

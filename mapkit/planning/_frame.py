@@ -49,16 +49,16 @@ def plan_from_frame(
     velocity_body: NDArray[np.float64] | None = None,
     corridor: float | None = None,
     widen: tuple[float, ...] | None = None,
+    shift: tuple[float, ...] | None = None,
 ) -> FramePlan:
     """Plan from one frame (depth (H, W) metres, its body and optical-camera poses (4, 4), K (3, 3)) to
-    ``goal`` (3,) given in ``goal_frame``; ``velocity_body`` (3,), ``corridor`` and ``widen`` as in
-    :meth:`Planner.plan` (None: its default, :data:`mapkit.planning.WIDEN`)."""
+    ``goal`` (3,) given in ``goal_frame``; ``velocity_body`` (3,), ``corridor``, ``widen`` and ``shift`` as
+    in :meth:`Planner.plan` (None: its defaults, :data:`mapkit.planning.WIDEN` and :data:`~mapkit.planning.SHIFT`)."""
     goal_body = goal_in_body(goal, T_world_body, goal_frame)
     T_body_camera = invert_transform(T_world_body) @ T_world_camera
-    if widen is None:
-        from mapkit.planning._planner import WIDEN  # torch is loaded by now: a planner exists
+    from mapkit.planning._planner import SHIFT, WIDEN  # torch is loaded by now: a planner exists
 
-        widen = WIDEN
     result = planner.plan(depth, goal_body, velocity_body=velocity_body, corridor=corridor, K=K,
-                          T_body_camera=T_body_camera, widen=widen)
+                          T_body_camera=T_body_camera, widen=WIDEN if widen is None else widen,
+                          shift=SHIFT if shift is None else shift)
     return FramePlan(goal_body, result)

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from mapkit._choices import CANDIDATE_SHIFTS
 from mapkit.errors import MapkitError
 from mapkit.geometry import quat_xyzw_from_matrix
 from mapkit.planning._camera import RUN_CONFIG, RunCamera, recorded_camera
@@ -43,6 +44,8 @@ class PlanResult:
     """(3,) the goal planned to: the one asked for, or the local goal on its way (``goal_clipped``)."""
     widened: bool = False
     """True when the chosen candidate is a widened one (:data:`WIDEN`)."""
+    shifted: bool = False
+    """True when the chosen candidate is a shifted one (:data:`SHIFT`)."""
     goal_clipped: bool = False
     """True when the goal asked for lay beyond :data:`LOCAL_GOAL_RANGE` and the plan went to the point that
     far along the way to it (the model never saw farther goals; a receding-horizon loop replans)."""
@@ -53,6 +56,13 @@ class PlanResult:
     @property
     def execute(self) -> bool:
         return self.eta < 0.5
+
+    @property
+    def variant(self) -> str | None:
+        """``"widened"``, ``"shifted"`` or ``"widened and shifted"``: how the chosen candidate differs from
+        the trained one it came from (None: it is a trained one)."""
+        names = [name for name, on in (("widened", self.widened), ("shifted", self.shifted)) if on]
+        return " and ".join(names) or None
 
 
 LOCAL_GOAL_RANGE = 6.0
@@ -72,6 +82,17 @@ expected to collide: 165 / 154 / 156 on seeds 1 / 2 / 3. ``mapkit eval``'s close
 it hovers and looks around when every candidate is expected to collide, and widening there lowered
 the office dev seeds from 196 to 190 of 240 (docs/evaluation.md). Latency: within this machine's
 noise (3.2–3.5 ms per plan either way, one thread, 100 plans from a random image)."""
+
+
+SHIFT = CANDIDATE_SHIFTS
+"""Sideways shifts (metres at the middle of the path, left positive) of the shifted candidates a plan
+adds (:meth:`PlannerNet.shifted`): every candidate, trained or widened, also moved by each, judged and
+chosen among like the trained ones. The trained candidates stay near anchors 1.2 m apart; a doorway
+or a gap that needs a path a few decimetres beside the nearest one is otherwise missed. Chosen on
+the foreign-scene bench, seeds 0 / 1 (200 plans each, with :data:`WIDEN`): none 150 / 160, ±0.3 150 /
+168, ±0.3 ±0.6 157 / 170, ±0.3 ±0.6 ±0.9 157 / 170, ±0.6 ±1.2 160 / 168. On seeds 2–3, 10–13 and
+fresh 20–23: 80.3 / 83.1 / 80.3 % against 75.8 / 79.4 / 75.3 % without (docs/results.md). ``mapkit eval`` shifts the candidates of the full flight stack
+(:attr:`~mapkit.evaluation.Execution.shift`)."""
 
 
 class Planner:
@@ -119,7 +140,8 @@ class Planner:
 
     def plan(self, depth: np.ndarray, goal_body: np.ndarray, *, velocity_body: np.ndarray | None = None,
              rate_hz: float = 50.0, corridor: float | None = None, K: np.ndarray | None = None,
-             T_body_camera: np.ndarray | None = None, widen: tuple[float, ...] = WIDEN) -> PlanResult:
+             T_body_camera: np.ndarray | None = None, widen: tuple[float, ...] = WIDEN,
+             shift: tuple[float, ...] = SHIFT) -> PlanResult:
         """Depth (H, W) metres (NaN invalid) + goal (3,) body frame [+ velocity (3,)] → PlanResult.
 
         `corridor`: half-width (m) of the flight corridor around each key-point segment (body
@@ -133,7 +155,8 @@ class Planner:
         (:attr:`PlanResult.camera_from_run`); depth must then have that camera's size.
 
         `widen`: factors of the widened candidates judged with the trained ones (:data:`WIDEN`; ()
-        none; models with one candidate ignore it)."""
+        none; models with one candidate ignore it). `shift`: sideways shifts of every candidate judged
+        likewise (:data:`SHIFT`; () none)."""
         asked = np.asarray(goal_body, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(asked)):
             raise PlanningError(f"goal {asked.tolist()} is not finite")
@@ -153,7 +176,8 @@ class Planner:
                 camera = CameraInput.from_calibration(np.asarray(K), int(w), int(h), np.asarray(T_body_camera))
             p = self.net.plan(d, torch.from_numpy(goal[None]).to(self.device),
                               start_velocity=torch.from_numpy(vel[None]).to(self.device), corridor=corridor,
-                              camera=None if camera is None else camera.to(self.device), widen=widen)
+                              camera=None if camera is None else camera.to(self.device), widen=widen,
+                              shift=shift)
             if self.device.type == "cuda":
                 torch.cuda.synchronize()
             latency = 1e3 * (time.perf_counter() - t0)
@@ -165,6 +189,7 @@ class Planner:
             samples_t=t, samples_body=pos.reshape(-1, 3).cpu().numpy(),
             control_effort=float(p.trajectory.snap_cost().reshape(-1)[0]), latency_ms=latency,
             goal_body=goal.astype(np.float64), goal_clipped=clipped, widened=bool(p.widened is not None and p.widened[0]),
+            shifted=bool(p.shifted is not None and p.shifted[0]),
             camera_from_run=from_run,
         )
 
