@@ -59,7 +59,8 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @click.option("--init", "init", default=None, metavar="MODEL",
               help="Start from this model's weights (run directory, model.pt or 'pretrained'): fine-tuning.")
 @click.option("--only", type=click.Choice(TRAINED_WEIGHTS), default="all", show_default=True,
-              help="Train only the Time Allocation Net ('tan') on the key-points of the frozen --init model.")
+              help="Train only the Time Allocation Net ('tan') or only the judge of the candidates ('judge': "
+                   "scores and η) on the key-points of the frozen --init model.")
 @click.option("--resume", is_flag=True, help="Continue the run after its last completed epoch.")
 @click.option("--overwrite", is_flag=True, help="Restart an existing run from scratch.")
 @library_call

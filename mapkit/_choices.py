@@ -9,9 +9,13 @@ PresetName = Literal["cpu", "paper"]
 """Named training configurations (:data:`mapkit.train.PRESETS`)."""
 PRESET_NAMES: tuple[PresetName, ...] = get_args(PresetName)
 
-TrainedWeights = Literal["all", "tan"]
-"""Which weights a run trains: all, or only the Time Allocation Net."""
+TrainedWeights = Literal["all", "tan", "judge"]
+"""Which weights a run trains: all, only the Time Allocation Net, or only the judge (scores and η)."""
 TRAINED_WEIGHTS: tuple[TrainedWeights, ...] = get_args(TrainedWeights)
+
+EtaLabel = Literal["map", "seen"]
+"""What η learns to predict: a collision in the map (the paper), or with what the depth image shows."""
+ETA_LABELS: tuple[EtaLabel, ...] = get_args(EtaLabel)
 
 OnReject = Literal["continue", "brake"]
 """What a flying vehicle does with a rejected plan (``LoopConfig.on_reject``)."""

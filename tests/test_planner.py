@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -10,12 +11,14 @@ import torch
 
 from mapkit.esdf import EsdfMap, signed_distance
 from mapkit.planner import (
+    CameraInput,
     LossConfig,
     PlannerConfig,
     PlannerError,
     PlannerNet,
     ResNet18,
     body_to_world,
+    candidate_loss,
     collision_labels,
     count_parameters,
     escape_cost,
@@ -282,6 +285,75 @@ def test_escape_labels_through_and_beside_box(box_map):
     assert torch.isclose(e2[0], torch.tensor(-math.log(0.2)), atol=1e-5) and torch.isclose(e2[1], torch.tensor(30.0))
     e2.sum().backward()
     assert float(logit.grad[1]) > 0.99
+
+
+def test_escape_labels_within_a_horizon_along_the_path(box_map):
+    # the path along y = 0 comes within 0.3 m of the box face (x = 4) after 3.7 m
+    through = _straight(0.0)
+    for within, expected in [(3.5, False), (3.9, True), (None, True)]:
+        assert collision_labels(through, box_map, threshold=0.3, within=within).tolist() == [expected]
+    # measured along the path, not straight from its start: a path that doubles back
+    back = torch.tensor([[[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 0.0], [3.8, 0.0, 0.0]]])
+    assert collision_labels(back, box_map, threshold=0.3, within=5.0).tolist() == [False]
+    assert collision_labels(back, box_map, threshold=0.3, within=7.9).tolist() == [True]
+    with pytest.raises(PlannerError, match="eta_horizon"):
+        LossConfig(eta_horizon=0.0)
+
+
+def test_eta_learns_the_label_within_its_horizon(box_map):
+    """candidate_loss: with ``eta_horizon`` U_E's label counts the path's first metres only; the
+    collision rate (and the winner's penalty) still count the whole path."""
+    cfg = PlannerConfig(num_candidates=2, depth_check=False)
+    torch.manual_seed(0)
+    net = PlannerNet(cfg)
+    depth, _ = _inputs(1, cfg)
+    goal = torch.tensor([[9.0, 0.0, 0.0]])
+    out = net(net.preprocess(depth), goal)
+    through = torch.tensor([[[1.8, 0.0, 0.0], [3.6, 0.0, 0.0], [5.4, 0.0, 0.0], [7.2, 0.0, 0.0], [9.0, 0.0, 0.0]]])
+    beside = through + torch.tensor([0.0, 2.5, 0.0])  # 1.5 m beside the box all along
+    cand = torch.stack([through, beside], dim=1)
+    T = torch.eye(4, dtype=torch.float64)[None]
+    for horizon, label in ((None, [True, False]), (2.0, [False, False]), (4.0, [True, False])):
+        for guess, low in ((label, True), ([not label[0], label[1]], False)):
+            logits = torch.tensor([[20.0 if g else -20.0 for g in guess]])
+            o = dataclasses.replace(out, candidates=cand, keypoints=cand[:, 0], candidate_eta_logits=logits,
+                                    chosen=torch.zeros(1, dtype=torch.long))
+            _, terms = candidate_loss(net, o, goal=goal, T_world_body=T, esdf_map=box_map,
+                                      config=LossConfig(eta_horizon=horizon))
+            assert float(terms["collision_rate"]) == 1.0  # the chosen path runs into the box
+            assert (float(terms["escape"]) < 1e-6) == low, (horizon, guess)
+
+
+def test_eta_label_seen_is_what_the_depth_image_shows() -> None:
+    """``eta_label="seen"``: a wall seen 3 m ahead (and nothing in the map) labels the straight path
+    colliding, within a horizon that reaches 0.3 m of the wall and not within a shorter one."""
+    cfg = PlannerConfig(num_candidates=2, depth_check=True)
+    torch.manual_seed(0)
+    net = PlannerNet(cfg)
+    H, W = 120, 200
+    K = np.array([[100.0, 0.0, W / 2 - 0.5], [0.0, 100.0, H / 2 - 0.5], [0.0, 0.0, 1.0]])
+    T_body_camera = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]], float)
+    camera = CameraInput.from_calibration(K, W, H, T_body_camera)
+    goal = torch.tensor([[8.0, 0.0, 0.0]])
+    out = net(net.preprocess(torch.full((1, H, W), 3.0)), goal, camera=camera)
+    line = torch.tensor([[[1.6, 0, 0], [3.2, 0, 0], [4.8, 0, 0], [6.4, 0, 0], [8.0, 0, 0]]])
+    aside = torch.tensor([[[-0.4, 0.6, 0], [-0.8, 1.2, 0], [-1.2, 1.8, 0], [-1.6, 2.4, 0], [-2.0, 3.0, 0]]])
+    cand = torch.stack([line, aside], dim=1)  # the second goes back and left, out of view
+    out = dataclasses.replace(out, candidates=cand, keypoints=cand[:, 0], candidate_eta_logits=torch.zeros(1, 2),
+                              chosen=torch.zeros(1, dtype=torch.long))
+    free_map = EsdfMap(esdf=np.full((60, 40, 20), 5.0, np.float32), voxel_size=0.2, origin=ORIGIN)
+    T = torch.eye(4, dtype=torch.float64)[None]
+    for horizon, expected in ((None, True), (2.0, False), (2.9, True)):
+        for m, label in ((0, expected), (1, False)):
+            o = dataclasses.replace(out, chosen=torch.full((1,), m))
+            _, terms = candidate_loss(net, o, goal=goal, T_world_body=T, esdf_map=free_map, camera=camera,
+                                      config=LossConfig(eta_label="seen", eta_horizon=horizon))
+            assert terms["eta_label_chosen"].tolist() == [label], (horizon, m)
+            assert float(terms["collision_rate"]) == 0.0  # the map is free everywhere
+    with pytest.raises(PlannerError, match="camera"):
+        candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=free_map, config=LossConfig(eta_label="seen"))
+    with pytest.raises(PlannerError, match="eta_label"):
+        LossConfig(eta_label="exact")
 
 
 def test_smoothness_goal_and_time_terms():

@@ -123,6 +123,22 @@ def test_only_tan_trains_the_time_allocation_and_nothing_else(workspace: Path, t
               runs_dir=tmp_path, progress=False)
 
 
+@pytest.mark.slow
+def test_only_judge_trains_the_judge_and_nothing_else(workspace: Path, tmp_path: Path) -> None:
+    planner = {**TINY, "num_candidates": 4}
+    train([workspace], tiny("base", planner=planner), runs_dir=tmp_path, progress=False)
+    train([workspace], tiny("judge", max_steps=3, lr=1e-2, init=str(tmp_path / "base"), only="judge", planner=planner,
+                            loss={"eta_horizon": 1.5}), runs_dir=tmp_path, progress=False)
+    a = torch.load(tmp_path / "base" / "model.pt", weights_only=True)["state_dict"]
+    b = torch.load(tmp_path / "judge" / "model.pt", weights_only=True)["state_dict"]
+    judge = [k for k in a if k.startswith("judge_mlp.")]
+    rest = [k for k in a if not k.startswith("judge_mlp.")]
+    assert rest and all(torch.equal(a[k], b[k]) for k in rest)  # batch-norm statistics included
+    assert judge and not all(torch.equal(a[k], b[k]) for k in judge)
+    with pytest.raises(TrainConfigError, match="--init"):
+        train([workspace], tiny("x", only="judge"), runs_dir=tmp_path, progress=False)
+
+
 def test_cli_bad_inputs(workspace: Path, tmp_path: Path) -> None:
     runner = CliRunner()
     result = runner.invoke(main, ["train", "-w", str(tmp_path), "--runs-dir", str(tmp_path / "runs")])

@@ -8,7 +8,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from mapkit._choices import PresetName, TrainedWeights
+from mapkit._choices import TRAINED_WEIGHTS, PresetName, TrainedWeights
 from mapkit.errors import MapkitError
 from mapkit.planner import LossConfig, PlannerConfig
 
@@ -58,7 +58,9 @@ class TrainConfig:
     """Which weights train. "tan": only the Time Allocation Net, on the key-points of the frozen
     ``init`` model (the TAN learns from U_T alone, so this is the joint training's TAN part without
     changing the paths); its TAN options (``tan_boundary``, ``tan_hidden``, timing rule) may differ
-    from the init model's. The best epoch is then chosen by the held-out U_T."""
+    from the init model's. The best epoch is then chosen by the held-out U_T. "judge": only the
+    candidates' judge (their scores and η; the η head of a one-path net), on the frozen key-points of
+    ``init``: a changed η label (``loss.eta_horizon``, ``loss.eta_label``) without moving the paths."""
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     """The planner network's configuration (mapkit.planner)."""
     loss: LossConfig = field(default_factory=LossConfig)
@@ -103,10 +105,11 @@ class TrainConfig:
             raise TrainConfigError(f"--grad-clip {self.grad_clip} must be a positive number")
         if self.corridor is not None and not self.corridor > 0:
             raise TrainConfigError(f"--corridor {self.corridor} must be a positive half-width in metres")
-        if self.only not in ("all", "tan"):
-            raise TrainConfigError(f"--only {self.only!r}: expected all or tan")
-        if self.only == "tan" and not self.init:
-            raise TrainConfigError("--only tan trains the TAN on the key-points of another model: pass --init MODEL")
+        if self.only not in TRAINED_WEIGHTS:
+            raise TrainConfigError(f"--only {self.only!r}: expected one of {', '.join(TRAINED_WEIGHTS)}")
+        if self.only != "all" and not self.init:
+            raise TrainConfigError(f"--only {self.only} trains part of another model on its frozen key-points: "
+                                   "pass --init MODEL")
         if self.max_steps is not None and self.max_steps < 1:
             raise TrainConfigError(f"--max-steps {self.max_steps} must be at least 1")
 

@@ -158,7 +158,7 @@ def validate(net: PlannerNet, samples: TupleSamples, maps: list[Any], loss_confi
     colliding) and "blocked_count", "active_units" (smallest fraction of the key-point MLP's
     hidden units active on some sample), and how the η gate would act on the chosen plans:
     "eta_catches" (share of colliding plans with η ≥ 0.5, i.e. rejected) and "eta_false_rejects"
-    (share of free plans rejected)."""
+    (share of free plans rejected), colliding as η's label counts it (``eta_horizon``, ``eta_label``)."""
     from mapkit.planner import candidate_loss
 
     totals = {k: 0.0 for k in METRIC_KEYS}
@@ -177,11 +177,13 @@ def validate(net: PlannerNet, samples: TupleSamples, maps: list[Any], loss_confi
                           batch["velocity"])
                 if straight:
                     out = _straight_output(net, batch["goal"])
+                    # the straight line has no depth check to label η by, and no η that the label would judge
+                    loss_config = dataclasses.replace(loss_config, eta_label="map")
                 m = len(part)
                 end_speed = _end_speeds(net.config, m, None, device)
                 _, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"],
                                           esdf_map=maps[k], start_velocity=batch["velocity"], end_speed=end_speed,
-                                          corridor=corridor, config=loss_config)
+                                          corridor=corridor, camera=batch["camera"], config=loss_config)
                 for key in METRIC_KEYS:
                     totals[key] += float(terms[key]) * m
                 n += m
@@ -192,6 +194,7 @@ def validate(net: PlannerNet, samples: TupleSamples, maps: list[Any], loss_confi
                 blocked_coll += float(coll[blk].sum())
                 blocked_reach += float(reach[blk].sum())
                 if not straight:
+                    coll = terms["eta_label_chosen"]
                     rejected = out.eta >= 0.5
                     gate["collided"] += float(coll.sum())
                     gate["caught"] += float((rejected & coll).sum())
@@ -483,9 +486,10 @@ def _build_model(run: _Session, state: dict[str, Any] | None) -> None:
     if run.world > 1:
         run.step_module = nn.parallel.DistributedDataParallel(
             run.step_module, device_ids=[run.device.index] if run.device.type == "cuda" else None)
-    if config.only == "tan":
+    if config.only != "all":
+        trained = ("tan.",) if config.only == "tan" else ("judge_mlp.", "eta_mlp.")
         for name, param in net.named_parameters():
-            param.requires_grad_(name.startswith("tan."))
+            param.requires_grad_(name.startswith(trained))
     run.optimizer = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=config.lr,
                                      weight_decay=config.weight_decay)
     if state is None and config.init:
@@ -554,7 +558,7 @@ def _train_step(run: _Session, data: _Splits, k: int, part: Any) -> dict[str, An
 
     config, net = run.config, run.net
     batch = data.train_set.load(k, part, run.device)
-    with torch.set_grad_enabled(config.only == "all"):
+    with torch.set_grad_enabled(config.only != "tan"):
         out = run.step_module(batch["depth"], batch["goal"], batch["image_index"], batch["camera"], batch["velocity"])
     end_speed = _end_speeds(config.planner, len(part), run.rng, run.device)
     if config.only == "tan":
@@ -564,7 +568,7 @@ def _train_step(run: _Session, data: _Splits, k: int, part: Any) -> dict[str, An
     else:
         loss, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"],
                                      esdf_map=data.maps[k], start_velocity=batch["velocity"], end_speed=end_speed,
-                                     corridor=config.corridor, config=config.loss)
+                                     corridor=config.corridor, camera=batch["camera"], config=config.loss)
     if not torch.isfinite(loss):
         raise TrainConfigError(f"loss became {float(loss)} at step {run.step}; lower --lr (now {config.lr})")
     run.optimizer.zero_grad(set_to_none=True)
@@ -583,7 +587,7 @@ def _train_epoch(run: _Session, data: _Splits, epoch: int, progress: bool) -> tu
 
     config = run.config
     # A frozen encoder stays in eval mode: batch norm would otherwise move its running statistics
-    # (and so the key-points) even without gradients. The TAN has no such layers.
+    # (and so the key-points) even without gradients. The TAN and the judge have no such layers.
     run.net.train(config.only == "all")
     sums = {k: 0.0 for k in METRIC_KEYS}
     count = 0

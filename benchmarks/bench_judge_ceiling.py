@@ -1,0 +1,160 @@
+"""How much the judge leaves without the flight stack: a model's own trained candidates flown under
+``mapkit eval --stack none``, chosen at every replan by a stand-in judge instead of the network's.
+
+The stand-in looks at each candidate's trajectory as it would be flown (the loop's timing and
+corridor), flies the best-scored clear one (the network's own scores) and vetoes the plan when none is
+clear, as the loop treats η >= 0.5 (keep the last plan, or hover and turn). Judges:
+
+- ``network``: the network's own choice and η (what ``mapkit eval`` flies);
+- ``exact``: clear = 0.3 m from the exact world;
+- ``image``: clear = 0.3 m from every point of the depth image the plan was made from (every second
+  pixel; what lies out of view counts as free);
+
+each over the trajectory's first ``--horizon-m`` metres (default 2.5; 0: all of it), or its first
+``--horizon-s`` seconds.
+
+An exact judge bounds what judging these candidates can give; the image judge what one depth image
+can tell about them. docs/results.md ("The judge against an exact one, without the stack") has the
+figures of dev seed 301. Prints success, collisions and timeouts per world.
+
+    python benchmarks/bench_judge_ceiling.py --seed 301 --pairs 40 --judge network,exact,image
+    python benchmarks/bench_judge_ceiling.py --seed 301 --pairs 40 --judge exact --horizon-m 0 --horizon-s 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from typing import Literal
+
+import numpy as np
+import torch
+
+from mapkit.evaluation import EvalConfig
+from mapkit.evaluation import _methods as methods
+from mapkit.evaluation import _run as run
+from mapkit.evaluation._loop import run_episode
+from mapkit.evaluation._stack import Run
+from mapkit.sim import render_depth
+
+ROBOT_RADIUS = 0.3
+
+
+@dataclasses.dataclass
+class Judge:
+    kind: Literal["network", "exact", "image"]
+    horizon_s: float | None = None
+    horizon_m: float | None = None
+
+
+def _stretch(traj, start: np.ndarray, judge: Judge) -> np.ndarray:
+    """(P, 3) body-frame samples of the part of ``traj`` the judge looks at."""
+    pts = methods._samples(traj, count=96, within=judge.horizon_s)[0, 0].numpy()
+    if judge.horizon_m is not None:
+        along = np.cumsum(np.linalg.norm(np.diff(np.vstack([start[:1], pts]), axis=0), axis=1))
+        pts = pts[along <= judge.horizon_m]
+    return pts
+
+
+def _image_points(depth: np.ndarray, K: np.ndarray, T_body_camera: np.ndarray):
+    """A KD-tree of the depth image's points (every second pixel) in the body frame, or None."""
+    from scipy.spatial import cKDTree
+
+    v, u = np.mgrid[0:depth.shape[0]:2, 0:depth.shape[1]:2]
+    z = depth[::2, ::2]
+    ok = np.isfinite(z) & (z > 0)
+    cam = np.stack([(u[ok] - K[0, 2]) / K[0, 0] * z[ok], (v[ok] - K[1, 2]) / K[1, 1] * z[ok], z[ok]], axis=1)
+    body = cam @ T_body_camera[:3, :3].T + T_body_camera[:3, 3]
+    return cKDTree(body) if len(body) else None
+
+
+def stand_in(method, world, camera, judge: Judge):
+    """Wrap ``method`` (a LearnedMethod) so that ``judge`` chooses among its trained candidates."""
+    own_keypoints, own_attempt = method._keypoints, method._attempt
+    end_speed = [0.0]
+
+    def attempt(obs, start, goal, speed):
+        end_speed[0] = speed
+        return own_attempt(obs, start, goal, speed)
+
+    def keypoints(obs, start, goal):
+        x, out = own_keypoints(obs, start, goal)
+        tree = _image_points(np.asarray(obs.depth), np.asarray(camera.K), np.asarray(camera.T_body_camera)) \
+            if judge.kind == "image" else None
+        T = obs.T_world_body
+        clear = []
+        for c in out.candidates[0].double().numpy():
+            wp, st, es = methods._tensors(np.vstack([start[:1], c]), start, end_speed[0])
+            with torch.inference_mode():
+                timing = method._timed(wp, st, es)
+                traj = methods._execute(wp, timing.durations, st, timing.end, method.execution, None)
+            pts = _stretch(traj, start, judge)
+            if not len(pts):
+                clear.append(True)
+            elif judge.kind == "exact":
+                clear.append(world.signed_distance(pts @ T[:3, :3].T + T[:3, 3]).min() >= ROBOT_RADIUS)
+            else:
+                clear.append(tree is None or tree.query(pts)[0].min() >= ROBOT_RADIUS)
+        scores = out.scores[0].numpy()
+        clear = np.array(clear)
+        m = int(np.argmax(np.where(clear, scores, -np.inf))) if clear.any() else int(np.argmax(scores))
+        logit = torch.full((1,), -10.0 if clear.any() else 10.0)
+        return x, dataclasses.replace(out, keypoints=out.candidates[:, m], eta=torch.sigmoid(logit), eta_logit=logit,
+                                      chosen=torch.full_like(out.chosen, m))
+
+    method._attempt = attempt
+    if judge.kind != "network":
+        method._keypoints = keypoints
+
+
+def fly(model: str, kind: str, seed: int, pairs: int, judge: Judge) -> list[str]:
+    config = EvalConfig(worlds=(kind,), pairs=pairs, seed=seed, methods=("learned",), stacks=("none",))
+    context = run._model_context(model, config)
+    _, world_pairs = run._worlds_and_pairs(config)
+    setup = run._WorkerSetup(model=run._model_for_workers(model, config), model_sha256=None, seed=seed,
+                             pair_clearance=config.pair_clearance, camera=context.camera,
+                             runs=(Run("learned", "none"),), oracle_corridor=config.oracle_corridor,
+                             execution=config.execution, loop=config.loop)
+    run._init_worker(setup)
+    bundle = run._world_bundle(kind)
+    method = bundle.methods[0]
+    stand_in(method, bundle.world, setup.camera, judge)
+    T_body_camera = np.asarray(setup.camera.T_body_camera)
+    outcomes = []
+    for pair in world_pairs[kind]:
+        p = pair.to_dict()
+        episode = run_episode(bundle.world, np.asarray(p["start"]), np.asarray(p["goal"]), method, config.loop,
+                              render=lambda T: render_depth(bundle.world, T @ T_body_camera, bundle.camera,
+                                                            rays=bundle.rays))
+        outcomes.append(episode.outcome)
+    return outcomes
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", default="pretrained")
+    ap.add_argument("--seed", type=int, default=301)
+    ap.add_argument("--pairs", type=int, default=20, help="per world")
+    ap.add_argument("--world", default="office,garage,forest")
+    ap.add_argument("--judge", default="network,exact", help="comma-separated: network, exact, image")
+    ap.add_argument("--horizon-s", type=float, default=None, help="also only the first seconds (pass --horizon-m 0 for these alone)")
+    ap.add_argument("--horizon-m", type=float, default=2.5, help="the first metres only (0: the whole trajectory)")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    for name in args.judge.split(","):
+        if name not in ("network", "exact", "image"):
+            ap.error(f"--judge {name!r}: expected network, exact or image")
+        judge = Judge(name, args.horizon_s, args.horizon_m or None)  # type: ignore[arg-type]
+        line, total = f"{name:8s}", []
+        for kind in args.world.split(","):
+            outcomes = fly(args.model, kind, args.seed, args.pairs, judge)
+            total += outcomes
+            line += (f"  {kind} {100 * outcomes.count('success') / len(outcomes):5.1f} %"
+                     f" ({outcomes.count('collision')} coll., {outcomes.count('timeout')} t/o)")
+        print(f"{line}  overall {100 * total.count('success') / len(total):5.1f} % of {len(total)}", flush=True)
+    print(f"seed {args.seed}, stack none; exact and image judge the first "
+          f"{f'{args.horizon_s} s' if args.horizon_s else f'{args.horizon_m} m' if args.horizon_m else 'whole trajectory'}")
+
+
+if __name__ == "__main__":
+    main()
