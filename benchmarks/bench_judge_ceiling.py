@@ -11,7 +11,10 @@ clear, as the loop treats η >= 0.5 (keep the last plan, or hover and turn). Jud
   pixel; what lies out of view counts as free);
 
 each over the trajectory's first ``--horizon-m`` metres (default 2.5; 0: all of it), or its first
-``--horizon-s`` seconds.
+``--horizon-s`` seconds. The path judged (``--path``): ``flown`` the trajectory the loop flies (in
+its corridor); ``through`` the minimum-snap trajectory through the key-points with the same timing
+(what the network's own ``PlannerNet.trajectory`` gives); ``keypoints`` the key-point polyline from
+the plan's start (every 0.1 m; ``--horizon-m`` only).
 
 An exact judge bounds what judging these candidates can give; the image judge what one depth image
 can tell about them. docs/results.md ("The judge against an exact one, without the stack") has the
@@ -19,12 +22,14 @@ figures of dev seed 301. Prints success, collisions and timeouts per world.
 
     python benchmarks/bench_judge_ceiling.py --seed 301 --pairs 40 --judge network,exact,image
     python benchmarks/bench_judge_ceiling.py --seed 301 --pairs 40 --judge exact --horizon-m 0 --horizon-s 2
+    python benchmarks/bench_judge_ceiling.py --seed 300 --pairs 80 --judge image --horizon-m 1.5 --path keypoints
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 from typing import Literal
 
 import numpy as np
@@ -38,6 +43,8 @@ from mapkit.evaluation._stack import Run
 from mapkit.sim import render_depth
 
 ROBOT_RADIUS = 0.3
+PATH_NAMES = {"flown": "trajectory as flown", "through": "trajectory through the key-points",
+              "keypoints": "key-point polyline"}
 
 
 @dataclasses.dataclass
@@ -45,15 +52,30 @@ class Judge:
     kind: Literal["network", "exact", "image"]
     horizon_s: float | None = None
     horizon_m: float | None = None
+    path: Literal["flown", "through", "keypoints"] = "flown"
+
+
+def _cut(pts: np.ndarray, start: np.ndarray, horizon_m: float | None) -> np.ndarray:
+    """The points of ``pts`` (P, 3) within ``horizon_m`` metres along them from ``start``."""
+    if horizon_m is None:
+        return pts
+    along = np.cumsum(np.linalg.norm(np.diff(np.vstack([start[:1], pts]), axis=0), axis=1))
+    return pts[along <= horizon_m]
+
+
+def _polyline(start: np.ndarray, keypoints: np.ndarray, step: float = 0.1) -> np.ndarray:
+    """(P, 3) points every ``step`` metres along start → k1 → … → kK (the start excluded)."""
+    corners = np.vstack([start[:1], keypoints])
+    pts = []
+    for a, b in itertools.pairwise(corners):
+        n = max(1, int(np.ceil(np.linalg.norm(b - a) / step)))
+        pts.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    return np.vstack(pts)
 
 
 def _stretch(traj, start: np.ndarray, judge: Judge) -> np.ndarray:
     """(P, 3) body-frame samples of the part of ``traj`` the judge looks at."""
-    pts = methods._samples(traj, count=96, within=judge.horizon_s)[0, 0].numpy()
-    if judge.horizon_m is not None:
-        along = np.cumsum(np.linalg.norm(np.diff(np.vstack([start[:1], pts]), axis=0), axis=1))
-        pts = pts[along <= judge.horizon_m]
-    return pts
+    return _cut(methods._samples(traj, count=96, within=judge.horizon_s)[0, 0].numpy(), start, judge.horizon_m)
 
 
 def _image_points(depth: np.ndarray, K: np.ndarray, T_body_camera: np.ndarray):
@@ -84,11 +106,15 @@ def stand_in(method, world, camera, judge: Judge):
         T = obs.T_world_body
         clear = []
         for c in out.candidates[0].double().numpy():
-            wp, st, es = methods._tensors(np.vstack([start[:1], c]), start, end_speed[0])
-            with torch.inference_mode():
-                timing = method._timed(wp, st, es)
-                traj = methods._execute(wp, timing.durations, st, timing.end, method.execution, None)
-            pts = _stretch(traj, start, judge)
+            if judge.path == "keypoints":
+                pts = _cut(_polyline(start, c), start, judge.horizon_m)
+            else:
+                wp, st, es = methods._tensors(np.vstack([start[:1], c]), start, end_speed[0])
+                with torch.inference_mode():
+                    timing = method._timed(wp, st, es)
+                    traj = (methods.min_snap(wp, timing.durations, start=st, end=timing.end) if judge.path == "through"
+                            else methods._execute(wp, timing.durations, st, timing.end, method.execution, None))
+                pts = _stretch(traj, start, judge)
             if not len(pts):
                 clear.append(True)
             elif judge.kind == "exact":
@@ -139,12 +165,16 @@ def main() -> None:
     ap.add_argument("--judge", default="network,exact", help="comma-separated: network, exact, image")
     ap.add_argument("--horizon-s", type=float, default=None, help="also only the first seconds (pass --horizon-m 0 for these alone)")
     ap.add_argument("--horizon-m", type=float, default=2.5, help="the first metres only (0: the whole trajectory)")
+    ap.add_argument("--path", choices=("flown", "through", "keypoints"), default="flown",
+                    help="judge the trajectory as flown, the one through the key-points, or their polyline")
     args = ap.parse_args()
+    if args.path == "keypoints" and args.horizon_s is not None:
+        ap.error("--path keypoints has no timing: judge it with --horizon-m alone")
     torch.set_num_threads(1)
     for name in args.judge.split(","):
         if name not in ("network", "exact", "image"):
             ap.error(f"--judge {name!r}: expected network, exact or image")
-        judge = Judge(name, args.horizon_s, args.horizon_m or None)  # type: ignore[arg-type]
+        judge = Judge(name, args.horizon_s, args.horizon_m or None, args.path)  # type: ignore[arg-type]
         line, total = f"{name:8s}", []
         for kind in args.world.split(","):
             outcomes = fly(args.model, kind, args.seed, args.pairs, judge)
@@ -153,7 +183,8 @@ def main() -> None:
                      f" ({outcomes.count('collision')} coll., {outcomes.count('timeout')} t/o)")
         print(f"{line}  overall {100 * total.count('success') / len(total):5.1f} % of {len(total)}", flush=True)
     print(f"seed {args.seed}, stack none; exact and image judge the first "
-          f"{f'{args.horizon_s} s' if args.horizon_s else f'{args.horizon_m} m' if args.horizon_m else 'whole trajectory'}")
+          f"{f'{args.horizon_s} s' if args.horizon_s else f'{args.horizon_m} m' if args.horizon_m else 'whole trajectory'}"
+          f" of the {PATH_NAMES[args.path]}")
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ from mapkit.planner import (
     count_parameters,
     escape_cost,
     goal_cost,
+    image_points,
     load_torchvision_state_dict,
     obstacle_cost,
     obstacle_penalty,
@@ -300,9 +301,9 @@ def test_escape_labels_within_a_horizon_along_the_path(box_map):
         LossConfig(eta_horizon=0.0)
 
 
-def test_eta_learns_the_label_within_its_horizon(box_map):
-    """candidate_loss: with ``eta_horizon`` U_E's label counts the path's first metres only; the
-    collision rate (and the winner's penalty) still count the whole path."""
+def _through_and_beside_the_box():
+    """A two-candidate net's output toward (9, 0, 0), and candidates (1, 2, 5, 3): one straight through
+    the box, one 1.5 m beside it all along; the body at the world origin."""
     cfg = PlannerConfig(num_candidates=2, depth_check=False)
     torch.manual_seed(0)
     net = PlannerNet(cfg)
@@ -310,9 +311,14 @@ def test_eta_learns_the_label_within_its_horizon(box_map):
     goal = torch.tensor([[9.0, 0.0, 0.0]])
     out = net(net.preprocess(depth), goal)
     through = torch.tensor([[[1.8, 0.0, 0.0], [3.6, 0.0, 0.0], [5.4, 0.0, 0.0], [7.2, 0.0, 0.0], [9.0, 0.0, 0.0]]])
-    beside = through + torch.tensor([0.0, 2.5, 0.0])  # 1.5 m beside the box all along
-    cand = torch.stack([through, beside], dim=1)
-    T = torch.eye(4, dtype=torch.float64)[None]
+    cand = torch.stack([through, through + torch.tensor([0.0, 2.5, 0.0])], dim=1)
+    return net, out, goal, cand, torch.eye(4, dtype=torch.float64)[None]
+
+
+def test_eta_learns_the_label_within_its_horizon(box_map):
+    """candidate_loss: with ``eta_horizon`` U_E's label counts the path's first metres only; the
+    collision rate (and the winner's penalty) still count the whole path."""
+    net, out, goal, cand, T = _through_and_beside_the_box()
     for horizon, label in ((None, [True, False]), (2.0, [False, False]), (4.0, [True, False])):
         for guess, low in ((label, True), ([not label[0], label[1]], False)):
             logits = torch.tensor([[20.0 if g else -20.0 for g in guess]])
@@ -324,16 +330,37 @@ def test_eta_learns_the_label_within_its_horizon(box_map):
             assert (float(terms["escape"]) < 1e-6) == low, (horizon, guess)
 
 
-def test_eta_label_seen_is_what_the_depth_image_shows() -> None:
-    """``eta_label="seen"``: a wall seen 3 m ahead (and nothing in the map) labels the straight path
-    colliding, within a horizon that reaches 0.3 m of the wall and not within a shorter one."""
-    cfg = PlannerConfig(num_candidates=2, depth_check=True)
+def test_eta_positive_weight_scales_the_colliding_labels_only(box_map):
+    """U_E with ``eta_positive_weight`` w: η = 0.5 on a path into the box (label 1) and one beside it
+    (label 0) costs (w·ln 2 + ln 2) / 2, the cross-entropy with the colliding term weighted."""
+    net, out, goal, cand, T = _through_and_beside_the_box()
+    o = dataclasses.replace(out, candidates=cand, keypoints=cand[:, 0], candidate_eta_logits=torch.zeros(1, 2),
+                            chosen=torch.zeros(1, dtype=torch.long))
+    for w in (1.0, 4.0):
+        _, terms = candidate_loss(net, o, goal=goal, T_world_body=T, esdf_map=box_map,
+                                  config=LossConfig(eta_positive_weight=w))
+        assert float(terms["escape"]) == pytest.approx((w + 1) * math.log(2) / 2, rel=1e-5)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(PlannerError, match="eta_positive_weight"):
+            LossConfig(eta_positive_weight=bad)
+
+
+def _checking_net_and_camera():
+    """A two-candidate net with the depth check, and a 200 × 120 pinhole camera (f = 100 px) looking
+    along the body's x axis from its origin."""
     torch.manual_seed(0)
-    net = PlannerNet(cfg)
+    net = PlannerNet(PlannerConfig(num_candidates=2, depth_check=True))
     H, W = 120, 200
     K = np.array([[100.0, 0.0, W / 2 - 0.5], [0.0, 100.0, H / 2 - 0.5], [0.0, 0.0, 1.0]])
     T_body_camera = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]], float)
-    camera = CameraInput.from_calibration(K, W, H, T_body_camera)
+    return net, CameraInput.from_calibration(K, W, H, T_body_camera), (H, W)
+
+
+@pytest.mark.parametrize("eta_label", ["seen", "image"])
+def test_eta_label_seen_is_what_the_depth_image_shows(eta_label: str) -> None:
+    """``eta_label="seen"`` and ``"image"``: a wall seen 3 m ahead (and nothing in the map) labels the
+    straight path colliding, within a horizon that reaches 0.3 m of the wall and not within a shorter one."""
+    net, camera, (H, W) = _checking_net_and_camera()
     goal = torch.tensor([[8.0, 0.0, 0.0]])
     out = net(net.preprocess(torch.full((1, H, W), 3.0)), goal, camera=camera)
     line = torch.tensor([[[1.6, 0, 0], [3.2, 0, 0], [4.8, 0, 0], [6.4, 0, 0], [8.0, 0, 0]]])
@@ -347,13 +374,55 @@ def test_eta_label_seen_is_what_the_depth_image_shows() -> None:
         for m, label in ((0, expected), (1, False)):
             o = dataclasses.replace(out, chosen=torch.full((1,), m))
             _, terms = candidate_loss(net, o, goal=goal, T_world_body=T, esdf_map=free_map, camera=camera,
-                                      config=LossConfig(eta_label="seen", eta_horizon=horizon))
+                                      config=LossConfig(eta_label=eta_label, eta_horizon=horizon))
             assert terms["eta_label_chosen"].tolist() == [label], (horizon, m)
             assert float(terms["collision_rate"]) == 0.0  # the map is free everywhere
     with pytest.raises(PlannerError, match="camera"):
-        candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=free_map, config=LossConfig(eta_label="seen"))
+        candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=free_map, config=LossConfig(eta_label=eta_label))
     with pytest.raises(PlannerError, match="eta_label"):
         LossConfig(eta_label="exact")
+
+
+def test_eta_label_image_leaves_occluded_space_free() -> None:
+    """A wall 3 m ahead over the image's left part (its edge 1.5 m left of the axis): a path that passes
+    0.58 m from the edge and on behind the wall is labelled free by "image" (no image point within
+    0.3 m) and colliding by "seen" (it runs behind the surface the camera saw)."""
+    net, camera, (H, W) = _checking_net_and_camera()
+    depth = torch.zeros((1, H, W))  # no return
+    depth[:, :, : W // 2 - 50] = 3.0  # the wall: body y >= 1.5 at x = 3
+    goal = torch.tensor([[5.0, 3.0, 0.0]])
+    out = net(net.preprocess(depth), goal, camera=camera)
+    behind = torch.tensor([[[1.5, 0.3, 0], [3.0, 0.6, 0], [3.67, 1.4, 0], [4.33, 2.2, 0], [5.0, 3.0, 0]]])
+    cand = torch.stack([behind, behind], dim=1)
+    out = dataclasses.replace(out, candidates=cand, keypoints=cand[:, 0], candidate_eta_logits=torch.zeros(1, 2),
+                              chosen=torch.zeros(1, dtype=torch.long))
+    free_map = EsdfMap(esdf=np.full((60, 40, 20), 5.0, np.float32), voxel_size=0.2, origin=ORIGIN)
+    T = torch.eye(4, dtype=torch.float64)[None]
+    for eta_label, expected in (("image", False), ("seen", True)):
+        _, terms = candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=free_map, camera=camera,
+                                  config=LossConfig(eta_label=eta_label))
+        assert terms["eta_label_chosen"].tolist() == [expected], eta_label
+
+
+def test_image_points_of_a_wall() -> None:
+    """A wall 4 m ahead: every point of the image lies on the body-frame plane x = 4, where the pinhole
+    puts it (y = −4 · (u − cx) / fx); pixels without a return lie far away."""
+    H, W = 96, 160
+    K = np.array([[80.0, 0.0, W / 2 - 0.5], [0.0, 80.0, H / 2 - 0.5], [0.0, 0.0, 1.0]])
+    T_body_camera = np.array([[0, 0, 1, 0.1], [-1, 0, 0, 0], [0, -1, 0, 0.05], [0, 0, 0, 1]], float)
+    camera = CameraInput.from_calibration(K, W, H, T_body_camera)
+    depth = torch.full((1, H, W), 0.4)  # depth / max_depth
+    depth[0, :, :8] = 1.0  # the left columns: no return
+    pts = image_points(depth, camera, max_depth=10.0, stride=2)
+    assert pts.shape == (1, (H // 2) * (W // 2), 3)
+    grid = pts.reshape(H // 2, W // 2, 3)
+    assert float(grid[:, :4].abs().min()) > 1e5
+    seen = grid[:, 4:]
+    torch.testing.assert_close(seen[..., 0], torch.full_like(seen[..., 0], 4.1))
+    u = torch.arange(8, W, 2, dtype=torch.float32)
+    torch.testing.assert_close(seen[0, :, 1], -4.0 * (u - K[0, 2]) / K[0, 0])
+    v = torch.arange(0, H, 2, dtype=torch.float32)
+    torch.testing.assert_close(seen[:, 0, 2], 0.05 - 4.0 * (v - K[1, 2]) / K[1, 1])
 
 
 def test_smoothness_goal_and_time_terms():

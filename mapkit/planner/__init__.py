@@ -29,7 +29,7 @@ Loss: :func:`planner_loss` = γ1 U_O (:func:`obstacle_cost` on the ESDF) + γ2 U
 """
 
 from mapkit.planner._config import PLANNER_PRESETS, PlannerConfig, planner_preset
-from mapkit.planner._depthcheck import CameraInput, depth_margins, seen_conflicts
+from mapkit.planner._depthcheck import CameraInput, depth_margins, image_points, seen_conflicts
 from mapkit.planner._detour import DetourGrid, detour_excess
 from mapkit.planner._errors import PlannerError
 from mapkit.planner._loss import (
@@ -66,6 +66,7 @@ __all__ = [
     "DetourGrid",
     "detour_excess",
     "depth_margins",
+    "image_points",
     "seen_conflicts",
     "PLANNER_PRESETS",
     "ImageFeatures",

@@ -180,6 +180,23 @@ def depth_margins(candidates: torch.Tensor, x: torch.Tensor, camera: CameraInput
     return torch.stack([in_view.to(pts.dtype), margin], dim=-1).flatten(2)
 
 
+def image_points(depth: torch.Tensor, camera: CameraInput, *, max_depth: float, stride: int = 2) -> torch.Tensor:
+    """(B, P, 3) body-frame points of every ``stride``-th pixel of ``depth`` (B, h, w): the network's input
+    size, depth / ``max_depth`` (1 = no return); pixels without a return lie 1e6 m away, so a nearest-point
+    search never finds them."""
+    B, h, w = depth.shape
+    rows = torch.arange(0, h, stride, dtype=depth.dtype, device=depth.device)
+    cols = torch.arange(0, w, stride, dtype=depth.dtype, device=depth.device)
+    z = depth[:, ::stride, ::stride] * max_depth  # (B, h', w')
+    intr = camera.intrinsics.to(depth.dtype)[:, :, None, None]
+    x = ((cols + 0.5) / w - intr[:, 2]) / intr[:, 0] * z
+    y = ((rows[:, None] + 0.5) / h - intr[:, 3]) / intr[:, 1] * z
+    cam = torch.stack([x, y, z], dim=-1).reshape(B, -1, 3)
+    T = camera.T_camera_body.to(depth.dtype)  # body → camera: p_body = Rᵀ (p_cam − t)
+    body = (cam - T[:, None, :3, 3]) @ T[:, :3, :3]
+    return torch.where((z < max_depth * (1 - 1e-6)).reshape(B, -1, 1), body, torch.full_like(body, 1e6))
+
+
 def seen_conflicts(paths: torch.Tensor, x: torch.Tensor, camera: CameraInput, *, max_depth: float,
                    robot_radius: float = 0.35, pyramid: torch.Tensor | None = None) -> torch.Tensor:
     """(B, M) how many points along each path (B, M, P, 3) body frame (points in order, the origin
