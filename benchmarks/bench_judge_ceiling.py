@@ -17,8 +17,8 @@ its corridor); ``through`` the minimum-snap trajectory through the key-points wi
 the plan's start (every 0.1 m; ``--horizon-m`` only).
 
 An exact judge bounds what judging these candidates can give; the image judge what one depth image
-can tell about them. docs/results.md ("The judge against an exact one, without the stack") has the
-figures of dev seed 301. Prints success, collisions and timeouts per world.
+can tell about them. docs/results.md ("The judge against an exact one, without the stack" and "The
+judge must see the trajectory as flown") has the figures of dev seeds 300 and 301. Prints success, collisions and timeouts per world.
 
     python benchmarks/bench_judge_ceiling.py --seed 301 --pairs 40 --judge network,exact,image
     python benchmarks/bench_judge_ceiling.py --seed 301 --pairs 40 --judge exact --horizon-m 0 --horizon-s 2
