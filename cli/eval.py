@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 
 _SECTIONS: dict[str, tuple[str, ...]] = {
     "What to fly": ("run_dir", "world", "pairs", "seed", "min_distance", "methods", "stacks", "untrained_seeds"),
-    "Output and parallelism": ("output", "workers", "scheduler", "record_plans", "overwrite"),
+    "Output and parallelism": ("output", "workers", "scheduler", "record_plans", "record_judge", "overwrite"),
     "The closed loop (every method)": ("replan_interval", "horizon", "ignore_eta", "on_reject", "plan_latency",
                                        "final_approach", "look_ahead"),
     "Flight stack: corridor": ("corridor", "corridor_check", "check_memory", "unchecked_corridor"),
@@ -134,13 +134,16 @@ class _SectionedCommand(click.Command):
 @click.option("--record-plans", is_flag=True,
               help="Also write plans.npz: what the learned method's time allocation was given at every plan "
                    "(for `mapkit tune-timing`).")
+@click.option("--record-judge", is_flag=True,
+              help="Also write judge.npz: every candidate of the learned method's plans as a flown-path judge "
+                   "reads it, labelled against the world (for `mapkit tune-judge`).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, stacks: str,
              untrained_seeds: str, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
              corridor_check: bool, check_memory: bool, unchecked_corridor: float, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float, follow: float, keep_choice: float, shift: bool, plan_latency: float, final_approach: float, look_ahead: float,
-             record_plans: bool, overwrite: bool) -> None:
+             record_plans: bool, record_judge: bool, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import (
         METHODS,
@@ -164,7 +167,8 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
     config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
                         stacks=parse_stacks(stacks),
                         untrained_seeds=parse_untrained_seeds(untrained_seeds),
-                        workers=workers, scheduler=scheduler, record_plans=record_plans, execution=execution,
+                        workers=workers, scheduler=scheduler, record_plans=record_plans, record_judge=record_judge,
+                        execution=execution,
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
                                         on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,
                                         look_ahead=look_ahead))
@@ -181,8 +185,9 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
     click.echo("effort: median ∫‖snap‖² dt (m²/s⁷) of the successful flights")
     if result.ablation is not None:
         click.echo("\n".join(comparison_lines(result.ablation)))
+    recorded = [name for name, asked in (("plans.npz", record_plans), ("judge.npz", record_judge)) if asked]
     click.echo(f"wrote {output}/results.json, latency.json, report.md, trajectories.npz and "
-               f"{sum(p.suffix == '.png' for p in result.files)} PNGs" + (" (and plans.npz)" if record_plans else ""))
+               f"{sum(p.suffix == '.png' for p in result.files)} PNGs" + (f" (and {', '.join(recorded)})" if recorded else ""))
 
 
 def _flight_stack(*, corridor: float, corridor_check: bool, check_memory: bool, unchecked_corridor: float, memory: float,

@@ -166,6 +166,37 @@ def tune_timing_cmd(model: Path, plans: tuple[Path, ...], val: tuple[Path, ...],
     click.echo(f"wrote {output}/model.pt and config.json")
 
 
+@main.command("tune-judge")
+@click.option("--model", "model", type=click.Path(path_type=Path), default=Path("pretrained"), show_default=True,
+              help="Run directory with model.pt, or \"pretrained\".")
+@click.option("--records", "records", multiple=True, required=True, type=click.Path(path_type=Path),
+              help="Eval folder made with `mapkit eval --methods learned --record-judge` (repeatable): the candidates to learn from.")
+@click.option("--val", "val", multiple=True, required=True, type=click.Path(path_type=Path),
+              help="Eval folder(s) of other seeds, likewise: the candidates that choose the weights kept.")
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="New run directory.")
+@click.option("--steps", type=COUNT, default=4000, show_default=True, help="Adam steps.")
+@click.option("--lr", type=POSITIVE, default=1e-3, show_default=True, help="Learning rate.")
+@click.option("--positive-weight", type=POSITIVE, default=1.0, show_default=True,
+              help="Weight of the colliding candidates in the cross-entropy (> 1 catches more and vetoes more).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
+@library_call
+def tune_judge_cmd(model: Path, records: tuple[Path, ...], val: tuple[Path, ...], output: Path, steps: int, lr: float,
+                   positive_weight: float, overwrite: bool) -> None:
+    """Fit the flown-path head: each candidate judged by its trajectory as flown against the depth image."""
+    from mapkit.train import JudgeTuneConfig, tune_judge
+
+    s = tune_judge(model, records, val, output, JudgeTuneConfig(steps=steps, lr=lr, positive_weight=positive_weight),
+                   overwrite=overwrite)
+    click.echo(f"{s.train_rows} candidates to learn from, {s.val_rows} to validate ({100 * s.colliding_share:.1f} % "
+               "colliding); caught / false alarms on the validation candidates:")
+    rows = [("depth image, clearance < robot radius", s.clearance_rule), ("head as it was", s.before),
+            (f"fitted head (step {s.best_step})", s.after)]
+    for label, score in rows:
+        if score is not None:
+            click.echo(f"  {label + ':':<40} {100 * score.caught:5.1f} % / {100 * score.false_alarms:4.1f} %")
+    click.echo(f"wrote {output}/model.pt and config.json")
+
+
 @main.command("compare-timing")
 @click.option("--model", "model", type=click.Path(path_type=Path), default=Path("pretrained"), show_default=True,
               help="Run directory with model.pt, or \"pretrained\".")

@@ -11,6 +11,7 @@ from typing import Any, Literal, get_args
 EVAL_FORMAT = "mapkit-eval/1"
 """``format`` of a `mapkit eval` folder's results.json and latency.json."""
 PLANS_FILE = "plans.npz"
+JUDGE_FILE = "judge.npz"
 """``mapkit eval --record-plans``: the learned method's time allocation inputs (``mapkit tune-timing``
 reads them)."""
 

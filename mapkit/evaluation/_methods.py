@@ -48,6 +48,7 @@ from mapkit.evaluation._loop import MethodPlan, Observation
 from mapkit.evaluation._pieces import Pieces, pieces_from_body
 from mapkit.evaluation._route import FlightMap, Progress, depth_points
 from mapkit.planner import Allocation, CameraInput, ImageFeatures, PlannerConfig, Timing, plan_timing, turn_speed
+from mapkit.planner._errors import PlannerError
 from mapkit.planner._model import PlannerNet, PlannerOutput
 from mapkit.sim import FreeSpaceGraph, World
 from mapkit.trajopt import Trajectory, allocate_times, min_snap
@@ -377,6 +378,27 @@ class PlanInput:
     """m/s²: the rate at which the plan's speed profile slows down to the end speed."""
 
 
+@dataclass(frozen=True)
+class JudgeInput:
+    """What the flown-path head read about every candidate of one plan, with where each candidate's
+    judged stretch lies (``mapkit tune-judge`` learns from these, labelled against the world)."""
+
+    features: np.ndarray
+    """(M, N, FLOWN_FEATURES) float32: what the head reads at N points along each candidate's first
+    ``flown_horizon`` metres as flown (:func:`mapkit.planner.flown_features`)."""
+    lengths: np.ndarray
+    """(M,) float32 metres of each candidate's trajectory within ``flown_horizon``."""
+    points_world: np.ndarray
+    """(M, LABEL_POINTS, 3) float32 world-frame points along the same stretch, where the label is read."""
+
+
+LABEL_POINTS = 48
+"""Points along a candidate's judged stretch where its recorded label reads the world (3 cm apart at 1.5 m)."""
+RECORD_SAMPLES = 16
+"""Points per candidate recorded for a model without a flown-path head (its ``flown_samples``
+otherwise)."""
+
+
 @dataclass
 class _Attempt:
     """One network pass toward a goal, timed and executed (minimum snap, or iPlanner's spline)."""
@@ -415,6 +437,8 @@ class LearnedMethod:
         self._search = _Search()
         self.plan_log: list[PlanInput] | None = None
         """A list to append every timed plan's :class:`PlanInput` to (``mapkit eval --record-plans``), or None."""
+        self.judge_log: list[JudgeInput] | None = None
+        """A list to append every plan's :class:`JudgeInput` to (``mapkit eval --record-judge``), or None."""
         self._subgoal: tuple[np.ndarray, float] | None = None  # (world point, until)
         self._flight: tuple[np.ndarray, float] | None = None  # (goal, time) of the last plan
         self._image: tuple[Observation, ImageFeatures] | None = None  # the last frame's encoding
@@ -423,9 +447,10 @@ class LearnedMethod:
         self._progress = Progress()
         self._chosen: int | None = None  # the candidate the last plan of this flight flew
 
-    def _keypoints(self, obs: Observation, start: np.ndarray, goal: np.ndarray):
-        """The network's pass toward ``goal``; a second goal from the same frame (a way out) reuses
-        the first pass's encoding of the image."""
+    def _keypoints(self, obs: Observation, start: np.ndarray, goal: np.ndarray, end_speed: float = 0.0):
+        """The network's pass toward ``goal`` (to arrive at ``end_speed``), judged by its flown-path
+        head when it has one; a second goal from the same frame (a way out) reuses the first pass's
+        encoding of the image."""
         if self.keypoint_source == "straight":
             return self._straight_keypoints(obs, goal)
         with torch.inference_mode():
@@ -438,7 +463,48 @@ class LearnedMethod:
             v = torch.from_numpy(np.asarray(start[1], dtype=np.float32)[None])
             out = self.net(x, g, camera=self.camera, velocity=v, image=image, shift=self.execution.shift)
             self._image = None if out.image is None else (obs, out.image)
+            out = self._flown_judged(x, out, obs, start, end_speed)
             return x, self._kept(out)
+
+    def _flown_judged(self, x: torch.Tensor, out: PlannerOutput, obs: Observation, start: np.ndarray,
+                      end_speed: float) -> PlannerOutput:
+        """``out`` judged by the net's flown-path head (``PlannerConfig.flown_samples``), each candidate's
+        trajectory recorded for ``mapkit eval --record-judge``; ``out`` itself when neither is asked."""
+        net = self.net
+        # iPlanner-style flies a spline, not the corridor's trajectory: it keeps the judge's η
+        if (net.flown_mlp is None and self.judge_log is None) or out.candidates is None or self.spline:
+            return out
+        if self.camera is None:
+            raise PlannerError("the flown-path judge reads the depth image: the flight needs the camera's calibration")
+        flown = self._flown_trajectories(out.candidates[0], start, end_speed)
+        if self.judge_log is not None:
+            self.judge_log.append(self._judge_input(flown, x, obs))
+        return out if net.flown_mlp is None else net.judge_flown(out, flown, x, self.camera)
+
+    def _flown_trajectories(self, candidates: torch.Tensor, start: np.ndarray, end_speed: float) -> Trajectory:
+        """Every candidate (M, K, 3) as this flight would fly it: timed like a plan and in the corridor
+        an unchecked plan flies (each candidate whose corridor problem fails, through its key-points).
+        The speed limits, which rarely bind, are left out."""
+        M = candidates.shape[0]
+        wp = torch.cat([torch.from_numpy(start[:1]).expand(M, 1, 3), candidates.double()], dim=1)
+        st = torch.from_numpy(np.ascontiguousarray(start[1:])).expand(M, 3, 3)
+        es = torch.full((M,), float(end_speed), dtype=torch.float64)
+        width = self.execution.corridor.widest(False)
+        timing = self._timed(wp, st, es)
+        return min_snap(wp, timing.durations, start=st, end=timing.end, corridor=width, on_infeasible="ignore")
+
+    def _judge_input(self, flown: Trajectory, x: torch.Tensor, obs: Observation) -> JudgeInput:
+        """What the flown-path head reads about the candidates ``flown``, and their stretches in the world."""
+        from mapkit.planner import arclength_points, flown_features
+
+        c = self.config
+        assert self.camera is not None  # checked by _flown_judged
+        points, lengths = arclength_points(flown, horizon=c.flown_horizon, count=c.flown_samples or RECORD_SAMPLES)
+        features = flown_features(points[None], x, self.camera, max_depth=c.max_depth)[0]
+        dense, _ = arclength_points(flown, horizon=c.flown_horizon, count=LABEL_POINTS)
+        R, p = obs.T_world_body[:3, :3], obs.T_world_body[:3, 3]
+        return JudgeInput(features=features.numpy().astype(np.float32), lengths=lengths.numpy().astype(np.float32),
+                          points_world=(dense.numpy() @ R.T + p).astype(np.float32))
 
     def _kept(self, out: PlannerOutput) -> PlannerOutput:
         """``out`` choosing the last plan's candidate when the judge accepts it and scores it within
@@ -483,7 +549,7 @@ class LearnedMethod:
     def _attempt(self, obs: Observation, start: np.ndarray, goal: np.ndarray, end_speed: float) -> _Attempt:
         """Key-points to ``goal`` (body frame), timed, moved toward the reference being flown
         (:attr:`Execution.follow`) and executed."""
-        x, out = self._keypoints(obs, start, goal)
+        x, out = self._keypoints(obs, start, goal, end_speed)
         kp = out.keypoints[0].double().numpy()
         wp = np.concatenate([start[:1], kp])
         wpt, st, es = _tensors(wp, start, end_speed)

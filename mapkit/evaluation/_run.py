@@ -24,12 +24,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from mapkit._choices import FLIGHT_STACKS, FlightStack
-from mapkit._formats import EVAL_FORMAT, PLANS_FILE, EpisodeRecord
+from mapkit._formats import EVAL_FORMAT, JUDGE_FILE, PLANS_FILE, EpisodeRecord
 from mapkit._version import __version__
 from mapkit.evaluation._ablation import Ablation, ablation
 from mapkit.evaluation._layers import Execution, Memory
 from mapkit.evaluation._loop import LoopConfig, run_episode
-from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, LearnedMethod, PlanInput, make_methods
+from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, JudgeInput, LearnedMethod, PlanInput, make_methods
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
 from mapkit.evaluation._route import RouteConfig
 from mapkit.evaluation._stack import UNTRAINED_SEEDS, Run, plan_runs, split_label, under_stack
@@ -97,6 +97,10 @@ class EvalConfig:
     record_plans: bool = False
     """Also write plans.npz: what the ``learned`` method's time allocation was given at every plan
     (:class:`~mapkit.evaluation.PlanInput`), for ``mapkit tune-timing``. Results do not depend on it."""
+    record_judge: bool = False
+    """Also write judge.npz: what a flown-path head reads about every candidate of the ``learned``
+    method's plans, each labelled by whether its judged stretch comes within the robot's radius of the
+    world (:func:`write_judgements`), for ``mapkit tune-judge``. Results do not depend on it."""
 
     def validate(self) -> None:
         unknown = [w for w in self.worlds if w not in WORLD_ORDER]
@@ -259,6 +263,7 @@ class _WorkerSetup:
     loop: LoopConfig
     record_plans: bool = False
     untrained_seeds: tuple[int, ...] = (0,)
+    record_judge: bool = False
 
 
 @dataclass(frozen=True)
@@ -296,6 +301,26 @@ class _EpisodeRun:
     """(N, 4) float32 [t, x, y, z] at PATH_RATE_HZ (trajectories.npz)."""
     plans: list[PlanInput] = field(default_factory=list)
     """With ``record_plans``, the learned method's plan inputs (plans.npz)."""
+    judgements: list[Judgement] = field(default_factory=list)
+    """With ``record_judge``, the learned method's labelled candidates (judge.npz)."""
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """One plan's candidates as the flown-path head reads them (:class:`JudgeInput`), labelled."""
+
+    features: np.ndarray
+    """(M, N, F) float32, :attr:`JudgeInput.features`."""
+    lengths: np.ndarray
+    """(M,) float32 metres, :attr:`JudgeInput.lengths`."""
+    collides: np.ndarray
+    """(M,) bool: the candidate's judged stretch comes within the robot's radius of the world."""
+
+    @classmethod
+    def label(cls, judged: JudgeInput, world: Any, robot_radius: float) -> Judgement:
+        pts = judged.points_world.astype(np.float64)
+        distance = np.asarray(world.signed_distance(pts.reshape(-1, 3))).reshape(pts.shape[:2])
+        return cls(features=judged.features, lengths=judged.lengths, collides=distance.min(axis=1) < robot_radius)
 
 
 _WORKER: _WorkerState | None = None
@@ -369,8 +394,10 @@ def _world_bundle(kind: str) -> _WorldBundle:
             method.name = run.label
             methods.append(method)
         for method in methods:
-            if setup.record_plans and isinstance(method, LearnedMethod) and method.name == "learned":
-                method.plan_log = []
+            # the trained network's runs, under any stack (not untrained or straight-keypoints)
+            if isinstance(method, LearnedMethod) and split_label(method.name).method == "learned":
+                method.plan_log = [] if setup.record_plans else None
+                method.judge_log = [] if setup.record_judge else None
         state.worlds[kind] = _WorldBundle(world=world, graph=graph, camera=camera, rays=rays, methods=methods)
     return state.worlds[kind]
 
@@ -415,9 +442,12 @@ def _run_pair(kind: str, pair: dict) -> list[_EpisodeRun]:
             peak_jerk=ep.peak_jerk, stack=split_label(method.name).stack,
         )
         plans = getattr(method, "plan_log", None) or []
+        judged = getattr(method, "judge_log", None) or []
         out.append(_EpisodeRun(record=record, latencies_ms=ep.latencies_ms, allocation_ms=ep.allocation_ms,
-                               path=_path_at_rate(ep.samples, loop.control_rate), plans=list(plans)))
+                               path=_path_at_rate(ep.samples, loop.control_rate), plans=list(plans),
+                               judgements=[Judgement.label(j, world, loop.robot_radius) for j in judged]))
         plans.clear()
+        judged.clear()
     return out
 
 
@@ -509,6 +539,8 @@ class _ModelContext:
     """(kind, seed) of the worlds the model trained or validated on."""
     model_info: dict[str, Any] | None
     """results.json's ``model`` (None without a model)."""
+    flown_horizon: float = 1.5
+    """Metres of each candidate the flown-path head reads (the model's ``flown_horizon``; judge.npz)."""
 
 
 def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> _ModelContext:
@@ -552,6 +584,7 @@ def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> 
     pace = net.config.cruise_speed if cruise is None else cruise
     context.loop = dataclasses.replace(context.loop, cruise_speed=float(pace))
     context.trained_worlds = _training_worlds(run_cfg)
+    context.flown_horizon = net.config.flown_horizon
     context.model_info = {"path": str(run_dir.resolve()), "sha256": _sha256(run_dir / "model.pt"),
                           "planner_config": net.config.to_dict(),
                           "training_worlds": sorted(map(list, context.trained_worlds))}
@@ -739,6 +772,8 @@ class _Collected:
     """``"{world}/{pair:03d}/{method}"`` → (N, 4) float32 executed path."""
     plans: list[tuple[str, int, PlanInput]] = field(default_factory=list)
     """(world, pair, plan input) of every recorded plan, in results.json order."""
+    judgements: list[tuple[str, int, Judgement]] = field(default_factory=list)
+    """(world, pair, labelled candidates) of every recorded plan, in results.json order."""
 
 
 def _collect(config: EvalConfig, pairs: dict[str, list[Pair]],
@@ -753,6 +788,7 @@ def _collect(config: EvalConfig, pairs: dict[str, list[Pair]],
                 out.allocations.setdefault((kind, method), []).extend(run.allocation_ms)
                 out.paths[f"{kind}/{p.index:03d}/{method}"] = run.path
                 out.plans.extend((kind, p.index, plan) for plan in run.plans)
+                out.judgements.extend((kind, p.index, j) for j in run.judgements)
                 out.episodes.append(run.record)
     return out
 
@@ -776,6 +812,7 @@ def _results_doc(config: EvalConfig, context: _ModelContext, pairs: dict[str, li
     del doc["config"]["workers"]  # neither changes any result
     del doc["config"]["scheduler"]
     del doc["config"]["record_plans"]
+    del doc["config"]["record_judge"]
     return doc
 
 
@@ -801,9 +838,31 @@ def write_plans(path: Path, plans: list[tuple[str, int, PlanInput]]) -> None:
                         pair=np.array([i for _, i, _ in plans], np.int64))
 
 
+def write_judgements(path: Path, judgements: list[tuple[str, int, Judgement]], horizon: float,
+                     robot_radius: float) -> None:
+    """judge.npz, one row per candidate of every recorded plan: ``features`` (R, N, F), ``lengths``
+    (R,) metres, ``collides`` (R,) bool, ``plan`` (R,) the plan's index in the file, ``world`` (R,),
+    ``pair`` (R,), ``horizon`` (the metres judged) and ``robot_radius`` (the labels' metres)."""
+    from mapkit.planner import FLOWN_FEATURES
+
+    rows = [(i, w, pair, j) for i, (w, pair, j) in enumerate(judgements)]
+    n = judgements[0][2].features.shape[1] if judgements else 0
+    def stacked(name: str, empty: tuple[int, ...], dtype: Any) -> np.ndarray:
+        parts = [getattr(j, name) for _, _, _, j in rows]
+        return np.concatenate(parts).astype(dtype) if parts else np.zeros(empty, dtype)
+    counts = [len(j.collides) for _, _, _, j in rows]
+    np.savez_compressed(path, features=stacked("features", (0, n, FLOWN_FEATURES), np.float32),
+                        lengths=stacked("lengths", (0,), np.float32), collides=stacked("collides", (0,), bool),
+                        plan=np.repeat(np.arange(len(rows), dtype=np.int64), counts),
+                        world=np.repeat(np.array([w for _, w, _, _ in rows], dtype=str), counts),
+                        pair=np.repeat(np.array([p for _, _, p, _ in rows], np.int64), counts),
+                        horizon=np.float64(horizon), robot_radius=np.float64(robot_radius))
+
+
 def _write_outputs(out_dir: Path, doc: dict[str, Any], lat: dict, alloc: dict, worlds: dict[str, Any],
                    paths: dict[str, np.ndarray], workers: int, *, overwrite: bool,
-                   plans: list[tuple[str, int, PlanInput]] | None = None) -> None:
+                   plans: list[tuple[str, int, PlanInput]] | None = None,
+                   judged: tuple[list[tuple[str, int, Judgement]], float, float] | None = None) -> None:
     """Write the eval folder as one unit: worlds, results.json, latency.json, trajectories.npz, report."""
     from mapkit.evaluation._report import write_report
 
@@ -819,6 +878,8 @@ def _write_outputs(out_dir: Path, doc: dict[str, Any], lat: dict, alloc: dict, w
         np.savez_compressed(tmp / "trajectories.npz", **paths)  # type: ignore[arg-type]  # numpy's stub: a key might be allow_pickle
         if plans is not None:
             write_plans(tmp / PLANS_FILE, plans)
+        if judged is not None:
+            write_judgements(tmp / JUDGE_FILE, *judged)
         write_report(tmp, doc, lat, worlds, alloc)
 
 
@@ -872,7 +933,7 @@ def evaluate(
                              runs=tuple(plan_runs(config.methods, config.stacks, config.untrained_seeds)),
                              oracle_corridor=config.oracle_corridor,
                              execution=config.execution, loop=config.loop, record_plans=config.record_plans,
-                             untrained_seeds=config.untrained_seeds)
+                             untrained_seeds=config.untrained_seeds, record_judge=config.record_judge)
         tasks = [(k, p.to_dict()) for k in config.worlds for p in pairs[k]]
         flown = _fly_all(setup, tasks, config.workers, progress, cluster)
     collected = _collect(config, pairs, flown.results)
@@ -883,7 +944,9 @@ def evaluate(
     alloc = latency_summary(collected.allocations, worlds_list, methods)
     doc = _results_doc(config, context, pairs, summary, collected.episodes)
     _write_outputs(out_dir, doc, lat, alloc, worlds, collected.paths, flown.workers, overwrite=overwrite,
-                   plans=collected.plans if config.record_plans else None)
+                   plans=collected.plans if config.record_plans else None,
+                   judged=(collected.judgements, context.flown_horizon, config.loop.robot_radius)
+                   if config.record_judge else None)
     files = sorted(p for p in out_dir.rglob("*") if p.is_file())
     return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat, "allocation": alloc}, files=files,
                       ablation=ablation(collected.episodes, methods))

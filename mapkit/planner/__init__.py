@@ -29,9 +29,10 @@ Loss: :func:`planner_loss` = γ1 U_O (:func:`obstacle_cost` on the ESDF) + γ2 U
 """
 
 from mapkit.planner._config import PLANNER_PRESETS, PlannerConfig, planner_preset
-from mapkit.planner._depthcheck import CameraInput, depth_margins, image_points, seen_conflicts
+from mapkit.planner._depthcheck import CameraInput, depth_margins, image_points, point_margins, seen_conflicts
 from mapkit.planner._detour import DetourGrid, detour_excess
 from mapkit.planner._errors import PlannerError
+from mapkit.planner._flown import CLEARANCE_CAP, FLOWN_FEATURES, arclength_points, flown_clearance, flown_features
 from mapkit.planner._loss import (
     LossConfig,
     body_to_world,
@@ -67,6 +68,12 @@ __all__ = [
     "detour_excess",
     "depth_margins",
     "image_points",
+    "point_margins",
+    "arclength_points",
+    "flown_clearance",
+    "flown_features",
+    "FLOWN_FEATURES",
+    "CLEARANCE_CAP",
     "seen_conflicts",
     "PLANNER_PRESETS",
     "ImageFeatures",

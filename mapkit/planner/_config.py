@@ -57,6 +57,14 @@ class PlannerConfig:
     """With several candidates: the judge also reads each candidate checked against the depth image
     (:func:`mapkit.planner.depth_margins`: is each path point in view, and in front of or behind the
     measured surface), which needs the camera's calibration at every call (``camera=``)."""
+    flown_samples: int = 0
+    """N > 0: a second collision head (``flown_mlp``) judges each candidate by its trajectory as the
+    flight flies it: the clearance to the depth image's points of N points evenly spaced along its
+    first ``flown_horizon`` metres (:func:`mapkit.planner.flown_clearance`), and its η replaces the
+    judge's. The flight computes those trajectories (``PlannerNet.judge_flown``); ``mapkit tune-judge``
+    fits the head to flights recorded by ``mapkit eval --record-judge``. 0 = the judge's η (the paper)."""
+    flown_horizon: float = 1.5
+    """Metres of each candidate's flown trajectory the flown-path head reads (``flown_samples``)."""
     velocity_input: bool = False
     """The key-point MLP and the judge also read the body's velocity (divided by ``cruise_speed``): a
     path the vehicle is already flying at 2 m/s bends differently from one it starts at rest (the
@@ -120,6 +128,9 @@ class PlannerConfig:
             )
         if self.num_candidates < 1:
             raise PlannerError(f"num_candidates must be >= 1, got {self.num_candidates}")
+        if self.flown_samples < 0 or not self.flown_horizon > 0:
+            raise PlannerError(f"need flown_samples >= 0 and flown_horizon > 0 metres, got {self.flown_samples} "
+                               f"and {self.flown_horizon}")
         self.candidate_anchors = tuple((float(a), float(b)) for a, b in self.candidate_anchors)
         if self.candidate_anchors and len(self.candidate_anchors) != self.num_candidates:
             raise PlannerError(

@@ -157,9 +157,18 @@ def depth_margins(candidates: torch.Tensor, x: torch.Tensor, camera: CameraInput
     around it (from a pyramid of window sizes: at 1 m the disc spans tens of pixels, at 8 m a few).
     Pixels without a return count as far (no surface seen there). ``pyramid``: the candidates' own
     :func:`nearest_depth_pyramid` rows when already computed (several goals share an image)."""
-    B, M, _, _ = candidates.shape
+    return point_margins(path_points(candidates), x, camera, max_depth=max_depth, robot_radius=robot_radius,
+                         pyramid=pyramid)
+
+
+def point_margins(pts: torch.Tensor, x: torch.Tensor, camera: CameraInput, *, max_depth: float,
+                  robot_radius: float = 0.35, pyramid: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, M, P · FEATURES_PER_POINT) features of the points ``pts`` (B, M, P, 3), body frame, against
+    the preprocessed depth ``x`` (B, 2, h, w): per point whether it is in view, and the nearest measured
+    depth within the image of a disc of ``robot_radius`` around it minus its own depth (metres / 2,
+    clipped to ±1; 0 out of view). See :func:`depth_margins`."""
+    B, M, _, _ = pts.shape
     _, w = x.shape[-2:]
-    pts = path_points(candidates)  # (B, M, P, 3)
     T = camera.T_camera_body.to(pts.dtype)
     pc = pts @ T[:, None, :3, :3].transpose(-1, -2) + T[:, None, None, :3, 3]
     z = pc[..., 2]

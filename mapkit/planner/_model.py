@@ -3,6 +3,7 @@ through those key-points (Time Allocation Net + differentiable minimum snap)."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import warnings
@@ -23,6 +24,7 @@ from mapkit.planner._depthcheck import (
     nearest_depth_pyramid,
 )
 from mapkit.planner._errors import PlannerError
+from mapkit.planner._flown import FLOWN_FEATURES, arclength_points, flown_features
 from mapkit.planner._resnet import ResNet18
 from mapkit.planner._timing import plan_timing
 from mapkit.trajopt import TimeAllocationNet, TimeAllocationNetConfig, Trajectory, min_snap
@@ -293,6 +295,9 @@ class PlannerNet(nn.Module):
         self.eta_mlp = _mlp([flat, *c.eta_hidden, M], act) if M == 1 else None
         checks = K * POINTS_PER_SEGMENT * FEATURES_PER_POINT if c.depth_check else 0
         self.judge_mlp = _mlp([flat + 3 * K + 3 + checks, *c.eta_hidden, 2], act) if M > 1 else None
+        # the flown-path head reads what the image shows about each candidate's path as flown, which
+        # the judge above cannot tell from key-points (_flown.py); no image features
+        self.flown_mlp = _mlp([FLOWN_FEATURES * c.flown_samples + 1, *c.eta_hidden, 1], act) if c.flown_samples else None
         self.register_buffer("anchor_peaks", torch.tensor(c.anchors(), dtype=torch.float32), persistent=False)
         with torch.no_grad():
             last = self.keypoint_mlp[-1]
@@ -532,6 +537,38 @@ class PlannerNet(nn.Module):
         per = torch.cat(parts, dim=2)
         judged = self.judge_mlp(per)  # (B, M, 2)
         return judged[..., 0], judged[..., 1]
+
+    def flown_logits(self, features: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+        """η logits (...) of the flown-path head from what it reads at a trajectory's N points
+        (..., N, FLOWN_FEATURES) (:func:`flown_features`) and the trajectory's length within
+        ``flown_horizon`` (...), metres."""
+        c = self.config
+        if self.flown_mlp is None:
+            raise PlannerError("this model has no flown-path head (flown_samples=0); fit one with mapkit tune-judge")
+        if features.shape[-2:] != (c.flown_samples, FLOWN_FEATURES) or features.shape[:-2] != lengths.shape:
+            raise PlannerError(f"features must be (..., {c.flown_samples}, {FLOWN_FEATURES}) with lengths (...), got "
+                               f"{tuple(features.shape)} and {tuple(lengths.shape)}")
+        per = torch.cat([features.flatten(-2), (lengths / c.flown_horizon).clamp(max=1.0)[..., None]], dim=-1)
+        return self.flown_mlp(per.to(next(self.flown_mlp.parameters()).dtype))[..., 0]
+
+    def judge_flown(self, out: PlannerOutput, trajectories: Trajectory, x: torch.Tensor,
+                    camera: CameraInput) -> PlannerOutput:
+        """``out`` with the flown-path head's η for every candidate and the best-scored one it expects
+        free chosen (:func:`choose_candidate`). ``trajectories``: each candidate's trajectory as flown,
+        B·M of them in the order of ``out.candidates`` (B, M, K, 3), in the body frame of the image
+        ``x`` (B, 2, h, w) they were planned from."""
+        c = self.config
+        assert out.candidates is not None  # every forward pass fills it
+        B, M = out.candidates.shape[:2]
+        points, lengths = arclength_points(trajectories, horizon=c.flown_horizon, count=c.flown_samples)
+        features = flown_features(points.reshape(B, M, -1, 3), x, camera, max_depth=c.max_depth, pyramid=out.pyramid)
+        logits = self.flown_logits(features, lengths.reshape(B, M).to(features.dtype)).to(x.dtype)
+        chosen = (torch.zeros(B, dtype=torch.long, device=logits.device) if out.scores is None
+                  else choose_candidate(out.scores, logits))
+        rows = torch.arange(B, device=logits.device)
+        logit = logits[rows, chosen]
+        return dataclasses.replace(out, keypoints=out.candidates[rows, chosen], eta=torch.sigmoid(logit),
+                                   eta_logit=logit, candidate_eta_logits=logits, chosen=chosen)
 
     def trajectory(
         self,

@@ -2,6 +2,17 @@
 
 from mapkit.train._config import PRESETS, TrainConfig, TrainConfigError, preset
 from mapkit.train._data import TrainDataError, TupleSamples, TupleStore
+from mapkit.train._judge_tune import (
+    JudgeRecords,
+    JudgeScore,
+    JudgeTuneConfig,
+    JudgeTuneError,
+    JudgeTuneSummary,
+    clearance_rule,
+    fit_flown_head,
+    load_judge_records,
+    tune_judge,
+)
 from mapkit.train._loop import TrainSummary, set_threads, train, validate
 from mapkit.train._provenance import simulated_worlds, workspace_camera
 from mapkit.train._timing_compare import CostRatios, TimingComparison, compare_timing
@@ -19,6 +30,11 @@ from mapkit.train._timing_tune import (
 __all__ = [
     "PRESETS",
     "CostRatios",
+    "JudgeRecords",
+    "JudgeScore",
+    "JudgeTuneConfig",
+    "JudgeTuneError",
+    "JudgeTuneSummary",
     "PlanInputs",
     "TimingComparison",
     "TimingTuneConfig",
@@ -36,7 +52,11 @@ __all__ = [
     "simulated_worlds",
     "train",
     "validate",
+    "clearance_rule",
     "compare_timing",
+    "fit_flown_head",
+    "load_judge_records",
+    "tune_judge",
     "load_plan_inputs",
     "tune_tan",
     "tune_timing",

@@ -370,32 +370,38 @@ def _with_new_tan(net: PlannerNet, tune: TimingTuneConfig) -> PlannerNet:
     return out.eval()
 
 
-def _write_run(source: Path, net: PlannerNet, record: dict, out: Path, *, overwrite: bool) -> None:
-    """``out``: the source's model.pt with the new weights (and planner config) and a ``timing_tune``
-    note, its config.json with the same note; any REPRODUCE.md is left out (it describes the source)."""
+TAN_SHAPE = ("tan_boundary", "tan_boundary_scale", "tan_hidden")
+"""The planner fields a new TAN may change."""
+
+
+def _write_run(source: Path, net: PlannerNet, record: dict, out: Path, *, overwrite: bool,
+               key: str = "timing_tune", shape: tuple[str, ...] = TAN_SHAPE,
+               error: type[MapkitError] = TimingTuneError) -> None:
+    """``out``: the source's model.pt with the new weights (and planner config) and a ``key`` note
+    (``timing_tune``, ``judge_tune``), its config.json with the same note; any REPRODUCE.md is left out
+    (it describes the source). ``shape``: the planner fields the tuning may have changed."""
     from mapkit._saved import load_saved
 
-    saved = load_saved(source / "model.pt", "mapkit planner", TimingTuneError, ("planner_config", "state_dict"))
+    saved = load_saved(source / "model.pt", "mapkit planner", error, ("planner_config", "state_dict"))
     saved = {**saved, "state_dict": net.state_dict(), "planner_config": net.config.to_dict(),
-             "timing_tune": json.loads(json.dumps(record))}
+             key: json.loads(json.dumps(record))}
     run_config = json.loads((source / "config.json").read_text()) if (source / "config.json").is_file() else {}
-    run_config["timing_tune"] = record
-    _note_new_tan(run_config, net.config)
+    run_config[key] = record
+    _note_shape(run_config, net.config, shape)
     with atomic_output(out, overwrite=overwrite) as tmp:
         tmp.mkdir(parents=True)
         torch.save(saved, tmp / "model.pt")
         (tmp / "config.json").write_text(json.dumps(run_config, indent=2) + "\n")
 
 
-def _note_new_tan(run_config: dict, planner: PlannerConfig) -> None:
-    """A new TAN may have another shape (boundary inputs, width): config.json's training options
-    (``planner``) and resolved config (``planner_resolved``) say so, so the run's config builds a net
-    its weights fit."""
-    shape = {"tan_boundary": planner.tan_boundary, "tan_boundary_scale": planner.tan_boundary_scale,
-             "tan_hidden": list(planner.tan_hidden)}
+def _note_shape(run_config: dict, planner: PlannerConfig, fields: tuple[str, ...]) -> None:
+    """A new head may have another shape (a TAN's boundary inputs and width, a flown-path head):
+    config.json's training options (``planner``) and resolved config (``planner_resolved``) say so, so
+    the run's config builds a net its weights fit."""
+    shape = {k: list(v) if isinstance(v, tuple) else v for k, v in ((k, getattr(planner, k)) for k in fields)}
     resolved = run_config.get("planner_resolved")
     if isinstance(resolved, dict) and all(resolved.get(k) == v for k, v in shape.items()):
-        return  # the TAN kept its shape
+        return  # the head kept its shape
     for key in ("planner", "planner_resolved"):
         if isinstance(run_config.get(key), dict):
             run_config[key].update(shape)
