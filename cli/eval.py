@@ -22,7 +22,7 @@ _SECTIONS: dict[str, tuple[str, ...]] = {
     "Flight stack: corridor": ("corridor", "corridor_check", "check_memory", "unchecked_corridor"),
     "Flight stack: depth memory": ("memory", "subgoal_speed", "turn_toward_open"),
     "Flight stack: routing": ("route_after",),
-    "Flight stack: follow the reference": ("follow", "keep_choice", "shift"),
+    "Flight stack: follow the reference": ("follow", "keep_choice", "flown_judge", "shift"),
     "Flight stack: speed profile": ("speed", "search_speed", "turn_accel", "turn_min_speed", "stop_decel", "v_max",
                                     "a_max"),
 }
@@ -123,6 +123,10 @@ class _SectionedCommand(click.Command):
 @click.option("--keep-choice", type=FINITE, default=3.0, show_default=True,
               help="Score margin within which a replan keeps the candidate the last plan chose while the network "
                    "still accepts it (η < 0.5), instead of switching to the best-scored one; 0 = switch every plan.")
+@click.option("--flown-judge/--no-flown-judge", default=False, show_default=True,
+              help="With the full stack, also gate and choose with the model's flown-path head where it has one "
+                   "(each candidate's trajectory as flown, judged against the depth image); without the stack "
+                   "(--stack none) it always does.")
 @click.option("--shift/--no-shift", default=True, show_default=True,
               help="Also judge every candidate of the network shifted sideways by ±0.3 and ±0.6 m (mapkit.planning.SHIFT).")
 @click.option("--plan-latency", type=FINITE, default=0.02, show_default=True,
@@ -142,7 +146,7 @@ class _SectionedCommand(click.Command):
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, stacks: str,
              untrained_seeds: str, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
-             corridor_check: bool, check_memory: bool, unchecked_corridor: float, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float, follow: float, keep_choice: float, shift: bool, plan_latency: float, final_approach: float, look_ahead: float,
+             corridor_check: bool, check_memory: bool, unchecked_corridor: float, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float, follow: float, keep_choice: float, flown_judge: bool, shift: bool, plan_latency: float, final_approach: float, look_ahead: float,
              record_plans: bool, record_judge: bool, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import (
@@ -161,7 +165,7 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
     execution = _flight_stack(corridor=corridor, corridor_check=corridor_check, check_memory=check_memory,
                               unchecked_corridor=unchecked_corridor,
                               memory=memory, subgoal_speed=subgoal_speed, turn_toward_open=turn_toward_open,
-                              route_after=route_after, follow=follow, keep_choice=keep_choice, shift=shift, speed=speed,
+                              route_after=route_after, follow=follow, keep_choice=keep_choice, flown_judge=flown_judge, shift=shift, speed=speed,
                               search_speed=search_speed, turn_accel=turn_accel, turn_min_speed=turn_min_speed, stop_decel=stop_decel,
                               v_max=v_max, a_max=a_max)
     config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
@@ -192,7 +196,7 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
 
 def _flight_stack(*, corridor: float, corridor_check: bool, check_memory: bool, unchecked_corridor: float, memory: float,
                   subgoal_speed: float | None, turn_toward_open: bool, route_after: float, follow: float,
-                  keep_choice: float, shift: bool, speed: float,
+                  keep_choice: float, flown_judge: bool, shift: bool, speed: float,
                   search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float,
                   v_max: float, a_max: float) -> Execution:
     """The flight stack the options describe, layer by layer (0 turns a layer or a limit off)."""
@@ -206,6 +210,7 @@ def _flight_stack(*, corridor: float, corridor_check: bool, check_memory: bool, 
         route=None if route_after == 0 else RouteConfig(after=route_after),
         follow=follow,
         keep_choice=keep_choice or None,
+        flown_judge=flown_judge,
         shift=CANDIDATE_SHIFTS if shift else (),
         speed=SpeedProfile(cruise=speed or None, search_speed=search_speed, turn_accel=turn_accel or None,
                            turn_min_speed=turn_min_speed, stop_decel=stop_decel or None, v_max=v_max or None,

@@ -40,7 +40,8 @@ def test_stack_none_turns_off_exactly_the_layers_around_the_planner():
     none = under_stack(full, "none")
     assert under_stack(full, "full") is full
     changed = {f.name for f in dataclasses.fields(Execution) if getattr(full, f.name) != getattr(none, f.name)}
-    assert changed == {"memory", "route", "corridor", "follow", "keep_choice", "shift"}
+    assert changed == {"memory", "route", "corridor", "follow", "keep_choice", "shift", "flown_judge"}
+    assert none.flown_judge and not full.flown_judge  # without the stack the model's own flown-path head gates
     assert none.memory is None and none.route is None and none.follow == 0.0 and none.keep_choice is None
     assert none.shift == () and len(full.shift) > 0
     assert not none.corridor.check and not none.corridor.check_memory

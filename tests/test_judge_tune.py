@@ -13,7 +13,7 @@ import torch
 from click.testing import CliRunner
 
 from mapkit.cli.main import main
-from mapkit.evaluation import EvalConfig, evaluate
+from mapkit.evaluation import EvalConfig, Execution, evaluate, under_stack
 from mapkit.evaluation._methods import JudgeInput
 from mapkit.evaluation._run import Judgement
 from mapkit.planner import (
@@ -190,9 +190,16 @@ def test_record_judge_then_tune_judge_through_the_cli(tmp_path: Path):
     assert run_config["planner"] == {"flown_samples": 16, "flown_horizon": 1.5}
     assert run_config["judge_tune"]["train_rows"] > 0
     PlannerNet(PlannerConfig.from_dict(run_config["planner_resolved"])).load_state_dict(judged.state_dict())
-    # the head flies: its η is the one the flight reads
-    config = EvalConfig(worlds=("office",), pairs=1, seed=5, methods=("learned",), stacks=("none",))
+    # the head flies without the stack; with it (by default) the model flies exactly as the one it was
+    # fitted on, unless asked (--flown-judge)
+    config = EvalConfig(worlds=("office",), pairs=2, seed=5, methods=("learned",), stacks=("none",))
     assert evaluate(tmp_path / "judged", tmp_path / "e5", config, progress=False).summary["success"]
+    full = dataclasses.replace(config, stacks=("full",))
+    evaluate(tmp_path / "judged", tmp_path / "e5n", full, progress=False)
+    evaluate(run, tmp_path / "e5s", full, progress=False)
+    flights = [json.loads((tmp_path / e / "results.json").read_text())["episodes"] for e in ("e5n", "e5s")]
+    assert flights[0] == flights[1]
+    assert Execution().flown_judge is False and under_stack(Execution(), "none").flown_judge is True
     # a head that reads 16 points over 1.5 m refuses records of another horizon
     with np.load(tmp_path / "e3" / "judge.npz") as z:
         other = {k: z[k] for k in z.files}

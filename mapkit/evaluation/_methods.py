@@ -471,15 +471,16 @@ class LearnedMethod:
         """``out`` judged by the net's flown-path head (``PlannerConfig.flown_samples``), each candidate's
         trajectory recorded for ``mapkit eval --record-judge``; ``out`` itself when neither is asked."""
         net = self.net
+        head = net.flown_mlp is not None and self.execution.flown_judge
         # iPlanner-style flies a spline, not the corridor's trajectory: it keeps the judge's η
-        if (net.flown_mlp is None and self.judge_log is None) or out.candidates is None or self.spline:
+        if (not head and self.judge_log is None) or out.candidates is None or self.spline:
             return out
         if self.camera is None:
             raise PlannerError("the flown-path judge reads the depth image: the flight needs the camera's calibration")
         flown = self._flown_trajectories(out.candidates[0], start, end_speed)
         if self.judge_log is not None:
             self.judge_log.append(self._judge_input(flown, x, obs))
-        return out if net.flown_mlp is None else net.judge_flown(out, flown, x, self.camera)
+        return net.judge_flown(out, flown, x, self.camera) if head else out
 
     def _flown_trajectories(self, candidates: torch.Tensor, start: np.ndarray, end_speed: float) -> Trajectory:
         """Every candidate (M, K, 3) as this flight would fly it: timed like a plan and in the corridor

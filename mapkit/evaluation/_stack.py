@@ -58,12 +58,13 @@ def under_stack(execution: Execution, stack: FlightStack) -> Execution:
     the corridor's widths and the speed profile and turns off the depth memory (with its ways out and
     the turn toward open space), the corridor's check (so the corridor flies at its
     ``unchecked_width``), the flight map's routing, following the reference, keeping the last
-    plan's candidate and the shifted candidates (the paper's protocol: the network's key-points
-    through a narrow corridor, replanned every interval)."""
+    plan's candidate and the shifted candidates, and gates with the model's flown-path head where it has
+    one (the paper's protocol: the network alone, its key-points through a narrow corridor, replanned
+    every interval)."""
     if stack == "full":
         return execution
     if stack == "none":
-        return replace(execution, memory=None, route=None, follow=0.0, keep_choice=None, shift=(),
+        return replace(execution, memory=None, route=None, follow=0.0, keep_choice=None, shift=(), flown_judge=True,
                        corridor=replace(execution.corridor, check=False, check_memory=False))
     raise ValueError(f"unknown flight stack {stack!r}; use one of {', '.join(FLIGHT_STACKS)}")
 
