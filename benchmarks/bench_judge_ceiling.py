@@ -8,7 +8,8 @@ clear, as the loop treats η >= 0.5 (keep the last plan, or hover and turn). Jud
 - ``network``: the network's own choice and η (what ``mapkit eval`` flies);
 - ``exact``: clear = 0.3 m from the exact world;
 - ``image``: clear = 0.3 m from every point of the depth image the plan was made from (every second
-  pixel; what lies out of view counts as free);
+  pixel; what lies out of view counts as free), and of the flight's frames of the last ``--history``
+  seconds (default 0: none);
 
 each over the trajectory's first ``--horizon-m`` metres (default 2.5; 0: all of it), or its first
 ``--horizon-s`` seconds. The path judged (``--path``): ``flown`` the trajectory the loop flies (in
@@ -23,6 +24,7 @@ judge must see the trajectory as flown") has the figures of dev seeds 300 and 30
     python benchmarks/bench_judge_ceiling.py --seed 301 --pairs 40 --judge network,exact,image
     python benchmarks/bench_judge_ceiling.py --seed 301 --pairs 40 --judge exact --horizon-m 0 --horizon-s 2
     python benchmarks/bench_judge_ceiling.py --seed 300 --pairs 80 --judge image --horizon-m 1.5 --path keypoints
+    python benchmarks/bench_judge_ceiling.py --seed 301 --pairs 40 --judge image --horizon-m 1.5 --history 1.5
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ class Judge:
     horizon_s: float | None = None
     horizon_m: float | None = None
     path: Literal["flown", "through", "keypoints"] = "flown"
+    history: float = 0.0
 
 
 def _cut(pts: np.ndarray, start: np.ndarray, horizon_m: float | None) -> np.ndarray:
@@ -78,30 +81,43 @@ def _stretch(traj, start: np.ndarray, judge: Judge) -> np.ndarray:
     return _cut(methods._samples(traj, count=96, within=judge.horizon_s)[0, 0].numpy(), start, judge.horizon_m)
 
 
-def _image_points(depth: np.ndarray, K: np.ndarray, T_body_camera: np.ndarray):
-    """A KD-tree of the depth image's points (every second pixel) in the body frame, or None."""
-    from scipy.spatial import cKDTree
-
+def _image_points(depth: np.ndarray, K: np.ndarray, T_body_camera: np.ndarray) -> np.ndarray:
+    """(P, 3) the depth image's points (every second pixel) in the body frame."""
     v, u = np.mgrid[0:depth.shape[0]:2, 0:depth.shape[1]:2]
     z = depth[::2, ::2]
     ok = np.isfinite(z) & (z > 0)
     cam = np.stack([(u[ok] - K[0, 2]) / K[0, 0] * z[ok], (v[ok] - K[1, 2]) / K[1, 1] * z[ok], z[ok]], axis=1)
-    body = cam @ T_body_camera[:3, :3].T + T_body_camera[:3, 3]
-    return cKDTree(body) if len(body) else None
+    return cam @ T_body_camera[:3, :3].T + T_body_camera[:3, 3]
+
+
+class _Recent:
+    """The world points of one flight's frames of the last ``seconds``."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds, self.frames = seconds, []
+
+    def tree(self, obs, body: np.ndarray):
+        """A KD-tree of ``body`` and the recent frames' points in the body frame of ``obs``, or None;
+        ``body`` joins the recent frames (a time that goes back starts a new flight)."""
+        from scipy.spatial import cKDTree
+
+        T = obs.T_world_body
+        if self.frames and obs.t < self.frames[-1][0]:
+            self.frames = []
+        self.frames = [(t, p) for t, p in self.frames if 0 < obs.t - t <= self.seconds + 1e-6]
+        points = np.vstack([body, *[(p - T[:3, 3]) @ T[:3, :3] for _, p in self.frames]])
+        self.frames.append((obs.t, body @ T[:3, :3].T + T[:3, 3]))
+        return cKDTree(points) if len(points) else None
 
 
 def stand_in(method, world, camera, judge: Judge):
     """Wrap ``method`` (a LearnedMethod) so that ``judge`` chooses among its trained candidates."""
-    own_keypoints, own_attempt = method._keypoints, method._attempt
-    end_speed = [0.0]
+    own_keypoints = method._keypoints
+    recent = _Recent(judge.history)
 
-    def attempt(obs, start, goal, speed):
-        end_speed[0] = speed
-        return own_attempt(obs, start, goal, speed)
-
-    def keypoints(obs, start, goal):
-        x, out = own_keypoints(obs, start, goal)
-        tree = _image_points(np.asarray(obs.depth), np.asarray(camera.K), np.asarray(camera.T_body_camera)) \
+    def keypoints(obs, start, goal, end_speed=0.0):
+        x, out = own_keypoints(obs, start, goal, end_speed)
+        tree = recent.tree(obs, _image_points(np.asarray(obs.depth), np.asarray(camera.K), np.asarray(camera.T_body_camera))) \
             if judge.kind == "image" else None
         T = obs.T_world_body
         clear = []
@@ -109,7 +125,7 @@ def stand_in(method, world, camera, judge: Judge):
             if judge.path == "keypoints":
                 pts = _cut(_polyline(start, c), start, judge.horizon_m)
             else:
-                wp, st, es = methods._tensors(np.vstack([start[:1], c]), start, end_speed[0])
+                wp, st, es = methods._tensors(np.vstack([start[:1], c]), start, end_speed)
                 with torch.inference_mode():
                     timing = method._timed(wp, st, es)
                     traj = (methods.min_snap(wp, timing.durations, start=st, end=timing.end) if judge.path == "through"
@@ -128,7 +144,6 @@ def stand_in(method, world, camera, judge: Judge):
         return x, dataclasses.replace(out, keypoints=out.candidates[:, m], eta=torch.sigmoid(logit), eta_logit=logit,
                                       chosen=torch.full_like(out.chosen, m))
 
-    method._attempt = attempt
     if judge.kind != "network":
         method._keypoints = keypoints
 
@@ -167,6 +182,8 @@ def main() -> None:
     ap.add_argument("--horizon-m", type=float, default=2.5, help="the first metres only (0: the whole trajectory)")
     ap.add_argument("--path", choices=("flown", "through", "keypoints"), default="flown",
                     help="judge the trajectory as flown, the one through the key-points, or their polyline")
+    ap.add_argument("--history", type=float, default=0.0,
+                    help="seconds of the flight's earlier frames the image judge also reads (0: the image alone)")
     args = ap.parse_args()
     if args.path == "keypoints" and args.horizon_s is not None:
         ap.error("--path keypoints has no timing: judge it with --horizon-m alone")
@@ -174,7 +191,7 @@ def main() -> None:
     for name in args.judge.split(","):
         if name not in ("network", "exact", "image"):
             ap.error(f"--judge {name!r}: expected network, exact or image")
-        judge = Judge(name, args.horizon_s, args.horizon_m or None, args.path)  # type: ignore[arg-type]
+        judge = Judge(name, args.horizon_s, args.horizon_m or None, args.path, args.history)  # type: ignore[arg-type]
         line, total = f"{name:8s}", []
         for kind in args.world.split(","):
             outcomes = fly(args.model, kind, args.seed, args.pairs, judge)
@@ -184,7 +201,8 @@ def main() -> None:
         print(f"{line}  overall {100 * total.count('success') / len(total):5.1f} % of {len(total)}", flush=True)
     print(f"seed {args.seed}, stack none; exact and image judge the first "
           f"{f'{args.horizon_s} s' if args.horizon_s else f'{args.horizon_m} m' if args.horizon_m else 'whole trajectory'}"
-          f" of the {PATH_NAMES[args.path]}")
+          f" of the {PATH_NAMES[args.path]}" + (f"; the image judge also reads {args.history:g} s of earlier frames"
+                                                if args.history else ""))
 
 
 if __name__ == "__main__":

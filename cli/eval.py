@@ -16,7 +16,8 @@ if TYPE_CHECKING:
 
 _SECTIONS: dict[str, tuple[str, ...]] = {
     "What to fly": ("run_dir", "world", "pairs", "seed", "min_distance", "methods", "stacks", "untrained_seeds"),
-    "Output and parallelism": ("output", "workers", "scheduler", "record_plans", "record_judge", "overwrite"),
+    "Output and parallelism": ("output", "workers", "scheduler", "record_plans", "record_judge", "judge_history",
+                              "overwrite"),
     "The closed loop (every method)": ("replan_interval", "horizon", "ignore_eta", "on_reject", "plan_latency",
                                        "final_approach", "look_ahead"),
     "Flight stack: corridor": ("corridor", "corridor_check", "check_memory", "unchecked_corridor"),
@@ -141,13 +142,16 @@ class _SectionedCommand(click.Command):
 @click.option("--record-judge", is_flag=True,
               help="Also write judge.npz: every candidate of the learned method's plans as a flown-path judge "
                    "reads it, labelled against the world (for `mapkit tune-judge`).")
+@click.option("--judge-history", type=FINITE, default=None,
+              help="With --record-judge: seconds of each flight's earlier frames the recorded clearances also read "
+                   "(the head fitted to them reads as many) [default: the model's flown_history].")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, stacks: str,
              untrained_seeds: str, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
              corridor_check: bool, check_memory: bool, unchecked_corridor: float, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float, follow: float, keep_choice: float, flown_judge: bool, shift: bool, plan_latency: float, final_approach: float, look_ahead: float,
-             record_plans: bool, record_judge: bool, overwrite: bool) -> None:
+             record_plans: bool, record_judge: bool, judge_history: float | None, overwrite: bool) -> None:
     """Closed-loop evaluation in unseen simulated worlds: success, effort, latency; report + PNGs."""
     from mapkit.evaluation import (
         METHODS,
@@ -172,7 +176,7 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
                         stacks=parse_stacks(stacks),
                         untrained_seeds=parse_untrained_seeds(untrained_seeds),
                         workers=workers, scheduler=scheduler, record_plans=record_plans, record_judge=record_judge,
-                        execution=execution,
+                        judge_history=judge_history, execution=execution,
                         loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
                                         on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,
                                         look_ahead=look_ahead))

@@ -182,13 +182,15 @@ def tune_timing_cmd(model: Path, plans: tuple[Path, ...], val: tuple[Path, ...],
 @library_call
 def tune_judge_cmd(model: Path, records: tuple[Path, ...], val: tuple[Path, ...], output: Path, steps: int, lr: float,
                    positive_weight: float, overwrite: bool) -> None:
-    """Fit the flown-path head: each candidate judged by its trajectory as flown against the depth image."""
+    """Fit the flown-path head: each candidate judged by its trajectory as flown against the depth image
+    (and the flight's recent frames, as recorded with `mapkit eval --judge-history`)."""
     from mapkit.train import JudgeTuneConfig, tune_judge
 
     s = tune_judge(model, records, val, output, JudgeTuneConfig(steps=steps, lr=lr, positive_weight=positive_weight),
                    overwrite=overwrite)
     click.echo(f"{s.train_rows} candidates to learn from, {s.val_rows} to validate ({100 * s.colliding_share:.1f} % "
-               "colliding); caught / false alarms on the validation candidates:")
+               f"colliding; clearances to the image{f' and the last {s.history:g} s of frames' if s.history else ''}); "
+               "caught / false alarms on the validation candidates:")
     rows = [("depth image, clearance < robot radius", s.clearance_rule), ("head as it was", s.before),
             (f"fitted head (step {s.best_step})", s.after)]
     for label, score in rows:

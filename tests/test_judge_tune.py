@@ -13,7 +13,7 @@ import torch
 from click.testing import CliRunner
 
 from mapkit.cli.main import main
-from mapkit.evaluation import EvalConfig, Execution, evaluate, under_stack
+from mapkit.evaluation import EvalConfig, EvalError, Execution, evaluate, under_stack
 from mapkit.evaluation._methods import JudgeInput
 from mapkit.evaluation._run import Judgement
 from mapkit.planner import (
@@ -78,6 +78,43 @@ def test_flown_features_against_a_wall():
     assert f[0, 0, :, 2].tolist() == pytest.approx([0.75, -0.5, 0.0], abs=0.01)  # (measured − own depth) / 2
     blind = torch.zeros_like(x)  # no valid pixel: nothing seen, everything free
     assert flown_clearance(points, blind, camera, max_depth=10.0).tolist() == [[[CLEARANCE_CAP] * 3]]
+    # a post seen in an earlier frame, now 1 m behind and 0.5 m left of the body: the point behind
+    # the camera is 0.5 m from it; padding rows (1e6 m) change nothing
+    recent = torch.tensor([[[-1.0, 0.5, 0.0], [1e6, 1e6, 1e6]]])
+    near = flown_clearance(points, blind, camera, max_depth=10.0, recent=recent)
+    assert near[0, 0].tolist() == pytest.approx([(1.5**2 + 0.5**2) ** 0.5, CLEARANCE_CAP, 0.5], abs=1e-6)
+    both = flown_features(points, x, camera, max_depth=10.0, recent=recent)
+    assert both[0, 0, :, 0].tolist() == pytest.approx([1.5 / CLEARANCE_CAP, 1.0 / CLEARANCE_CAP, 0.5 / CLEARANCE_CAP], abs=0.01)
+
+
+def test_a_flight_remembers_its_recent_frames_for_the_head_in_the_current_body_frame():
+    """A wall 2 m ahead seen at t = 0; at t = 0.5 the vehicle is 1 m further on, turned 90° left: the
+    wall's points lie 1 m to its right (body y = −1). Frames older than ``flown_history`` are dropped,
+    the current frame is not among the recent ones, and a new flight starts with none."""
+    from mapkit.evaluation._loop import Observation
+    from mapkit.evaluation._methods import LearnedMethod
+
+    camera, x = _wall_camera(2.0)
+    method = LearnedMethod("learned", PlannerNet(dataclasses.replace(CONFIG, flown_samples=4, flown_history=1.0)),
+                           camera=camera)
+    turned = np.array([[0.0, -1.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+    def observe(t: float, T_world_body: np.ndarray, goal: float = 9.0) -> Observation:
+        obs = Observation(t=t, T_world_body=T_world_body, state_world=np.zeros((4, 3)), goal_world=np.array([goal, 0, 0]),
+                          local_goal_body=np.zeros(3), depth=np.zeros((2, 2), np.float32))
+        method._subgoal_in_force(obs)
+        method._remember_frame(x, obs, 1.0)
+        return obs
+
+    first = observe(0.0, np.eye(4))
+    assert method._recent_points(first, 1.0) is None  # only the current frame
+    recent = method._recent_points(observe(0.5, turned), 1.0)
+    assert recent is not None and recent.shape[0] == 1 and recent.shape[1] > 100
+    np.testing.assert_allclose(recent[0, :, 1].numpy(), -1.0, atol=1e-6)
+    assert float(recent[0, :, 0].abs().max()) > 0.5  # the wall spreads along the body's x
+    assert method._recent_points(observe(2.0, turned), 1.0) is None  # both older than a second
+    observe(2.5, turned)
+    assert method._recent_points(observe(0.0, np.eye(4), goal=5.0), 1.0) is None  # a new flight
 
 
 def _two_candidates(net: PlannerNet, camera: CameraInput, x: torch.Tensor):
@@ -115,8 +152,8 @@ def test_the_flown_head_refuses_other_shapes_and_settings():
         net.flown_logits(torch.zeros(2, 5, FLOWN_FEATURES), torch.zeros(2))
     with pytest.raises(PlannerError, match="tune-judge"):
         PlannerNet(CONFIG).flown_logits(torch.zeros(2, 4, FLOWN_FEATURES), torch.zeros(2))
-    for bad in ({"flown_samples": -1}, {"flown_horizon": 0.0}):
-        with pytest.raises(PlannerError, match="flown_samples >= 0 and flown_horizon > 0"):
+    for bad in ({"flown_samples": -1}, {"flown_horizon": 0.0}, {"flown_history": -0.5}):
+        with pytest.raises(PlannerError, match="flown_samples >= 0, flown_horizon > 0 metres and flown_history >= 0"):
             PlannerConfig(**bad)
 
 
@@ -167,27 +204,28 @@ def test_record_judge_then_tune_judge_through_the_cli(tmp_path: Path):
     (run / "config.json").write_text(json.dumps({"planner": {}, "planner_resolved": CONFIG.to_dict()}))
     for seed in (3, 4):
         config = EvalConfig(worlds=("office",), pairs=1, seed=seed, methods=("learned",), stacks=("none",),
-                            record_judge=True)
+                            record_judge=True, judge_history=1.0)
         evaluate(run, tmp_path / f"e{seed}", config, progress=False)
         doc = json.loads((tmp_path / f"e{seed}" / "results.json").read_text())
-        assert "record_judge" not in doc["config"]  # results.json does not depend on it
+        assert "record_judge" not in doc["config"] and "judge_history" not in doc["config"]  # no result depends on them
         with np.load(tmp_path / f"e{seed}" / "judge.npz") as z:
             plans = sum(e["plans"] for e in doc["episodes"])
             # every candidate of every plan (a plan may try a second goal)
             assert len(z["collides"]) >= CONFIG.num_candidates * plans > 0
             assert z["features"].shape[1:] == (16, FLOWN_FEATURES) and z["collides"].dtype == bool
-            assert float(z["horizon"]) == 1.5 and float(z["robot_radius"]) == 0.3
+            assert float(z["horizon"]) == 1.5 and float(z["robot_radius"]) == 0.3 and float(z["history"]) == 1.0
             assert np.all((z["lengths"] > 0) & (z["lengths"] <= 1.5)) and set(z["world"]) == {"office"}
     out = CliRunner().invoke(main, ["tune-judge", "--model", str(run), "--records", str(tmp_path / "e3"),
                                     "--val", str(tmp_path / "e4"), "-o", str(tmp_path / "judged"), "--steps", "20"])
     assert out.exit_code == 0, out.output
     assert "depth image, clearance < robot radius" in out.output and "fitted head" in out.output
+    assert "clearances to the image and the last 1 s of frames" in out.output
     judged = Planner.load(tmp_path / "judged").net
-    assert judged.config.flown_samples == 16 and judged.flown_mlp is not None
+    assert judged.config.flown_samples == 16 and judged.config.flown_history == 1.0 and judged.flown_mlp is not None
     for name, value in net.state_dict().items():
         torch.testing.assert_close(judged.state_dict()[name], value)  # only the new head is new
     run_config = json.loads((tmp_path / "judged" / "config.json").read_text())
-    assert run_config["planner"] == {"flown_samples": 16, "flown_horizon": 1.5}
+    assert run_config["planner"] == {"flown_samples": 16, "flown_horizon": 1.5, "flown_history": 1.0}
     assert run_config["judge_tune"]["train_rows"] > 0
     PlannerNet(PlannerConfig.from_dict(run_config["planner_resolved"])).load_state_dict(judged.state_dict())
     # the head flies without the stack; with it (by default) the model flies exactly as the one it was
@@ -209,6 +247,14 @@ def test_record_judge_then_tune_judge_through_the_cli(tmp_path: Path):
     out = CliRunner().invoke(main, ["tune-judge", "--model", str(tmp_path / "judged"), "--records", str(tmp_path / "e6"),
                                     "--val", str(tmp_path / "e6"), "-o", str(tmp_path / "again")])
     assert out.exit_code == 1 and "Traceback" not in out.output and "over 2.5 m" in out.output
+    # records that read other histories do not mix
+    other["horizon"], other["history"] = np.float64(1.5), np.float64(0.5)
+    np.savez(tmp_path / "e6" / "judge.npz", **other)
+    out = CliRunner().invoke(main, ["tune-judge", "--model", str(run), "--records", str(tmp_path / "e3"),
+                                    "--records", str(tmp_path / "e6"), "--val", str(tmp_path / "e4"), "-o", str(tmp_path / "mixed")])
+    assert out.exit_code == 1 and "same --judge-history" in out.output
+    with pytest.raises(EvalError, match="--record-judge"):
+        EvalConfig(worlds=("office",), judge_history=1.0).validate()
 
 
 def test_folders_without_recorded_candidates_are_refused_in_one_line(tmp_path: Path):

@@ -446,6 +446,10 @@ class LearnedMethod:
         self._route = None if execution.route is None or self._memory is None else FlightMap(execution.route)
         self._progress = Progress()
         self._chosen: int | None = None  # the candidate the last plan of this flight flew
+        self._recent: list[tuple[float, torch.Tensor]] = []  # (t, world points) of this flight's frames, for the head
+        self.record_history: float | None = None
+        """Seconds of earlier frames the recorded judge features read (``mapkit eval --judge-history``);
+        None: the model's ``flown_history``."""
 
     def _keypoints(self, obs: Observation, start: np.ndarray, goal: np.ndarray, end_speed: float = 0.0):
         """The network's pass toward ``goal`` (to arrive at ``end_speed``), judged by its flown-path
@@ -478,9 +482,35 @@ class LearnedMethod:
         if self.camera is None:
             raise PlannerError("the flown-path judge reads the depth image: the flight needs the camera's calibration")
         flown = self._flown_trajectories(out.candidates[0], start, end_speed)
+        history = self.config.flown_history
+        record = history if self.record_history is None else self.record_history
+        self._remember_frame(x, obs, max(history, record if self.judge_log is not None else 0.0))
         if self.judge_log is not None:
-            self.judge_log.append(self._judge_input(flown, x, obs))
-        return net.judge_flown(out, flown, x, self.camera) if head else out
+            self.judge_log.append(self._judge_input(flown, x, obs, self._recent_points(obs, record)))
+        return net.judge_flown(out, flown, x, self.camera, recent=self._recent_points(obs, history)) if head else out
+
+    def _remember_frame(self, x: torch.Tensor, obs: Observation, seconds: float) -> None:
+        """Keep the frame ``x``'s points (world frame) among this flight's recent ones, and forget
+        frames more than ``seconds`` older (a second pass on the same frame adds nothing)."""
+        from mapkit.planner import input_points
+
+        assert self.camera is not None  # checked by _flown_judged
+        self._recent = [(t, p) for t, p in self._recent if obs.t - t <= seconds + 1e-6]
+        if seconds <= 0 or (self._recent and self._recent[-1][0] == obs.t):
+            return
+        body = input_points(x, self.camera, max_depth=self.config.max_depth)[0].double()
+        body = body[body[:, 0] < 1e5]  # pixels without a return
+        T = torch.from_numpy(obs.T_world_body)
+        self._recent.append((obs.t, body @ T[:3, :3].T + T[:3, 3]))
+
+    def _recent_points(self, obs: Observation, seconds: float) -> torch.Tensor | None:
+        """(1, P, 3) points of this flight's frames of the last ``seconds`` before ``obs`` in its body
+        frame, or None (none kept, or ``seconds`` 0)."""
+        earlier = [p for t, p in self._recent if 0 < obs.t - t <= seconds + 1e-6]
+        if not earlier:
+            return None
+        T = torch.from_numpy(obs.T_world_body)
+        return ((torch.cat(earlier) - T[:3, 3]) @ T[:3, :3])[None]
 
     def _flown_trajectories(self, candidates: torch.Tensor, start: np.ndarray, end_speed: float) -> Trajectory:
         """Every candidate (M, K, 3) as this flight would fly it: timed like a plan and in the corridor
@@ -494,14 +524,16 @@ class LearnedMethod:
         timing = self._timed(wp, st, es)
         return min_snap(wp, timing.durations, start=st, end=timing.end, corridor=width, on_infeasible="ignore")
 
-    def _judge_input(self, flown: Trajectory, x: torch.Tensor, obs: Observation) -> JudgeInput:
-        """What the flown-path head reads about the candidates ``flown``, and their stretches in the world."""
+    def _judge_input(self, flown: Trajectory, x: torch.Tensor, obs: Observation,
+                     recent: torch.Tensor | None) -> JudgeInput:
+        """What the flown-path head reads about the candidates ``flown`` (with the ``recent`` points of
+        earlier frames), and their stretches in the world."""
         from mapkit.planner import arclength_points, flown_features
 
         c = self.config
         assert self.camera is not None  # checked by _flown_judged
         points, lengths = arclength_points(flown, horizon=c.flown_horizon, count=c.flown_samples or RECORD_SAMPLES)
-        features = flown_features(points[None], x, self.camera, max_depth=c.max_depth)[0]
+        features = flown_features(points[None], x, self.camera, max_depth=c.max_depth, recent=recent)[0]
         dense, _ = arclength_points(flown, horizon=c.flown_horizon, count=LABEL_POINTS)
         R, p = obs.T_world_body[:3, :3], obs.T_world_body[:3, 3]
         return JudgeInput(features=features.numpy().astype(np.float32), lengths=lengths.numpy().astype(np.float32),
@@ -621,6 +653,7 @@ class LearnedMethod:
             self._chosen = None
             self._progress = Progress()
             self._search = _Search()
+            self._recent = []
             if self._memory is not None:
                 self._memory.forget()
             if self._route is not None:

@@ -101,6 +101,10 @@ class EvalConfig:
     """Also write judge.npz: what a flown-path head reads about every candidate of the ``learned``
     method's plans, each labelled by whether its judged stretch comes within the robot's radius of the
     world (:func:`write_judgements`), for ``mapkit tune-judge``. Results do not depend on it."""
+    judge_history: float | None = None
+    """With ``record_judge``: seconds of each flight's earlier frames whose points the recorded
+    clearances also read (a head fitted to them gets this ``flown_history``); None: the model's
+    ``flown_history``. Results do not depend on it."""
 
     def validate(self) -> None:
         unknown = [w for w in self.worlds if w not in WORLD_ORDER]
@@ -121,6 +125,11 @@ class EvalConfig:
             raise EvalError(f"--untrained-seeds {','.join(map(str, seeds)) or '(none)'}: give distinct seeds >= 0, e.g. 0,1,2,3")
         if self.workers < 1:
             raise EvalError(f"--workers must be >= 1, got {self.workers}")
+        if self.judge_history is not None:
+            if not self.record_judge:
+                raise EvalError("--judge-history sets what --record-judge records; pass --record-judge too")
+            if not (math.isfinite(self.judge_history) and self.judge_history >= 0):
+                raise EvalError(f"--judge-history must be >= 0 seconds, got {self.judge_history}")
         self._validate_scheduler()
         if not (math.isfinite(self.min_distance) and self.min_distance > 0):
             raise EvalError(f"--min-distance must be > 0 metres, got {self.min_distance}")
@@ -264,6 +273,7 @@ class _WorkerSetup:
     record_plans: bool = False
     untrained_seeds: tuple[int, ...] = (0,)
     record_judge: bool = False
+    judge_history: float | None = None
 
 
 @dataclass(frozen=True)
@@ -398,6 +408,7 @@ def _world_bundle(kind: str) -> _WorldBundle:
             if isinstance(method, LearnedMethod) and split_label(method.name).method == "learned":
                 method.plan_log = [] if setup.record_plans else None
                 method.judge_log = [] if setup.record_judge else None
+                method.record_history = setup.judge_history
         state.worlds[kind] = _WorldBundle(world=world, graph=graph, camera=camera, rays=rays, methods=methods)
     return state.worlds[kind]
 
@@ -541,6 +552,8 @@ class _ModelContext:
     """results.json's ``model`` (None without a model)."""
     flown_horizon: float = 1.5
     """Metres of each candidate the flown-path head reads (the model's ``flown_horizon``; judge.npz)."""
+    flown_history: float = 0.0
+    """Seconds of earlier frames the flown-path head reads (the model's ``flown_history``; judge.npz)."""
 
 
 def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> _ModelContext:
@@ -585,6 +598,7 @@ def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> 
     context.loop = dataclasses.replace(context.loop, cruise_speed=float(pace))
     context.trained_worlds = _training_worlds(run_cfg)
     context.flown_horizon = net.config.flown_horizon
+    context.flown_history = net.config.flown_history
     context.model_info = {"path": str(run_dir.resolve()), "sha256": _sha256(run_dir / "model.pt"),
                           "planner_config": net.config.to_dict(),
                           "training_worlds": sorted(map(list, context.trained_worlds))}
@@ -813,6 +827,7 @@ def _results_doc(config: EvalConfig, context: _ModelContext, pairs: dict[str, li
     del doc["config"]["scheduler"]
     del doc["config"]["record_plans"]
     del doc["config"]["record_judge"]
+    del doc["config"]["judge_history"]
     return doc
 
 
@@ -839,10 +854,11 @@ def write_plans(path: Path, plans: list[tuple[str, int, PlanInput]]) -> None:
 
 
 def write_judgements(path: Path, judgements: list[tuple[str, int, Judgement]], horizon: float,
-                     robot_radius: float) -> None:
+                     robot_radius: float, history: float = 0.0) -> None:
     """judge.npz, one row per candidate of every recorded plan: ``features`` (R, N, F), ``lengths``
     (R,) metres, ``collides`` (R,) bool, ``plan`` (R,) the plan's index in the file, ``world`` (R,),
-    ``pair`` (R,), ``horizon`` (the metres judged) and ``robot_radius`` (the labels' metres)."""
+    ``pair`` (R,), ``horizon`` (the metres judged), ``robot_radius`` (the labels' metres) and
+    ``history`` (seconds of earlier frames the clearances read)."""
     from mapkit.planner import FLOWN_FEATURES
 
     rows = [(i, w, pair, j) for i, (w, pair, j) in enumerate(judgements)]
@@ -856,13 +872,14 @@ def write_judgements(path: Path, judgements: list[tuple[str, int, Judgement]], h
                         plan=np.repeat(np.arange(len(rows), dtype=np.int64), counts),
                         world=np.repeat(np.array([w for _, w, _, _ in rows], dtype=str), counts),
                         pair=np.repeat(np.array([p for _, _, p, _ in rows], np.int64), counts),
-                        horizon=np.float64(horizon), robot_radius=np.float64(robot_radius))
+                        horizon=np.float64(horizon), robot_radius=np.float64(robot_radius),
+                        history=np.float64(history))
 
 
 def _write_outputs(out_dir: Path, doc: dict[str, Any], lat: dict, alloc: dict, worlds: dict[str, Any],
                    paths: dict[str, np.ndarray], workers: int, *, overwrite: bool,
                    plans: list[tuple[str, int, PlanInput]] | None = None,
-                   judged: tuple[list[tuple[str, int, Judgement]], float, float] | None = None) -> None:
+                   judged: tuple[list[tuple[str, int, Judgement]], float, float, float] | None = None) -> None:
     """Write the eval folder as one unit: worlds, results.json, latency.json, trajectories.npz, report."""
     from mapkit.evaluation._report import write_report
 
@@ -933,7 +950,8 @@ def evaluate(
                              runs=tuple(plan_runs(config.methods, config.stacks, config.untrained_seeds)),
                              oracle_corridor=config.oracle_corridor,
                              execution=config.execution, loop=config.loop, record_plans=config.record_plans,
-                             untrained_seeds=config.untrained_seeds, record_judge=config.record_judge)
+                             untrained_seeds=config.untrained_seeds, record_judge=config.record_judge,
+                             judge_history=config.judge_history)
         tasks = [(k, p.to_dict()) for k in config.worlds for p in pairs[k]]
         flown = _fly_all(setup, tasks, config.workers, progress, cluster)
     collected = _collect(config, pairs, flown.results)
@@ -945,7 +963,8 @@ def evaluate(
     doc = _results_doc(config, context, pairs, summary, collected.episodes)
     _write_outputs(out_dir, doc, lat, alloc, worlds, collected.paths, flown.workers, overwrite=overwrite,
                    plans=collected.plans if config.record_plans else None,
-                   judged=(collected.judgements, context.flown_horizon, config.loop.robot_radius)
+                   judged=(collected.judgements, context.flown_horizon, config.loop.robot_radius,
+                           context.flown_history if config.judge_history is None else config.judge_history)
                    if config.record_judge else None)
     files = sorted(p for p in out_dir.rglob("*") if p.is_file())
     return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat, "allocation": alloc}, files=files,

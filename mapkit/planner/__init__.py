@@ -32,7 +32,14 @@ from mapkit.planner._config import PLANNER_PRESETS, PlannerConfig, planner_prese
 from mapkit.planner._depthcheck import CameraInput, depth_margins, image_points, point_margins, seen_conflicts
 from mapkit.planner._detour import DetourGrid, detour_excess
 from mapkit.planner._errors import PlannerError
-from mapkit.planner._flown import CLEARANCE_CAP, FLOWN_FEATURES, arclength_points, flown_clearance, flown_features
+from mapkit.planner._flown import (
+    CLEARANCE_CAP,
+    FLOWN_FEATURES,
+    arclength_points,
+    flown_clearance,
+    flown_features,
+    input_points,
+)
 from mapkit.planner._loss import (
     LossConfig,
     body_to_world,
@@ -72,6 +79,7 @@ __all__ = [
     "arclength_points",
     "flown_clearance",
     "flown_features",
+    "input_points",
     "FLOWN_FEATURES",
     "CLEARANCE_CAP",
     "seen_conflicts",

@@ -65,6 +65,11 @@ class PlannerConfig:
     fits the head to flights recorded by ``mapkit eval --record-judge``. 0 = the judge's η (the paper)."""
     flown_horizon: float = 1.5
     """Metres of each candidate's flown trajectory the flown-path head reads (``flown_samples``)."""
+    flown_history: float = 0.0
+    """Seconds of the flight's earlier depth frames whose points the flown-path head's clearance also
+    reads (``recent=`` of :func:`mapkit.planner.flown_clearance`, moved into the current body frame):
+    a pillar or a door jamb beside the vehicle has left the image by the time the path passes it.
+    0 = the current image only. The flight keeps the frames (``mapkit eval``); a single plan has none."""
     velocity_input: bool = False
     """The key-point MLP and the judge also read the body's velocity (divided by ``cruise_speed``): a
     path the vehicle is already flying at 2 m/s bends differently from one it starts at rest (the
@@ -128,9 +133,9 @@ class PlannerConfig:
             )
         if self.num_candidates < 1:
             raise PlannerError(f"num_candidates must be >= 1, got {self.num_candidates}")
-        if self.flown_samples < 0 or not self.flown_horizon > 0:
-            raise PlannerError(f"need flown_samples >= 0 and flown_horizon > 0 metres, got {self.flown_samples} "
-                               f"and {self.flown_horizon}")
+        if self.flown_samples < 0 or not self.flown_horizon > 0 or not self.flown_history >= 0:
+            raise PlannerError(f"need flown_samples >= 0, flown_horizon > 0 metres and flown_history >= 0 seconds, got "
+                               f"{self.flown_samples}, {self.flown_horizon} and {self.flown_history}")
         self.candidate_anchors = tuple((float(a), float(b)) for a, b in self.candidate_anchors)
         if self.candidate_anchors and len(self.candidate_anchors) != self.num_candidates:
             raise PlannerError(

@@ -43,15 +43,24 @@ def arclength_points(trajectory: Trajectory, *, horizon: float, count: int, dens
     return p0 + frac * (p1 - p0), along[:, -1].clamp(max=horizon)
 
 
-def flown_clearance(points: torch.Tensor, x: torch.Tensor, camera: CameraInput, *, max_depth: float,
-                    stride: int = 2) -> torch.Tensor:
-    """(B, M, N) metres from each point (B, M, N, 3), body frame, to the nearest point of the
-    preprocessed depth image ``x`` (B, 2, h, w) (every ``stride``-th pixel with a valid return), capped
-    at :data:`CLEARANCE_CAP`. What the camera does not see counts as free."""
-    B, M, N, _ = points.shape
+def input_points(x: torch.Tensor, camera: CameraInput, *, max_depth: float, stride: int = 2) -> torch.Tensor:
+    """(B, P, 3) body-frame points of every ``stride``-th pixel of the preprocessed depth ``x``
+    (B, 2, h, w); pixels without a measurement lie 1e6 m away (:func:`image_points`)."""
     # a pixel no valid source pixel reached (mask 0) holds no measurement: count it as no return
     depth = torch.where(x[:, 1] > 0.5, x[:, 0], torch.ones_like(x[:, 0]))
-    cloud = image_points(depth, camera.expand(B).to(x.device), max_depth=max_depth, stride=stride)
+    return image_points(depth, camera.expand(x.shape[0]).to(x.device), max_depth=max_depth, stride=stride)
+
+
+def flown_clearance(points: torch.Tensor, x: torch.Tensor, camera: CameraInput, *, max_depth: float,
+                    stride: int = 2, recent: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, M, N) metres from each point (B, M, N, 3), body frame, to the nearest point of the
+    preprocessed depth image ``x`` (B, 2, h, w) (every ``stride``-th pixel with a valid return) or of
+    ``recent`` (B, P, 3), points of earlier frames in the same body frame, capped at
+    :data:`CLEARANCE_CAP`. What the camera does not see counts as free."""
+    B, M, N, _ = points.shape
+    cloud = input_points(x, camera, max_depth=max_depth, stride=stride)
+    if recent is not None:
+        cloud = torch.cat([cloud, recent.to(cloud)], dim=1)
     # pixels without a return lie 1e6 m away: the matrix-product distance would lose the near ones
     d = torch.cdist(points.reshape(B, M * N, 3).to(cloud.dtype), cloud,
                     compute_mode="donot_use_mm_for_euclid_dist").amin(-1)
@@ -59,13 +68,14 @@ def flown_clearance(points: torch.Tensor, x: torch.Tensor, camera: CameraInput, 
 
 
 def flown_features(points: torch.Tensor, x: torch.Tensor, camera: CameraInput, *, max_depth: float,
-                   pyramid: torch.Tensor | None = None) -> torch.Tensor:
+                   pyramid: torch.Tensor | None = None, recent: torch.Tensor | None = None) -> torch.Tensor:
     """(B, M, N, FLOWN_FEATURES) what the flown-path head reads at each point (B, M, N, 3), body frame,
-    of the preprocessed depth ``x`` (B, 2, h, w): its clearance (:func:`flown_clearance`) over
-    :data:`CLEARANCE_CAP`, whether it is in view, and how far in front of (+) or behind (−) the
-    measured surface it lies (:func:`mapkit.planner.depth_margins`' features of a point)."""
+    of the preprocessed depth ``x`` (B, 2, h, w): its clearance (:func:`flown_clearance`, to the image
+    and the ``recent`` points) over :data:`CLEARANCE_CAP`, whether it is in view, and how far in front
+    of (+) or behind (−) the measured surface it lies (:func:`mapkit.planner.depth_margins`' features
+    of a point)."""
     B, M, N, _ = points.shape
-    near = flown_clearance(points, x, camera, max_depth=max_depth) / CLEARANCE_CAP
+    near = flown_clearance(points, x, camera, max_depth=max_depth, recent=recent) / CLEARANCE_CAP
     seen = point_margins(points.to(x.dtype), x, camera.expand(B).to(x.device), max_depth=max_depth,
                          pyramid=pyramid).reshape(B, M, N, 2)
     return torch.cat([near.to(seen.dtype)[..., None], seen], dim=-1)

@@ -552,16 +552,18 @@ class PlannerNet(nn.Module):
         return self.flown_mlp(per.to(next(self.flown_mlp.parameters()).dtype))[..., 0]
 
     def judge_flown(self, out: PlannerOutput, trajectories: Trajectory, x: torch.Tensor,
-                    camera: CameraInput) -> PlannerOutput:
+                    camera: CameraInput, *, recent: torch.Tensor | None = None) -> PlannerOutput:
         """``out`` with the flown-path head's η for every candidate and the best-scored one it expects
         free chosen (:func:`choose_candidate`). ``trajectories``: each candidate's trajectory as flown,
         B·M of them in the order of ``out.candidates`` (B, M, K, 3), in the body frame of the image
-        ``x`` (B, 2, h, w) they were planned from."""
+        ``x`` (B, 2, h, w) they were planned from; ``recent`` (B, P, 3): points of the flight's last
+        ``flown_history`` seconds of frames in that body frame (None: the image alone)."""
         c = self.config
         assert out.candidates is not None  # every forward pass fills it
         B, M = out.candidates.shape[:2]
         points, lengths = arclength_points(trajectories, horizon=c.flown_horizon, count=c.flown_samples)
-        features = flown_features(points.reshape(B, M, -1, 3), x, camera, max_depth=c.max_depth, pyramid=out.pyramid)
+        features = flown_features(points.reshape(B, M, -1, 3), x, camera, max_depth=c.max_depth, pyramid=out.pyramid,
+                                  recent=recent)
         logits = self.flown_logits(features, lengths.reshape(B, M).to(features.dtype)).to(x.dtype)
         chosen = (torch.zeros(B, dtype=torch.long, device=logits.device) if out.scores is None
                   else choose_candidate(out.scores, logits))

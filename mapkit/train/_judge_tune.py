@@ -5,9 +5,10 @@ the key-point polyline. The vehicle flies another path: the corridor's trajector
 corners. A judge perfect on the depth image over the first 1.5 m of the trajectory as flown would fly
 75.8 % without the flight stack where the network's judge flies 68.3 % (dev seed 301,
 docs/results.md). The flown-path head reads what such a judge reads, for every candidate: at N points
-along its first ``flown_horizon`` metres as flown, the clearance to the depth image's points, whether
-the point is in view and how far in front of or behind the measured surface it lies, and how long the
-stretch is (:func:`mapkit.planner.flown_features`). It learns from flights recorded by ``mapkit eval
+along its first ``flown_horizon`` metres as flown, the clearance to the depth image's points (and to
+those of the flight's frames of the last ``flown_history`` seconds), whether the point is in view and
+how far in front of or behind the measured surface it lies, and how long the stretch is
+(:func:`mapkit.planner.flown_features`). It learns from flights recorded by ``mapkit eval
 --record-judge`` whether that stretch comes within the robot's radius of the world: labels from the
 world, not the image, so it learns what the image hides (occluded and out-of-view space). Everything
 else keeps its weights.
@@ -76,6 +77,9 @@ class JudgeRecords:
     """Metres judged."""
     robot_radius: float
     """Metres the labels keep from the world."""
+    history: float = 0.0
+    """Seconds of earlier frames the clearances read (``mapkit eval --judge-history``); the fitted head
+    reads as many (``flown_history``)."""
 
     def __len__(self) -> int:
         return int(self.collides.shape[0])
@@ -109,6 +113,8 @@ class JudgeTuneSummary:
     after: JudgeScore
     best_step: int
     """The step whose weights were kept."""
+    history: float = 0.0
+    """Seconds of earlier frames the records' clearances read (the fitted head's ``flown_history``)."""
 
 
 def load_judge_records(folders: Sequence[Path]) -> JudgeRecords:
@@ -122,7 +128,9 @@ def load_judge_records(folders: Sequence[Path]) -> JudgeRecords:
             raise JudgeTuneError(f"{folder} has no {JUDGE_FILE}; make it with `mapkit eval --methods learned "
                                  "--record-judge -o FOLDER`")
         with np.load(path) as z:
-            parts.append((path, {k: z[k] for k in ("features", "lengths", "collides", "horizon", "robot_radius")}))
+            part = {k: z[k] for k in ("features", "lengths", "collides", "horizon", "robot_radius")}
+            part["history"] = z["history"] if "history" in z.files else np.float64(0.0)  # recorded before histories
+            parts.append((path, part))
     if not parts or sum(len(p["collides"]) for _, p in parts) == 0:
         raise JudgeTuneError(f"no recorded candidates in {', '.join(map(str, folders)) or '(no folder)'}")
     first_path, first = parts[0]
@@ -132,9 +140,13 @@ def load_judge_records(folders: Sequence[Path]) -> JudgeRecords:
         if len(p["collides"]) and not same:
             raise JudgeTuneError(f"{path} and {first_path} judge different stretches (points, horizon or radius): "
                                  "record them with the same model and robot radius")
+        if len(p["collides"]) and float(p["history"]) != float(first["history"]):
+            raise JudgeTuneError(f"{path} reads {float(p['history']):g} s of earlier frames, {first_path} "
+                                 f"{float(first['history']):g} s: record both with the same --judge-history")
     cat = {k: np.concatenate([p[k] for _, p in parts]) for k in ("features", "lengths", "collides")}
     return JudgeRecords(torch.from_numpy(cat["features"]).float(), torch.from_numpy(cat["lengths"]).float(),
-                        torch.from_numpy(cat["collides"]).bool(), float(first["horizon"]), float(first["robot_radius"]))
+                        torch.from_numpy(cat["collides"]).bool(), float(first["horizon"]), float(first["robot_radius"]),
+                        float(first["history"]))
 
 
 def _score(net: PlannerNet, records: JudgeRecords, pos_weight: float) -> JudgeScore:
@@ -213,9 +225,13 @@ def tune_judge(model: str | Path, records: Sequence[Path], val: Sequence[Path], 
     train_set, val_set = load_judge_records(records), load_judge_records(val)
     if train_set.features.shape[1:] != val_set.features.shape[1:] or train_set.horizon != val_set.horizon:
         raise JudgeTuneError("the training and validation records judge different stretches: record both with one model")
+    if train_set.history != val_set.history:
+        raise JudgeTuneError(f"the training records read {train_set.history:g} s of earlier frames, the validation "
+                             f"records {val_set.history:g} s: record both with the same --judge-history")
     before = _score(net, val_set, config.positive_weight) if _fits(net, train_set) else None
     if before is None:
         net = _with_new_head(net, train_set, config.seed)
+    net.config = replace(net.config, flown_history=train_set.history)  # the head reads what its records read
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # a small head: one thread is as fast and leaves the other cores alone
     try:
@@ -228,10 +244,10 @@ def tune_judge(model: str | Path, records: Sequence[Path], val: Sequence[Path], 
               "clearance_rule": asdict(rule), "val_before": None if before is None else asdict(before),
               "val_after": asdict(after), "best_step": best_step}
     _write_run(source, net, record, Path(out_dir), overwrite=overwrite, key="judge_tune",
-               shape=("flown_samples", "flown_horizon"), error=JudgeTuneError)
+               shape=("flown_samples", "flown_horizon", "flown_history"), error=JudgeTuneError)
     return JudgeTuneSummary(out_dir=Path(out_dir), train_rows=len(train_set), val_rows=len(val_set),
                             colliding_share=float(val_set.collides.float().mean()), clearance_rule=rule,
-                            before=before, after=after, best_step=best_step)
+                            before=before, after=after, best_step=best_step, history=train_set.history)
 
 
 def _fits(net: PlannerNet, records: JudgeRecords) -> bool:
