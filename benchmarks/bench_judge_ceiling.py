@@ -38,10 +38,10 @@ import numpy as np
 import torch
 
 from mapkit.evaluation import EvalConfig
-from mapkit.evaluation import _methods as methods
 from mapkit.evaluation import _run as run
 from mapkit.evaluation._loop import run_episode
 from mapkit.evaluation._stack import Run
+from mapkit.flight import _learned as methods
 from mapkit.sim import render_depth
 
 ROBOT_RADIUS = 0.3

@@ -7,15 +7,16 @@ from typing import TYPE_CHECKING
 
 import click
 
-from mapkit._choices import ON_REJECT, OnReject
+from mapkit._choices import ON_REJECT, VEHICLES, OnReject, VehicleKind
 from mapkit.cli._group import COUNT, FINITE, FRACTION, INDEX, library_call, main
 
 if TYPE_CHECKING:
-    from mapkit.evaluation import Execution
+    from mapkit.flight import Execution
 
 
 _SECTIONS: dict[str, tuple[str, ...]] = {
-    "What to fly": ("run_dir", "world", "pairs", "seed", "min_distance", "methods", "stacks", "untrained_seeds"),
+    "What to fly": ("run_dir", "world", "pairs", "seed", "min_distance", "methods", "stacks", "untrained_seeds",
+                    "vehicle", "gimbal"),
     "Output and parallelism": ("output", "workers", "scheduler", "record_plans", "record_judge", "judge_history",
                               "overwrite"),
     "The closed loop (every method)": ("replan_interval", "horizon", "ignore_eta", "on_reject", "plan_latency",
@@ -65,6 +66,11 @@ class _SectionedCommand(click.Command):
 @click.option("--untrained-seeds", "--untrained-seed", "untrained_seeds", default="0,1,2,3", show_default=True,
               help="Comma list of seeds of the untrained method's initial weights: each flies every pair "
                    "(untrained#SEED) and the ablation pools them; one set of weights flies well or badly by chance.")
+@click.option("--vehicle", type=click.Choice(VEHICLES), default="tracker", show_default=True,
+              help="What flies the pilot's references: tracker (a linear 4th-order tracker, level body; fast) or "
+                   "rotorpy (rotorpy's quadrotor with rotor dynamics and drag under its SE(3) controller at 100 Hz, "
+                   "the camera tilting with the airframe).")
+@click.option("--gimbal", is_flag=True, help="With --vehicle rotorpy: render the camera level instead of at the airframe's attitude.")
 @click.option("--workers", type=COUNT, default=1, show_default=True,
               help="Processes running pairs in parallel (with --scheduler local: the local Dask cluster's size).")
 @click.option("--scheduler", metavar="ADDRESS", default=None,
@@ -148,7 +154,7 @@ class _SectionedCommand(click.Command):
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, stacks: str,
-             untrained_seeds: str, workers: int, scheduler: str | None,
+             untrained_seeds: str, vehicle: VehicleKind, gimbal: bool, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
              corridor_check: bool, check_memory: bool, unchecked_corridor: float, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float, follow: float, keep_choice: float, flown_judge: bool, shift: bool, plan_latency: float, final_approach: float, look_ahead: float,
              record_plans: bool, record_judge: bool, judge_history: float | None, overwrite: bool) -> None:
@@ -163,6 +169,7 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
         parse_stacks,
         parse_untrained_seeds,
     )
+    from mapkit.flight import PilotConfig
 
     worlds = WORLD_ORDER if world.strip() == "all" else tuple(w.strip() for w in world.split(",") if w.strip())
     names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
@@ -176,10 +183,11 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
                         stacks=parse_stacks(stacks),
                         untrained_seeds=parse_untrained_seeds(untrained_seeds),
                         workers=workers, scheduler=scheduler, record_plans=record_plans, record_judge=record_judge,
-                        judge_history=judge_history, execution=execution,
-                        loop=LoopConfig(replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
-                                        on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,
-                                        look_ahead=look_ahead))
+                        judge_history=judge_history, execution=execution, vehicle=vehicle, gimbal=gimbal,
+                        loop=LoopConfig(pilot=PilotConfig(
+                            replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
+                            on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,
+                            look_ahead=look_ahead)))
     result = evaluate(run_dir, output, config, overwrite=overwrite)
     s, lat = result.summary["success"], result.summary["latency"]
     cols = [*config.worlds, "overall"]
@@ -205,7 +213,7 @@ def _flight_stack(*, corridor: float, corridor_check: bool, check_memory: bool, 
                   v_max: float, a_max: float) -> Execution:
     """The flight stack the options describe, layer by layer (0 turns a layer or a limit off)."""
     from mapkit._choices import CANDIDATE_SHIFTS
-    from mapkit.evaluation import Corridor, Execution, Memory, RouteConfig, SpeedProfile
+    from mapkit.flight import Corridor, Execution, Memory, RouteConfig, SpeedProfile
 
     return Execution(
         corridor=Corridor(width=corridor or None, check=corridor_check, check_memory=check_memory,

@@ -15,7 +15,10 @@ re-exports its public names from private ``_modules``:
 - ``mapkit.planner``: the planner network and its self-supervised loss (batched tensors).
 - ``mapkit.train``: training the planner → runs/NAME/ (presets, loop, checkpoints, validation, DDP).
 - ``mapkit.planning``: using a trained planner on single frames (``Planner.load("pretrained")``).
-- ``mapkit.evaluation``: closed-loop flights of planners in unseen simulated worlds → results.json.
+- ``mapkit.flight``: the pilot: a trained planner and its flight stack flown frame by frame, for any
+  vehicle loop (references with position through snap and yaw, a status, input checks).
+- ``mapkit.evaluation``: closed-loop flights of the pilot in unseen simulated worlds (linear tracker
+  or rotorpy quadrotor) → results.json.
 - ``mapkit.viz``: the computations behind the viewer (slices, colours, clouds, corridors); no viser.
 - ``mapkit.exchange``: exports for Foxglove (MCAP) and Rerun (.rrd).
 - ``mapkit.cli`` (``cli/``) and ``mapkit.viewer`` (``viewer/``): the click commands and the viser app,

@@ -19,7 +19,7 @@ EtaLabel = Literal["map", "seen", "image"]
 ETA_LABELS: tuple[EtaLabel, ...] = get_args(EtaLabel)
 
 OnReject = Literal["continue", "brake"]
-"""What a flying vehicle does with a rejected plan (``LoopConfig.on_reject``)."""
+"""What a flying vehicle does with a rejected plan (``PilotConfig.on_reject``)."""
 ON_REJECT: tuple[OnReject, ...] = get_args(OnReject)
 
 GoalFrame = Literal["body", "world"]
@@ -38,10 +38,16 @@ BOUNDARY_SCALES: tuple[BoundaryScale, ...] = get_args(BoundaryScale)
 
 FlightStack = Literal["full", "none"]
 """The layers around a replanning learned method in `mapkit eval` (``EvalConfig.stacks``): ``full``, every
-layer of :class:`mapkit.evaluation.Execution` as configured (memory, checked corridor, turn toward open
+layer of :class:`mapkit.flight.Execution` as configured (memory, checked corridor, turn toward open
 space, routing, follow); ``none``, the paper's protocol: the network's key-points through the corridor,
 replanned every interval, nothing else."""
 FLIGHT_STACKS: tuple[FlightStack, ...] = get_args(FlightStack)
+
+VehicleKind = Literal["tracker", "rotorpy"]
+"""What flies the pilot's references in `mapkit eval` (``EvalConfig.vehicle``): ``tracker``, a linear
+4th-order tracker with a level body (exact, fast); ``rotorpy``, rotorpy's quadrotor (rotor dynamics,
+drag) under its SE(3) controller, the camera tilting with the airframe."""
+VEHICLES: tuple[VehicleKind, ...] = get_args(VehicleKind)
 
 CANDIDATE_SHIFTS: tuple[float, ...] = (-0.6, -0.3, 0.3, 0.6)
 """Metres: the sideways shifts of the extra candidates a plan judges by default, single plans

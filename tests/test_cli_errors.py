@@ -242,17 +242,10 @@ def test_every_click_default_equals_the_library_default():
     from mapkit._choices import CANDIDATE_SHIFTS
     from mapkit.dataset import DatasetConfig, parse_cameras
     from mapkit.esdf import EsdfConfig
-    from mapkit.evaluation import (
-        Corridor,
-        EvalConfig,
-        Execution,
-        LoopConfig,
-        Memory,
-        SpeedProfile,
-        parse_untrained_seeds,
-    )
+    from mapkit.evaluation import EvalConfig, LoopConfig, parse_untrained_seeds
     from mapkit.exchange import FoxgloveConfig
     from mapkit.export import ExportConfig
+    from mapkit.flight import Corridor, Execution, Memory, SpeedProfile
     from mapkit.fusion import FuseConfig
     from mapkit.ingest import IngestConfig
     from mapkit.sim import SimConfig

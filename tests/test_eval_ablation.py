@@ -18,7 +18,6 @@ from mapkit.cli.main import main
 from mapkit.evaluation import (
     EvalConfig,
     EvalError,
-    Execution,
     Run,
     ablation,
     paired_ratio,
@@ -27,10 +26,10 @@ from mapkit.evaluation import (
     plan_runs,
     split_label,
     success_difference,
-    under_stack,
     untrained_copy,
 )
 from mapkit.evaluation._ablation import ablation_lines
+from mapkit.flight import Execution, under_stack
 from mapkit.planner import PlannerNet, planner_preset
 
 
@@ -126,7 +125,7 @@ def test_the_untrained_copy_is_seeded_the_same_everywhere_and_leaves_the_generat
 
 
 def test_straight_keypoints_lie_evenly_on_the_line_to_the_goal():
-    from mapkit.evaluation import LearnedMethod, Observation
+    from mapkit.flight import LearnedMethod, Observation
 
     net = _tiny_net()
     method = LearnedMethod("straight-keypoints", net, keypoints="straight")
@@ -258,7 +257,7 @@ def test_eval_help_lists_every_option_once_under_its_layer():
 def test_iplanner_style_flies_its_spline_under_either_stack(stack: str):
     """Under the full stack the spline's key-points come through the memory (it remembers what it saw);
     under none it has no memory. Either way the reference is iPlanner's cubic spline to the goal."""
-    from mapkit.evaluation import LearnedMethod, Observation
+    from mapkit.flight import LearnedMethod, Observation
     from mapkit.planner import CameraInput
 
     net = _tiny_net()
@@ -277,7 +276,7 @@ def test_iplanner_style_flies_its_spline_under_either_stack(stack: str):
 
 @pytest.mark.parametrize("stack", ["full", "none"])
 def test_the_full_stack_judges_the_shifted_candidates_and_none_the_trained_ones_alone(stack: str):
-    from mapkit.evaluation import LearnedMethod, Observation
+    from mapkit.flight import LearnedMethod, Observation
     from mapkit.planner import CameraInput
 
     net = _tiny_net()

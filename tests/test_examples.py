@@ -30,11 +30,19 @@ def test_examples_are_numbered():
     ("03_plan_with_a_model.py", "wrote plan_"),
     ("04_evaluate.py", "learned: "),
     ("05_export_training_tuples.py", "tuple 0's goals"),
+    ("06_fly_your_own_vehicle.py", "reached after"),
 ])
 def test_example_alone_writes_only_temporary_files(name, expected, tmp_path):
     out = run_example(name, cwd=tmp_path)
     assert expected in out
     assert not any(tmp_path.iterdir()), f"{name} wrote into the folder it ran in"
+
+
+def test_the_own_vehicle_loop_is_short():
+    """The loop a user copies stays readable: at most 60 lines of code in the example."""
+    lines = (EXAMPLES / "06_fly_your_own_vehicle.py").read_text().splitlines()
+    body = lines[next(i for i, line in enumerate(lines) if line.startswith("import")):]
+    assert len(body) <= 60
 
 
 def test_examples_chained_on_one_workspace(tmp_path):

@@ -13,9 +13,10 @@ import torch
 from click.testing import CliRunner
 
 from mapkit.cli.main import main
-from mapkit.evaluation import EvalConfig, EvalError, Execution, evaluate, under_stack
-from mapkit.evaluation._methods import JudgeInput
+from mapkit.evaluation import EvalConfig, EvalError, evaluate
 from mapkit.evaluation._run import Judgement
+from mapkit.flight import Execution, under_stack
+from mapkit.flight._learned import JudgeInput
 from mapkit.planner import (
     CLEARANCE_CAP,
     FLOWN_FEATURES,
@@ -91,8 +92,8 @@ def test_a_flight_remembers_its_recent_frames_for_the_head_in_the_current_body_f
     """A wall 2 m ahead seen at t = 0; at t = 0.5 the vehicle is 1 m further on, turned 90° left: the
     wall's points lie 1 m to its right (body y = −1). Frames older than ``flown_history`` are dropped,
     the current frame is not among the recent ones, and a new flight starts with none."""
-    from mapkit.evaluation._loop import Observation
-    from mapkit.evaluation._methods import LearnedMethod
+    from mapkit.flight import Observation
+    from mapkit.flight._learned import LearnedMethod
 
     camera, x = _wall_camera(2.0)
     method = LearnedMethod("learned", PlannerNet(dataclasses.replace(CONFIG, flown_samples=4, flown_history=1.0)),

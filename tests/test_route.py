@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapkit.evaluation import Aim, FlightMap, Progress, RouteConfig
+from mapkit.flight import Aim, FlightMap, Progress, RouteConfig
 
 
 def _wall(x0: float, x1: float, y: float = 0.0, z0: float = 0.0, z1: float = 3.0) -> np.ndarray:

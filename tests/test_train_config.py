@@ -69,8 +69,11 @@ def test_a_non_object_nested_config_is_one_line() -> None:
 
 
 def test_choices_are_the_librarys() -> None:
-    from mapkit.evaluation import LoopConfig
+    from mapkit._choices import VEHICLES
+    from mapkit.evaluation import EvalConfig
+    from mapkit.flight import PilotConfig
 
     assert set(PRESET_NAMES) == set(PRESETS)
     assert TRAINED_WEIGHTS == typing.get_args(typing.get_type_hints(TrainConfig)["only"])
-    assert ON_REJECT == typing.get_args(typing.get_type_hints(LoopConfig)["on_reject"])
+    assert ON_REJECT == typing.get_args(typing.get_type_hints(PilotConfig)["on_reject"])
+    assert VEHICLES == typing.get_args(typing.get_type_hints(EvalConfig)["vehicle"])

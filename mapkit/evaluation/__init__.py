@@ -7,13 +7,14 @@ interval, and so on until the goal, a collision (exact distance to the world) or
 >>> from mapkit.evaluation import EvalConfig, evaluate
 >>> evaluate("ws/runs/cpu", "eval_out", EvalConfig(worlds=("office",), pairs=5))  # doctest: +SKIP
 
-Building blocks for other loops: :func:`run_episode` with any object that has ``name``,
-``needs_depth``, ``replans`` and ``plan(Observation) -> MethodPlan``; :class:`Pieces` (world-frame
-piecewise polynomials with exact snap effort); :func:`sample_pairs`.
+Every method flies through the same :class:`~mapkit.flight.Pilot` a user deploys (the flight stack
+lives in :mod:`mapkit.flight`). :func:`run_episode` flies one pair with any planner (an object with
+``name``, ``needs_depth``, ``replans`` and ``plan(Observation) -> MethodPlan``) or pilot;
+:func:`sample_pairs` draws start–goal pairs.
 
-Flight stacks and ablations: :func:`under_stack` (``full`` or ``none``), :func:`plan_runs` (every method
-under every stack, each a :class:`Run` labelled ``NAME`` or ``NAME@STACK``), :func:`ablation` (every
-run's outcomes and learned − untrained / straight-key-points with bootstrap intervals over pairs).
+Ablations: :func:`plan_runs` (every method under every flight stack, each a :class:`Run` labelled
+``NAME`` or ``NAME@STACK``), :func:`ablation` (every run's outcomes and learned − untrained /
+straight-key-points with bootstrap intervals over pairs).
 
 Reading results.json: :class:`EpisodeRecord` (one row of ``episodes``), :data:`Outcome`,
 :data:`EVAL_FORMAT`; :func:`compare_effort` (two methods on the pairs both reached, also at equal
@@ -31,19 +32,10 @@ from mapkit.evaluation._ablation import (
     paired_ratio,
     success_difference,
 )
-from mapkit.evaluation._layers import Corridor, Execution, Memory, SpeedProfile
-from mapkit.evaluation._loop import Episode, LoopConfig, MethodPlan, Observation, level_pose, run_episode
-from mapkit.evaluation._methods import (
-    METHODS,
-    LearnedMethod,
-    OracleMethod,
-    PlanInput,
-    StraightMethod,
-    make_methods,
-)
+from mapkit.evaluation._loop import Episode, LoopConfig, run_episode
+from mapkit.evaluation._methods import METHODS, OracleMethod, StraightMethod, make_methods
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
 from mapkit.evaluation._paths import load_paths
-from mapkit.evaluation._pieces import Pieces, hold, pieces_from_body
 from mapkit.evaluation._report import (
     DETOUR_EDGES,
     DetourBin,
@@ -53,7 +45,6 @@ from mapkit.evaluation._report import (
     effort_at_time,
     success_by_detour,
 )
-from mapkit.evaluation._route import Aim, FlightMap, Progress, RouteConfig
 from mapkit.evaluation._run import (
     PLANS_FILE,
     WORLD_ORDER,
@@ -72,20 +63,17 @@ from mapkit.evaluation._stack import (
     parse_untrained_seeds,
     plan_runs,
     split_label,
-    under_stack,
 )
 
 __all__ = [
     "METHODS", "WORLD_ORDER", "EVAL_FORMAT", "OUTCOMES",
     "EpisodeRecord", "Outcome",
     "CameraSpec", "EvalConfig", "EvalError", "EvalResult", "evaluate", "summarise",
-    "Episode", "LoopConfig", "MethodPlan", "Observation", "level_pose", "run_episode",
-    "Execution", "Corridor", "Memory", "SpeedProfile", "LearnedMethod", "OracleMethod", "PlanInput", "StraightMethod", "make_methods", "PLANS_FILE",
-    "Aim", "FlightMap", "Progress", "RouteConfig",
+    "Episode", "LoopConfig", "run_episode",
+    "OracleMethod", "StraightMethod", "make_methods", "PLANS_FILE",
     "Pair", "sample_pairs", "load_paths",
-    "Pieces", "hold", "pieces_from_body",
     "EffortComparison", "compare_effort", "effort_at_time", "DETOUR_EDGES", "DetourBin", "OutcomeCounts",
     "success_by_detour",
     "Ablation", "Interval", "RunSummary", "ablation", "comparison_lines", "paired_ratio", "success_difference",
-    "STACKED_METHODS", "UNTRAINED_SEEDS", "Run", "parse_stacks", "parse_untrained_seeds", "plan_runs", "split_label", "under_stack", "untrained_copy",
+    "STACKED_METHODS", "UNTRAINED_SEEDS", "Run", "parse_stacks", "parse_untrained_seeds", "plan_runs", "split_label", "untrained_copy",
 ]

@@ -1,5 +1,6 @@
-"""The closed loop: render depth from the current pose, plan, fly the plan for a replan interval,
-repeat until the goal, a collision or the time limit.
+"""The closed loop: render depth from the current pose, give it to the pilot
+(:class:`~mapkit.flight.Pilot`), fly its reference for a replan interval, repeat until the goal, a
+collision or the time limit.
 
 Vehicle model. The executed trajectory is the reference tracked by a linear 4th-order controller
 with feed-forward up to snap: per axis the tracking error e = r − x obeys
@@ -8,8 +9,7 @@ starts from the vehicle's full state (position … jerk), so a minimum-snap refe
 itself) is flown exactly and its effort is the reference's exact ∫‖snap‖². A reference with jumps
 (a cubic spline's jerk at its knots, a start acceleration that is not the vehicle's) is smoothed by
 the tracker, and its snap is then finite and comparable. Written here because no library
-simulates this loop; the vehicle's body is level and it heads toward where its reference goes
-(:attr:`LoopConfig.look_ahead`).
+simulates this loop; the vehicle's body is level and its yaw is the reference's.
 """
 
 from __future__ import annotations
@@ -17,14 +17,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 from scipy.linalg import expm
 
-from mapkit._choices import OnReject
 from mapkit._formats import Outcome
-from mapkit.evaluation._pieces import Pieces, hold
+from mapkit.evaluation._rotorpy import RotorpyVehicle
+from mapkit.flight import Method, Pieces, Pilot, PilotConfig, PilotStep, Reference, VehicleState, hold, level_pose
+from mapkit.planning._camera import RunCamera
 from mapkit.sim import World
 
 _JUMP_TOL = 1e-6  # smaller reference jumps (m, m/s, m/s², m/s³) are float noise, not events
@@ -34,8 +34,8 @@ _JUMP_TOL = 1e-6  # smaller reference jumps (m, m/s, m/s², m/s³) are float noi
 class LoopConfig:
     """How an episode is flown and judged."""
 
-    replan_interval: float = 0.5
-    """Seconds a plan is flown before the next one (planning uses the latest depth frame)."""
+    pilot: PilotConfig = field(default_factory=PilotConfig)
+    """How the pilot plans (its replan interval is the loop's: depth is rendered once per interval)."""
     depth_rate: float = 30.0
     """Hz of the depth camera; the replan interval must be a whole number of frames."""
     control_rate: float = 200.0
@@ -44,9 +44,6 @@ class LoopConfig:
     """Metres: success when the body centre comes this close to the goal."""
     robot_radius: float = 0.3
     """Metres: collision when the exact distance from the body centre to the world drops below."""
-    horizon: float = 6.0
-    """Metres: planners that see only the camera get the goal clipped to this distance (a local
-    goal along the direction to the real goal); the depth range is 10 m."""
     timeout_factor: float = 4.0
     """Time limit = max(``timeout_min``, factor × straight distance / cruise speed)."""
     timeout_min: float = 20.0
@@ -56,115 +53,6 @@ class LoopConfig:
     learned model's cruise speed, or to ``--speed`` when given (the pace the flights are asked for)."""
     tracking_bandwidth: float = 5.0
     """ω, rad/s: all four poles of the tracking error at −ω."""
-    respect_eta: bool = True
-    """Do not execute plans with collision probability η >= 0.5 (keep flying the previous one;
-    when hovering, turn 60° to look elsewhere), unless the method overrides the veto
-    (:attr:`MethodPlan.overrides_eta`: its own check found the previous reference no safer)."""
-    on_reject: OnReject = "continue"
-    """What the vehicle does with a rejected plan (η >= 0.5) while it still flies: "continue" keeps
-    flying the previous plan; "brake" replaces it with one minimum-snap segment to rest straight
-    ahead (about 1.5 m/s² on average), then hovers and turns to look elsewhere as above."""
-    brake_deceleration: float = 3.0
-    """m/s², about the peak deceleration of a brake to rest (a rejected plan with ``on_reject="brake"``,
-    or a method that finds no way ahead): it stops v² / this metres ahead. Learned planner, office and
-    garage, seeds 7 / 13 (120 pairs each): 1.5 → 80.8 / 75.0 %, 3 → 82.5 / 85.0 %, 4 → 81.7 / 85.0 %."""
-    look_ahead: float = 1.5
-    """Seconds: while moving, the vehicle (and its camera) heads toward where the reference will be this
-    much later instead of along its velocity, as a pilot looks into a turn: a vehicle turning through a
-    doorway sees the wall beside it before it gets there. 0: along the velocity. Learned planner,
-    office on dev seeds 7 / 13 (60 pairs each): 0 → 71.7 / 75.0 %, 0.5 → 71.7 % (seed 7), 1.0 → 80.0 / 85.0 %,
-    1.5 → 83.3 / 85.0 %, 2.0 → 80.0 % (seed 7); garage / forest at 1.5: 93.3 / 100 and 96.7 / 98.3 %
-    (0: 96.7 / 98.3 and 98.3 / 98.3 %)."""
-    look_turn_deg: float = 60.0
-    """Degrees the vehicle turns when hovering and a plan is rejected. Learned planner, office on dev
-    seeds 7 / 13 / 31 / 37 (60 pairs each, 2026-11-30): 30° 90.0 / 88.3 / 78.3 / 61.7 %, 60° 90.0 / 85.0
-    / 80.0 / 63.3 %, 90° 88.3 / 88.3 / 81.7 / 61.7 %. With ``Memory.turn_toward_open`` (same seeds, same
-    day): 60° 90.0 / 88.3 / 83.3 / 65.0 %, 90° 91.7 / 88.3 / 85.0 / 66.7 % (199 against 196 of 240
-    flights), but on held-out seeds 11 / 17 / 19 / 23 / 29 / 41 / 43 (all worlds) 90° reached 93.2 % on
-    average against 93.7 % (office 76.7 / 83.3 / 93.3 / 78.3 / 61.7 / 85.0 / 88.3 % against 81.7 / 83.3 /
-    93.3 / 78.3 / 70.0 / 85.0 / 90.0 %): 60° stays."""
-    plan_latency: float = 0.02
-    """Seconds from the depth frame to the new plan taking over (rounded up to control steps; the
-    measured planning latency is about 9 ms): the vehicle flies the previous reference meanwhile,
-    and the plan starts from that reference's position … jerk at the takeover, so the flown
-    reference stays C³ across every replan."""
-    final_approach: float = 0.0
-    """Metres: closer to the goal than this, a replanning method's plan is replaced by one
-    minimum-snap segment to rest at the goal. 0 (the default) disables it: with every segment at
-    least ``min_segment_time`` long and the corridor, the planner's own plans to rest cost less (it
-    was needed while key-points crowded into a metre were pinned at sub-second intervals)."""
-
-
-@dataclass
-class Observation:
-    """What a method gets at a planning instant."""
-
-    t: float
-    """Episode time the plan takes over (the depth frame is ``plan_latency`` older), seconds."""
-    T_world_body: np.ndarray
-    """(4, 4) level body pose at the depth frame: the frame the network plans in."""
-    state_world: np.ndarray
-    """(4, 3) position, velocity, acceleration, jerk the plan starts from at ``t`` (the reference's),
-    world frame."""
-    goal_world: np.ndarray
-    """(3,) the real goal."""
-    local_goal_body: np.ndarray
-    """(3,) the goal in the body frame, clipped to the horizon."""
-    depth: np.ndarray | None
-    """(H, W) metres, NaN invalid, rendered at the body pose (None for methods without a camera)."""
-    goal_clipped: bool = False
-    """True when the real goal lies beyond the horizon: the plan should not stop at the local goal
-    but pass it at cruise speed (a receding-horizon plan that ends at rest brakes every interval)."""
-    reference: Pieces | None = None
-    """The reference being flown (what a rejected plan leaves the vehicle on)."""
-
-    def start_body(self) -> np.ndarray:
-        """(4, 3) the start state in the body frame of the depth frame (position a few centimetres
-        ahead of the origin when the vehicle moves during the planning latency)."""
-        R, p = self.T_world_body[:3, :3], self.T_world_body[:3, 3]
-        out = self.state_world @ R
-        out[0] = R.T @ (self.state_world[0] - p)
-        return out
-
-
-@dataclass
-class MethodPlan:
-    """A method's answer."""
-
-    pieces: Pieces
-    """World-frame reference starting at the observation's time."""
-    latency_ms: float
-    """Wall-clock planning time (observation → trajectory)."""
-    eta: float | None = None
-    """Predicted collision probability, for methods that have one."""
-    keypoints_world: np.ndarray | None = None
-    """(K, 3) the key-points the trajectory passes, world frame (for plots)."""
-    allocation_ms: float | None = None
-    """Wall-clock time of the time allocation alone (TAN vs gradient descent)."""
-    overrides_eta: bool = False
-    """The method asks to fly this plan although η >= 0.5: its own check found the reference being
-    flown no safer (a rejected plan leaves the vehicle on it)."""
-    brake_direction: np.ndarray | None = None
-    """(3,) unit vector, body frame at the observation: where a blocked method brakes to (None: along
-    the velocity)."""
-    turn_side: float | None = None
-    """+1 (counter-clockwise) or −1: the way a blocked vehicle that hovers should turn to look
-    elsewhere, read when it starts turning (None: the way it turned last, at first counter-clockwise)."""
-    look_at: np.ndarray | None = None
-    """(3,) world point a hovering vehicle faces at the next observation (None: the goal)."""
-    blocked: bool = False
-    """The method found no way ahead it can fly (every path it could take runs into what the camera
-    sees): the loop brakes to rest and then turns to look elsewhere, whatever η says."""
-
-
-class Method(Protocol):
-    """A planner under evaluation."""
-
-    name: str
-    needs_depth: bool
-    replans: bool
-
-    def plan(self, obs: Observation) -> MethodPlan: ...
 
 
 @dataclass
@@ -202,15 +90,16 @@ class Episode:
     """Largest jerk norm, m/s³."""
     samples: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     """(N, 4) rows [t, x, y, z] of the executed path at ``control_rate``."""
+    tracking_error_mean: float = 0.0
+    """Mean distance from the vehicle to its reference over the flight, metres."""
+    tracking_error_max: float = 0.0
+    """Largest distance from the vehicle to its reference, metres."""
+    reference_peak_speed: float = 0.0
+    """Largest speed on any axis of the references the pilot handed the vehicle, m/s (the measure of the
+    per-axis limits)."""
+    reference_peak_acceleration: float = 0.0
+    """Largest acceleration on any axis of those references, m/s²."""
 
-
-def level_pose(position: np.ndarray, yaw: float) -> np.ndarray:
-    """(4, 4) T_world_body of a level body at ``position`` heading ``yaw`` (radians from +x)."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    T = np.eye(4)
-    T[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
-    T[:3, 3] = position
-    return T
 
 
 class _Tracker:
@@ -240,13 +129,11 @@ class _Flight:
     """(4, 3) tracking error e = r − x and its derivatives."""
     ref: Pieces
     jumps: list[tuple[float, np.ndarray]]
+    reference: Reference | None = None
+    """The pilot's last reference (its yaw is the vehicle's)."""
+    yaw0: float = 0.0
+    """The vehicle's yaw before the pilot's first reference: toward the goal."""
     t: float = 0.0
-    look: float = 0.0
-    braking: bool = False
-    turn: float = 1.0
-    """+1 or −1: the way the hovering vehicle turns (:attr:`MethodPlan.turn_side`)."""
-    look_at: np.ndarray | None = None
-    """Where the hovering vehicle faces (:attr:`MethodPlan.look_at`); None: the goal."""
     plans: int = 0
     rejected: int = 0
     latencies: list[float] = field(default_factory=list)
@@ -257,13 +144,22 @@ class _Flight:
     effort: float = 0.0
     min_dist: float = math.inf
     peaks: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    tracking: list[float] = field(default_factory=list)
+    """Position tracking error |r − x| at every control step, metres."""
+    ref_peaks: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    """Largest speed and acceleration of the references flown (before tracking)."""
     outcome: Outcome = "timeout"
     coll_point: list[float] | None = None
     coll_time: float | None = None
 
-    def take(self, plan: Pieces) -> None:
-        """Fly ``plan`` from its start (the reference until then)."""
-        self.ref = self.ref.splice(plan, self.t)
+    @property
+    def yaw(self) -> float:
+        """The vehicle's yaw now: the reference's."""
+        return self.yaw0 if self.reference is None else float(self.reference.yaw(self.t)[0])
+
+    def adopt(self, ref: Pieces) -> None:
+        """Fly ``ref`` (the pilot's reference, spliced onto the last at the switch)."""
+        self.ref = ref
         self.jumps = _jumps(self.ref)
         # e = r − x: zero for a plan from the reference's state; a plan that starts now somewhere
         # else (a scripted reference) is a jump the tracker absorbs.
@@ -275,49 +171,62 @@ def run_episode(
     world: World,
     start: np.ndarray,
     goal: np.ndarray,
-    method: Method,
+    method: Method | Pilot,
     config: LoopConfig,
     *,
     render: Callable[[np.ndarray], np.ndarray] | None = None,
+    camera: RunCamera | None = None,
+    vehicle: RotorpyVehicle | None = None,
+    gimbal: bool = False,
 ) -> Episode:
-    """Fly ``method`` from ``start`` to ``goal`` in ``world``.
+    """Fly ``method`` (a planner, flown by a :class:`~mapkit.flight.Pilot` with ``config.pilot``, or a
+    pilot) from ``start`` to ``goal`` in ``world``.
 
     Args:
         world: exact ground truth (collisions use its signed distance).
         start, goal: (3,) world points.
-        method: the planner.
+        method: the planner, or the pilot flying one (reset first: every episode is a new flight).
         config: loop settings.
-        render: T_world_body (4, 4) → depth (H, W); needed when ``method.needs_depth``.
+        render: T_world_body (4, 4) → depth (H, W); needed when the planner needs depth.
+        camera: the camera ``render`` renders (its K and mount); default: the pilot's.
+        vehicle: fly rotorpy's quadrotor (:class:`RotorpyVehicle`) instead of the linear tracker; its camera
+            is rendered at the airframe's true attitude (tilting with it) unless ``gimbal``.
     """
     start = np.asarray(start, dtype=np.float64).reshape(3)
     goal = np.asarray(goal, dtype=np.float64).reshape(3)
-    frames = config.replan_interval * config.depth_rate
+    pilot = method if isinstance(method, Pilot) else Pilot(method, camera=camera, config=config.pilot)
+    pilot.reset()
+    interval = pilot.config.replan_interval
+    frames = interval * config.depth_rate
     if abs(frames - round(frames)) > 1e-6 or frames < 1:
-        raise ValueError(f"replan_interval {config.replan_interval} s is not a whole number of depth frames "
-                         f"at {config.depth_rate} Hz")
+        raise ValueError(f"replan_interval {interval} s is not a whole number of depth frames at {config.depth_rate} Hz")
     dt = 1.0 / config.control_rate
-    steps = int(round(config.replan_interval / dt))
-    lag = dt * math.ceil(config.plan_latency / dt - 1e-9)
-    if not 0 <= lag < config.replan_interval:
-        raise ValueError(f"plan_latency {config.plan_latency} s must be in [0, replan_interval)")
+    steps = int(round(interval / dt))
     tracker = _Tracker(config.tracking_bandwidth, dt)
     t_limit = max(config.timeout_min, config.timeout_factor * float(np.linalg.norm(goal - start)) / config.cruise_speed)
     x = np.zeros((4, 3))
     x[0] = start
     ref = hold(start, 0.0)
     f = _Flight(x=x, E=np.zeros((4, 3)), ref=ref, jumps=_jumps(ref), rows=[np.array([0.0, *start])],
-                min_dist=float(world.signed_distance(start[None])[0]))
+                min_dist=float(world.signed_distance(start[None])[0]),
+                yaw0=math.atan2(goal[1] - start[1], goal[0] - start[0]))
     if f.min_dist < config.robot_radius:
         f.outcome, f.coll_point, f.coll_time = "collision", start.tolist(), 0.0
-    planned_once = False
+    mount = (camera or pilot.camera)
+    T_body_camera = None if mount is None else mount.T_body_camera
+    if vehicle is not None:
+        vehicle.reset(start, f.yaw0)
     while f.outcome == "timeout" and f.t < t_limit - 1e-9:
-        if method.replans or not planned_once:
-            planned_once = True
-            _replan(f, world, goal, method, config, render, lag if method.replans else 0.0)
+        if pilot.planner.replans or not f.plans:
+            T_wb, state = _pose(f, vehicle, gimbal)
+            _replan(f, goal, pilot, render, T_body_camera, None if camera is None else camera.K, T_wb, state)
         elif f.t >= f.ref.t_end and not f.E.any():
             f.t = t_limit  # an open-loop method at rest short of the goal never gets there
             break
-        _fly(f, world, goal, config, tracker, steps, t_limit)
+        if vehicle is None:
+            _fly(f, world, goal, config, tracker, steps, t_limit)
+        else:
+            _fly_rotorpy(f, world, goal, config, vehicle, min(f.t + interval, t_limit), t_limit)
     executed = f.plans - f.rejected
     return Episode(
         outcome=f.outcome, time_s=float(min(f.t, t_limit)), path_length=f.path_length, control_effort=f.effort,
@@ -325,58 +234,54 @@ def run_episode(
         rejected_plans=f.rejected, latencies_ms=f.latencies, allocation_ms=f.allocations,
         plan_effort=float(np.mean(f.plan_efforts)) if executed and f.plan_efforts else None,
         peak_speed=float(f.peaks[0]), peak_acceleration=float(f.peaks[1]), peak_jerk=float(f.peaks[2]),
-        samples=np.array(f.rows),
+        samples=np.array(f.rows), tracking_error_mean=float(np.mean(f.tracking)) if f.tracking else 0.0,
+        tracking_error_max=float(np.max(f.tracking)) if f.tracking else 0.0,
+        reference_peak_speed=float(f.ref_peaks[0]), reference_peak_acceleration=float(f.ref_peaks[1]),
     )
 
 
-def _replan(f: _Flight, world: World, goal: np.ndarray, method: Method, config: LoopConfig,
-            render: Callable[[np.ndarray], np.ndarray] | None, lag: float) -> None:
-    """Observe at ``f.t``, plan from the reference's state at ``f.t + lag``, and take the plan (or
-    react to its rejection)."""
-    v_h = float(np.hypot(f.x[1, 0], f.x[1, 1]))
-    to_goal = goal - f.x[0]
-    heading = f.x[1]
-    if config.look_ahead > 0:
-        ahead = f.ref.derivative(np.array([min(f.t + config.look_ahead, f.ref.t_end)]), 0)[0] - f.x[0]
-        heading = ahead if math.hypot(ahead[0], ahead[1]) > 0.3 else heading
-    facing = to_goal if f.look_at is None else f.look_at - f.x[0]
-    yaw = math.atan2(heading[1], heading[0]) if v_h > 0.5 else math.atan2(facing[1], facing[0]) + f.look
-    T_wb = level_pose(f.x[0], yaw)
-    g_body = T_wb[:3, :3].T @ to_goal
-    n = float(np.linalg.norm(g_body))
-    local = g_body * min(1.0, config.horizon / n) if n > 0 else g_body
+def _pose(f: _Flight, vehicle: RotorpyVehicle | None, gimbal: bool) -> tuple[np.ndarray, VehicleState]:
+    """The body's pose (the camera's mount) and the vehicle's state now: the tracker's level body with
+    the reference's yaw, or the rotorpy airframe at its true attitude (level on a gimbal)."""
+    if vehicle is None:
+        yaw = f.yaw
+        return level_pose(f.x[0], yaw), VehicleState(position=f.x[0], velocity=f.x[1], acceleration=f.x[2], yaw=yaw)
+    state = VehicleState(position=vehicle.position, velocity=vehicle.velocity, acceleration=vehicle.acceleration,
+                         yaw=vehicle.yaw)
+    return (level_pose(vehicle.position, vehicle.yaw) if gimbal else vehicle.T_world_body), state
+
+
+def _replan(f: _Flight, goal: np.ndarray, pilot: Pilot, render: Callable[[np.ndarray], np.ndarray] | None,
+            T_body_camera: np.ndarray | None, K: np.ndarray | None, T_wb: np.ndarray, state: VehicleState) -> None:
+    """Render the frame at the body's pose, give it to the pilot, and fly what it answers."""
     depth = None
-    if method.needs_depth:
-        assert render is not None  # given whenever the method needs depth
+    if pilot.planner.needs_depth:
+        if render is None:
+            raise ValueError(f"{getattr(pilot.planner, 'name', 'the planner')} needs depth: pass render=")
         depth = render(T_wb)
-    t_take = f.t + lag
-    obs = Observation(t=t_take, T_world_body=T_wb, state_world=f.ref.state(t_take), goal_world=goal,
-                      local_goal_body=local, depth=depth, goal_clipped=n > config.horizon, reference=f.ref)
-    if method.replans and float(np.linalg.norm(to_goal)) < config.final_approach:
-        mp = _final_approach(obs, config)
-    else:
-        mp = method.plan(obs)
-    f.look_at = mp.look_at
+    step = pilot.step(f.t, state, goal, depth, K=K, T_world_body=T_wb,
+                      T_body_camera=T_body_camera if depth is not None else None)
+    _record(f, step)
+    f.reference = step.reference
+    if step.reference.pieces is not f.ref:
+        f.adopt(step.reference.pieces)
+
+
+def _record(f: _Flight, step: PilotStep) -> None:
+    """Count the pilot's plan, its latency, its rejection or its effort, and the reference's peaks."""
+    if step.plan is None:
+        return
+    mp = step.plan
     f.plans += 1
     f.latencies.append(mp.latency_ms)
     if mp.allocation_ms is not None:
         f.allocations.append(mp.allocation_ms)
-    vetoed = config.respect_eta and mp.eta is not None and mp.eta >= 0.5 and not mp.overrides_eta
-    if vetoed or mp.blocked:
+    if not step.taken:
         f.rejected += 1
-        if f.t >= f.ref.t_end - 1e-9:
-            if f.look == 0.0 and mp.turn_side:  # a new look around, the way the method asks
-                f.turn = float(np.sign(mp.turn_side))
-            f.look += f.turn * math.radians(config.look_turn_deg)
-        elif (mp.blocked or config.on_reject == "brake") and not f.braking:
-            f.braking = True
-            f.take(_brake(obs, config.brake_deceleration, mp.brake_direction).pieces)
-        return
-    f.braking = False
-    f.look = 0.0
-    if mp.pieces.degree >= 4:  # a cubic spline's snap is zero between knots and impulsive at them
+    elif mp.pieces.degree >= 4:  # a cubic spline's snap is zero between knots and impulsive at them
         f.plan_efforts.append(mp.pieces.snap_effort(mp.pieces.t0, mp.pieces.t_end))
-    f.take(mp.pieces)
+    if step.reference.pieces is not f.ref:
+        f.ref_peaks = np.maximum(f.ref_peaks, step.reference.peaks(f.t))
 
 
 def _fly(f: _Flight, world: World, goal: np.ndarray, config: LoopConfig, tracker: _Tracker, steps: int,
@@ -400,20 +305,7 @@ def _fly(f: _Flight, world: World, goal: np.ndarray, config: LoopConfig, tracker
             tau0 = ti
             Es[i] = cur
     states = r[:4].transpose(1, 0, 2) - (Es if Es is not None else 0.0)  # (N, 4, 3) vehicle
-    pos = states[:, 0]
-    d = world.signed_distance(pos)
-    hit = np.flatnonzero(d < config.robot_radius)
-    near = np.flatnonzero(np.linalg.norm(pos - goal, axis=1) <= config.goal_radius)
-    stop = steps
-    if len(hit) and (not len(near) or hit[0] <= near[0]):
-        stop = int(hit[0]) + 1
-        f.outcome, f.coll_point, f.coll_time = "collision", pos[hit[0]].tolist(), float(tg[hit[0]])
-    elif len(near):
-        stop = int(near[0]) + 1
-        f.outcome = "success"
-    over = np.flatnonzero(tg >= t_limit - 1e-9)
-    if f.outcome == "timeout" and len(over):
-        stop = int(over[0]) + 1
+    stop = _judge(f, world, goal, config, tg, states[:, 0], t_limit)
     t_end = float(tg[stop - 1])
     f.effort += f.ref.snap_effort(t, t_end)
     if Es is not None:
@@ -424,59 +316,56 @@ def _fly(f: _Flight, world: World, goal: np.ndarray, config: LoopConfig, tracker
         r0 = f.ref.derivative(np.array([t]), 4)[0]
         f0 = float(2.0 * r0 @ e0 + e0 @ e0)
         f.effort += float(np.trapezoid(np.concatenate([[f0], cross]), np.concatenate([[t], tg[:stop]])))
-    seg = np.concatenate([f.rows[-1][1:][None], pos[:stop]])
-    f.path_length += float(np.linalg.norm(np.diff(seg, axis=0), axis=1).sum())
-    f.min_dist = min(f.min_dist, float(d[:stop].min()))
     f.peaks = np.maximum(f.peaks, np.linalg.norm(states[:stop, 1:4], axis=-1).max(axis=0))
-    f.rows.extend(np.column_stack([tg[:stop], pos[:stop]]))
+    f.tracking.extend(np.linalg.norm(Es[:stop, 0], axis=1).tolist() if Es is not None else [0.0] * stop)
     f.x = states[stop - 1]
     f.E = Es[stop - 1] if Es is not None else np.zeros((4, 3))
     f.t = t_end
 
 
-def _final_approach(obs: Observation, config: LoopConfig) -> MethodPlan:
-    """One minimum-snap segment from the vehicle's state to rest at the goal, at half the current
-    speed on average (at least a quarter of the cruise speed)."""
-    import time
-
-    import torch
-
-    from mapkit.trajopt import min_snap
-
-    t0 = time.perf_counter()
-    R, p = obs.T_world_body[:3, :3], obs.T_world_body[:3, 3]
-    goal = R.T @ (obs.goal_world - p)
-    start = obs.start_body()
-    speed = max(0.5 * float(np.linalg.norm(start[1])), 0.25 * config.cruise_speed)
-    T = max(float(np.linalg.norm(goal - start[0])) / speed, 0.2)
-    wp = torch.from_numpy(np.stack([start[0], goal]))[None]
-    with torch.no_grad():
-        traj = min_snap(wp, torch.tensor([[T]], dtype=torch.float64), start=torch.from_numpy(start[1:])[None])
-    from mapkit.evaluation._pieces import pieces_from_body
-
-    return MethodPlan(pieces=pieces_from_body(traj.coeffs[0].numpy(), np.array([T]), obs.T_world_body, obs.t),
-                      latency_ms=1e3 * (time.perf_counter() - t0))
+def _fly_rotorpy(f: _Flight, world: World, goal: np.ndarray, config: LoopConfig, vehicle: RotorpyVehicle,
+                 t1: float, t_limit: float) -> None:
+    """Fly rotorpy's quadrotor on the pilot's reference until ``t1``. Effort is the reference's exact
+    ∫‖snap‖² dt over the flown time (what the controller was asked to fly: the airframe's own snap is
+    not observable in rotorpy's state); the peaks are the airframe's (jerk by differences)."""
+    assert f.reference is not None  # a reference is given before every interval
+    t0 = f.t
+    trace = vehicle.fly(f.reference.sample, t0, t1)
+    stop = _judge(f, world, goal, config, trace.t, trace.position, t_limit)
+    t_end = float(trace.t[stop - 1])
+    f.effort += f.ref.snap_effort(t0, t_end)
+    dt = np.diff(np.concatenate([[t0], trace.t[:stop]]))
+    jerk = np.diff(np.vstack([f.x[2][None], trace.acceleration[:stop]]), axis=0) / dt[:, None]
+    peaks = [np.linalg.norm(a, axis=1).max() for a in (trace.velocity[:stop], trace.acceleration[:stop], jerk)]
+    f.peaks = np.maximum(f.peaks, peaks)
+    f.tracking.extend(np.linalg.norm(trace.position[:stop] - trace.reference[:stop], axis=1).tolist())
+    f.x = np.stack([trace.position[stop - 1], trace.velocity[stop - 1], trace.acceleration[stop - 1], jerk[-1]])
+    f.t = t_end
 
 
-def _brake(obs: Observation, deceleration: float, direction: np.ndarray | None = None) -> MethodPlan:
-    """One minimum-snap segment from the vehicle's state to rest along its velocity: over
-    T = max(0.5, 2 v / a) seconds to v T / 2 = v² / a metres ahead (half of ``deceleration`` on average;
-    the smooth profile peaks near it)."""
-    import torch
-
-    from mapkit.evaluation._pieces import pieces_from_body
-    from mapkit.trajopt import min_snap
-
-    state = obs.start_body()
-    start = state[1:]  # body-frame velocity, acceleration, jerk
-    speed = float(np.linalg.norm(start[0]))
-    T = max(0.5, 2.0 * speed / deceleration)
-    stop = state[0] + 0.5 * T * (start[0] if direction is None else speed * direction)
-    wp = torch.from_numpy(np.stack([state[0], stop]))[None]
-    with torch.no_grad():
-        traj = min_snap(wp, torch.tensor([[T]], dtype=torch.float64), start=torch.from_numpy(start)[None])
-    return MethodPlan(pieces=pieces_from_body(traj.coeffs[0].numpy(), np.array([T]), obs.T_world_body, obs.t),
-                      latency_ms=0.0)
+def _judge(f: _Flight, world: World, goal: np.ndarray, config: LoopConfig, tg: np.ndarray, pos: np.ndarray,
+           t_limit: float) -> int:
+    """Judge the samples ``pos`` (N, 3) at times ``tg`` (N,): the first collision or arrival at the goal
+    ends the flight, as does the time limit. Adds the path, the clearance and the rows up to there, and
+    returns how many samples were flown."""
+    d = world.signed_distance(pos)
+    hit = np.flatnonzero(d < config.robot_radius)
+    near = np.flatnonzero(np.linalg.norm(pos - goal, axis=1) <= config.goal_radius)
+    stop = len(tg)
+    if len(hit) and (not len(near) or hit[0] <= near[0]):
+        stop = int(hit[0]) + 1
+        f.outcome, f.coll_point, f.coll_time = "collision", pos[hit[0]].tolist(), float(tg[hit[0]])
+    elif len(near):
+        stop = int(near[0]) + 1
+        f.outcome = "success"
+    over = np.flatnonzero(tg >= t_limit - 1e-9)
+    if f.outcome == "timeout" and len(over):
+        stop = int(over[0]) + 1
+    seg = np.concatenate([f.rows[-1][1:][None], pos[:stop]])
+    f.path_length += float(np.linalg.norm(np.diff(seg, axis=0), axis=1).sum())
+    f.min_dist = min(f.min_dist, float(d[:stop].min()))
+    f.rows.extend(np.column_stack([tg[:stop], pos[:stop]]))
+    return stop
 
 
 def _jumps(ref: Pieces) -> list[tuple[float, np.ndarray]]:

@@ -80,6 +80,7 @@ def _markdown(path: Path, doc: dict, episodes: list[EpisodeRecord], latency: dic
                          ("oracle", "target: at most 2×")):
         if "learned" in methods and other in methods:
             L += [_effort_comparison(doc, episodes, "learned", other, paper), ""]
+    L += _tracking_table(doc)
     L += _allocation_table(doc, latency, allocation)
     L += _per_world_table(doc, latency)
     L += _detour_table(doc, episodes)
@@ -101,6 +102,7 @@ def _ablation_section(doc: dict, episodes: list[EpisodeRecord]) -> list[str]:
 def _setup_lines(doc: dict) -> list[str]:
     """The title and what was run: model, worlds and pairs, the closed loop's settings."""
     cfg, loop = doc["config"], doc["config"]["loop"]
+    pilot = loop.get("pilot", loop)  # files before the pilot kept its options in the loop
     model = doc["model"]
     n_pairs = {k: len(v["pairs"]) for k, v in doc["worlds"].items()}
     L = ["# mapkit eval report", ""]
@@ -112,11 +114,11 @@ def _setup_lines(doc: dict) -> list[str]:
         f"(pairs seeded likewise); start–goal ≥ {cfg['min_distance']} m apart with {cfg['pair_clearance']} m clearance, "
         f"goals hidden from the start where possible.",
         f"Closed loop: depth {doc['camera']['width']}×{doc['camera']['height']} at {loop['depth_rate']:g} Hz, replan every "
-        f"{loop['replan_interval']} s, local goal clipped to {loop['horizon']} m, success within {loop['goal_radius']} m "
+        f"{pilot['replan_interval']} s, local goal clipped to {pilot['horizon']} m, success within {loop['goal_radius']} m "
         f"of the goal, collision when the body centre comes closer than {loop['robot_radius']} m to the world "
         f"(exact distance, {loop['control_rate']:g} Hz samples), time limit max({loop['timeout_min']:g} s, "
         f"{loop['timeout_factor']:g} × distance / {loop['cruise_speed']:g} m/s). Plans with η ≥ 0.5 are "
-        f"{'not executed' if loop['respect_eta'] else 'executed anyway'}. Executed effort is ∫‖snap‖² dt (m²/s⁷) of the "
+        f"{'not executed' if pilot['respect_eta'] else 'executed anyway'}. Executed effort is ∫‖snap‖² dt (m²/s⁷) of the "
         f"flown trajectory (reference tracked by a 4th-order loop with poles at −{loop['tracking_bandwidth']:g} rad/s); "
         f"per-plan effort is each executed plan's own whole ∫‖snap‖² dt (the paper's quantity), averaged over a "
         f"flight; both over successful flights. Peaks are the flown vehicle's largest speed, acceleration and jerk. "
@@ -159,6 +161,27 @@ def _effort_table(doc: dict, latency: dict) -> list[str]:
                  f"{_median(o.get('plan_effort', {}))} | {_median(o.get('time_s', {}), '{:.1f}')} | {peaks} | {_lat(latency[m]['overall'])} | "
                  f"{_pm(o['path_length_ratio'])} | {mind} |")
     L += ["", "Paper: " + "; ".join(f"{k} {e} m²/s⁷, {t} ms" for k, (e, t) in PAPER_EFFORT_LATENCY.items()) + ".", ""]
+    return L
+
+
+def _tracking_table(doc: dict) -> list[str]:
+    """How closely the vehicle flew the pilot's references, and how hard those references asked it to fly."""
+    s, methods = doc["summary"], doc["methods"]
+    vehicle = doc["config"].get("vehicle", "tracker")
+    L = [f"## Tracking — the vehicle ({vehicle}) against the pilot's reference", "",
+         "| method | tracking error m: per-flight mean (mean over flights, worst) | per-flight max (mean, worst) | "
+         "reference peak speed m/s (median, worst) | reference peak acceleration m/s² (median, worst) |",
+         "|---|---|---|---|---|"]
+    for m in methods:
+        o = s[m]["overall"]
+
+        def pair(key: str, centre: str, o: dict = o) -> str:
+            stat = o.get(key, {})
+            return "–" if stat.get(centre) is None else f"{stat[centre]:.3g}, {stat['max']:.3g}"
+
+        L.append(f"| {m} | {pair('tracking_error_mean', 'mean')} | {pair('tracking_error_max', 'mean')} | "
+                 f"{pair('reference_peak_speed', 'median')} | {pair('reference_peak_acceleration', 'median')} |")
+    L += ["", "Peaks are on any world axis (the measure of the flight stack's per-axis limits).", ""]
     return L
 
 

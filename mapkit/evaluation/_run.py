@@ -23,16 +23,27 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mapkit._choices import FLIGHT_STACKS, FlightStack
+from mapkit._choices import FLIGHT_STACKS, VEHICLES, FlightStack, VehicleKind
 from mapkit._formats import EVAL_FORMAT, JUDGE_FILE, PLANS_FILE, EpisodeRecord
 from mapkit._version import __version__
 from mapkit.evaluation._ablation import Ablation, ablation
-from mapkit.evaluation._layers import Execution, Memory
 from mapkit.evaluation._loop import LoopConfig, run_episode
-from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, JudgeInput, LearnedMethod, PlanInput, make_methods
+from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, make_methods
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
-from mapkit.evaluation._route import RouteConfig
-from mapkit.evaluation._stack import UNTRAINED_SEEDS, Run, plan_runs, split_label, under_stack
+from mapkit.evaluation._rotorpy import RotorpyVehicle
+from mapkit.evaluation._stack import UNTRAINED_SEEDS, Run, plan_runs, split_label
+from mapkit.flight import (
+    Execution,
+    FlightError,
+    JudgeInput,
+    LearnedMethod,
+    Memory,
+    Pilot,
+    PlanInput,
+    RouteConfig,
+    under_stack,
+)
+from mapkit.planning._camera import RunCamera
 from mapkit.workspace import atomic_output, check_writable
 
 if TYPE_CHECKING:
@@ -67,7 +78,7 @@ class EvalConfig:
     methods: tuple[str, ...] = METHODS
     """Methods to compare (see :data:`mapkit.evaluation.METHODS`)."""
     stacks: tuple[FlightStack, ...] = ("full",)
-    """Flight stacks every learned method flies under (:func:`~mapkit.evaluation.under_stack`): one
+    """Flight stacks every learned method flies under (:func:`~mapkit.flight.under_stack`): one
     run per method and stack, labelled ``NAME@STACK`` under a stack other than ``full``; ``straight``
     and ``oracle`` fly once."""
     untrained_seeds: tuple[int, ...] = UNTRAINED_SEEDS
@@ -93,10 +104,15 @@ class EvalConfig:
     read the model's run directory at the same path. ``"local"``: a Dask LocalCluster of ``workers``
     processes here. Results do not depend on it."""
     loop: LoopConfig = field(default_factory=LoopConfig)
-    """The closed loop (replan interval, goal radius, robot radius, horizon, time limit, tracker)."""
+    """The closed loop (the pilot's options, goal radius, robot radius, time limit, tracker)."""
+    vehicle: VehicleKind = "tracker"
+    """What flies the references: the linear tracker (level body, exact and fast) or rotorpy's quadrotor
+    under its SE(3) controller at 100 Hz (rotor dynamics and drag; the camera tilts with the airframe)."""
+    gimbal: bool = False
+    """With ``vehicle="rotorpy"``: render the camera level (on a gimbal) instead of at the airframe's attitude."""
     record_plans: bool = False
     """Also write plans.npz: what the ``learned`` method's time allocation was given at every plan
-    (:class:`~mapkit.evaluation.PlanInput`), for ``mapkit tune-timing``. Results do not depend on it."""
+    (:class:`~mapkit.flight.PlanInput`), for ``mapkit tune-timing``. Results do not depend on it."""
     record_judge: bool = False
     """Also write judge.npz: what a flown-path head reads about every candidate of the ``learned``
     method's plans, each labelled by whether its judged stretch comes within the robot's radius of the
@@ -118,6 +134,11 @@ class EvalConfig:
         if stacks or not self.stacks or len(set(self.stacks)) != len(self.stacks):
             what = f"unknown flight stack {stacks[0]!r}" if stacks else f"flight stacks {list(self.stacks)}"
             raise EvalError(f"{what}; --stack takes a comma list of distinct {', '.join(FLIGHT_STACKS)}")
+        if self.vehicle not in VEHICLES:
+            raise EvalError(f"--vehicle {self.vehicle!r}: use one of {', '.join(VEHICLES)}")
+        if self.gimbal and self.vehicle != "rotorpy":
+            raise EvalError("--gimbal levels the camera of the rotorpy quadrotor; the tracker's camera is always "
+                            "level: pass --vehicle rotorpy too, or drop --gimbal")
         if self.pairs < 1:
             raise EvalError(f"--pairs must be >= 1, got {self.pairs}")
         seeds = self.untrained_seeds
@@ -134,24 +155,25 @@ class EvalConfig:
         if not (math.isfinite(self.min_distance) and self.min_distance > 0):
             raise EvalError(f"--min-distance must be > 0 metres, got {self.min_distance}")
         ex, loop = self.execution, self.loop
-        if not (math.isfinite(loop.horizon) and loop.horizon > 0):
-            raise EvalError(f"--horizon must be > 0 metres (the local goal's distance), got {loop.horizon}")
-        frames = loop.replan_interval * loop.depth_rate
+        pilot = loop.pilot
+        if not (math.isfinite(pilot.horizon) and pilot.horizon > 0):
+            raise EvalError(f"--horizon must be > 0 metres (the local goal's distance), got {pilot.horizon}")
+        frames = pilot.replan_interval * loop.depth_rate
         if not (math.isfinite(frames) and frames >= 1 - 1e-9 and abs(frames - round(frames)) < 1e-6):
-            raise EvalError(f"--replan-interval {loop.replan_interval} s is not a whole number of depth frames at "
+            raise EvalError(f"--replan-interval {pilot.replan_interval} s is not a whole number of depth frames at "
                             f"{loop.depth_rate:g} Hz; use a multiple of {1 / loop.depth_rate:.4g} s")
         _validate_execution(ex)
-        if not (math.isfinite(loop.plan_latency) and 0 <= loop.plan_latency < loop.replan_interval):
-            raise EvalError(f"--plan-latency must be in [0, replan interval {loop.replan_interval} s), got {loop.plan_latency}")
-        if not (math.isfinite(loop.look_ahead) and loop.look_ahead >= 0):
-            raise EvalError(f"--look-ahead must be >= 0 seconds (0: head along the velocity), got {loop.look_ahead}")
-        if not (math.isfinite(loop.final_approach) and loop.final_approach >= 0):
-            raise EvalError(f"--final-approach must be >= 0 metres (0 turns it off), got {loop.final_approach}")
+        if not (math.isfinite(pilot.plan_latency) and 0 <= pilot.plan_latency < pilot.replan_interval):
+            raise EvalError(f"--plan-latency must be in [0, replan interval {pilot.replan_interval} s), got {pilot.plan_latency}")
+        if not (math.isfinite(pilot.look_ahead) and pilot.look_ahead >= 0):
+            raise EvalError(f"--look-ahead must be >= 0 seconds (0: head along the velocity), got {pilot.look_ahead}")
+        if not (math.isfinite(pilot.final_approach) and pilot.final_approach >= 0):
+            raise EvalError(f"--final-approach must be >= 0 metres (0 turns it off), got {pilot.final_approach}")
+        try:
+            pilot.validate()
+        except FlightError as exc:
+            raise EvalError(str(exc)) from None
         lc = self.loop
-        frames = lc.replan_interval * lc.depth_rate
-        if not lc.replan_interval > 0 or abs(frames - round(frames)) > 1e-6:
-            raise EvalError(f"--replan-interval {lc.replan_interval} s must be a positive whole number of depth "
-                            f"frames at {lc.depth_rate} Hz (e.g. 0.5)")
         if not self.pair_clearance > lc.robot_radius:
             raise EvalError(f"pair clearance {self.pair_clearance} m must exceed the robot radius {lc.robot_radius} m")
 
@@ -271,6 +293,8 @@ class _WorkerSetup:
     execution: Execution
     loop: LoopConfig
     record_plans: bool = False
+    vehicle: VehicleKind = "tracker"
+    gimbal: bool = False
     untrained_seeds: tuple[int, ...] = (0,)
     record_judge: bool = False
     judge_history: float | None = None
@@ -284,7 +308,10 @@ class _WorldBundle:
     graph: Any
     camera: Any
     rays: np.ndarray
-    methods: list[Any]
+    pilots: list[Pilot]
+    """One pilot per run, each flying its method (the same object a user deploys)."""
+    vehicle: RotorpyVehicle | None = None
+    """rotorpy's quadrotor (``--vehicle rotorpy``), reset for every flight; None: the linear tracker."""
 
 
 @dataclass(frozen=True)
@@ -409,7 +436,11 @@ def _world_bundle(kind: str) -> _WorldBundle:
                 method.plan_log = [] if setup.record_plans else None
                 method.judge_log = [] if setup.record_judge else None
                 method.record_history = setup.judge_history
-        state.worlds[kind] = _WorldBundle(world=world, graph=graph, camera=camera, rays=rays, methods=methods)
+        recorded = RunCamera(cam.width, cam.height, K, np.asarray(cam.T_body_camera), "the evaluation's camera")
+        pilots = [Pilot(method, camera=recorded, config=setup.loop.pilot) for method in methods]
+        vehicle = RotorpyVehicle() if setup.vehicle == "rotorpy" else None
+        state.worlds[kind] = _WorldBundle(world=world, graph=graph, camera=camera, rays=rays, pilots=pilots,
+                                          vehicle=vehicle)
     return state.worlds[kind]
 
 
@@ -437,8 +468,9 @@ def _run_pair(kind: str, pair: dict) -> list[_EpisodeRun]:
 
     start, goal = np.asarray(pair["start"]), np.asarray(pair["goal"])
     out = []
-    for method in b.methods:
-        ep = run_episode(world, start, goal, method, loop, render=render)
+    for pilot in b.pilots:
+        method = pilot.planner
+        ep = run_episode(world, start, goal, pilot, loop, render=render, vehicle=b.vehicle, gimbal=setup.gimbal)
         straight = pair["distance"]
         record = EpisodeRecord(
             world=kind, pair=pair["pair"], method=method.name, outcome=ep.outcome,
@@ -450,7 +482,9 @@ def _run_pair(kind: str, pair: dict) -> list[_EpisodeRun]:
             collision_point=ep.collision_point,
             collision_time=ep.collision_time, plans=ep.plans, rejected_plans=ep.rejected_plans,
             plan_effort=ep.plan_effort, peak_speed=ep.peak_speed, peak_acceleration=ep.peak_acceleration,
-            peak_jerk=ep.peak_jerk, stack=split_label(method.name).stack,
+            peak_jerk=ep.peak_jerk, tracking_error_mean=ep.tracking_error_mean,
+            tracking_error_max=ep.tracking_error_max, reference_peak_speed=ep.reference_peak_speed,
+            reference_peak_acceleration=ep.reference_peak_acceleration, stack=split_label(method.name).stack,
         )
         plans = getattr(method, "plan_log", None) or []
         judged = getattr(method, "judge_log", None) or []
@@ -469,6 +503,16 @@ def _call(args: tuple[str, dict]) -> tuple[str, int, list[_EpisodeRun]]:
 
 
 # -------------------------------------------------------------------------------- summaries
+def _flight_stats(eps: list[EpisodeRecord]) -> dict[str, dict[str, float | None]]:
+    """Over every flight: tracking error (per flight mean and max, metres) and the references' peak speed
+    and acceleration on any axis, each with its largest value."""
+    out = {}
+    for key in ("tracking_error_mean", "tracking_error_max", "reference_peak_speed", "reference_peak_acceleration"):
+        values = _present([getattr(e, key) for e in eps])
+        out[key] = {**_stats(values), "max": float(max(values)) if values else None}
+    return out
+
+
 def _stats(values: list[float]) -> dict[str, float | None]:
     if not values:
         return {"mean": None, "std": None, "median": None}
@@ -511,6 +555,7 @@ def summarise(episodes: list[EpisodeRecord], worlds: list[str], methods: list[st
                                              if hidden else None),
                 "rejected_plan_rate": (sum(e.rejected_plans or 0 for e in eps) / max(1, sum(e.plans or 0 for e in eps))
                                        if eps else None),
+                **_flight_stats(eps),
             }
     return out
 
@@ -951,7 +996,7 @@ def evaluate(
                              oracle_corridor=config.oracle_corridor,
                              execution=config.execution, loop=config.loop, record_plans=config.record_plans,
                              untrained_seeds=config.untrained_seeds, record_judge=config.record_judge,
-                             judge_history=config.judge_history)
+                             judge_history=config.judge_history, vehicle=config.vehicle, gimbal=config.gimbal)
         tasks = [(k, p.to_dict()) for k in config.worlds for p in pairs[k]]
         flown = _fly_all(setup, tasks, config.workers, progress, cluster)
     collected = _collect(config, pairs, flown.results)

@@ -1,5 +1,5 @@
-"""Flight stacks: the layers `mapkit eval` wraps around a replanning learned method, and the runs an
-ablation flies (every method under every stack asked for).
+"""The runs an ablation flies: every method under every flight stack asked for
+(:func:`mapkit.flight.under_stack`).
 
 A *run* is one method under one stack. Its label names it in results.json (``methods``, each
 episode's ``method``, the summary's keys): the method's name under ``full``, ``NAME@STACK`` under
@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from mapkit._choices import FLIGHT_STACKS, FlightStack
-from mapkit.evaluation._layers import Execution
 from mapkit.evaluation._methods import LEARNED_ALLOCATIONS
 from mapkit.evaluation._pairs import EvalError
 
@@ -51,22 +50,6 @@ def parse_untrained_seeds(text: str) -> tuple[int, ...]:
         raise EvalError(f"--untrained-seeds {text!r}: {what}; use a comma list such as "
                         f"{','.join(map(str, UNTRAINED_SEEDS))}")
     return tuple(int(part) for part in parts)
-
-
-def under_stack(execution: Execution, stack: FlightStack) -> Execution:
-    """``execution`` as flown under ``stack``: ``full`` keeps every layer as configured; ``none`` keeps
-    the corridor's widths and the speed profile and turns off the depth memory (with its ways out and
-    the turn toward open space), the corridor's check (so the corridor flies at its
-    ``unchecked_width``), the flight map's routing, following the reference, keeping the last
-    plan's candidate and the shifted candidates, and gates with the model's flown-path head where it has
-    one (the paper's protocol: the network alone, its key-points through a narrow corridor, replanned
-    every interval)."""
-    if stack == "full":
-        return execution
-    if stack == "none":
-        return replace(execution, memory=None, route=None, follow=0.0, keep_choice=None, shift=(), flown_judge=True,
-                       corridor=replace(execution.corridor, check=False, check_memory=False))
-    raise ValueError(f"unknown flight stack {stack!r}; use one of {', '.join(FLIGHT_STACKS)}")
 
 
 @dataclass(frozen=True)

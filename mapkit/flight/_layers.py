@@ -1,5 +1,5 @@
-"""The flight stack: the layers `mapkit eval` puts around a replanning learned method, as one typed
-config (:class:`Execution`) composed of named layers: the flight corridor and its check
+"""The flight stack: the layers the pilot puts around the learned planner, as one typed config
+(:class:`Execution`) composed of named layers: the flight corridor and its check
 (:class:`Corridor`), the depth memory and its ways out (:class:`Memory`), the flight map's routing
 (:class:`~mapkit.evaluation.RouteConfig`), following the reference being flown (``follow``), keeping
 the last plan's candidate (``keep_choice``) and the speed profile that times the plans
@@ -8,10 +8,10 @@ that chose it: docs/results.md."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
-from mapkit._choices import CANDIDATE_SHIFTS
-from mapkit.evaluation._route import RouteConfig
+from mapkit._choices import CANDIDATE_SHIFTS, FLIGHT_STACKS, FlightStack
+from mapkit.flight._route import RouteConfig
 
 
 @dataclass(frozen=True)
@@ -67,7 +67,7 @@ class Memory:
     subgoal_speed: float | None = None
     """m/s at which plans pass the way-out point (None: the plans' cruise speed; 0: stop there)."""
     turn_toward_open: bool = True
-    """A blocked vehicle that hovers and turns to look elsewhere (:attr:`LoopConfig.look_turn_deg` at a
+    """A blocked vehicle that hovers and turns to look elsewhere (:attr:`~mapkit.flight.PilotConfig.look_turn_deg` at a
     time) turns toward the side with fewer remembered surfaces within 3 m
     (:attr:`MethodPlan.turn_side`) instead of always counter-clockwise (which turned it into the
     corner it stood in)."""
@@ -83,7 +83,7 @@ class SpeedProfile:
     passes a local goal beyond the horizon) while the flight makes its way: the oracle's pace. None: the
     model's ``cruise_speed``. The network still reads the velocity scaled by the model's own cruise
     speed. The same path flown in 1/k of the time costs k⁷ the snap. The time limit follows this speed
-    (``LoopConfig.cruise_speed``)."""
+    (``mapkit.evaluation.LoopConfig.cruise_speed``)."""
     search_speed: float | None = None
     """m/s for the rest of a flight once it searches for its way: it has stalled (no 0.5 m of progress
     for ``route.after`` seconds), or flown more than ``search_ratio`` × the distance it has come toward
@@ -151,3 +151,19 @@ class Execution:
     neighbours a few decimetres to either side. Learned planner, dev seeds 301 / 300, 40 pairs per
     world, without → with: success 116 → 117 / 117 → 118 of 120, executed effort per pair 0.66× /
     0.68× (geometric mean; docs/results.md). ``under_stack(..., "none")`` turns it off."""
+
+
+def under_stack(execution: Execution, stack: FlightStack) -> Execution:
+    """``execution`` as flown under ``stack``: ``full`` keeps every layer as configured; ``none`` keeps
+    the corridor's widths and the speed profile and turns off the depth memory (with its ways out and
+    the turn toward open space), the corridor's check (so the corridor flies at its
+    ``unchecked_width``), the flight map's routing, following the reference, keeping the last
+    plan's candidate and the shifted candidates, and gates with the model's flown-path head where it has
+    one (the paper's protocol: the network alone, its key-points through a narrow corridor, replanned
+    every interval)."""
+    if stack == "full":
+        return execution
+    if stack == "none":
+        return replace(execution, memory=None, route=None, follow=0.0, keep_choice=None, shift=(), flown_judge=True,
+                       corridor=replace(execution.corridor, check=False, check_memory=False))
+    raise ValueError(f"unknown flight stack {stack!r}; use one of {', '.join(FLIGHT_STACKS)}")

@@ -1,0 +1,42 @@
+"""Flying a trained planner: the pilot that every loop uses (`mapkit eval`'s simulated vehicles, your
+own simulator or robot).
+
+>>> from mapkit.flight import Pilot, VehicleState
+>>> pilot = Pilot.load("pretrained")                     # the shipped model under the full flight stack
+>>> step = pilot.step(t, VehicleState(position=p, velocity=v, yaw=yaw), goal_world,
+...                   depth, K=K, T_world_body=T_world_body)            # doctest: +SKIP
+>>> setpoint = step.reference.sample(t_now)   # position … snap, yaw, yaw rate for your controller  # doctest: +SKIP
+
+Per camera frame :meth:`Pilot.step` takes the depth image, its camera (K, and its pose for this frame:
+``T_world_camera``, or the body's pose and ``T_body_camera``, so a camera that tilts with the airframe
+works), the vehicle's state and the goal in the world frame, and returns a :class:`Reference` (world-frame
+piecewise polynomials, continuous with the last at the switch, within the speed and acceleration
+limits) with a status (:data:`Status`) and diagnostics. ``docs/flight.md`` says what to pass and what to
+do on each status.
+
+The flight stack is typed layers (:class:`Execution`): the depth memory (:class:`Memory`), the checked
+corridor (:class:`Corridor`), routing on the flight map (:class:`RouteConfig`), following the
+reference, keeping the chosen candidate, the speed profile and limits (:class:`SpeedProfile`);
+:class:`PilotConfig` holds the brake, the turn on a veto, the replan interval and the input checks.
+``Pilot.load(model, stack="none")`` flies the network alone (:func:`under_stack`).
+"""
+
+from mapkit.flight._camera import CENTRE_TOLERANCE, FOV_TOLERANCE, check_intrinsics, planning_frame
+from mapkit.flight._config import PilotConfig, VehicleState
+from mapkit.flight._errors import FlightError
+from mapkit.flight._layers import Corridor, Execution, Memory, SpeedProfile, under_stack
+from mapkit.flight._learned import JudgeInput, LearnedMethod, PlanInput, open_direction
+from mapkit.flight._pieces import Pieces, hold, pieces_from_body
+from mapkit.flight._pilot import STATUSES, Pilot, PilotStep, Status, brake
+from mapkit.flight._plan import Method, MethodPlan, Observation, level_pose
+from mapkit.flight._reference import Reference, Setpoint
+from mapkit.flight._route import Aim, FlightMap, Progress, RouteConfig
+
+__all__ = [
+    "CENTRE_TOLERANCE", "FOV_TOLERANCE", "STATUSES",
+    "Aim", "Corridor", "Execution", "FlightError", "FlightMap", "JudgeInput", "LearnedMethod", "Memory", "Method",
+    "MethodPlan", "Observation", "Pieces", "Pilot", "PilotConfig", "PilotStep", "PlanInput", "Progress", "Reference",
+    "RouteConfig", "Setpoint", "SpeedProfile", "Status", "VehicleState",
+    "brake", "check_intrinsics", "hold", "level_pose", "open_direction", "pieces_from_body", "planning_frame",
+    "under_stack",
+]
