@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 
 _SECTIONS: dict[str, tuple[str, ...]] = {
     "What to fly": ("run_dir", "world", "pairs", "seed", "min_distance", "methods", "stacks", "untrained_seeds",
-                    "vehicle", "gimbal"),
+                    "vehicle", "gimbal", "drop_frames", "depth_delay", "pose_noise"),
     "Output and parallelism": ("output", "workers", "scheduler", "record_plans", "record_judge", "judge_history",
                               "overwrite"),
     "The closed loop (every method)": ("replan_interval", "horizon", "ignore_eta", "on_reject", "plan_latency",
@@ -70,6 +70,12 @@ class _SectionedCommand(click.Command):
               help="What flies the pilot's references: tracker (a linear 4th-order tracker, level body; fast) or "
                    "rotorpy (rotorpy's quadrotor with rotor dynamics and drag under its SE(3) controller at 100 Hz, "
                    "the camera tilting with the airframe).")
+@click.option("--drop-frames", type=FRACTION, default=0.0, show_default=True,
+              help="Fault injection: the fraction of depth frames lost (the pilot gets no depth for them).")
+@click.option("--depth-delay", type=FINITE, default=0.0, show_default=True,
+              help="Fault injection: seconds by which depth (and its pose) lags the vehicle.")
+@click.option("--pose-noise", type=FINITE, default=0.0, show_default=True,
+              help="Fault injection: metres of noise (std per axis) on the state's position and the frame's pose.")
 @click.option("--gimbal", is_flag=True, help="With --vehicle rotorpy: render the camera level instead of at the airframe's attitude.")
 @click.option("--workers", type=COUNT, default=1, show_default=True,
               help="Processes running pairs in parallel (with --scheduler local: the local Dask cluster's size).")
@@ -154,7 +160,8 @@ class _SectionedCommand(click.Command):
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @library_call
 def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Path, methods: str, stacks: str,
-             untrained_seeds: str, vehicle: VehicleKind, gimbal: bool, workers: int, scheduler: str | None,
+             untrained_seeds: str, vehicle: VehicleKind, drop_frames: float, depth_delay: float, pose_noise: float,
+             gimbal: bool, workers: int, scheduler: str | None,
              replan_interval: float, horizon: float, min_distance: float, ignore_eta: bool, on_reject: OnReject, corridor: float,
              corridor_check: bool, check_memory: bool, unchecked_corridor: float, turn_toward_open: bool, v_max: float, a_max: float, memory: float, route_after: float, subgoal_speed: float | None, speed: float, search_speed: float | None, turn_accel: float, turn_min_speed: float, stop_decel: float, follow: float, keep_choice: float, flown_judge: bool, shift: bool, plan_latency: float, final_approach: float, look_ahead: float,
              record_plans: bool, record_judge: bool, judge_history: float | None, overwrite: bool) -> None:
@@ -163,6 +170,7 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
         METHODS,
         WORLD_ORDER,
         EvalConfig,
+        Faults,
         LoopConfig,
         comparison_lines,
         evaluate,
@@ -187,7 +195,8 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
                         loop=LoopConfig(pilot=PilotConfig(
                             replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
                             on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,
-                            look_ahead=look_ahead)))
+                            look_ahead=look_ahead),
+                            faults=Faults(drop=drop_frames, delay=depth_delay, pose_noise=pose_noise, seed=seed)))
     result = evaluate(run_dir, output, config, overwrite=overwrite)
     s, lat = result.summary["success"], result.summary["latency"]
     cols = [*config.worlds, "overall"]

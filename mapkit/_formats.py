@@ -72,15 +72,16 @@ class EpisodeRecord:
     """Largest acceleration norm, m/s²."""
     peak_jerk: float | None = None
     """Largest jerk norm, m/s³."""
+    climb: float | None = None
+    """Metres the flight rose above the higher of its start and goal (0 when it never did)."""
     tracking_error_mean: float | None = None
     """Mean distance from the vehicle to its reference over the flight, metres."""
     tracking_error_max: float | None = None
     """Largest distance from the vehicle to its reference, metres."""
     reference_peak_speed: float | None = None
-    """Largest speed on any axis of the references the pilot handed the vehicle, m/s (the measure of the
-    per-axis limits)."""
+    """Largest speed of the references the pilot handed the vehicle, m/s."""
     reference_peak_acceleration: float | None = None
-    """Largest acceleration on any axis of those references, m/s²."""
+    """Largest acceleration norm of those references, m/s²."""
     stack: str | None = None
     """The flight stack the method flew under (``full``, ``none``); None for methods no stack changes
     (``straight``, ``oracle``) and in files written before stacks. ``method`` is the run's label:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import re
@@ -345,6 +346,8 @@ def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
     (["--route-after", "-2"], "--route-after must be a positive number"),
     (["--horizon", "-3"], "--horizon must be > 0"),
     (["--min-distance", "0"], "--min-distance must be > 0"),
+    (["--gimbal"], "--gimbal levels the camera of the rotorpy quadrotor"),
+    (["--depth-delay", "0.6"], "--depth-delay 0.6 must be in [0, replan interval 0.5 s)"),
 ])
 def test_cli_bad_settings(tiny_run: Path, tmp_path: Path, args: list[str], message: str):
     r = CliRunner().invoke(main, ["eval", "--model", str(tiny_run), "-o", str(tmp_path / "ev"), *args])
@@ -1060,3 +1063,62 @@ def test_the_flown_candidate_is_found_among_the_networks_and_nothing_else_is():
     assert _candidate_index(flown) == 2
     elsewhere = _Attempt(out.candidates[0, 2].double().numpy() + 0.3, 0.1, None, 0.0, out=out)  # type: ignore[arg-type]
     assert _candidate_index(elsewhere) is None  # key-points that are no candidate of that pass
+
+
+def test_faults_drop_delay_and_noise_the_frames_the_pilot_gets():
+    """Dropped frames reach the pilot without depth (it plans only from the others), a delayed frame is
+    rendered and posed where the body was ``delay`` ago, and pose noise moves the state and the frame
+    alike; the same pair draws the same faults."""
+    from mapkit.evaluation import Faults
+    from mapkit.flight._recorded import RunCamera
+
+    K = np.array([[50.0, 0.0, 31.5], [0.0, 50.0, 23.5], [0.0, 0.0, 1.0]])
+    T_bc = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    rendered: list[np.ndarray] = []
+
+    def render(T_world_body: np.ndarray) -> np.ndarray:
+        rendered.append(T_world_body[:3, 3].copy())
+        return np.full((48, 64), 4.0, dtype=np.float32)
+
+    class Seeing(Jittery):
+        needs_depth = True
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.frames: list[np.ndarray] = []
+
+        def plan(self, obs: Observation) -> MethodPlan:
+            self.frames.append(obs.T_world_body[:3, 3].copy())
+            return super().plan(obs)
+
+    camera = RunCamera(64, 48, K, T_bc, "test")
+    clean, faulty = Seeing(), Seeing()
+    loop = LoopConfig(timeout_min=6.0, timeout_factor=0.1)
+    run_episode(empty_world(), START, GOAL, clean, loop, render=render, camera=camera)
+    rendered.clear()
+    faults = Faults(drop=0.3, delay=0.1, pose_noise=0.05, seed=3)
+    run_episode(empty_world(), START, GOAL, faulty, dataclasses.replace(loop, faults=faults), render=render, camera=camera)
+    assert 0 < len(faulty.frames) < len(clean.frames)  # some frames lost
+    assert len(rendered) == len(faulty.frames)
+    moved = [np.linalg.norm(given - seen) for given, seen in zip(faulty.frames, rendered, strict=True)]
+    assert 0.0 < np.mean(moved) < 0.15  # the planning frame is the seen pose plus the noise
+    again = Seeing()
+    run_episode(empty_world(), START, GOAL, again, dataclasses.replace(loop, faults=faults), render=render, camera=camera)
+    assert np.allclose(np.array(again.frames), np.array(faulty.frames))
+
+
+@pytest.mark.slow
+def test_cli_eval_flies_the_rotorpy_quadrotor_and_reports_its_tracking(tmp_path: Path):
+    """``--vehicle rotorpy``: the shipped pilot flies rotorpy's quadrotor (camera tilting with it); the
+    flight is recorded with a tracking error that is not the tracker's zero, and the report says so."""
+    pytest.importorskip("rotorpy")
+    out = tmp_path / "ev"
+    r = CliRunner().invoke(main, ["eval", "--model", "pretrained", "--world", "forest", "--pairs", "1", "--seed", "10003",
+                                  "--methods", "learned", "--vehicle", "rotorpy", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((out / "results.json").read_text())
+    (episode,) = doc["episodes"]
+    assert doc["config"]["vehicle"] == "rotorpy"
+    assert 0.0 < episode["tracking_error_mean"] <= episode["tracking_error_max"] < 1.0
+    assert 0.0 < episode["reference_peak_acceleration"] and episode["climb"] >= 0.0
+    assert "## Tracking — the vehicle (rotorpy)" in (out / "report.md").read_text()

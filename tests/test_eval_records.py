@@ -13,7 +13,7 @@ ROW = {"world": "office", "pair": 3, "method": "learned", "outcome": "success", 
        "goal": [9.0, -2.0, 1.5], "distance": 9.5, "line_of_sight": False, "time_s": 6.2, "path_length": 10.1,
        "path_length_ratio": 10.1 / 9.5, "control_effort": 120.5, "min_distance": None, "collision_point": None,
        "collision_time": None, "plans": 13, "rejected_plans": 1, "plan_effort": 30.25, "peak_speed": 2.4,
-       "peak_acceleration": 3.1, "peak_jerk": 9.0, "tracking_error_mean": 0.02, "tracking_error_max": 0.05,
+       "peak_acceleration": 3.1, "peak_jerk": 9.0, "climb": 0.1, "tracking_error_mean": 0.02, "tracking_error_max": 0.05,
        "reference_peak_speed": 1.4, "reference_peak_acceleration": 2.5, "stack": "full"}
 """A row as `mapkit eval` writes it (every key, in the file's order)."""
 

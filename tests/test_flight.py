@@ -22,8 +22,8 @@ from mapkit.flight import (
     hold,
     pieces_from_body,
 )
-from mapkit.flight._reference import yaw_profile
-from mapkit.planning._camera import RunCamera
+from mapkit.flight._recorded import RunCamera
+from mapkit.flight._reference import YawFollower
 from mapkit.trajopt import min_snap
 
 W, H = 160, 120
@@ -80,7 +80,7 @@ def fly(pilot: Pilot, steps: int, interval: float = 0.5, **frame: object) -> lis
 def test_a_reference_samples_position_through_snap_and_yaw_consistently():
     rng = np.random.default_rng(0)
     pieces = Pieces(t0=1.0, durations=np.array([0.8, 1.1]), coeffs=rng.normal(size=(2, 3, 8)))
-    ref = Reference(pieces, *yaw_profile(pieces, 1.0, 0.3, 0.0, lambda t: np.full(len(t), 2.0), 3.0, 12.0))
+    ref = Reference(pieces, YawFollower(lambda t: np.full(len(t), 2.0), 1.0, 0.3, 0.0, 3.0, 12.0, pieces.t_end + 3.0))
     t, h = 1.37, 1e-6
     a, b, mid = ref.sample(t - h), ref.sample(t + h), ref.sample(t)
     for lo, hi in (("position", "velocity"), ("velocity", "acceleration"), ("acceleration", "jerk"), ("jerk", "snap")):
@@ -228,6 +228,15 @@ def test_stamps_that_go_backwards_and_bad_states_are_refused():
         Pilot(Ahead(), config=PilotConfig(frame_timeout=0.0))
 
 
+def test_a_first_call_while_moving_plans_from_the_vehicles_velocity():
+    pilot = Pilot(Ahead(), camera=CAMERA)
+    moving = VehicleState([0.0, 0.0, 1.5], [1.5, 0.5, 0.0])
+    step = pilot.step(3.0, moving, GOAL, depth_image(), T_world_body=level(moving.position))
+    assert step.taken and np.allclose(step.reference.derivative(3.0, 1)[0], moving.velocity)
+    obs = pilot.planner.seen[-1]  # planned from (nearly) that velocity, not from rest
+    assert np.linalg.norm(obs.state_world[1] - moving.velocity) < 0.1
+
+
 def test_a_new_goal_starts_a_new_flight_from_the_reference_being_flown():
     pilot = Pilot(Ahead(), camera=CAMERA)
     steps = fly(pilot, 3)
@@ -247,3 +256,21 @@ def test_without_a_frame_a_planner_that_needs_none_plans_at_its_interval():
     third = pilot.step(0.5, VehicleState(first.reference.derivative(0.5, 0)[0]), GOAL)
     assert first.replanned and not second.replanned and third.replanned
     assert hold(np.zeros(3), 0.0).degree == 7
+
+
+def test_a_plan_too_sharp_for_the_limits_is_flown_slower_within_them():
+    """Key-points zig-zagging 1 m apart in 0.4 s segments ask for tens of m/s²; with the acceleration
+    limit the plan keeps it (norm, on a dense grid), through the same key-points."""
+    from mapkit.flight import Execution, SpeedProfile
+    from mapkit.flight._learned import _limited
+
+    wp = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [2.0, -1.0, 0.0], [3.0, 1.0, 0.0]]], dtype=torch.float64)
+    T = torch.full((1, 3), 0.4, dtype=torch.float64)
+    start, end = torch.zeros(1, 3, 3, dtype=torch.float64), torch.zeros(1, 3, dtype=torch.float64)
+    free = Execution(speed=SpeedProfile(v_max=None, a_max=None))
+    assert float(_limited(wp, T, start, end, free, None).max_acceleration(samples_per_segment=256)) > 20.0
+    kept = _limited(wp, T, start, end, Execution(), None)
+    assert float(kept.max_acceleration(samples_per_segment=256)) <= 4.0 + 1e-6
+    assert float(kept.max_velocity(samples_per_segment=256)) <= 3.0 + 1e-6
+    knots = torch.cumsum(kept.durations, dim=-1)
+    assert torch.allclose(kept.position(knots[0]), wp[0, 1:], atol=1e-6)  # the same path, flown slower

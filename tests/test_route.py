@@ -1,4 +1,4 @@
-"""The flight map (`mapkit.evaluation.FlightMap`): what it remembers, the route it finds round a seen
+"""The flight map (`mapkit.flight.FlightMap`): what it remembers, the route it finds round a seen
 wall, the point it aims at, and when a flight counts as stalled."""
 
 from __future__ import annotations

@@ -32,7 +32,7 @@ from mapkit.evaluation._ablation import (
     paired_ratio,
     success_difference,
 )
-from mapkit.evaluation._loop import Episode, LoopConfig, run_episode
+from mapkit.evaluation._loop import Episode, Faults, LoopConfig, run_episode
 from mapkit.evaluation._methods import METHODS, OracleMethod, StraightMethod, make_methods
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
 from mapkit.evaluation._paths import load_paths
@@ -69,7 +69,7 @@ __all__ = [
     "METHODS", "WORLD_ORDER", "EVAL_FORMAT", "OUTCOMES",
     "EpisodeRecord", "Outcome",
     "CameraSpec", "EvalConfig", "EvalError", "EvalResult", "evaluate", "summarise",
-    "Episode", "LoopConfig", "run_episode",
+    "Episode", "Faults", "LoopConfig", "run_episode",
     "OracleMethod", "StraightMethod", "make_methods", "PLANS_FILE",
     "Pair", "sample_pairs", "load_paths",
     "EffortComparison", "compare_effort", "effort_at_time", "DETOUR_EDGES", "DetourBin", "OutcomeCounts",

@@ -15,6 +15,7 @@ simulates this loop; the vehicle's body is level and its yaw is the reference's.
 from __future__ import annotations
 
 import math
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -24,10 +25,31 @@ from scipy.linalg import expm
 from mapkit._formats import Outcome
 from mapkit.evaluation._rotorpy import RotorpyVehicle
 from mapkit.flight import Method, Pieces, Pilot, PilotConfig, PilotStep, Reference, VehicleState, hold, level_pose
-from mapkit.planning._camera import RunCamera
+from mapkit.flight._recorded import RunCamera
+from mapkit.geometry import transform_from_pose
 from mapkit.sim import World
 
 _JUMP_TOL = 1e-6  # smaller reference jumps (m, m/s, m/s², m/s³) are float noise, not events
+
+
+@dataclass(frozen=True)
+class Faults:
+    """Faults injected into the frames the pilot gets (``mapkit eval --drop-frames/--depth-delay/--pose-noise``),
+    drawn per flight from a generator seeded by ``seed`` and the pair (the same faults for every method)."""
+
+    drop: float = 0.0
+    """Fraction of frames lost: the pilot is called without depth (it brakes after its frame timeout)."""
+    delay: float = 0.0
+    """Seconds by which depth lags: the frame is rendered (and posed) where the body was this long ago."""
+    pose_noise: float = 0.0
+    """Metres, the standard deviation of noise on each axis of the state's position and the frame's pose
+    (one draw per frame for both: one estimator)."""
+    seed: int = 0
+    """Seed of the faults' generator."""
+
+    @property
+    def any(self) -> bool:
+        return bool(self.drop or self.delay or self.pose_noise)
 
 
 @dataclass
@@ -53,6 +75,8 @@ class LoopConfig:
     learned model's cruise speed, or to ``--speed`` when given (the pace the flights are asked for)."""
     tracking_bandwidth: float = 5.0
     """ω, rad/s: all four poles of the tracking error at −ω."""
+    faults: Faults = field(default_factory=Faults)
+    """Faults injected into the frames (none by default)."""
 
 
 @dataclass
@@ -90,15 +114,16 @@ class Episode:
     """Largest jerk norm, m/s³."""
     samples: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     """(N, 4) rows [t, x, y, z] of the executed path at ``control_rate``."""
+    climb: float = 0.0
+    """Metres the flight rose above the higher of its start and goal (0 when it never did)."""
     tracking_error_mean: float = 0.0
     """Mean distance from the vehicle to its reference over the flight, metres."""
     tracking_error_max: float = 0.0
     """Largest distance from the vehicle to its reference, metres."""
     reference_peak_speed: float = 0.0
-    """Largest speed on any axis of the references the pilot handed the vehicle, m/s (the measure of the
-    per-axis limits)."""
+    """Largest speed of the references the pilot handed the vehicle, m/s."""
     reference_peak_acceleration: float = 0.0
-    """Largest acceleration on any axis of those references, m/s²."""
+    """Largest acceleration norm of those references, m/s²."""
 
 
 
@@ -133,6 +158,8 @@ class _Flight:
     """The pilot's last reference (its yaw is the vehicle's)."""
     yaw0: float = 0.0
     """The vehicle's yaw before the pilot's first reference: toward the goal."""
+    attitudes: tuple[np.ndarray, np.ndarray] | None = None
+    """rotorpy: the last interval's sample times and attitudes (xyzw), for a delayed frame's pose."""
     t: float = 0.0
     plans: int = 0
     rejected: int = 0
@@ -216,10 +243,13 @@ def run_episode(
     T_body_camera = None if mount is None else mount.T_body_camera
     if vehicle is not None:
         vehicle.reset(start, f.yaw0)
+    faults = config.faults
+    rng = np.random.default_rng([faults.seed, zlib.crc32(start.tobytes() + goal.tobytes())])
     while f.outcome == "timeout" and f.t < t_limit - 1e-9:
         if pilot.planner.replans or not f.plans:
             T_wb, state = _pose(f, vehicle, gimbal)
-            _replan(f, goal, pilot, render, T_body_camera, None if camera is None else camera.K, T_wb, state)
+            frame = _faulty_frame(f, faults, rng, T_wb, state, vehicle, gimbal)
+            _replan(f, goal, pilot, render, T_body_camera, None if camera is None else camera.K, frame, state)
         elif f.t >= f.ref.t_end and not f.E.any():
             f.t = t_limit  # an open-loop method at rest short of the goal never gets there
             break
@@ -234,7 +264,8 @@ def run_episode(
         rejected_plans=f.rejected, latencies_ms=f.latencies, allocation_ms=f.allocations,
         plan_effort=float(np.mean(f.plan_efforts)) if executed and f.plan_efforts else None,
         peak_speed=float(f.peaks[0]), peak_acceleration=float(f.peaks[1]), peak_jerk=float(f.peaks[2]),
-        samples=np.array(f.rows), tracking_error_mean=float(np.mean(f.tracking)) if f.tracking else 0.0,
+        samples=np.array(f.rows), climb=max(0.0, float(np.max(np.asarray(f.rows)[:, 3])) - max(start[2], goal[2])),
+        tracking_error_mean=float(np.mean(f.tracking)) if f.tracking else 0.0,
         tracking_error_max=float(np.max(f.tracking)) if f.tracking else 0.0,
         reference_peak_speed=float(f.ref_peaks[0]), reference_peak_acceleration=float(f.ref_peaks[1]),
     )
@@ -251,15 +282,49 @@ def _pose(f: _Flight, vehicle: RotorpyVehicle | None, gimbal: bool) -> tuple[np.
     return (level_pose(vehicle.position, vehicle.yaw) if gimbal else vehicle.T_world_body), state
 
 
+def _faulty_frame(f: _Flight, faults: Faults, rng: np.random.Generator, T_wb: np.ndarray, state: VehicleState,
+                  vehicle: RotorpyVehicle | None, gimbal: bool) -> tuple[np.ndarray, np.ndarray] | None:
+    """(where the frame is rendered, the pose the pilot is given) after the faults (``state`` gets the
+    same pose noise); None for a dropped frame."""
+    if not faults.any:
+        return T_wb, T_wb
+    noise = rng.normal(0.0, faults.pose_noise, 3) if faults.pose_noise else np.zeros(3)
+    dropped = bool(faults.drop) and rng.random() < faults.drop
+    state.position = state.position + noise
+    if dropped:
+        return None
+    seen = _past_pose(f, vehicle, gimbal, f.t - faults.delay) if faults.delay else T_wb
+    given = seen.copy()
+    given[:3, 3] += noise
+    return seen, given
+
+
+def _past_pose(f: _Flight, vehicle: RotorpyVehicle | None, gimbal: bool, t: float) -> np.ndarray:
+    """The body's pose at an earlier time ``t`` (the start before the flight began), from the last
+    second of the flight's samples."""
+    rows = np.asarray(f.rows[-200:])
+    position = np.array([np.interp(t, rows[:, 0], rows[:, k]) for k in (1, 2, 3)])
+    if vehicle is not None and not gimbal and f.attitudes is not None:
+        times, quaternions = f.attitudes
+        return transform_from_pose(position, quaternions[int(np.argmin(np.abs(times - t)))])
+    if vehicle is not None and f.attitudes is None:  # before the first interval: where it started
+        return level_pose(position, vehicle.yaw)
+    return level_pose(position, f.yaw0 if f.reference is None else float(f.reference.yaw(max(t, 0.0))[0]))
+
+
 def _replan(f: _Flight, goal: np.ndarray, pilot: Pilot, render: Callable[[np.ndarray], np.ndarray] | None,
-            T_body_camera: np.ndarray | None, K: np.ndarray | None, T_wb: np.ndarray, state: VehicleState) -> None:
-    """Render the frame at the body's pose, give it to the pilot, and fly what it answers."""
-    depth = None
-    if pilot.planner.needs_depth:
+            T_body_camera: np.ndarray | None, K: np.ndarray | None, frame: tuple[np.ndarray, np.ndarray] | None,
+            state: VehicleState) -> None:
+    """Render the frame where the body was seen, give it to the pilot (none when it was dropped), and fly
+    what it answers."""
+    depth, T_given = None, None
+    if pilot.planner.needs_depth and frame is not None:
         if render is None:
             raise ValueError(f"{getattr(pilot.planner, 'name', 'the planner')} needs depth: pass render=")
-        depth = render(T_wb)
-    step = pilot.step(f.t, state, goal, depth, K=K, T_world_body=T_wb,
+        depth, T_given = render(frame[0]), frame[1]
+    elif not pilot.planner.needs_depth:
+        T_given = _pose(f, None, False)[0] if frame is None else frame[1]
+    step = pilot.step(f.t, state, goal, depth, K=K, T_world_body=T_given,
                       T_body_camera=T_body_camera if depth is not None else None)
     _record(f, step)
     f.reference = step.reference
@@ -339,6 +404,7 @@ def _fly_rotorpy(f: _Flight, world: World, goal: np.ndarray, config: LoopConfig,
     peaks = [np.linalg.norm(a, axis=1).max() for a in (trace.velocity[:stop], trace.acceleration[:stop], jerk)]
     f.peaks = np.maximum(f.peaks, peaks)
     f.tracking.extend(np.linalg.norm(trace.position[:stop] - trace.reference[:stop], axis=1).tolist())
+    f.attitudes = (trace.t, trace.quaternion_xyzw)
     f.x = np.stack([trace.position[stop - 1], trace.velocity[stop - 1], trace.acceleration[stop - 1], jerk[-1]])
     f.t = t_end
 

@@ -43,7 +43,7 @@ from mapkit.flight import (
     RouteConfig,
     under_stack,
 )
-from mapkit.planning._camera import RunCamera
+from mapkit.flight._recorded import RunCamera
 from mapkit.workspace import atomic_output, check_writable
 
 if TYPE_CHECKING:
@@ -139,6 +139,13 @@ class EvalConfig:
         if self.gimbal and self.vehicle != "rotorpy":
             raise EvalError("--gimbal levels the camera of the rotorpy quadrotor; the tracker's camera is always "
                             "level: pass --vehicle rotorpy too, or drop --gimbal")
+        faults, interval = self.loop.faults, self.loop.pilot.replan_interval
+        for name, value, ok, where in (("--drop-frames", faults.drop, 0.0 <= faults.drop < 1.0, "[0, 1)"),
+                                       ("--depth-delay", faults.delay, 0.0 <= faults.delay < interval,
+                                        f"[0, replan interval {interval} s)"),
+                                       ("--pose-noise", faults.pose_noise, 0.0 <= faults.pose_noise <= 1.0, "[0, 1] metres")):
+            if not ok:
+                raise EvalError(f"{name} {value:g} must be in {where}")
         if self.pairs < 1:
             raise EvalError(f"--pairs must be >= 1, got {self.pairs}")
         seeds = self.untrained_seeds
@@ -482,7 +489,7 @@ def _run_pair(kind: str, pair: dict) -> list[_EpisodeRun]:
             collision_point=ep.collision_point,
             collision_time=ep.collision_time, plans=ep.plans, rejected_plans=ep.rejected_plans,
             plan_effort=ep.plan_effort, peak_speed=ep.peak_speed, peak_acceleration=ep.peak_acceleration,
-            peak_jerk=ep.peak_jerk, tracking_error_mean=ep.tracking_error_mean,
+            peak_jerk=ep.peak_jerk, climb=ep.climb, tracking_error_mean=ep.tracking_error_mean,
             tracking_error_max=ep.tracking_error_max, reference_peak_speed=ep.reference_peak_speed,
             reference_peak_acceleration=ep.reference_peak_acceleration, stack=split_label(method.name).stack,
         )
@@ -504,10 +511,12 @@ def _call(args: tuple[str, dict]) -> tuple[str, int, list[_EpisodeRun]]:
 
 # -------------------------------------------------------------------------------- summaries
 def _flight_stats(eps: list[EpisodeRecord]) -> dict[str, dict[str, float | None]]:
-    """Over every flight: tracking error (per flight mean and max, metres) and the references' peak speed
-    and acceleration on any axis, each with its largest value."""
+    """Over every flight: the climb above the higher of start and goal, the tracking error (per flight mean
+    and max, metres) and the references' peak speed and acceleration (norms), each with its largest
+    value."""
     out = {}
-    for key in ("tracking_error_mean", "tracking_error_max", "reference_peak_speed", "reference_peak_acceleration"):
+    for key in ("climb", "tracking_error_mean", "tracking_error_max", "reference_peak_speed",
+                "reference_peak_acceleration"):
         values = _present([getattr(e, key) for e in eps])
         out[key] = {**_stats(values), "max": float(max(values)) if values else None}
     return out

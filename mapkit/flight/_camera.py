@@ -17,8 +17,8 @@ import math
 import numpy as np
 
 from mapkit.flight._errors import FlightError
+from mapkit.flight._recorded import RunCamera
 from mapkit.planner import CameraInput
-from mapkit.planning._camera import RunCamera
 
 FOV_TOLERANCE = 0.05
 """Largest relative difference of fx / W or fy / H from the recorded camera's."""

@@ -1,7 +1,7 @@
 """The flight stack: the layers the pilot puts around the learned planner, as one typed config
 (:class:`Execution`) composed of named layers: the flight corridor and its check
 (:class:`Corridor`), the depth memory and its ways out (:class:`Memory`), the flight map's routing
-(:class:`~mapkit.evaluation.RouteConfig`), following the reference being flown (``follow``), keeping
+(:class:`~mapkit.flight.RouteConfig`), following the reference being flown (``follow``), keeping
 the last plan's candidate (``keep_choice``) and the speed profile that times the plans
 (:class:`SpeedProfile`). A layer set to None is off. How each default was chosen, with the flights
 that chose it: docs/results.md."""
@@ -104,15 +104,16 @@ class SpeedProfile:
     """m/s²: until a flight searches for its way, plans that end at rest (at the goal) slow down to it
     at this rate instead of the model's ``accel`` (None)."""
     v_max: float | None = 3.0
-    """Per-axis speed limit, m/s (None: none)."""
+    """Speed limit of every plan, m/s (None: none): the QP bounds each axis by it when a plan breaks it, and
+    a plan that still breaks it is flown slower."""
     a_max: float | None = 4.0
-    """Per-axis acceleration limit, m/s² (None: none)."""
+    """Acceleration limit of every plan (its norm), m/s² (None: none), kept the same way."""
 
 
 @dataclass(frozen=True)
 class Execution:
     """How a replanning method turns its timed key-points into the reference it flies: the flight
-    stack, layer by layer (None turns a layer off; :func:`~mapkit.evaluation.under_stack` turns off
+    stack, layer by layer (None turns a layer off; :func:`~mapkit.flight.under_stack` turns off
     every layer but the corridor and the speed profile)."""
 
     corridor: Corridor = field(default_factory=Corridor)
@@ -122,7 +123,7 @@ class Execution:
     route: RouteConfig | None = field(default_factory=RouteConfig)
     """With ``memory``: while a flight has not come 0.5 m closer to its goal for ``route.after`` seconds,
     the network's goal is a point on a route around every surface seen since the flight began
-    (:class:`~mapkit.evaluation.FlightMap`, a 3-D grid; unseen space counts as free), as long as that
+    (:class:`~mapkit.flight.FlightMap`, a 3-D grid; unseen space counts as free), as long as that
     route is a detour, and a hovering vehicle faces that point. None: the local goal on the straight line."""
     follow: float = 0.75
     """Fraction of the way each interior key-point of a plan moves toward where the reference being
@@ -144,6 +145,13 @@ class Execution:
     head is the network's own answer. Shipped model, full stack, dev seed 301 (40 pairs per world): the same
     97.5 % either way, at twice the effort (47 against 22 m²/s⁷) and 3.6× the latency (83 against 23 ms)
     with the head, which solves the corridor problem of every candidate and its shifted copies."""
+    widen: tuple[float, ...] = ()
+    """Factors of widened candidates judged and chosen among with the trained ones
+    (:meth:`~mapkit.planner.PlannerNet.widened`; () none): each trained candidate's detour from the straight
+    line scaled. Single plans (:meth:`mapkit.planning.Planner.plan`) widen by
+    :data:`mapkit.planning.WIDEN`: with nothing flown before, a box beside the line may need a wider
+    detour than training gave the candidates. Replanning flights do not: they hover and look around
+    instead (widening there flew fewer office pairs, docs/results.md)."""
     shift: tuple[float, ...] = CANDIDATE_SHIFTS
     """Sideways shifts (m, left positive) of the network's candidates that every plan also judges and
     chooses among (:meth:`~mapkit.planner.PlannerNet.shifted`; () none): the trained candidates sit
@@ -164,6 +172,6 @@ def under_stack(execution: Execution, stack: FlightStack) -> Execution:
     if stack == "full":
         return execution
     if stack == "none":
-        return replace(execution, memory=None, route=None, follow=0.0, keep_choice=None, shift=(), flown_judge=True,
+        return replace(execution, memory=None, route=None, follow=0.0, keep_choice=None, shift=(), widen=(), flown_judge=True,
                        corridor=replace(execution.corridor, check=False, check_memory=False))
     raise ValueError(f"unknown flight stack {stack!r}; use one of {', '.join(FLIGHT_STACKS)}")

@@ -28,7 +28,7 @@ import torch
 from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 
-from mapkit.flight._layers import Execution
+from mapkit.flight._layers import Execution, SpeedProfile
 from mapkit.flight._pieces import pieces_from_body
 from mapkit.flight._plan import MethodPlan, Observation
 from mapkit.flight._route import FlightMap, Progress, depth_points
@@ -84,24 +84,46 @@ def _tensors(wp: np.ndarray, start: np.ndarray, end_speed: float) -> tuple[torch
 
 
 def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, how: Execution,
-             corridor: float | None):
-    """Minimum snap in ``corridor`` (None: through the key-points) within the limits of ``how``. The
-    limits rarely bind, so they join the QP only when the trajectory without them breaks one (on a
-    dense grid). An infeasible QP never leaves the plan without a reference: with the limits it falls
-    back to the corridor alone, with the corridor to the trajectory through the key-points."""
+             corridor: float | None) -> Trajectory:
+    """Minimum snap in ``corridor`` (None: through the key-points) whose speed and acceleration stay
+    within ``how``'s limits (norms, checked on a dense grid). The limits rarely bind, so they join the QP
+    (as per-axis bounds) only when the trajectory without them breaks one; when that QP fails or still
+    breaks them, the plan is flown slower (its durations stretched) until it keeps them. An infeasible
+    corridor never leaves the plan without a reference: the trajectory then passes the key-points."""
     with torch.no_grad():
         kw: dict[str, Any] = {} if corridor is None else {"corridor": corridor}
         traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", **kw)
         if not bool(traj.solved.all()):
-            return min_snap(wp, T, start=start, end=end)
+            kw = {}
+            traj = min_snap(wp, T, start=start, end=end)
         limits = how.speed
-        over_v = limits.v_max is not None and float(traj.max_velocity(per_axis=True, samples_per_segment=256).max()) > limits.v_max
-        over_a = limits.a_max is not None and float(traj.max_acceleration(per_axis=True, samples_per_segment=256).max()) > limits.a_max
-        if not (over_v or over_a):
+        if _within(traj, limits):
             return traj
         limited = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", limits_everywhere=True,
                            v_max=limits.v_max, a_max=limits.a_max, **kw)
-        return limited if bool(limited.solved.all()) else traj
+        if bool(limited.solved.all()) and _within(limited, limits):
+            return limited
+        stretch = 1.0
+        for _ in range(8):  # a slower flight of the same path: a / k², v / k (near enough: the start is fixed)
+            stretch *= max(1.1, _excess(traj, limits)) * 1.05
+            traj = min_snap(wp, T * stretch, start=start, end=end, on_infeasible="ignore", **kw)
+            if not bool(traj.solved.all()):
+                traj = min_snap(wp, T * stretch, start=start, end=end)
+            if _within(traj, limits):
+                break
+        return traj
+
+
+def _excess(traj: Trajectory, limits: SpeedProfile) -> float:
+    """How much slower ``traj`` must fly to keep ``limits``: the largest of v / v_max and √(a / a_max)."""
+    v = float(traj.max_velocity(samples_per_segment=256).max())
+    a = float(traj.max_acceleration(samples_per_segment=256).max())
+    return max(1.0 if limits.v_max is None else v / limits.v_max, 1.0 if limits.a_max is None else (a / limits.a_max) ** 0.5)
+
+
+def _within(traj: Trajectory, limits: SpeedProfile) -> bool:
+    """True when the speed and the acceleration (norms, 256 samples a segment) keep ``limits``."""
+    return _excess(traj, limits) <= 1.0 + 1e-6
 
 
 def follow_reference(wp: torch.Tensor, durations: torch.Tensor, obs: Observation, fraction: float,
@@ -443,7 +465,8 @@ class LearnedMethod:
                 x = image.x
             g = torch.from_numpy(np.asarray(goal, dtype=np.float32)[None])
             v = torch.from_numpy(np.asarray(start[1], dtype=np.float32)[None])
-            out = self.net(x, g, camera=self._cam, velocity=v, image=image, shift=self.execution.shift)
+            out = self.net(x, g, camera=self._cam, velocity=v, image=image, widen=self.execution.widen,
+                           shift=self.execution.shift)
             self._image = None if out.image is None else (obs, out.image)
             out = self._flown_judged(x, out, obs, start, end_speed)
             return x, self._kept(out)
@@ -701,8 +724,8 @@ class LearnedMethod:
                     attempt = self._remembered(obs, start, self._attempt(obs, start, body, self._subgoal_speed()))
         assert attempt.traj is not None  # every attempt is executed (a spline, or minimum snap)
         self._chosen = _candidate_index(attempt)
-        # a spline's knots follow its chords; a minimum-snap reference keeps the allocation's durations
-        durations = (attempt.traj if self.spline else attempt.timing).durations[0].numpy()
+        # the trajectory's own durations: a spline's knots follow its chords, a plan slowed to keep the limits
+        durations = attempt.traj.durations[0].numpy()
         coeffs = attempt.traj.coeffs[0].numpy()
         overrides = False
         if attempt.eta >= 0.5 and attempt.check is not None and obs.reference is not None:

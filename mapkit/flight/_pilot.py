@@ -20,9 +20,9 @@ from mapkit.flight._errors import FlightError
 from mapkit.flight._layers import Execution, under_stack
 from mapkit.flight._pieces import Pieces, hold
 from mapkit.flight._plan import Method, MethodPlan, Observation, level_pose
-from mapkit.flight._reference import Reference, yaw_profile
+from mapkit.flight._recorded import RunCamera
+from mapkit.flight._reference import YAW_TAIL, Reference, YawFollower
 from mapkit.planner import CameraInput
-from mapkit.planning._camera import RunCamera
 from mapkit.trajopt import min_snap
 
 Status = Literal["cruising", "braking", "blocked", "reached"]
@@ -92,17 +92,17 @@ class Pilot:
 
     @classmethod
     def load(cls, model: str | Path = "pretrained", *, stack: FlightStack | Execution = "full",
-             config: PilotConfig | None = None, device: str = "cpu") -> Pilot:
+             config: PilotConfig | None = None) -> Pilot:
         """The pilot of a trained model (``"pretrained"``: the shipped one; or a run directory) under
         ``stack``: ``"full"`` (every layer), ``"none"`` (the network alone through a narrow corridor, the
-        paper's protocol) or an :class:`Execution` with layers of your own."""
+        paper's protocol) or an :class:`Execution` with layers of your own. It plans on the CPU (one
+        thread is enough: about 15 ms a plan), where the flight stack's trajectory optimisation runs."""
         from mapkit.flight._learned import LearnedMethod
-        from mapkit.planning import Planner
+        from mapkit.flight._recorded import load_network
 
-        loaded = Planner.load(model, device=device)
-        net = loaded.net.prepare_inference() if device == "cpu" else loaded.net
+        net, cam = load_network(model)
+        net = net.prepare_inference()  # a frozen encoder for single images: ~2 ms faster a plan
         execution = stack if isinstance(stack, Execution) else under_stack(Execution(), stack)
-        cam = loaded.camera
         camera = None if cam is None else CameraInput.from_calibration(cam.K, cam.width, cam.height, cam.T_body_camera)
         return cls(LearnedMethod("learned", net, camera=camera, execution=execution), camera=cam, config=config)
 
@@ -145,9 +145,9 @@ class Pilot:
         goal = finite_vector(goal_world, "goal_world")
         if self._goal is None or not np.array_equal(goal, self._goal):
             self._new_flight(goal)
-        if self._ref is None:
+        if self._ref is None:  # the first call: from the vehicle's own state
             self._started = stamp
-            self._ref = self._with_yaw(hold(state.position, stamp), stamp, state.yaw, 0.0)
+            self._ref = self._with_yaw(self._from_state(state, stamp), stamp, state.yaw, 0.0)
         self._resync(stamp, state)
         out = self._decide(stamp, state, goal, depth, K, T_world_camera, T_world_body, T_body_camera)
         out.latency_ms = 1e3 * (time.perf_counter() - t0)
@@ -197,14 +197,19 @@ class Pilot:
         self._ref, self._stamp, self._goal = ref, stamp, goal
         self._started = 0.0 if stamp is None else stamp
 
+    def _from_state(self, state: VehicleState, stamp: float) -> Pieces:
+        """A reference from the vehicle's position and velocity (its measured acceleration is too noisy
+        to start from): holding where it hovers, else braking to rest until the first plan takes over."""
+        if float(np.linalg.norm(state.velocity)) < 0.05:
+            return hold(state.position, stamp)
+        return brake(state.derivatives() * [[1.0], [1.0], [0.0], [0.0]], stamp, self.config.brake_deceleration)
+
     def _resync(self, stamp: float, state: VehicleState) -> None:
         """A vehicle far from its reference brakes from its own state."""
         assert self._ref is not None  # set by step
         gap = float(np.linalg.norm(self._ref.derivative(stamp, 0)[0] - state.position))
         if gap > self.config.resync_distance:
-            # from the vehicle's position and velocity: its measured acceleration is too noisy to start from
-            pieces = brake(state.derivatives() * [[1.0], [1.0], [0.0], [0.0]], stamp, self.config.brake_deceleration)
-            self._ref = self._with_yaw(pieces, stamp, state.yaw, 0.0)
+            self._ref = self._with_yaw(self._from_state(state, stamp), stamp, state.yaw, 0.0)
             self._braking = True
 
     def _frame(self, depth: np.ndarray, K: np.ndarray | None, T_world_camera: np.ndarray | None,
@@ -339,8 +344,8 @@ class Pilot:
             to = facing - p
             return np.where(moving, heading, np.arctan2(to[:, 1], to[:, 0]) + look)
 
-        times, yaw, rate = yaw_profile(pieces, stamp, yaw_now, rate_now, target, c.max_yaw_rate, c.max_yaw_accel)
-        return Reference(pieces, times, yaw, rate)
+        until = max(stamp, pieces.t_end) + YAW_TAIL
+        return Reference(pieces, YawFollower(target, stamp, yaw_now, rate_now, c.max_yaw_rate, c.max_yaw_accel, until))
 
     def _answer(self, status: Status, reason: str, *, taken: bool = False, plan: MethodPlan | None = None) -> PilotStep:
         """This call's answer: the reference now, and the plan made (if one was)."""

@@ -15,6 +15,9 @@ YAW_STEP = 0.02
 """Seconds between the yaw profile's samples (yaw and yaw rate are interpolated linearly between them)."""
 YAW_TAIL = 3.0
 """Seconds the yaw profile runs on past the position reference's end (a hovering vehicle turning)."""
+YAW_CHUNK = 1.0
+"""Seconds of yaw profile computed at a time, as far as it is sampled (a reference is usually replaced
+after 0.5 s: computing its whole profile at once was most of the pilot's own time)."""
 
 
 @dataclass(frozen=True)
@@ -40,19 +43,53 @@ class Setpoint:
     """rad/s."""
 
 
+class YawFollower:
+    """A yaw profile: a critically damped second-order follower of a wanted heading ``target(times)``
+    (radians) whose rate stays within ``max_rate`` rad/s and acceleration within ``max_accel`` rad/s²,
+    from ``yaw`` turning at ``rate`` at ``t0``, sampled every :data:`YAW_STEP` seconds until ``until``
+    and computed lazily as far as it is asked for. Written by hand: a step in the wanted heading (a
+    hovering vehicle turning to look elsewhere) must become a turn a quadrotor can follow (its yaw
+    torque is small), and a profile that starts where the last one was at the switch keeps yaw and yaw
+    rate continuous from plan to plan."""
+
+    def __init__(self, target: Callable[[np.ndarray], np.ndarray], t0: float, yaw: float, rate: float,
+                 max_rate: float, max_accel: float, until: float) -> None:
+        self._target, self._max_rate, self._max_accel = target, max_rate, max_accel
+        self._until = until
+        self._omega = math.sqrt(max_accel / 0.5)  # the bandwidth at which a 0.5 rad error asks for the largest turn
+        self.times, self.yaw, self.rate = np.array([t0]), np.array([float(yaw)]), np.array([float(rate)])
+
+    def cover(self, t: float) -> None:
+        """Compute the profile up to ``t`` (at most to its end), a chunk at a time."""
+        while self.times[-1] < min(t, self._until) - 1e-12:
+            self._extend(min(self.times[-1] + YAW_CHUNK, self._until))
+
+    def _extend(self, end: float) -> None:
+        t0 = float(self.times[-1])
+        times = t0 + YAW_STEP * np.arange(1, max(1, int(math.ceil((end - t0) / YAW_STEP - 1e-9))) + 1)
+        wanted = self._target(np.concatenate([[t0], times[:-1]]))
+        yaw, rate = np.empty(len(times)), np.empty(len(times))
+        y, r, w, a_max, r_max = float(self.yaw[-1]), float(self.rate[-1]), self._omega, self._max_accel, self._max_rate
+        for i in range(len(times)):
+            gap = (wanted[i] - y + math.pi) % (2 * math.pi) - math.pi
+            accel = min(max(w * w * gap - 2.0 * w * r, -a_max), a_max)
+            r_next = min(max(r + accel * YAW_STEP, -r_max), r_max)
+            y += 0.5 * (r + r_next) * YAW_STEP
+            r = r_next
+            yaw[i], rate[i] = y, r
+        self.times = np.concatenate([self.times, times])
+        self.yaw, self.rate = np.concatenate([self.yaw, yaw]), np.concatenate([self.rate, rate])
+
+
 class Reference:
     """World-frame piecewise polynomials for position (:class:`Pieces`, degree 7 for minimum-snap
-    plans) and a yaw profile limited in rate and acceleration. Before its start it holds the start; after its end it holds
-    the end position at rest (the yaw profile runs :data:`YAW_TAIL` seconds longer, then holds)."""
+    plans) and a yaw profile limited in rate and acceleration (:class:`YawFollower`). Before its start it
+    holds the start; after its end it holds the end position at rest (the yaw profile runs
+    :data:`YAW_TAIL` seconds longer, then holds its heading)."""
 
-    def __init__(self, pieces: Pieces, yaw_times: np.ndarray, yaw: np.ndarray, yaw_rate: np.ndarray) -> None:
+    def __init__(self, pieces: Pieces, yaw: YawFollower) -> None:
         self.pieces = pieces
-        self._yaw_t = np.asarray(yaw_times, dtype=np.float64).reshape(-1)
-        self._yaw = np.asarray(yaw, dtype=np.float64).reshape(-1)  # unwrapped
-        self._rate = np.asarray(yaw_rate, dtype=np.float64).reshape(-1)
-        n = len(self._yaw_t)
-        if n < 2 or len(self._yaw) != n or len(self._rate) != n or np.any(np.diff(self._yaw_t) <= 0):
-            raise ValueError("the yaw profile needs two or more samples (times, yaw, yaw rate) at increasing times")
+        self._yaw = yaw
 
     @property
     def t_start(self) -> float:
@@ -68,16 +105,22 @@ class Reference:
         """(N, 3) the ``order``-th time derivative of position (0 position … 4 snap) at times ``t`` (N,)."""
         return self.pieces.derivative(np.atleast_1d(np.asarray(t, dtype=np.float64)), order)
 
+    def _profile(self, t: np.ndarray) -> YawFollower:
+        self._yaw.cover(float(t.max()))
+        return self._yaw
+
     def yaw(self, t: np.ndarray | float) -> np.ndarray:
         """(N,) yaw (radians, wrapped to (−π, π]) at times ``t``."""
-        y = np.interp(np.atleast_1d(np.asarray(t, dtype=np.float64)), self._yaw_t, self._yaw)
-        wrapped: np.ndarray = np.angle(np.exp(1j * y))
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        f = self._profile(t)
+        wrapped: np.ndarray = np.angle(np.exp(1j * np.interp(t, f.times, f.yaw)))
         return wrapped
 
     def yaw_rate(self, t: np.ndarray | float) -> np.ndarray:
         """(N,) rad/s at times ``t`` (held before the profile, 0 after it)."""
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
-        return np.where(t > self._yaw_t[-1], 0.0, np.interp(t, self._yaw_t, self._rate))
+        f = self._profile(t)
+        return np.where(t > f.times[-1], 0.0, np.interp(t, f.times, f.rate))
 
     def sample(self, t: float) -> Setpoint:
         """The reference at time ``t`` (seconds, the pilot's clock)."""
@@ -90,33 +133,9 @@ class Reference:
         return self.pieces.state(t)
 
     def peaks(self, t_from: float | None = None, step: float = 0.01) -> tuple[float, float]:
-        """(peak speed m/s, peak acceleration m/s²) from ``t_from`` (its start) to its end, sampled every
-        ``step`` seconds: the largest magnitude on any world axis, the measure of the speed profile's
-        per-axis limits (:class:`~mapkit.flight.SpeedProfile`)."""
+        """(peak speed m/s, peak acceleration m/s², norms) from ``t_from`` (its start) to its end, sampled
+        every ``step`` seconds: what the speed profile's limits bound (:class:`~mapkit.flight.SpeedProfile`)."""
         a = self.t_start if t_from is None else max(t_from, self.t_start)
         t = np.arange(a, max(a, self.t_end) + step, step)
-        return float(np.abs(self.derivative(t, 1)).max()), float(np.abs(self.derivative(t, 2)).max())
-
-
-def yaw_profile(pieces: Pieces, t_from: float, yaw_from: float, rate_from: float,
-                target: Callable[[np.ndarray], np.ndarray], max_rate: float, max_accel: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(times (N,), unwrapped yaw (N,), yaw rate (N,)): from ``yaw_from`` turning at ``rate_from`` at
-    ``t_from`` toward ``target(times)`` (radians), every :data:`YAW_STEP` seconds until :data:`YAW_TAIL`
-    seconds past the end of ``pieces``: a critically damped second-order follower whose rate stays
-    within ``max_rate`` rad/s and whose acceleration within ``max_accel`` rad/s². Written by hand: a
-    step in the wanted heading (a hovering vehicle turning to look elsewhere) must become a turn a
-    quadrotor can follow (its yaw torque is small), and the profile starts where the last one was at
-    the switch, so yaw and yaw rate are continuous from plan to plan."""
-    end = max(t_from, pieces.t_end) + YAW_TAIL
-    times = t_from + YAW_STEP * np.arange(int(math.ceil((end - t_from) / YAW_STEP)) + 1)
-    wanted = target(times)
-    yaw, rate = np.empty(len(times)), np.empty(len(times))
-    yaw[0], rate[0] = yaw_from, rate_from
-    omega = math.sqrt(max_accel / 0.5)  # the bandwidth at which a 0.5 rad error asks for the largest turn
-    for i in range(1, len(times)):
-        gap = (wanted[i - 1] - yaw[i - 1] + math.pi) % (2 * math.pi) - math.pi
-        accel = min(max(omega * omega * gap - 2.0 * omega * rate[i - 1], -max_accel), max_accel)
-        rate[i] = min(max(rate[i - 1] + accel * YAW_STEP, -max_rate), max_rate)
-        yaw[i] = yaw[i - 1] + 0.5 * (rate[i - 1] + rate[i]) * YAW_STEP
-    return times, yaw, rate
+        return (float(np.linalg.norm(self.derivative(t, 1), axis=1).max()),
+                float(np.linalg.norm(self.derivative(t, 2), axis=1).max()))

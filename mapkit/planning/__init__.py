@@ -8,10 +8,10 @@ needs it), clipping far goals to the planner's range, and writing the plan's fil
 the viewer).
 """
 
-from mapkit.planning._camera import RunCamera, recorded_camera
+from mapkit.flight._pretrained import PRETRAINED, pretrained_dir, resolve_model
+from mapkit.flight._recorded import RunCamera, recorded_camera
 from mapkit.planning._frame import GOAL_FRAMES, FramePlan, GoalFrame, goal_in_body, plan_from_frame
 from mapkit.planning._planner import SHIFT, WIDEN, Planner, PlanningError, PlanResult, write_plan_outputs
-from mapkit.planning._pretrained import PRETRAINED, pretrained_dir, resolve_model
 
 __all__ = ["GOAL_FRAMES", "SHIFT", "WIDEN", "FramePlan", "GoalFrame", "PRETRAINED", "PlanResult", "Planner", "PlanningError",
            "RunCamera", "goal_in_body", "plan_from_frame", "pretrained_dir", "recorded_camera", "resolve_model",

@@ -3,19 +3,21 @@
 from __future__ import annotations
 
 import json
-import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from mapkit._choices import CANDIDATE_SHIFTS
 from mapkit.errors import MapkitError
+from mapkit.flight._recorded import RUN_CONFIG, RunCamera, load_network
+
+if TYPE_CHECKING:
+    from mapkit.flight import Pilot, PilotStep
 from mapkit.geometry import quat_xyzw_from_matrix
-from mapkit.planning._camera import RUN_CONFIG, RunCamera, recorded_camera
 
 
 class PlanningError(MapkitError):
@@ -92,7 +94,7 @@ or a gap that needs a path a few decimetres beside the nearest one is otherwise 
 the foreign-scene bench, seeds 0 / 1 (200 plans each, with :data:`WIDEN`): none 150 / 160, ±0.3 150 /
 168, ±0.3 ±0.6 157 / 170, ±0.3 ±0.6 ±0.9 157 / 170, ±0.6 ±1.2 160 / 168. On seeds 2–3, 10–13 and
 fresh 20–23: 80.3 / 83.1 / 80.3 % against 75.8 / 79.4 / 75.3 % without (docs/results.md). ``mapkit eval`` shifts the candidates of the full flight stack
-(:attr:`~mapkit.evaluation.Execution.shift`)."""
+(:attr:`~mapkit.flight.Execution.shift`)."""
 
 
 class Planner:
@@ -107,6 +109,7 @@ class Planner:
         """The depth camera the run recorded (:func:`~mapkit.planning.recorded_camera`; :meth:`load` reads
         it): :meth:`plan` checks depth with it when it is given no calibration. None: none recorded."""
         self._said_camera = False
+        self._cpu_net: Any = None  # the network the single-shot pilot flies (a CPU copy when on a GPU)
 
     @property
     def needs_camera(self) -> bool:
@@ -118,80 +121,68 @@ class Planner:
     def load(cls, run_dir: str | Path, *, device: str = "cpu") -> Planner:
         """Load runs/NAME/model.pt (state dict + planner config; nothing pickled but tensors);
         ``run_dir="pretrained"`` loads the model shipped with mapkit."""
-        from mapkit._saved import load_saved
-        from mapkit.planner import PlannerConfig, PlannerNet
-        from mapkit.planning._pretrained import PRETRAINED, resolve_model
+        from mapkit.flight import FlightError
 
-        path = resolve_model(run_dir) / "model.pt"
-        if not path.exists():
-            if str(run_dir) == PRETRAINED:
-                raise PlanningError(f"this mapkit installation lacks the shipped model ({path}); reinstall mapkit "
-                                    "or pass --model RUN_DIR of a model you trained")
-            raise PlanningError(f"{run_dir} has no model.pt; train one with `mapkit train` (or check the run path)")
         if device.startswith("cuda") and not torch.cuda.is_available():
             raise PlanningError(f"--device {device}: torch sees no CUDA device; use --device cpu")
-        saved = load_saved(path, "mapkit planner", PlanningError, ("planner_config", "state_dict"))
         try:
-            net = PlannerNet(PlannerConfig.from_dict(saved["planner_config"]))
-            net.load_state_dict(saved["state_dict"])
-        except Exception as exc:  # noqa: BLE001 - a foreign state dict fails in many ways: one message
-            raise PlanningError(f"{path} is not a mapkit planner ({type(exc).__name__}: {exc})") from None
-        return cls(net, torch.device(device), camera=recorded_camera(path.parent))
+            net, camera = load_network(run_dir)
+        except FlightError as exc:
+            raise PlanningError(str(exc)) from None
+        return cls(net, torch.device(device), camera=camera)
 
     def plan(self, depth: np.ndarray, goal_body: np.ndarray, *, velocity_body: np.ndarray | None = None,
              rate_hz: float = 50.0, corridor: float | None = None, K: np.ndarray | None = None,
              T_body_camera: np.ndarray | None = None, widen: tuple[float, ...] = WIDEN,
              shift: tuple[float, ...] = SHIFT) -> PlanResult:
-        """Depth (H, W) metres (NaN invalid) + goal (3,) body frame [+ velocity (3,)] → PlanResult.
+        """Depth (H, W) metres (NaN invalid) + goal (3,) body frame [+ velocity (3,)] → PlanResult: the
+        pilot's single-shot use (:class:`mapkit.flight.Pilot`, a new flight of one frame under the full
+        flight stack), in the body frame of the frame.
 
-        `corridor`: half-width (m) of the flight corridor around each key-point segment (body
-        axes); the min-snap trajectory is then a QP bounded by it instead of passing through the
-        interior key-points (see :func:`mapkit.trajopt.min_snap`). None: through the key-points.
+        `corridor`: widest half-width (m) of the flight corridor around each key-point segment (the
+        stack's checked corridor; None: the stack's, :class:`mapkit.flight.Corridor`).
 
-        `K` (3, 3) and `T_body_camera` (4, 4) (optical camera → body): the depth camera's
-        calibration, needed by models that check their candidate paths against the depth image
-        (:attr:`needs_camera`). Without them such a model uses the camera its run recorded
-        (:attr:`camera`, the one `mapkit eval` renders), says so once (a warning) and marks the result
-        (:attr:`PlanResult.camera_from_run`); depth must then have that camera's size.
+        `K` (3, 3) and `T_body_camera` (4, 4) (optical camera → body): the depth camera's calibration.
+        Without them the camera the model's run recorded is used (:attr:`camera`, the one `mapkit eval`
+        renders), said once (a warning) and marked in the result (:attr:`PlanResult.camera_from_run`);
+        depth must then have that camera's size. An image whose field of view differs from the recorded
+        camera's is refused (the pilot's camera contract, docs/flight.md).
 
         `widen`: factors of the widened candidates judged with the trained ones (:data:`WIDEN`; ()
-        none; models with one candidate ignore it). `shift`: sideways shifts of every candidate judged
-        likewise (:data:`SHIFT`; () none)."""
+        none). `shift`: sideways shifts of every candidate judged likewise (:data:`SHIFT`; () none)."""
+        from mapkit.flight import FlightError, VehicleState
+
         asked = np.asarray(goal_body, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(asked)):
             raise PlanningError(f"goal {asked.tolist()} is not finite")
-        distance = float(np.linalg.norm(asked))
-        clipped = distance > LOCAL_GOAL_RANGE
-        goal = (asked * (LOCAL_GOAL_RANGE / distance) if clipped else asked).astype(np.float32)
-        vel = np.zeros(3, np.float32) if velocity_body is None else np.asarray(velocity_body, np.float32).reshape(3)
+        vel = np.zeros(3) if velocity_body is None else np.asarray(velocity_body, np.float64).reshape(3)
         K, T_body_camera, from_run = self._calibration(np.asarray(depth).shape, K, T_body_camera)
-        d = torch.from_numpy(np.asarray(depth, dtype=np.float32)[None]).to(self.device)
-        with torch.inference_mode():
-            t0 = time.perf_counter()
-            camera = None
-            if K is not None and T_body_camera is not None:
-                from mapkit.planner import CameraInput
+        pilot = self._single_shot(widen, shift, corridor)
+        try:
+            step = pilot.step(0.0, VehicleState(np.zeros(3), vel), asked, np.asarray(depth), K=K,
+                              T_world_body=np.eye(4), T_body_camera=T_body_camera)
+        except FlightError as exc:
+            raise PlanningError(str(exc)) from None
+        return _result(step, asked, rate_hz, from_run, self.net.config.num_candidates, len(widen))
 
-                h, w = np.asarray(depth).shape[-2:]
-                camera = CameraInput.from_calibration(np.asarray(K), int(w), int(h), np.asarray(T_body_camera))
-            p = self.net.plan(d, torch.from_numpy(goal[None]).to(self.device),
-                              start_velocity=torch.from_numpy(vel[None]).to(self.device), corridor=corridor,
-                              camera=None if camera is None else camera.to(self.device), widen=widen,
-                              shift=shift)
-            if self.device.type == "cuda":
-                torch.cuda.synchronize()
-            latency = 1e3 * (time.perf_counter() - t0)
-            total = float(p.durations.double().sum())
-            t = np.linspace(0.0, total, max(2, int(total * rate_hz) + 1))  # float64: stamps are built from it
-            pos = p.trajectory.position(torch.from_numpy(t).to(p.keypoints.dtype).to(self.device))
-        return PlanResult(
-            keypoints=p.keypoints[0].cpu().numpy(), eta=float(p.eta[0]), durations=p.durations[0].cpu().numpy(),
-            samples_t=t, samples_body=pos.reshape(-1, 3).cpu().numpy(),
-            control_effort=float(p.trajectory.snap_cost().reshape(-1)[0]), latency_ms=latency,
-            goal_body=goal.astype(np.float64), goal_clipped=clipped, widened=bool(p.widened is not None and p.widened[0]),
-            shifted=bool(p.shifted is not None and p.shifted[0]),
-            camera_from_run=from_run,
-        )
+    def _single_shot(self, widen: tuple[float, ...], shift: tuple[float, ...], corridor: float | None) -> Pilot:
+        """A pilot of this network for one frame (the body frame of the frame is its world); on the CPU,
+        where the flight stack's trajectory optimisation runs."""
+        import copy
+        from dataclasses import replace
+
+        from mapkit.flight import Corridor, Execution, LearnedMethod, Pilot, PilotConfig
+        from mapkit.planner import CameraInput
+
+        stack = Execution(widen=widen, shift=shift)
+        if corridor is not None:
+            stack = replace(stack, corridor=Corridor(width=corridor))
+        cam = self.camera
+        camera = None if cam is None else CameraInput.from_calibration(cam.K, cam.width, cam.height, cam.T_body_camera)
+        config = PilotConfig(horizon=LOCAL_GOAL_RANGE, goal_radius=1e-3, plan_latency=0.0)  # from the frame itself
+        if self._cpu_net is None:
+            self._cpu_net = self.net if self.device.type == "cpu" else copy.deepcopy(self.net).cpu()
+        return Pilot(LearnedMethod("learned", self._cpu_net, camera=camera, execution=stack), camera=cam, config=config)
 
     def _calibration(self, shape: tuple[int, ...], K: np.ndarray | None, T_body_camera: np.ndarray | None
                      ) -> tuple[np.ndarray | None, np.ndarray | None, bool]:
@@ -263,3 +254,25 @@ def write_plan_outputs(result: PlanResult, T_world_body: np.ndarray, stamp_ns: i
             poses.append(PoseStamped(header=bag.header(t, world_frame), pose=bag.pose_message(T)))
         bag.write_raw("/planner/path", "nav_msgs/msg/Path", Path_(header=bag.header(int(stamp_ns), world_frame), poses=poses), int(stamp_ns))
     return [json_path, tum_path, mcap_path]
+
+
+def _result(step: PilotStep, asked: np.ndarray, rate_hz: float, from_run: bool, trained: int, widened: int) -> PlanResult:
+    """The pilot's plan (in the body frame of the frame) as a :class:`PlanResult`, sampled at ``rate_hz``."""
+    mp = step.plan
+    assert mp is not None  # a single shot always plans
+    pieces = mp.pieces
+    total = float(pieces.durations.sum())
+    t = np.linspace(0.0, total, max(2, int(total * rate_hz) + 1))  # float64: stamps are built from it
+    distance = float(np.linalg.norm(asked))
+    clipped = distance > LOCAL_GOAL_RANGE
+    candidate = mp.candidate
+    unshifted = trained * (1 + (widened if trained > 1 else 0))
+    return PlanResult(
+        keypoints=np.asarray(mp.keypoints_world, dtype=np.float32), eta=float(mp.eta if mp.eta is not None else 0.0),
+        durations=pieces.durations.astype(np.float32), samples_t=t,
+        samples_body=pieces.derivative(pieces.t0 + t, 0).astype(np.float32),
+        control_effort=pieces.snap_effort(pieces.t0, pieces.t_end), latency_ms=step.latency_ms,
+        goal_body=asked * (LOCAL_GOAL_RANGE / distance) if clipped else asked, goal_clipped=clipped,
+        widened=candidate is not None and candidate % unshifted >= trained,
+        shifted=candidate is not None and candidate >= unshifted, camera_from_run=from_run,
+    )

@@ -1,6 +1,7 @@
-"""The depth camera a run recorded: ``camera`` in its config.json (`mapkit train` writes the first
+"""A trained model as a run records it: its network (model.pt: state dict + planner config) and the
+depth camera it was trained with (``camera`` in its config.json; `mapkit train` writes the first
 training workspace's; the shipped model's is in ``pretrained/config.json``). `mapkit eval` renders this
-camera, and :meth:`mapkit.planning.Planner.plan` plans with it when it is given no calibration."""
+camera, and the pilot uses it when a frame gives no calibration (the camera contract)."""
 
 from __future__ import annotations
 
@@ -64,3 +65,27 @@ def _camera(saved: Any) -> RunCamera:
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(T))):
         raise ValueError("K or T_body_camera is not finite")
     return RunCamera(width, height, K, T, str(saved.get("source", "")))
+
+
+def load_network(model: str | Path) -> tuple[Any, RunCamera | None]:
+    """(the network in eval mode on the CPU, the camera its run recorded) of ``model``: a run directory,
+    or ``"pretrained"`` for the model shipped with mapkit. :class:`~mapkit.flight.FlightError` names a
+    missing or foreign model.pt and the fix."""
+    from mapkit._saved import load_saved
+    from mapkit.flight._errors import FlightError
+    from mapkit.flight._pretrained import PRETRAINED, resolve_model
+    from mapkit.planner import PlannerConfig, PlannerNet
+
+    path = resolve_model(model) / "model.pt"
+    if not path.exists():
+        if str(model) == PRETRAINED:
+            raise FlightError(f"this mapkit installation lacks the shipped model ({path}); reinstall mapkit "
+                              "or pass --model RUN_DIR of a model you trained")
+        raise FlightError(f"{model} has no model.pt; train one with `mapkit train` (or check the run path)")
+    saved = load_saved(path, "mapkit planner", FlightError, ("planner_config", "state_dict"))
+    try:
+        net = PlannerNet(PlannerConfig.from_dict(saved["planner_config"]))
+        net.load_state_dict(saved["state_dict"])
+    except Exception as exc:  # noqa: BLE001 - a foreign state dict fails in many ways: one message
+        raise FlightError(f"{path} is not a mapkit planner ({type(exc).__name__}: {exc})") from None
+    return net.eval(), recorded_camera(path.parent)
