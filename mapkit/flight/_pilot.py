@@ -30,6 +30,9 @@ Status = Literal["cruising", "braking", "blocked", "reached"]
 inconsistent input). ``blocked``: at rest with no plan accepted, turning to look elsewhere (or waiting
 for frames). ``reached``: within ``goal_radius`` of the goal; the pilot no longer replans."""
 STATUSES: tuple[Status, ...] = ("cruising", "braking", "blocked", "reached")
+BRAKE_PEAK = 1.3
+"""A brake's acceleration peaks at no more than this times its ``brake_deceleration`` (3.9 m/s² for the
+default 3, within the flight stack's 4 m/s² limit)."""
 LOOK_DONE_DEG = 15.0
 """Degrees: a hovering vehicle turns to look elsewhere again once it faces this close to its last aim."""
 
@@ -372,12 +375,19 @@ def _depth(depth: np.ndarray) -> np.ndarray:
 def brake(state_world: np.ndarray, t0: float, deceleration: float, direction: np.ndarray | None = None) -> Pieces:
     """One minimum-snap segment from ``state_world`` (4, 3: position … jerk) to rest along its velocity
     (or ``direction``, a world unit vector): over T = max(0.5, 2 v / a) seconds to v T / 2 = v² / a metres
-    ahead (half of ``deceleration`` on average; the smooth profile peaks near it)."""
+    ahead (half of ``deceleration`` on average), longer when its acceleration would peak above
+    :data:`BRAKE_PEAK` × ``deceleration`` (a brake that starts while accelerating, or turns)."""
     speed = float(np.linalg.norm(state_world[1]))
-    T = max(0.5, 2.0 * speed / deceleration)
     way = state_world[1] if direction is None else speed * np.asarray(direction, dtype=np.float64)
-    stop = state_world[0] + 0.5 * T * way
-    return _segment(state_world, stop, T, t0)
+    allowed = max(BRAKE_PEAK * deceleration, float(np.linalg.norm(state_world[2])))
+    T = max(0.5, 2.0 * speed / deceleration)
+    for _ in range(8):
+        pieces = _segment(state_world, state_world[0] + 0.5 * T * way, T, t0)
+        peak = float(np.linalg.norm(pieces.derivative(t0 + np.linspace(0.0, T, 65), 2), axis=1).max())
+        if peak <= allowed * (1 + 1e-6):
+            break
+        T *= max(1.1, math.sqrt(peak / allowed))
+    return pieces
 
 
 def final_approach(obs: Observation, state_world: np.ndarray, min_speed: float) -> MethodPlan:
