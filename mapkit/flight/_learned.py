@@ -103,15 +103,23 @@ def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
                            v_max=limits.v_max, a_max=limits.a_max, **kw)
         if bool(limited.solved.all()) and _within(limited, limits):
             return limited
-        stretch = 1.0
-        for _ in range(8):  # a slower flight of the same path: a / k², v / k (near enough: the start is fixed)
-            stretch *= max(1.1, _excess(traj, limits)) * 1.05
+        stretch, fallback = 1.0, traj
+        while stretch < MAX_STRETCH:  # a slower flight of the same path: a / k², v / k (near enough: the start is fixed)
+            excess = _excess(traj, limits)
+            stretch = min(MAX_STRETCH, stretch * max(1.1, excess if math.isfinite(excess) else 2.0) * 1.05)
             traj = min_snap(wp, T * stretch, start=start, end=end, on_infeasible="ignore", **kw)
             if not bool(traj.solved.all()):
                 traj = min_snap(wp, T * stretch, start=start, end=end)
+            if not bool(torch.isfinite(traj.coeffs).all()):
+                return fallback
             if _within(traj, limits):
                 break
         return traj
+
+
+MAX_STRETCH = 8.0
+"""The slowest a plan is flown to keep the limits: 8× its durations (1/64 of its acceleration). A plan
+that would need more (key-points the network put on top of each other) keeps its own timing."""
 
 
 def _excess(traj: Trajectory, limits: SpeedProfile) -> float:

@@ -136,6 +136,6 @@ class Reference:
         """(peak speed m/s, peak acceleration m/s², norms) from ``t_from`` (its start) to its end, sampled
         every ``step`` seconds: what the speed profile's limits bound (:class:`~mapkit.flight.SpeedProfile`)."""
         a = self.t_start if t_from is None else max(t_from, self.t_start)
-        t = np.arange(a, max(a, self.t_end) + step, step)
+        t = np.linspace(a, max(a, self.t_end), int(min(5000, (max(a, self.t_end) - a) / step)) + 2)
         return (float(np.linalg.norm(self.derivative(t, 1), axis=1).max()),
                 float(np.linalg.norm(self.derivative(t, 2), axis=1).max()))
