@@ -18,6 +18,7 @@ spline), ``keypoints="straight"`` replaces the network's key-points by the strai
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass, fields, replace
@@ -88,8 +89,10 @@ def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
     """Minimum snap in ``corridor`` (None: through the key-points) whose speed and acceleration stay
     within ``how``'s limits (norms, checked on a dense grid). The limits rarely bind, so they join the QP
     (as per-axis bounds) only when the trajectory without them breaks one; when that QP fails or still
-    breaks them, the plan is flown slower (its durations stretched) until it keeps them. An infeasible
-    corridor never leaves the plan without a reference: the trajectory then passes the key-points."""
+    breaks them, the same problem is solved with its durations stretched (:data:`STRETCHES`), and the
+    first that keeps the limits is flown (in the corridor, else through the key-points), else the one
+    that comes closest. An infeasible corridor never leaves the plan without a reference: the trajectory
+    then passes the key-points."""
     with torch.no_grad():
         kw: dict[str, Any] = {} if corridor is None else {"corridor": corridor}
         traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", **kw)
@@ -99,27 +102,21 @@ def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
         limits = how.speed
         if _within(traj, limits):
             return traj
-        limited = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", limits_everywhere=True,
-                           v_max=limits.v_max, a_max=limits.a_max, **kw)
-        if bool(limited.solved.all()) and _within(limited, limits):
-            return limited
-        stretch, fallback = 1.0, traj
-        while stretch < MAX_STRETCH:  # a slower flight of the same path: a / k², v / k (near enough: the start is fixed)
-            excess = _excess(traj, limits)
-            stretch = min(MAX_STRETCH, stretch * max(1.1, excess if math.isfinite(excess) else 2.0) * 1.05)
-            traj = min_snap(wp, T * stretch, start=start, end=end, on_infeasible="ignore", **kw)
-            if not bool(traj.solved.all()):
-                traj = min_snap(wp, T * stretch, start=start, end=end)
-            if not bool(torch.isfinite(traj.coeffs).all()):
-                return fallback
-            if _within(traj, limits):
-                break
-        return traj
+        tried = [traj]
+        for bounds, stretch in itertools.product([kw, {}] if kw else [kw], STRETCHES):  # the corridor first
+            limited = min_snap(wp, T * stretch, start=start, end=end, on_infeasible="ignore", limits_everywhere=True,
+                               v_max=limits.v_max, a_max=limits.a_max, **bounds)
+            if not (bool(limited.solved.all()) and bool(torch.isfinite(limited.coeffs).all())):
+                continue
+            if _within(limited, limits):
+                return limited
+            tried.append(limited)
+        return min(tried, key=lambda t: _excess(t, limits))
 
 
-MAX_STRETCH = 8.0
-"""The slowest a plan is flown to keep the limits: 8× its durations (1/64 of its acceleration). A plan
-that would need more (key-points the network put on top of each other) keeps its own timing."""
+STRETCHES = (1.0, 1.5, 2.25, 3.5, 5.0)
+"""Factors of a plan's durations tried, with the limits in its QP, until it keeps them: a slower flight
+of the same key-points (its start state is fixed: the reference's at the takeover)."""
 
 
 def _excess(traj: Trajectory, limits: SpeedProfile) -> float:
