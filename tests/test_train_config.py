@@ -14,7 +14,7 @@ from mapkit._choices import ON_REJECT, PRESET_NAMES, TRAINED_WEIGHTS
 from mapkit.planner import LossConfig, PlannerConfig, PlannerNet
 from mapkit.train import PRESETS, TrainConfig, TrainConfigError, preset
 
-PRETRAINED = Path(__file__).resolve().parents[1] / "mapkit" / "planning" / "pretrained"
+PRETRAINED = Path(__file__).resolve().parents[1] / "mapkit" / "flight" / "pretrained"
 
 OLD_CONFIG = {  # a config.json's options as the code before typed nested configs wrote them
     "name": "cpu", "preset": "cpu", "epochs": 8, "batch_size": 16, "lr": 0.0005, "weight_decay": 0.0, "seed": 0,
