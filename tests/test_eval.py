@@ -568,10 +568,13 @@ def test_a_learned_method_carries_nothing_from_one_flight_to_the_next():
     def render(T_world_body: np.ndarray) -> np.ndarray:
         return render_depth(world, T_world_body @ T_bc, camera)
 
+    from mapkit.flight._recorded import RunCamera
+
     loop = LoopConfig(timeout_min=6.0, timeout_factor=0.1)
-    first = run_episode(world, START, GOAL, method, loop, render=render)
+    rendered = RunCamera(80, 60, K, T_bc, "test")
+    first = run_episode(world, START, GOAL, method, loop, render=render, camera=rendered)
     assert method._memory is not None and method._memory.frames  # it remembered the wall
-    second = run_episode(world, START, GOAL, method, loop, render=render)
+    second = run_episode(world, START, GOAL, method, loop, render=render, camera=rendered)
     assert first.plans > 1 and first.outcome == second.outcome and first.plans == second.plans
     assert np.array_equal(first.samples, second.samples)
 
