@@ -140,6 +140,21 @@ def test_frames_stopping_brake_the_vehicle_to_rest_then_hold():
     assert later.status == "blocked" and later.reference is brake  # holds, never a plan past its end
 
 
+def test_frames_that_see_nothing_mid_flight_count_as_missing_frames():
+    pilot = Pilot(Ahead(), camera=CAMERA, config=PilotConfig(frame_timeout=0.5))
+    ref = fly(pilot, 4)[-1].reference  # frames with valid pixels up to t = 1.5 s
+    empty = np.full((H, W), np.nan, dtype=np.float32)  # e.g. pitched toward open space: nothing in range
+
+    def step(at: float):
+        state = VehicleState(ref.derivative(at, 0)[0], ref.derivative(at, 1)[0])
+        return pilot.step(at, state, GOAL, empty, T_world_body=level(state.position))
+
+    kept = step(1.8)
+    assert kept.status == "cruising" and not kept.replanned and kept.reference is ref
+    braking = step(2.1)
+    assert braking.status == "braking" and "no depth frame with a valid pixel" in braking.reason
+
+
 def test_a_frame_far_from_the_vehicle_state_brakes_and_says_why():
     pilot = Pilot(Ahead(), camera=CAMERA, config=PilotConfig(pose_tolerance=0.5))
     fly(pilot, 2)
@@ -274,3 +289,19 @@ def test_a_plan_too_sharp_for_the_limits_is_flown_slower_within_them():
     assert float(kept.max_velocity(samples_per_segment=256)) <= 3.0 + 1e-6
     knots = torch.cumsum(kept.durations, dim=-1)
     assert torch.allclose(kept.position(knots[0]), wp[0, 1:], atol=1e-6)  # the same path, flown slower
+
+
+def test_bounds_in_the_qp_keep_the_norms_of_a_diagonal_plan():
+    """Per-axis bounds at the limit would allow √3 times it along a diagonal: the bounds are limit / √3."""
+    from mapkit.flight import SpeedProfile
+    from mapkit.flight._learned import _bounded
+
+    wp = torch.tensor([[[0.0, 0.0, 0.0], [2.0, 2.0, 2.0], [0.0, 0.0, 0.0], [2.0, 2.0, 2.0]]], dtype=torch.float64)
+    T = torch.full((1, 3), 2.4, dtype=torch.float64)
+    start, end = torch.zeros(1, 3, 3, dtype=torch.float64), torch.zeros(1, 3, dtype=torch.float64)
+    limits = SpeedProfile(v_max=3.0, a_max=4.0)
+    free = min_snap(wp, T, start=start, end=end)
+    assert float(free.max_acceleration(samples_per_segment=256)) > 4.0  # the plan needs the bounds
+    kept = _bounded(wp, T, start, end, limits, [{}], [])
+    assert float(kept.max_acceleration(samples_per_segment=256)) <= 4.0 + 1e-6
+    assert float(kept.max_velocity(samples_per_segment=256)) <= 3.0 + 1e-6

@@ -18,7 +18,6 @@ spline), ``keypoints="straight"`` replaces the network's key-points by the strai
 
 from __future__ import annotations
 
-import itertools
 import math
 import time
 from dataclasses import dataclass, fields, replace
@@ -87,12 +86,12 @@ def _tensors(wp: np.ndarray, start: np.ndarray, end_speed: float) -> tuple[torch
 def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, how: Execution,
              corridor: float | None) -> Trajectory:
     """Minimum snap in ``corridor`` (None: through the key-points) whose speed and acceleration stay
-    within ``how``'s limits (norms, checked on a dense grid). The limits rarely bind, so they join the QP
-    (as per-axis bounds) only when the trajectory without them breaks one; when that QP fails or still
-    breaks them, the same problem is solved with its durations stretched (:data:`STRETCHES`), and the
-    first that keeps the limits is flown (in the corridor, else through the key-points), else the one
-    that comes closest. An infeasible corridor never leaves the plan without a reference: the trajectory
-    then passes the key-points."""
+    within ``how``'s limits (norms, checked on a dense grid). A plan that breaks them is flown slower:
+    the same problem with its durations stretched by how far it is over (speed falls with the stretch,
+    acceleration with its square; the start state is fixed, so a few rounds), at most
+    :data:`MAX_STRETCH`. Past that, the limits join the QP as per-axis bounds of limit / √3 (which keep
+    the norms), in the corridor, then through the key-points; else the closest is flown. An infeasible
+    corridor never leaves the plan without a reference: the trajectory then passes the key-points."""
     with torch.no_grad():
         kw: dict[str, Any] = {} if corridor is None else {"corridor": corridor}
         traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", **kw)
@@ -100,23 +99,56 @@ def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
             kw = {}
             traj = min_snap(wp, T, start=start, end=end)
         limits = how.speed
+        tried, stretch = [traj], 1.0
+        while (excess := _excess(traj, limits)) > 1.0 + 1e-6 and stretch < MAX_STRETCH:
+            stretch = min(MAX_STRETCH, stretch * min(max(1.05 * excess, 1.1), 2.0))
+            slower = min_snap(wp, T * stretch, start=start, end=_slowed(end, stretch), on_infeasible="ignore", **kw)
+            if kw and not _solved(slower):  # a narrow corridor can refuse a slower flight
+                kw = {}
+                slower = min_snap(wp, T * stretch, start=start, end=_slowed(end, stretch), on_infeasible="ignore")
+            if not _solved(slower):
+                break
+            traj = slower
+            tried.append(traj)
+        else:
+            if excess <= 1.0 + 1e-6:
+                return traj
+        return _bounded(wp, T * stretch, start, _slowed(end, stretch), limits, [kw, {}] if kw else [kw], tried)
+
+
+def _slowed(end: torch.Tensor, stretch: float) -> torch.Tensor:
+    """End derivatives (B, 3) velocity or (B, D, 3) velocity, acceleration, … of the same path flown
+    ``stretch`` times slower: the k-th derivative divided by stretch^k."""
+    if end.dim() == 2:
+        return end / stretch
+    powers = stretch ** torch.arange(1, end.shape[1] + 1, dtype=end.dtype)
+    return end / powers[None, :, None]
+
+
+MAX_STRETCH = 8.0
+"""The most a plan's durations are stretched to keep the limits: a slower flight of the same key-points
+(its start state is fixed: the reference's at the takeover)."""
+
+
+def _bounded(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, limits: SpeedProfile,
+             corridors: list[dict[str, Any]], tried: list[Trajectory]) -> Trajectory:
+    """The first of ``corridors`` whose QP with per-axis bounds of limit / √3 keeps the limits, else the
+    closest of ``tried`` and those."""
+    axis = 1.0 / math.sqrt(3.0)
+    bounds = {"v_max": None if limits.v_max is None else limits.v_max * axis,
+              "a_max": None if limits.a_max is None else limits.a_max * axis}
+    for kw in corridors:
+        traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", limits_everywhere=True, **bounds, **kw)
+        if not _solved(traj):
+            continue
         if _within(traj, limits):
             return traj
-        tried = [traj]
-        for bounds, stretch in itertools.product([kw, {}] if kw else [kw], STRETCHES):  # the corridor first
-            limited = min_snap(wp, T * stretch, start=start, end=end, on_infeasible="ignore", limits_everywhere=True,
-                               v_max=limits.v_max, a_max=limits.a_max, **bounds)
-            if not (bool(limited.solved.all()) and bool(torch.isfinite(limited.coeffs).all())):
-                continue
-            if _within(limited, limits):
-                return limited
-            tried.append(limited)
-        return min(tried, key=lambda t: _excess(t, limits))
+        tried.append(traj)
+    return min(tried, key=lambda t: _excess(t, limits))
 
 
-STRETCHES = (1.0, 1.5, 2.25, 3.5, 5.0)
-"""Factors of a plan's durations tried, with the limits in its QP, until it keeps them: a slower flight
-of the same key-points (its start state is fixed: the reference's at the takeover)."""
+def _solved(traj: Trajectory) -> bool:
+    return bool(traj.solved.all()) and bool(torch.isfinite(traj.coeffs).all())
 
 
 def _excess(traj: Trajectory, limits: SpeedProfile) -> float:

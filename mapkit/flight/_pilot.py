@@ -116,6 +116,7 @@ class Pilot:
         self._stamp: float | None = None
         self._started = 0.0  # the flight's first stamp
         self._last_frame: float | None = None
+        self._seen_depth = False  # a frame with a valid pixel arrived in this flight
         self._last_plan: float | None = None
         self._status: Status = "blocked"
         self._reason = "no frame yet"
@@ -166,10 +167,12 @@ class Pilot:
         if float(np.linalg.norm(goal - state.position)) <= c.goal_radius:
             return self._answer("reached", f"within {c.goal_radius} m of the goal")
         frame = None
-        if depth is not None:
-            frame = self._frame(depth, K, T_world_camera, T_world_body, T_body_camera, state)
+        image = None if depth is None else _depth(depth, empty_ok=self._seen_depth)
+        if image is not None:
+            frame = self._frame(image, K, T_world_camera, T_world_body, T_body_camera, state)
             self._last_frame = stamp
-        elif self.planner.needs_depth:
+            self._seen_depth = True
+        elif self.planner.needs_depth:  # no frame, or one that sees nothing within range mid-flight
             return self._without_frame(stamp)
         if frame is not None and frame.offset > c.pose_tolerance:
             return self._brake_for(stamp, f"the frame's pose is {frame.offset:.2f} m from the vehicle's state "
@@ -180,7 +183,7 @@ class Pilot:
         if frame is None:
             T = level_pose(state.position, state.yaw) if T_world_body is None else rigid(T_world_body, "T_world_body")
             frame = _Frame(np.zeros((0, 0)), planning_frame(state.position, T, T), None, 0.0)
-        return self._plan(stamp, goal, frame, depth is not None)
+        return self._plan(stamp, goal, frame, image is not None)
 
     def _check_stamp(self, stamp: float) -> float:
         stamp = float(stamp)
@@ -195,9 +198,9 @@ class Pilot:
     def _new_flight(self, goal: np.ndarray) -> None:
         """A new goal: the stack's memory and routing start over (the planner sees the new goal); the
         reference being flown is kept, so the vehicle switches smoothly."""
-        ref, stamp = self._ref, self._stamp
+        ref, stamp, seen = self._ref, self._stamp, self._seen_depth
         self.reset()
-        self._ref, self._stamp, self._goal = ref, stamp, goal
+        self._ref, self._stamp, self._goal, self._seen_depth = ref, stamp, goal, seen
         self._started = 0.0 if stamp is None else stamp
 
     def _from_state(self, state: VehicleState, stamp: float) -> Pieces:
@@ -218,7 +221,7 @@ class Pilot:
     def _frame(self, depth: np.ndarray, K: np.ndarray | None, T_world_camera: np.ndarray | None,
                T_world_body: np.ndarray | None, T_body_camera: np.ndarray | None, state: VehicleState) -> _Frame:
         """The checked frame (:class:`FlightError` names the first bad input and its fix)."""
-        image = _depth(depth)
+        image = depth  # checked by _depth
         height, width = image.shape
         rec = self.camera
         if K is None:
@@ -245,11 +248,11 @@ class Pilot:
         return _Frame(image, T_world_plan, frame_camera(K, width, height, T_world_plan, T_wc), offset)
 
     def _without_frame(self, stamp: float) -> PilotStep:
-        """A call without depth: brake once frames have stopped for ``frame_timeout``."""
+        """A call without a usable frame: brake once usable frames have stopped for ``frame_timeout``."""
         quiet = stamp - (self._last_frame if self._last_frame is not None else self._started)
         if quiet <= self.config.frame_timeout:
             return self._answer(self._status, self._reason)
-        return self._brake_for(stamp, f"no depth frame for {quiet:.2f} s (frame_timeout "
+        return self._brake_for(stamp, f"no depth frame with a valid pixel for {quiet:.2f} s (frame_timeout "
                                       f"{self.config.frame_timeout} s): braking to rest and holding")
 
     def _brake_for(self, stamp: float, reason: str) -> PilotStep:
@@ -358,8 +361,10 @@ class Pilot:
                          plan=plan)
 
 
-def _depth(depth: np.ndarray) -> np.ndarray:
-    """The depth image checked: 2-D, floating point metres, some valid pixel."""
+def _depth(depth: np.ndarray, *, empty_ok: bool) -> np.ndarray | None:
+    """The depth image checked: 2-D, floating point metres, some valid pixel. An image without one is
+    refused on a flight's first frames (a broken camera pipeline) and is None (no frame) once depth has
+    been seen: a camera pitched toward open space sees nothing within range, which is no fault."""
     image = np.asarray(depth)
     if image.ndim != 2 or min(image.shape) < 2:
         raise FlightError(f"depth must be one (H, W) image, got shape {image.shape}")
@@ -367,6 +372,8 @@ def _depth(depth: np.ndarray) -> np.ndarray:
         raise FlightError(f"depth has dtype {image.dtype}; pass float metres (16UC1 millimetres: "
                           "depth.astype(np.float32) / 1000 with 0 set to NaN)")
     if not np.any(np.isfinite(image) & (image > 0)):
+        if empty_ok:
+            return None
         raise FlightError("depth has no valid pixel (all NaN, 0 or inf): skip the frame, or check the camera's "
                           "encoding and units")
     return image
