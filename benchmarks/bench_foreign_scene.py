@@ -9,8 +9,8 @@ which put it at 45 % instead of 58 % once plans were clipped on 2026-11-29).
 
 Issue 11's target: >= 80 %. Printed next to the same count for the straight line to the goal, for
 the trained candidates alone (``widen=(), shift=()``) and for the trained and widened ones without the
-shifted ones (``shift=()``). `Planner.plan` adds widened candidates (`mapkit.planning.WIDEN`, factors
-chosen on seed 0) and shifted ones (`mapkit.planning.SHIFT`, chosen on seeds 0 and 1).
+shifted ones (``shift=()``). `Planner.plan` adds widened candidates (`mapkit.flight.WIDEN`, factors
+chosen on seed 0) and shifted ones (`mapkit.flight.SHIFT`, chosen on seeds 0 and 1).
 """
 
 from __future__ import annotations
@@ -69,8 +69,8 @@ def main() -> None:
     args = parser.parse_args()
     import torch
 
-    from mapkit.planning import Planner
-    from mapkit.planning._planner import LOCAL_GOAL_RANGE, SHIFT, WIDEN
+    from mapkit.flight import Planner
+    from mapkit.flight._single import LOCAL_GOAL_RANGE, SHIFT, WIDEN
     from mapkit.sim import CameraModel, camera_extrinsics
 
     torch.set_num_threads(1)

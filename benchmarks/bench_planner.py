@@ -178,7 +178,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="60 repeats per piece instead of 300")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    from mapkit.planning import Planner, resolve_model
+    from mapkit.flight import Planner, resolve_model
 
     repeats = 60 if args.quick else 300
     net = Planner.load(resolve_model("pretrained")).net.eval()

@@ -141,7 +141,7 @@ class _SectionedCommand(click.Command):
                    "(each candidate's trajectory as flown, judged against the depth image); without the stack "
                    "(--stack none) it always does.")
 @click.option("--shift/--no-shift", default=True, show_default=True,
-              help="Also judge every candidate of the network shifted sideways by ±0.3 and ±0.6 m (mapkit.planning.SHIFT).")
+              help="Also judge every candidate of the network shifted sideways by ±0.3 and ±0.6 m (mapkit.flight.SHIFT).")
 @click.option("--plan-latency", type=FINITE, default=0.02, show_default=True,
               help="Seconds from the depth frame to the plan taking over (the vehicle flies on meanwhile).")
 @click.option("--final-approach", type=FINITE, default=0.0, show_default=True,

@@ -20,23 +20,23 @@ from mapkit.cli._group import FINITE, INDEX, library_call, main, workspace_optio
 @click.option("-o", "--output", type=click.Path(path_type=Path), default=None, help="Output folder (default: WS/plans).")
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda.")
 @click.option("--widen/--no-widen", default=True, show_default=True,
-              help="Also judge each candidate with its detour widened ×1.5 and ×2.5 (mapkit.planning.WIDEN).")
+              help="Also judge each candidate with its detour widened ×1.5 and ×2.5 (mapkit.flight.WIDEN).")
 @click.option("--shift/--no-shift", default=True, show_default=True,
-              help="Also judge every candidate shifted sideways by ±0.3 and ±0.6 m (mapkit.planning.SHIFT).")
+              help="Also judge every candidate shifted sideways by ±0.3 and ±0.6 m (mapkit.flight.SHIFT).")
 @library_call
 def plan_cmd(run_dir: Path, workspace: Path, frame_index: int, goal: tuple[float, float, float], goal_frame: GoalFrame,
              output: Path | None, device: str, widen: bool, shift: bool) -> None:
     """Plan from a recorded frame; writes the trajectory as JSON, TUM and MCAP (nav_msgs/Path)."""
     from mapkit.export import body_velocities
+    from mapkit.flight import FlightError, Planner, plan_from_frame, write_plan_outputs
+    from mapkit.flight._single import LOCAL_GOAL_RANGE, check_output_folder
     from mapkit.ingest import open_frames_store
-    from mapkit.planning import Planner, PlanningError, plan_from_frame, write_plan_outputs
-    from mapkit.planning._planner import LOCAL_GOAL_RANGE, check_output_folder
 
     out = output or workspace / "plans"
     check_output_folder(out)
     store = open_frames_store(workspace)
     if not 0 <= frame_index < len(store):
-        raise PlanningError(f"--frame {frame_index}: frames.zarr has frames 0..{len(store) - 1}")
+        raise FlightError(f"--frame {frame_index}: frames.zarr has frames 0..{len(store) - 1}")
     T_wb = store.T_world_body[frame_index]
     velocity = body_velocities(store.stamp_ns, store.T_world_body, store.source_index)[frame_index]
     planner = Planner.load(run_dir, device=device)

@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from mapkit.export import body_velocities
+from mapkit.flight import Planner, write_plan_outputs
 from mapkit.geometry import invert_transform
 from mapkit.ingest import IngestConfig, ingest, open_frames_store
-from mapkit.planning import Planner, write_plan_outputs
 
 RECORDING = Path(__file__).resolve().parents[1] / "sample_data" / "forest.mcap"
 GOAL_BODY = np.array([5.0, 1.0, 0.0])  # metres, body frame: x forward, y left, z up

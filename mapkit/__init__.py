@@ -14,9 +14,8 @@ re-exports its public names from private ``_modules``:
 - ``mapkit.trajopt``: differentiable minimum-snap trajectories, flight corridors, time allocation.
 - ``mapkit.planner``: the planner network and its self-supervised loss (batched tensors).
 - ``mapkit.train``: training the planner → runs/NAME/ (presets, loop, checkpoints, validation, DDP).
-- ``mapkit.planning``: using a trained planner on single frames (``Planner.load("pretrained")``).
-- ``mapkit.flight``: the pilot: a trained planner and its flight stack flown frame by frame, for any
-  vehicle loop (references with position through snap and yaw, a status, input checks).
+- ``mapkit.flight``: flying a trained planner: the pilot (the planner and its flight stack, frame by
+  frame, for any vehicle loop) and its single-shot use, ``Planner.load("pretrained").plan(...)``.
 - ``mapkit.evaluation``: closed-loop flights of the pilot in unseen simulated worlds (linear tracker
   or rotorpy quadrotor) → results.json.
 - ``mapkit.viz``: the computations behind the viewer (slices, colours, clouds, corridors); no viser.

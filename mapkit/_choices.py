@@ -24,7 +24,7 @@ ON_REJECT: tuple[OnReject, ...] = get_args(OnReject)
 
 GoalFrame = Literal["body", "world"]
 """The frame a planning goal is given in: the body frame of the frame planned from, or the world frame
-(``mapkit plan --goal-frame``, :func:`mapkit.planning.plan_from_frame`)."""
+(``mapkit plan --goal-frame``, :func:`mapkit.flight.plan_from_frame`)."""
 GOAL_FRAMES: tuple[GoalFrame, ...] = get_args(GoalFrame)
 
 TimingObjective = Literal["snap", "imitate"]
@@ -51,4 +51,4 @@ VEHICLES: tuple[VehicleKind, ...] = get_args(VehicleKind)
 
 CANDIDATE_SHIFTS: tuple[float, ...] = (-0.6, -0.3, 0.3, 0.6)
 """Metres: the sideways shifts of the extra candidates a plan judges by default, single plans
-(:data:`mapkit.planning.SHIFT`) and the full flight stack (``Execution.shift``) alike."""
+(:data:`mapkit.flight.SHIFT`) and the full flight stack (``Execution.shift``) alike."""

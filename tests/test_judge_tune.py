@@ -15,7 +15,7 @@ from click.testing import CliRunner
 from mapkit.cli.main import main
 from mapkit.evaluation import EvalConfig, EvalError, evaluate
 from mapkit.evaluation._run import Judgement
-from mapkit.flight import Execution, under_stack
+from mapkit.flight import Execution, Planner, under_stack
 from mapkit.flight._learned import JudgeInput
 from mapkit.planner import (
     CLEARANCE_CAP,
@@ -29,7 +29,6 @@ from mapkit.planner import (
     flown_features,
     planner_preset,
 )
-from mapkit.planning import Planner
 from mapkit.train import (
     JudgeRecords,
     JudgeTuneConfig,

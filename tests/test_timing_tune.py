@@ -12,8 +12,8 @@ from click.testing import CliRunner
 
 from mapkit.cli.main import main
 from mapkit.evaluation import PLANS_FILE, EvalConfig, evaluate
+from mapkit.flight import Planner
 from mapkit.planner import PlannerConfig, PlannerNet, planner_preset
-from mapkit.planning import Planner
 from mapkit.train import PlanInputs, TimingTuneConfig, TimingTuneError, load_plan_inputs, tune_tan
 from mapkit.train._timing_compare import CostRatios, allocation_costs, compare_timing, flown_snap
 from mapkit.train._timing_tune import _objective, _Reference, _timed, plan_costs

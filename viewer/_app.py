@@ -293,12 +293,12 @@ class ViewerApp:
     def _load_planner(self, run: Path) -> None:
         import json
 
-        from mapkit.planning import resolve_model
+        from mapkit.flight import resolve_model
 
         run = resolve_model(run)
         if not run.exists():
             raise ViewerError(f"--model {str(run)!r} does not exist; pass a run directory (WS/runs/NAME) with model.pt")
-        from mapkit.planning import Planner
+        from mapkit.flight import Planner
 
         try:
             self.planner = Planner.load(run, device=self.config.device)
@@ -744,7 +744,7 @@ class ViewerApp:
         """Plan from the selected frame to a world goal (3,) and draw key-points, the trajectory
         coloured by speed and the corridor prisms."""
         from mapkit import viz
-        from mapkit.planning import plan_from_frame
+        from mapkit.flight import plan_from_frame
         from mapkit.trajopt import TrajoptWarning
 
         fr, s = self._need_frames(), self.server.scene

@@ -381,7 +381,7 @@ def _init_worker(setup: _WorkerSetup) -> None:
     net = None
     untrained = {}
     if setup.model is not None:
-        from mapkit.planning import Planner
+        from mapkit.flight import Planner
 
         net = Planner.load(setup.model).net.prepare_inference()  # every process plans hundreds of frames
         if any(run.method == "untrained" for run in setup.runs):
@@ -613,7 +613,7 @@ class _ModelContext:
 def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> _ModelContext:
     """Load the model (a missing or foreign one is a one-line error) and read its training camera,
     robot radius, cruise speed and training worlds; the defaults without a model."""
-    from mapkit.planning import Planner, resolve_model
+    from mapkit.flight import Planner, resolve_model
 
     context = _ModelContext(camera=_default_camera(), loop=dataclasses.replace(config.loop), trained_worlds=set(),
                             model_info=None)
@@ -760,7 +760,7 @@ def _dask_task(setup: _WorkerSetup, task: tuple[str, dict]) -> tuple[str, int, l
 def _check_worker_model(setup: _WorkerSetup) -> None:
     """Raise :class:`EvalError` when this (possibly remote) worker reads another model.pt than the one
     the evaluation started with."""
-    from mapkit.planning import resolve_model
+    from mapkit.flight import resolve_model
 
     if setup.model is None or setup.model_sha256 is None:
         return
@@ -957,7 +957,7 @@ def _write_outputs(out_dir: Path, doc: dict[str, Any], lat: dict, alloc: dict, w
 def _model_for_workers(model: str | os.PathLike[str] | None, config: EvalConfig) -> str | None:
     """The model as workers load it: "pretrained" stays a name (every installation ships it), a run
     directory becomes absolute (workers start elsewhere); None when no method needs it."""
-    from mapkit.planning import PRETRAINED
+    from mapkit.flight import PRETRAINED
 
     if model is None or not any(m in NEEDS_MODEL for m in config.methods):
         return None

@@ -241,12 +241,12 @@ def _plan_results(frames: Any, config: FoxgloveConfig) -> Iterator[tuple[int, ND
     toward where the flight was ``goal_ahead`` seconds later (same recording), clipped to the
     planner's range; frames with nowhere to go are skipped."""
     from mapkit.export import body_velocities
-    from mapkit.planning import Planner, PlanningError
-    from mapkit.planning._planner import LOCAL_GOAL_RANGE
+    from mapkit.flight import FlightError, Planner
+    from mapkit.flight._single import LOCAL_GOAL_RANGE
 
     try:
         planner = Planner.load(str(config.model))
-    except PlanningError as exc:
+    except FlightError as exc:
         raise ExchangeError(f"--model: {exc}") from None
     stamps = frames.stamp_ns.astype(np.int64)
     velocity = body_velocities(stamps, frames.T_world_body, frames.source_index)

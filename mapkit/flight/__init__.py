@@ -19,24 +19,33 @@ corridor (:class:`Corridor`), routing on the flight map (:class:`RouteConfig`), 
 reference, keeping the chosen candidate, the speed profile and limits (:class:`SpeedProfile`);
 :class:`PilotConfig` holds the brake, the turn on a veto, the replan interval and the input checks.
 ``Pilot.load(model, stack="none")`` flies the network alone (:func:`under_stack`).
+
+Single plans (:class:`Planner`, ``mapkit plan``, the viewer) are the pilot's single-shot use: one frame
+flown under the full stack, with widened candidates.
 """
 
 from mapkit.flight._camera import CENTRE_TOLERANCE, FOV_TOLERANCE, check_intrinsics, planning_frame
 from mapkit.flight._config import PilotConfig, VehicleState
 from mapkit.flight._errors import FlightError
+from mapkit.flight._frame import GOAL_FRAMES, FramePlan, GoalFrame, goal_in_body, plan_from_frame
 from mapkit.flight._layers import Corridor, Execution, Memory, SpeedProfile, under_stack
 from mapkit.flight._learned import JudgeInput, LearnedMethod, PlanInput, open_direction
 from mapkit.flight._pieces import Pieces, hold, pieces_from_body
 from mapkit.flight._pilot import STATUSES, Pilot, PilotStep, Status, brake
 from mapkit.flight._plan import Method, MethodPlan, Observation, level_pose
+from mapkit.flight._pretrained import PRETRAINED, pretrained_dir, resolve_model
+from mapkit.flight._recorded import RunCamera, recorded_camera
 from mapkit.flight._reference import Reference, Setpoint
 from mapkit.flight._route import Aim, FlightMap, Progress, RouteConfig
+from mapkit.flight._single import SHIFT, WIDEN, Planner, PlanResult, write_plan_outputs
 
 __all__ = [
-    "CENTRE_TOLERANCE", "FOV_TOLERANCE", "STATUSES",
-    "Aim", "Corridor", "Execution", "FlightError", "FlightMap", "JudgeInput", "LearnedMethod", "Memory", "Method",
-    "MethodPlan", "Observation", "Pieces", "Pilot", "PilotConfig", "PilotStep", "PlanInput", "Progress", "Reference",
-    "RouteConfig", "Setpoint", "SpeedProfile", "Status", "VehicleState",
-    "brake", "check_intrinsics", "hold", "level_pose", "open_direction", "pieces_from_body", "planning_frame",
-    "under_stack",
+    "CENTRE_TOLERANCE", "FOV_TOLERANCE", "GOAL_FRAMES", "PRETRAINED", "SHIFT", "STATUSES", "WIDEN",
+    "Aim", "Corridor", "Execution", "FlightError", "FlightMap", "FramePlan", "GoalFrame", "JudgeInput", "LearnedMethod",
+    "Memory", "Method", "MethodPlan", "Observation", "Pieces", "Pilot", "PilotConfig", "PilotStep", "PlanInput",
+    "PlanResult", "Planner", "Progress", "Reference", "RouteConfig", "RunCamera", "Setpoint", "SpeedProfile", "Status",
+    "VehicleState",
+    "brake", "check_intrinsics", "goal_in_body", "hold", "level_pose", "open_direction", "pieces_from_body",
+    "plan_from_frame", "planning_frame", "pretrained_dir", "recorded_camera", "resolve_model", "under_stack",
+    "write_plan_outputs",
 ]

@@ -1,7 +1,7 @@
 """The camera contract: which depth images a model can fly from, and the camera of each frame relative
 to the level frame the network plans in.
 
-A model records the camera it was trained with (:class:`~mapkit.planning.RunCamera`). The network
+A model records the camera it was trained with (:class:`~mapkit.flight.RunCamera`). The network
 resizes every image to its input size (area averaging), and its depth check reads intrinsics
 normalised by the image size, so any resolution works whose normalised intrinsics (fx / W, fy / H and
 the principal point) match the recorded ones: such images are resampled. An image whose field of

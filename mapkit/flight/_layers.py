@@ -148,8 +148,8 @@ class Execution:
     widen: tuple[float, ...] = ()
     """Factors of widened candidates judged and chosen among with the trained ones
     (:meth:`~mapkit.planner.PlannerNet.widened`; () none): each trained candidate's detour from the straight
-    line scaled. Single plans (:meth:`mapkit.planning.Planner.plan`) widen by
-    :data:`mapkit.planning.WIDEN`: with nothing flown before, a box beside the line may need a wider
+    line scaled. Single plans (:meth:`mapkit.flight.Planner.plan`) widen by
+    :data:`mapkit.flight.WIDEN`: with nothing flown before, a box beside the line may need a wider
     detour than training gave the candidates. Replanning flights do not: they hover and look around
     instead (widening there flew fewer office pairs, docs/results.md)."""
     shift: tuple[float, ...] = CANDIDATE_SHIFTS

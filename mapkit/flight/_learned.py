@@ -135,10 +135,11 @@ def _bounded(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
     """The first of ``corridors`` whose QP with per-axis bounds of limit / √3 keeps the limits, else the
     closest of ``tried`` and those."""
     axis = 1.0 / math.sqrt(3.0)
-    bounds = {"v_max": None if limits.v_max is None else limits.v_max * axis,
-              "a_max": None if limits.a_max is None else limits.a_max * axis}
+    v_max = None if limits.v_max is None else limits.v_max * axis
+    a_max = None if limits.a_max is None else limits.a_max * axis
     for kw in corridors:
-        traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", limits_everywhere=True, **bounds, **kw)
+        traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", limits_everywhere=True, v_max=v_max,
+                        a_max=a_max, **kw)
         if not _solved(traj):
             continue
         if _within(traj, limits):

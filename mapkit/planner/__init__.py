@@ -2,10 +2,8 @@
 image + goal → key-points + collision probability η → Time Allocation Net → differentiable
 minimum-snap trajectory, and the self-supervised loss that trains it.
 
-Not to be confused with :mod:`mapkit.planning`, which *uses* a trained network: it loads a run's
-model.pt (or the shipped one), plans from one depth frame and a goal in metres, and writes the plan's
-files (`mapkit plan`, the viewer). Training and evaluation
-build on this package; applications on :mod:`mapkit.planning`.
+Flying a trained network (loading a run's model.pt or the shipped one, the pilot, single plans) is
+:mod:`mapkit.flight`.
 
 Model (the paper's upper level): :class:`PlannerNet` — a ResNet-18 depth encoder (:class:`ResNet18`,
 written here; :func:`load_torchvision_state_dict` loads torchvision's ImageNet weights), a linear goal

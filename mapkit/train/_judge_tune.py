@@ -216,7 +216,7 @@ def tune_judge(model: str | Path, records: Sequence[Path], val: Sequence[Path], 
     added when it has none) to the candidates recorded in the eval folders ``records``, choose the
     weights on ``val``, and write a run directory ``out_dir`` (model.pt and config.json, the latter with
     a ``judge_tune`` record of what was done)."""
-    from mapkit.planning import Planner, resolve_model
+    from mapkit.flight import Planner, resolve_model
 
     config = config or JudgeTuneConfig()
     config.validate()

@@ -287,7 +287,7 @@ _TAN_FIELDS = frozenset({"tan_boundary", "tan_boundary_scale", "tan_hidden", "ac
 def _init_worlds(init: str | None) -> set[tuple[str, int]]:
     """(kind, seed) of the simulated worlds the ``--init`` model trained on (its run's recorded
     ``training_worlds``): a fine-tuned model has seen them too, so `mapkit eval` must refuse them."""
-    from mapkit.planning import resolve_model
+    from mapkit.flight import resolve_model
 
     if not init:
         return set()
@@ -305,7 +305,7 @@ def _init_worlds(init: str | None) -> set[tuple[str, int]]:
 def _load_init(net: PlannerNet, init: str, *, tan_fresh: bool = False) -> None:
     """Weights of the model ``init`` (run directory, model.pt or "pretrained") into ``net``; with
     ``tan_fresh`` its TAN options may differ and the TAN keeps its new initial weights."""
-    from mapkit.planning import resolve_model
+    from mapkit.flight import resolve_model
 
     path = resolve_model(init)
     path = path / "model.pt" if path.is_dir() else path

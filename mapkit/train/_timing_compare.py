@@ -84,7 +84,7 @@ def allocation_costs(tan: TimeAllocationNet | None, config: PlannerConfig, plans
 def compare_timing(model: str | Path, plans: Sequence[Path], *, window: float = 0.5) -> TimingComparison:
     """The TAN of ``model`` (a run directory or "pretrained") against gradient descent on every plan
     recorded in the eval folders ``plans`` (``mapkit eval --record-plans``)."""
-    from mapkit.planning import Planner
+    from mapkit.flight import Planner
 
     if not (math.isfinite(window) and window > 0):
         raise TimingTuneError(f"--window must be > 0 seconds, got {window}")

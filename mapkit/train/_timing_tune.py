@@ -320,7 +320,7 @@ def tune_timing(model: str | Path, plans: Sequence[Path], val: Sequence[Path], o
 def _tune_and_write(model: str | Path, plans: Sequence[Path], val: Sequence[Path], out: Path,
                     config: TimingTuneConfig, *, overwrite: bool, progress: bool) -> TimingTuneSummary:
     """The body of :func:`tune_timing`."""
-    from mapkit.planning import Planner, resolve_model
+    from mapkit.flight import Planner, resolve_model
 
     source = resolve_model(model)
     net = Planner.load(model).net

@@ -1,11 +1,11 @@
-"""mapkit.planning.goal_in_body / plan_from_frame: the goal → body conversion `mapkit plan` and the viewer share."""
+"""mapkit.flight.goal_in_body / plan_from_frame: the goal → body conversion `mapkit plan` and the viewer share."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mapkit.planning import GOAL_FRAMES, goal_in_body, plan_from_frame
+from mapkit.flight import GOAL_FRAMES, goal_in_body, plan_from_frame
 
 
 def test_goal_in_body_inverts_the_body_pose() -> None:
@@ -39,7 +39,7 @@ def test_plan_from_frame_passes_the_body_goal_and_the_camera_calibration() -> No
     np.testing.assert_array_equal(goal_body, planned.goal_body)
     np.testing.assert_allclose(kw["T_body_camera"][:3, 3], [0.1, 0.0, 0.0])
     assert kw["corridor"] == 0.3 and kw["K"] is K
-    from mapkit.planning import WIDEN
+    from mapkit.flight import WIDEN
 
     assert kw["widen"] == WIDEN  # the default
     plan_from_frame(rec, np.ones((4, 5), np.float32), T_wb, T_wc, K, (4.0, 2.0, 0.5), widen=())

@@ -12,16 +12,12 @@ import numpy as np
 import torch
 
 from mapkit._choices import CANDIDATE_SHIFTS
-from mapkit.errors import MapkitError
+from mapkit.flight._errors import FlightError
 from mapkit.flight._recorded import RUN_CONFIG, RunCamera, load_network
+from mapkit.geometry import quat_xyzw_from_matrix
 
 if TYPE_CHECKING:
     from mapkit.flight import Pilot, PilotStep
-from mapkit.geometry import quat_xyzw_from_matrix
-
-
-class PlanningError(MapkitError):
-    """A run directory, frame or goal the planner cannot use."""
 
 
 @dataclass
@@ -106,7 +102,7 @@ class Planner:
         self.net = net.eval().to(device)
         self.device = device
         self.camera = camera
-        """The depth camera the run recorded (:func:`~mapkit.planning.recorded_camera`; :meth:`load` reads
+        """The depth camera the run recorded (:func:`~mapkit.flight.recorded_camera`; :meth:`load` reads
         it): :meth:`plan` checks depth with it when it is given no calibration. None: none recorded."""
         self._said_camera = False
         self._cpu_net: Any = None  # the network the single-shot pilot flies (a CPU copy when on a GPU)
@@ -124,11 +120,11 @@ class Planner:
         from mapkit.flight import FlightError
 
         if device.startswith("cuda") and not torch.cuda.is_available():
-            raise PlanningError(f"--device {device}: torch sees no CUDA device; use --device cpu")
+            raise FlightError(f"--device {device}: torch sees no CUDA device; use --device cpu")
         try:
             net, camera = load_network(run_dir)
         except FlightError as exc:
-            raise PlanningError(str(exc)) from None
+            raise FlightError(str(exc)) from None
         return cls(net, torch.device(device), camera=camera)
 
     def plan(self, depth: np.ndarray, goal_body: np.ndarray, *, velocity_body: np.ndarray | None = None,
@@ -154,7 +150,7 @@ class Planner:
 
         asked = np.asarray(goal_body, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(asked)):
-            raise PlanningError(f"goal {asked.tolist()} is not finite")
+            raise FlightError(f"goal {asked.tolist()} is not finite")
         vel = np.zeros(3) if velocity_body is None else np.asarray(velocity_body, np.float64).reshape(3)
         K, T_body_camera, from_run = self._calibration(np.asarray(depth).shape, K, T_body_camera)
         pilot = self._single_shot(widen, shift, corridor)
@@ -162,7 +158,7 @@ class Planner:
             step = pilot.step(0.0, VehicleState(np.zeros(3), vel), asked, np.asarray(depth), K=K,
                               T_world_body=np.eye(4), T_body_camera=T_body_camera)
         except FlightError as exc:
-            raise PlanningError(str(exc)) from None
+            raise FlightError(str(exc)) from None
         return _result(step, asked, rate_hz, from_run, self.net.config.num_candidates, len(widen))
 
     def _single_shot(self, widen: tuple[float, ...], shift: tuple[float, ...], corridor: float | None) -> Pilot:
@@ -193,14 +189,14 @@ class Planner:
             return K, T_body_camera, False
         fix = "pass the camera's K and T_body_camera"
         if K is not None or T_body_camera is not None:
-            raise PlanningError(f"this model checks its paths against the depth image: {fix} (both, or neither "
+            raise FlightError(f"this model checks its paths against the depth image: {fix} (both, or neither "
                                 "to use the camera its run recorded)")
         cam = self.camera
         if cam is None:
-            raise PlanningError(f"this model checks its paths against the depth image: {fix} (its run records no "
+            raise FlightError(f"this model checks its paths against the depth image: {fix} (its run records no "
                                 f"camera to use instead: no `camera` in its {RUN_CONFIG})")
         if tuple(shape[-2:]) != (cam.height, cam.width):
-            raise PlanningError(f"depth is {shape[-1]}x{shape[-2]} pixels but the camera this model's run recorded "
+            raise FlightError(f"depth is {shape[-1]}x{shape[-2]} pixels but the camera this model's run recorded "
                                 f"({cam.source}) is {cam.width}x{cam.height}: {fix}")
         if not self._said_camera:
             self._said_camera = True
@@ -211,10 +207,10 @@ class Planner:
 
 
 def check_output_folder(out_dir: Path) -> None:
-    """Raise :class:`PlanningError` when ``out_dir`` (or a parent) is an existing file."""
+    """Raise :class:`FlightError` when ``out_dir`` (or a parent) is an existing file."""
     for path in (out_dir, *out_dir.parents):
         if path.exists() and not path.is_dir():
-            raise PlanningError(f"-o {out_dir}: {path} is a file; -o takes a folder (the plan is written as "
+            raise FlightError(f"-o {out_dir}: {path} is a file; -o takes a folder (the plan is written as "
                                 "plan_NNNNNN.json, .tum and .mcap inside it)")
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapkit.planning import Planner, PlanningError, pretrained_dir, recorded_camera
+from mapkit.flight import FlightError, Planner, pretrained_dir, recorded_camera
 
 GOAL = np.array([5.0, 0.5, 0.0])
 
@@ -51,10 +51,10 @@ def test_the_shipped_model_plans_from_only_a_depth_image_and_a_goal(planner: Pla
 
 
 def test_the_recorded_camera_is_refused_for_depth_of_another_size_and_half_a_calibration(planner: Planner):
-    with pytest.raises(PlanningError, match=r"depth is 200x100 pixels .* is 160x120: pass the camera's K"):
+    with pytest.raises(FlightError, match=r"depth is 200x100 pixels .* is 160x120: pass the camera's K"):
         planner.plan(_depth(200, 100), GOAL)
     assert planner.camera is not None
-    with pytest.raises(PlanningError, match="both, or neither"):
+    with pytest.raises(FlightError, match="both, or neither"):
         planner.plan(_depth(), GOAL, K=planner.camera.K)
 
 
@@ -67,7 +67,7 @@ def test_a_run_that_records_no_camera_keeps_the_refusal_naming_the_fix(tmp_path:
     (run / "config.json").write_text(json.dumps(saved))
     planner = Planner.load(run)
     assert planner.camera is None and recorded_camera(run) is None
-    with pytest.raises(PlanningError, match=r"pass the camera's K and T_body_camera \(its run records no camera"):
+    with pytest.raises(FlightError, match=r"pass the camera's K and T_body_camera \(its run records no camera"):
         planner.plan(_depth(), GOAL)
     (run / "config.json").write_text("{ not json")  # unreadable: no camera either, still loads
     assert recorded_camera(run) is None and Planner.load(run).camera is None

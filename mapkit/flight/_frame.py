@@ -13,7 +13,7 @@ from mapkit._choices import GOAL_FRAMES, GoalFrame
 from mapkit.geometry import invert_transform
 
 if TYPE_CHECKING:
-    from mapkit.planning._planner import Planner, PlanResult
+    from mapkit.flight._single import Planner, PlanResult
 
 __all__ = ["GOAL_FRAMES", "FramePlan", "GoalFrame", "goal_in_body", "plan_from_frame"]
 
@@ -53,10 +53,10 @@ def plan_from_frame(
 ) -> FramePlan:
     """Plan from one frame (depth (H, W) metres, its body and optical-camera poses (4, 4), K (3, 3)) to
     ``goal`` (3,) given in ``goal_frame``; ``velocity_body`` (3,), ``corridor``, ``widen`` and ``shift`` as
-    in :meth:`Planner.plan` (None: its defaults, :data:`mapkit.planning.WIDEN` and :data:`~mapkit.planning.SHIFT`)."""
+    in :meth:`Planner.plan` (None: its defaults, :data:`mapkit.flight.WIDEN` and :data:`~mapkit.flight.SHIFT`)."""
     goal_body = goal_in_body(goal, T_world_body, goal_frame)
     T_body_camera = invert_transform(T_world_body) @ T_world_camera
-    from mapkit.planning._planner import SHIFT, WIDEN  # torch is loaded by now: a planner exists
+    from mapkit.flight._single import SHIFT, WIDEN  # torch is loaded by now: a planner exists
 
     result = planner.plan(depth, goal_body, velocity_body=velocity_body, corridor=corridor, K=K,
                           T_body_camera=T_body_camera, widen=WIDEN if widen is None else widen,
