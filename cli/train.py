@@ -63,17 +63,28 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
                    "scores and η) on the key-points of the frozen --init model.")
 @click.option("--resume", is_flag=True, help="Continue the run after its last completed epoch.")
 @click.option("--overwrite", is_flag=True, help="Restart an existing run from scratch.")
+@click.option("--recipe", default=None, metavar="NAME|FILE.toml",
+              help="Make a model from nothing by a declared recipe ('pretrained': the shipped model, about 2 h on 2 "
+                   "cores) into -o DIR; resumable: run it again to go on.")
+@click.option("-o", "--output", "recipe_dir", type=click.Path(path_type=Path), default=None,
+              help="With --recipe: the folder it works in; DIR/model.pt is the result.")
+@click.option("--force", is_flag=True, help="With --recipe: resume a folder another mapkit version started.")
 @library_call
 def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val_worlds: int | None,
               val_workspaces: tuple[Path | str, ...], grad_clip: float | None, preset: str, name: str | None,
               runs_dir: Path | str | None, epochs: int | None,
               batch_size: int | None, lr: float | None, device: str, seed: int, max_steps: int | None,
               val_batches: int | None, weight_decay: float | None, corridor: float | None, planner_items: tuple[str, ...], loss_items: tuple[str, ...], init: str | None,
-              only: str, resume: bool, overwrite: bool) -> None:
-    """Train the self-supervised planner on WS/tuples.zarr (+ map.zarr) → runs/NAME.
+              only: str, resume: bool, overwrite: bool, recipe: str | None, recipe_dir: Path | None,
+              force: bool) -> None:
+    """Train the self-supervised planner on WS/tuples.zarr (+ map.zarr) → runs/NAME, or make a model
+    from nothing by a recipe (--recipe pretrained -o DIR).
 
     Multi-GPU / multi-node: torchrun --nproc-per-node N -m mapkit.cli train ...
     """
+    if recipe is not None or recipe_dir is not None:
+        _recipe(recipe, recipe_dir, force)
+        return
     from mapkit.train import preset as make_preset
     from mapkit.train import train
 
@@ -120,6 +131,18 @@ def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val
                f"{b['straight'].get('blocked_reach', 0):.3f} collision {b['straight'].get('blocked_collision', 0):.3f})"
                if b else "")
         )
+
+
+def _recipe(recipe: str | None, out: Path | None, force: bool) -> None:
+    from mapkit.train import RecipeError, load_recipe, run_recipe
+
+    if recipe is None or out is None:
+        raise click.UsageError("--recipe and -o go together: mapkit train --recipe pretrained -o DIR")
+    try:
+        chosen = load_recipe(recipe)
+    except RecipeError as exc:  # the option's value: a usage error
+        raise click.UsageError(str(exc)) from None
+    run_recipe(chosen, out, force=force)
 
 
 @main.command("tune-timing")

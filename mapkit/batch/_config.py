@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import glob
 import json
-import sys
+import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -200,13 +200,9 @@ def _load(path: Path) -> Any:
     try:
         if path.suffix.lower() == ".json":
             return json.loads(text)
-        if sys.version_info >= (3, 11):
-            import tomllib
-
-            return tomllib.loads(text)
+        return tomllib.loads(text)
     except ValueError as exc:  # json.JSONDecodeError and tomllib.TOMLDecodeError
         raise BatchError(f"manifest {path} is not valid {path.suffix[1:].upper()}: {exc}") from None
-    raise BatchError(f"manifest {path}: TOML manifests need Python 3.11 (tomllib); write it as JSON instead")
 
 
 def _ingest_config(options: Any, base: IngestConfig, *, where: str) -> IngestConfig:

@@ -116,7 +116,7 @@ def _bspline(ctrl: np.ndarray) -> BSpline:
     """Clamped uniform cubic B-spline with these control points (starts/ends at the ends)."""
     m = len(ctrl)
     if m < 4:
-        ctrl = _resample(ctrl, np.linalg.norm(ctrl[-1] - ctrl[0]) / 4 + 1e-9)
+        ctrl = _resample(ctrl, float(np.linalg.norm(ctrl[-1] - ctrl[0])) / 4 + 1e-9)
         m = len(ctrl)
     inner = np.arange(1, m - 3, dtype=np.float64)
     knots = np.concatenate([np.zeros(4), inner, np.full(4, float(m - 3))])
