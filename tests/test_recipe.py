@@ -40,7 +40,7 @@ def test_bad_recipes_are_refused_in_one_line(data: dict, message: str):
 
 
 def test_an_unknown_recipe_name_lists_the_valid_ones(tmp_path: Path):
-    with pytest.raises(RecipeError, match="use one of pretrained or a .toml file"):
+    with pytest.raises(RecipeError, match=r"use one of pretrained or a \.toml file"):
         load_recipe("pretrainde")
     bad = tmp_path / "r.toml"
     bad.write_text("name = [")
@@ -50,7 +50,7 @@ def test_an_unknown_recipe_name_lists_the_valid_ones(tmp_path: Path):
 
 def test_an_unknown_option_of_a_stage_names_the_valid_fields(tmp_path: Path):
     recipe = parse_recipe({"model": "m", "step": [{**DATASET, "options": {"durations": 4.0}}, TRAIN]})
-    with pytest.raises(RecipeError, match="DatasetConfig has no field 'durations'; valid: .*duration"):
+    with pytest.raises(RecipeError, match=r"DatasetConfig has no field 'durations'; valid: .*duration"):
         run_recipe(recipe, tmp_path / "out", progress=False)
 
 
@@ -74,7 +74,7 @@ def test_the_miniature_of_the_shipped_recipe_runs_resumes_and_flies(tmp_path: Pa
     # another mapkit version refuses to resume unless forced
     state = json.loads((out / "recipe.json").read_text())
     (out / "recipe.json").write_text(json.dumps({**state, "mapkit": "0.0.0"}))
-    with pytest.raises(RecipeError, match="started by mapkit 0.0.0.*--force"):
+    with pytest.raises(RecipeError, match=r"started by mapkit 0\.0\.0.*--force"):
         run_recipe(mini, out, progress=False)
     assert run_recipe(mini, out, force=True, progress=False).steps_run == []
     # the result is a model the pilot flies
