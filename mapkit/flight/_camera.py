@@ -33,7 +33,7 @@ def check_intrinsics(K: np.ndarray, width: int, height: int, recorded: RunCamera
     :class:`FlightError` names a K that is not a pinhole matrix or whose field of view the model cannot
     read."""
     try:
-        K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+        K = np.array(K, dtype=np.float64).reshape(3, 3)  # a copy: callers may pass read-only arrays
     except (TypeError, ValueError):
         raise FlightError(f"K must be the (3, 3) pinhole matrix of the depth image, got {K!r}") from None
     if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):

@@ -35,9 +35,8 @@ class Corridor:
     """Widest half-width (m) of the corridor when it flies without its check (``check`` off, a method
     without the camera, ``--stack none``): the narrower of this and ``width``. Unchecked, a wide
     corridor grazes what the key-points went around (in the forest, trees beside the vehicle that the
-    camera no longer sees). None: through the key-points. Chosen on dev seeds 300 / 301 without the
-    stack (docs/results.md): 1.0 m 63.3 / 48.3 %, 0.5 m 71.7 / 61.7 %, 0.3 m 75.0 / 68.3 %, 0.2 m
-    63.3 / 65.0 %, 0.1 m 61.7 / 53.3 %."""
+    camera no longer sees); narrower, the plan loses the smoothing the corridor buys. None: through
+    the key-points."""
 
     def widest(self, checked: bool) -> float | None:
         """The widest half-width a plan may use: ``width`` when ``checked``, else the narrower of
@@ -142,9 +141,9 @@ class Execution:
     """Gate and choose with the model's flown-path head where it has one (``PlannerConfig.flown_samples``:
     each candidate's trajectory as flown, judged against the depth image); False: with the judge's η, which
     the rest of the stack was built around. ``under_stack(..., "none")`` turns it on: without the stack the
-    head is the network's own answer. Shipped model, full stack, dev seed 301 (40 pairs per world): the same
-    97.5 % either way, at twice the effort (47 against 22 m²/s⁷) and 3.6× the latency (83 against 23 ms)
-    with the head, which solves the corridor problem of every candidate and its shifted copies."""
+    head is the network's own answer. With the full stack the head flies no better, at twice the effort
+    and several times the latency: it solves the corridor problem of every candidate and its shifted
+    copies."""
     widen: tuple[float, ...] = ()
     """Factors of widened candidates judged and chosen among with the trained ones
     (:meth:`~mapkit.planner.PlannerNet.widened`; () none): each trained candidate's detour from the straight
@@ -156,9 +155,8 @@ class Execution:
     """Sideways shifts (m, left positive) of the network's candidates that every plan also judges and
     chooses among (:meth:`~mapkit.planner.PlannerNet.shifted`; () none): the trained candidates sit
     near anchors 1.2 m apart, and the memory's search for a clear candidate and the kept choice get
-    neighbours a few decimetres to either side. Learned planner, dev seeds 301 / 300, 40 pairs per
-    world, without → with: success 116 → 117 / 117 → 118 of 120, executed effort per pair 0.66× /
-    0.68× (geometric mean; docs/results.md). ``under_stack(..., "none")`` turns it off."""
+    neighbours a few decimetres to either side (about a third less effort at the same success).
+    ``under_stack(..., "none")`` turns it off."""
 
 
 def under_stack(execution: Execution, stack: FlightStack) -> Execution:

@@ -45,9 +45,7 @@ ROBOT_RADIUS = 0.3
 """Metres: the robot's radius (the evaluation's collision radius, :attr:`~mapkit.evaluation.LoopConfig.robot_radius`)."""
 ROBOT_CLEARANCE = 0.35
 """Metres a plan's first ``Memory.blocked_within`` seconds must keep from every remembered surface
-(the robot's radius, 0.3 m, and a margin for tracking error). Office, dev seeds 7 / 13 / 31 / 37 (60
-pairs each, 2026-11-30): 0.32 m 91.7 / 85.0 / 75.0 / 63.3 %, 0.35 m 90.0 / 85.0 / 80.0 / 63.3 %, 0.40 m
-83.3 / 90.0 / 76.7 / 61.7 %."""
+(the robot's radius, 0.3 m, and a margin for tracking error; 0.32 and 0.40 m flew no better)."""
 
 
 @dataclass
@@ -254,9 +252,8 @@ def open_direction(depth: np.ndarray, camera: CameraInput, goal_body: np.ndarray
     """A point (3,) in the body frame toward the image column with the most free depth in the
     middle fifth of the rows (a doorway, the open end of a corridor), up to 5 m and 1 m short of what
     is seen there; columns toward ``goal_body`` win ties (one metre of free depth per radian off the
-    goal's bearing; 0.5 or 2 m per radian reached 1025 / 1019 of the 1200 office flights of dev seeds
-    200–219, against 1032). None when no column is free for ``min_free`` metres (2.0 or 3.5 m: 1024 /
-    1026). Columns without a return count as free to ``max_depth``."""
+    goal's bearing). None when no column is free for ``min_free`` metres. Columns without a return
+    count as free to ``max_depth``."""
     depth = np.asarray(depth, dtype=np.float64)
     H, W = depth.shape
     band = depth[int(0.4 * H):int(0.6 * H) + 1]

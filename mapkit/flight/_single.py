@@ -72,24 +72,17 @@ WIDEN = (1.5, 2.5)
 """Factors of the widened candidates a single plan adds (:meth:`PlannerNet.widened`): each trained
 candidate's detour from the straight line scaled by 1.5 and by 2.5, judged and chosen among like the
 trained ones. Training pulls all eight candidates toward the cheapest path, so they often span under
-a metre where a box beside the line needs two. Foreign-scene bench, 200 plans per seed, without →
-with: seed 0 (where the factors were chosen among (1.5, 2, 3), (1.5, 2.5) and six up to 4) 130 → 164;
-seeds 1 / 2 / 3: 133 → 165, 133 → 162, 131 → 158 (81 % on average against 66); seed 1 with the camera
-level or pitched 15° down: 135 → 165, 129 → 159. Choosing a widened one only when every trained one is
-expected to collide: 165 / 154 / 156 on seeds 1 / 2 / 3. ``mapkit eval``'s closed loop does not widen:
-it hovers and looks around when every candidate is expected to collide, and widening there lowered
-the office dev seeds from 196 to 190 of 240 (docs/evaluation.md). Latency: within this machine's
-noise (3.2–3.5 ms per plan either way, one thread, 100 plans from a random image)."""
+a metre where a box beside the line needs two (chosen on the foreign-scene bench; docs/results.md).
+``mapkit eval``'s closed loop does not widen: there the vehicle hovers and looks around when every
+candidate is expected to collide."""
 
 
 SHIFT = CANDIDATE_SHIFTS
 """Sideways shifts (metres at the middle of the path, left positive) of the shifted candidates a plan
 adds (:meth:`PlannerNet.shifted`): every candidate, trained or widened, also moved by each, judged and
 chosen among like the trained ones. The trained candidates stay near anchors 1.2 m apart; a doorway
-or a gap that needs a path a few decimetres beside the nearest one is otherwise missed. Chosen on
-the foreign-scene bench, seeds 0 / 1 (200 plans each, with :data:`WIDEN`): none 150 / 160, ±0.3 150 /
-168, ±0.3 ±0.6 157 / 170, ±0.3 ±0.6 ±0.9 157 / 170, ±0.6 ±1.2 160 / 168. On seeds 2–3, 10–13 and
-fresh 20–23: 80.3 / 83.1 / 80.3 % against 75.8 / 79.4 / 75.3 % without (docs/results.md). ``mapkit eval`` shifts the candidates of the full flight stack
+or a gap that needs a path a few decimetres beside the nearest one is otherwise missed (chosen on the
+foreign-scene bench; docs/results.md). ``mapkit eval`` shifts the candidates of the full flight stack
 (:attr:`~mapkit.flight.Execution.shift`)."""
 
 

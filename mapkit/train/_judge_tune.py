@@ -2,9 +2,8 @@
 
 The network's judge reads each candidate's key-points, the image features and depth margins along
 the key-point polyline. The vehicle flies another path: the corridor's trajectory cuts the polyline's
-corners. A judge perfect on the depth image over the first 1.5 m of the trajectory as flown would fly
-75.8 % without the flight stack where the network's judge flies 68.3 % (dev seed 301,
-docs/results.md). The flown-path head reads what such a judge reads, for every candidate: at N points
+corners, and a judge perfect on the depth image over the first metres of the trajectory as flown
+flies more pairs without the flight stack than the network's judge. The flown-path head reads what such a judge reads, for every candidate: at N points
 along its first ``flown_horizon`` metres as flown, the clearance to the depth image's points (and to
 those of the flight's frames of the last ``flown_history`` seconds), whether the point is in view and
 how far in front of or behind the measured surface it lies, and how long the stretch is

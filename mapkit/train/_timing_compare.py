@@ -1,8 +1,8 @@
 """`mapkit compare-timing`: a model's TAN against the gradient-descent split on the same recorded plans.
 
 Closed-loop flights cannot resolve a few per cent between two time allocations: a receding-horizon
-flight turns any small difference into another path, and the same planner flown 0.1 % faster differs
-from itself by 0.72–1.25× in median executed effort per seed (docs/train.md). On the same plans
+flight turns any small difference into another path (the same planner flown a little faster differs
+from itself by tens of per cent in executed effort per seed). On the same plans
 (the same key-points, start state, end speed and total time) the difference has no such noise: this is
 the paper's Table III comparison, plus the part of each plan a replanning flight actually flies.
 """

@@ -2,8 +2,8 @@
 
 Training fits the TAN to the gradient-descent split of the key-points the network makes on training
 tuples. In the closed loop the network sees other inputs (its own flights, mid-manoeuvre start
-states), and there the shipped TAN's split cost 4.7× the snap of the gradient-descent split per plan
-(median; 1.28× over the sum of all plans; 1494 plans of dev seed 7). Here the TAN alone learns from
+states), and there a TAN trained on tuples splits the time at several times the snap of the
+gradient-descent split. Here the TAN alone learns from
 plans recorded in flight (``mapkit eval --record-plans``) by minimising the minimum-snap cost of the
 trajectory through the key-points under its own split: no labels, the same cost the gradient-descent
 allocation minimises, in the same conditions (start state, end speed, total-time rule, minimum
@@ -13,10 +13,8 @@ Two objectives (``TimingTuneConfig.objective``): ``snap`` minimises each plan's 
 ``imitate`` fits each segment's duration to the gradient-descent split's (squared log ratio, the
 first segment weighted more). A replanning flight executes only the start of each plan, and a plan
 whose whole cost is low may still start with a short, costly first segment; the log weighs a 10 %
-error alike in a short segment and a long one, as the snap (∝ T⁻⁷) does.
-
-On the shipped model ``snap`` lowers the executed effort (×0.73–0.82) but costs office success (87.7 →
-83.8 % over five held-out seeds), so the shipped model keeps its TAN (docs/train.md).
+error alike in a short segment and a long one, as the snap (∝ T⁻⁷) does. The shipped recipe
+imitates: ``snap`` lowers the executed effort but flew fewer office pairs.
 """
 
 from __future__ import annotations
@@ -68,8 +66,7 @@ class TimingTuneConfig:
     gets a new TAN too."""
     tan_hidden: tuple[int, ...] | None = None
     """Hidden widths of a new TAN trained from scratch on the plans (None: the model's TAN, or with
-    ``boundary_inputs`` a new one of its width). The shipped model's (64, 64) TAN fitted the
-    gradient-descent split to 3.7 % in summed snap on unseen plans, a (256, 256, 256) one to 1.5 %."""
+    ``boundary_inputs`` a new one of its width). A wider TAN fits the gradient-descent split closer."""
     lr_decay: bool = True
     """Cosine decay of the learning rate to 1 % of ``lr`` over ``steps`` (off: constant)."""
     objective: TimingObjective = "snap"
