@@ -684,6 +684,42 @@ def test_anchor_pull_adds_the_losers_squared_distance_from_their_anchors(box_map
     with pytest.raises(PlannerError, match="candidate_anchor_pull"):
         LossConfig(candidate_anchor_pull=-1.0)
 
+
+@pytest.fixture(scope="module")
+def wall_map() -> EsdfMap:
+    """0.1 m voxels over x in [-2, 7.9], y in [-6, 5.9], z in [-1, 1.9]: a wall across x = 3 (0.2 m
+    thick, the whole height) from y = -6 up to y = 2; open beyond."""
+    origin, shape = (-2.0, -6.0, -1.0), (100, 120, 30)
+    x, y = (origin[a] + 0.1 * np.arange(shape[a]) for a in range(2))
+    occ = np.zeros(shape, bool)
+    occ[np.ix_((x > 2.85) & (x < 3.15), y < 2.0, np.ones(shape[2], bool))] = True
+    esdf = signed_distance(occ, voxel_size=0.1, max_dist=20.0)
+    return EsdfMap(esdf=esdf, esdf_raw=esdf, voxel_size=0.1, origin=origin)
+
+
+def test_the_collision_penalty_lets_a_clear_candidate_win(wall_map):
+    """Toward a goal straight behind the wall every candidate but the widest crosses it; the
+    cheapest path (by obstacle, goal and smoothness cost) is one that crosses, so without the
+    penalty the winner collides (with this seed's time allocation), and with it the clear one wins."""
+    torch.manual_seed(0)
+    net = PlannerNet(planner_preset("cpu", num_candidates=8, input_size=(32, 48), encoder_width=0.125))
+    with torch.no_grad():
+        net.keypoint_mlp[-1].weight.zero_()
+        net.keypoint_mlp[-1].bias.zero_()
+    depth = torch.full((1, 48, 64), 5.0)
+    goal = torch.tensor([[6.0, 0.0, 0.0]])
+    T = torch.eye(4)[None].clone()
+    T[0, :3, 3] = torch.tensor([0.0, 0.5, 0.5])
+    runs = {}
+    with torch.no_grad():
+        out = net(net.preprocess(depth), goal)
+        for kappa in (0.0, 10.0):
+            runs[kappa] = candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=wall_map,
+                                         config=LossConfig(obstacle_softness=0.3, winner_collision_penalty=kappa))[1]
+    assert float(runs[0.0]["winner_collision_rate"]) == 1.0
+    assert float(runs[10.0]["winner_collision_rate"]) == 0.0
+
+
 def test_depth_margins_against_a_wall_in_front():
     """Depth 4 m everywhere (a wall facing the camera): path points before it are in view with a
     positive margin, points behind it negative, points behind the camera out of view; a pole beside

@@ -9,16 +9,16 @@ frame with ``T_world_body`` (B, 4, 4) before every ESDF lookup.
 from __future__ import annotations
 
 import functools
+import json
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.nn.functional as F
 
 from mapkit._choices import ETA_LABELS, EtaLabel
 from mapkit.planner._depthcheck import FEATURES_PER_POINT, CameraInput, depth_margins, image_points
-from mapkit.planner._detour import detour_excess
 from mapkit.planner._errors import PlannerError
 from mapkit.planner._model import Plan, PlannerNet, PlannerOutput
 from mapkit.trajopt import Trajectory, allocate_times
@@ -62,13 +62,6 @@ class LossConfig:
     ``candidate_spread`` pulls the losers toward the cheapest path, and the shipped model's eight
     candidates ended up within a metre of each other; this pull keeps them apart instead. Off: a
     fine-tune with it (β 0.1, no spread term) lost 15 of 240 office dev flights (docs/train.md)."""
-    detour_weight: float = 0.0
-    """λ: U_G also counts λ × how much longer the way from the path's end to the goal is through the
-    map's free space than straight (:func:`mapkit.planner.detour_excess`, level 0.2 m grid, at most
-    ``detour_cap``; in :func:`candidate_loss`, cached per map and goal). 0 (the paper's U_G): a goal behind a
-    wall rewards stopping at the wall."""
-    detour_cap: float = 8.0
-    """Metres: the largest detour excess counted."""
     winner_collision_penalty: float = 0.0
     """κ, metres of path cost added to every candidate whose path collides (the η label) when choosing
     the winner and the score's target only (no gradient): a candidate that keeps clear wins over one
@@ -148,8 +141,7 @@ class LossConfig:
             raise PlannerError(f"score_temperature must be >= 0 metres, got {self.score_temperature}")
         if self.min_samples < 2:
             raise PlannerError(f"min_samples must be >= 2, got {self.min_samples}")
-        for name in ("candidate_spread", "candidate_anchor_pull", "detour_weight", "detour_cap",
-                     "winner_collision_penalty"):
+        for name in ("candidate_spread", "candidate_anchor_pull", "winner_collision_penalty"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise PlannerError(f"{name} must be >= 0, got {getattr(self, name)}")
 
@@ -157,6 +149,29 @@ class LossConfig:
     def collision_threshold(self) -> float:
         """The collision distance in effect (``collision_distance`` or ``robot_radius``), metres."""
         return self.robot_radius if self.collision_distance is None else float(self.collision_distance)
+
+
+REMOVED_FIELDS: dict[str, Any] = {"detour_weight": 0.0, "detour_cap": 8.0}
+"""Fields LossConfig no longer has, each with the value that gives the behaviour the loss now always
+has: research options dropped in issue 57 that a saved run's config.json may still name."""
+
+
+def drop_removed_fields(values: dict[str, Any], error: type[Exception]) -> dict[str, Any]:
+    """A saved run's LossConfig fields ``values`` less those in :data:`REMOVED_FIELDS` that hold the
+    behaviour the loss now always has; one that holds another raises ``error`` naming it."""
+    for name, value in values.items():
+        if name in REMOVED_FIELDS and not _same_as_removed(name, value, values):
+            raise error(f"loss {name}={json.dumps(value)}: the field was removed in mapkit 0.1.0 (issue 57), whose "
+                        f"loss always trains as with {name}={json.dumps(REMOVED_FIELDS[name])}; train a new run "
+                        "without it, or use a mapkit checkout from before issue 57 for this one")
+    return {k: v for k, v in values.items() if k not in REMOVED_FIELDS}
+
+
+def _same_as_removed(name: str, value: Any, values: dict[str, Any]) -> bool:
+    """Whether removed field ``name`` = ``value`` (among ``values``) trains as the loss now does."""
+    if name == "detour_cap":  # only counted with a detour weight
+        return values.get("detour_weight", 0.0) == 0.0
+    return bool(value == REMOVED_FIELDS[name])
 
 
 # ------------------------------------------------------------------------------------ helpers
@@ -515,10 +530,6 @@ def _candidate_costs(
     u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius, softness=cfg.obstacle_softness,
                         reduction=cfg.obstacle_reduction).reshape(B, M)
     u_g = goal_cost(plan.waypoints[:, -1], goal_m).reshape(B, M)
-    if cfg.detour_weight > 0:
-        ends = body_to_world(plan.waypoints[:, -1:], _per_candidate(T_world_body, M)).reshape(B, M, 3)
-        goals_world = body_to_world(goal[:, None], T_world_body)[:, 0]
-        u_g = u_g + cfg.detour_weight * detour_excess(ends, goals_world, esdf_map, cap=cfg.detour_cap)
     smooth_pts = plan.waypoints if cfg.smoothness_on == "keypoints" else pts_body
     u_s = smoothness_cost(smooth_pts, torch.zeros_like(goal_m), goal_m).reshape(B, M)
     collided = collision_labels(pts_world, esdf_map, threshold=cfg.collision_threshold,

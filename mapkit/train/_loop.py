@@ -444,9 +444,7 @@ def _resume_state(run_dir: Path, config: TrainConfig, *, resume: bool, overwrite
         if not checkpoint_path.exists():
             raise TrainConfigError(f"--resume: {shown + '/checkpoint.pt' if shown else checkpoint_path} does not exist; "
                                    "start without --resume")
-        saved_all = json.loads((run_dir / "config.json").read_text())
-        known = {f.name for f in dataclasses.fields(TrainConfig) if not f.name.startswith("_")}
-        theirs = TrainConfig.from_dict({k: v for k, v in saved_all.items() if k in known}).to_dict()
+        theirs = TrainConfig.from_saved(json.loads((run_dir / "config.json").read_text())).to_dict()
         mine = config.to_dict()
         for key in ("planner", "loss", "batch_size", "corridor", "preset"):
             if theirs[key] != mine[key]:
