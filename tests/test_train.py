@@ -127,8 +127,8 @@ def test_only_tan_trains_the_time_allocation_and_nothing_else(workspace: Path, t
 def test_only_judge_trains_the_judge_and_nothing_else(workspace: Path, tmp_path: Path) -> None:
     planner = {**TINY, "num_candidates": 4}
     train([workspace], tiny("base", planner=planner), runs_dir=tmp_path, progress=False)
-    train([workspace], tiny("judge", max_steps=3, lr=1e-2, init=str(tmp_path / "base"), only="judge", planner=planner,
-                            loss={"eta_horizon": 1.5}), runs_dir=tmp_path, progress=False)
+    train([workspace], tiny("judge", max_steps=3, lr=1e-2, init=str(tmp_path / "base"), only="judge", planner=planner),
+          runs_dir=tmp_path, progress=False)
     a = torch.load(tmp_path / "base" / "model.pt", weights_only=True)["state_dict"]
     b = torch.load(tmp_path / "judge" / "model.pt", weights_only=True)["state_dict"]
     judge = [k for k in a if k.startswith("judge_mlp.")]

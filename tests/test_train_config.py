@@ -69,7 +69,8 @@ def test_a_saved_config_with_removed_loss_fields_at_their_old_behaviour_loads() 
     assert TrainConfig.from_saved(old) == TrainConfig.from_saved(saved)
 
 
-@pytest.mark.parametrize(("name", "value"), [("detour_weight", 2.0)])
+@pytest.mark.parametrize(("name", "value"), [("detour_weight", 2.0), ("eta_horizon", 2.5), ("eta_label", "seen"),
+                                           ("eta_positive_weight", 4.0)])
 def test_a_saved_config_with_a_removed_loss_field_in_use_is_refused(name: str, value: object) -> None:
     saved = json.loads((PRETRAINED / "config.json").read_text())
     with pytest.raises(TrainConfigError, match=f"^loss {name}=.*removed in mapkit 0.1.0 .*issue 57") as exc:

@@ -17,8 +17,6 @@ from typing import TYPE_CHECKING, Any
 import torch
 import torch.nn.functional as F
 
-from mapkit._choices import ETA_LABELS, EtaLabel
-from mapkit.planner._depthcheck import FEATURES_PER_POINT, CameraInput, depth_margins, image_points
 from mapkit.planner._errors import PlannerError
 from mapkit.planner._model import Plan, PlannerNet, PlannerOutput
 from mapkit.trajopt import Trajectory, allocate_times
@@ -83,26 +81,6 @@ class LossConfig:
     collision_distance: float | None = None
     """Metres; a trajectory whose sampled ESDF distance drops below this counts as colliding (label
     1 for U_E). Default: ``robot_radius``."""
-    eta_horizon: float | None = None
-    """Metres along the trajectory from its start: the collision label that η learns (U_E) counts only
-    this first stretch, the part flown before later plans from nearer views take over, and mostly
-    in view of the image it is judged from. None (the paper): the whole trajectory, whose far part
-    lies behind walls the image cannot show, so η learned to guess and vetoed plans toward goals out
-    of view. The winner's collision penalty and "collision_rate" still count the whole trajectory."""
-    eta_label: EtaLabel = "map"
-    """What η learns (U_E's label): "map" (the paper) a collision in the map's ESDF; "seen" the
-    trajectory passing closer than the robot's size to a surface the depth image shows, or behind it
-    (the judge's depth margins, :func:`mapkit.planner.depth_margins`, on the trajectory's samples;
-    points out of view count as free): the label one image can know, which needs ``depth_check``
-    and the camera (:func:`candidate_loss`'s ``camera``); "image" the trajectory passing closer than
-    ``collision_threshold`` to a point of the depth image (what the image does not show, occluded
-    space included, counts as free: it gives fewer vetoes than "seen", and flying with the vetoes of
-    a perfect such judge over the first 1.5 m did best without the flight stack, docs/results.md),
-    with the same needs. All honour ``eta_horizon``."""
-    eta_positive_weight: float = 1.0
-    """Weight of the colliding labels in the judge's cross-entropy (several candidates): above 1 when
-    they are rare, as within a short ``eta_horizon``, where an unweighted η learned to call every
-    candidate free."""
     label_from_raw: bool = True
     """Use the map's unsmoothed ``esdf_raw`` (exact distances) for the collision label when the map
     has it; the smoothed ``esdf`` otherwise. U_O always uses the smoothed field."""
@@ -119,12 +97,6 @@ class LossConfig:
     """Relative cost decrease below which that allocation stops early."""
 
     def __post_init__(self) -> None:
-        if self.eta_horizon is not None and not (math.isfinite(self.eta_horizon) and self.eta_horizon > 0):
-            raise PlannerError(f"eta_horizon must be > 0 metres (or None: the whole trajectory), got {self.eta_horizon}")
-        if not (math.isfinite(self.eta_positive_weight) and self.eta_positive_weight > 0):
-            raise PlannerError(f"eta_positive_weight must be > 0, got {self.eta_positive_weight}")
-        if self.eta_label not in ETA_LABELS:
-            raise PlannerError(f"eta_label must be one of {', '.join(ETA_LABELS)}, got {self.eta_label!r}")
         for name in ("robot_radius", "collision_distance"):
             v = getattr(self, name)
             if v is not None and not v >= 0:
@@ -151,7 +123,8 @@ class LossConfig:
         return self.robot_radius if self.collision_distance is None else float(self.collision_distance)
 
 
-REMOVED_FIELDS: dict[str, Any] = {"detour_weight": 0.0, "detour_cap": 8.0}
+REMOVED_FIELDS: dict[str, Any] = {"detour_weight": 0.0, "detour_cap": 8.0, "eta_horizon": None, "eta_label": "map",
+                                  "eta_positive_weight": 1.0}
 """Fields LossConfig no longer has, each with the value that gives the behaviour the loss now always
 has: research options dropped in issue 57 that a saved run's config.json may still name."""
 
@@ -270,19 +243,12 @@ def smoothness_cost(points: torch.Tensor, start: torch.Tensor, goal: torch.Tenso
 
 @torch.no_grad()
 def collision_labels(
-    points: torch.Tensor, esdf_map: EsdfMap, *, threshold: float, raw: bool = False, within: float | None = None
+    points: torch.Tensor, esdf_map: EsdfMap, *, threshold: float, raw: bool = False
 ) -> torch.Tensor:
     """(B,) bool: some world point of (B, N, 3) has ESDF distance < ``threshold`` metres (from
-    ``esdf_raw`` when ``raw`` and the map has it). Outside the grid: nearest grid point. No gradient.
-    ``within``: only the points whose distance along the polyline from the first point is at most this
-    many metres count (the points are a trajectory's samples in time order)."""
+    ``esdf_raw`` when ``raw`` and the map has it). Outside the grid: nearest grid point. No gradient."""
     use_raw = bool(raw and esdf_map.esdf_raw is not None)
-    points = points.detach()
-    close = esdf_map.query_torch(points, raw=use_raw, outside="clamp") < threshold
-    if within is not None:
-        step = (points[:, 1:] - points[:, :-1]).norm(dim=-1)
-        along = torch.cat([torch.zeros_like(step[:, :1]), step.cumsum(dim=-1)], dim=-1)
-        close = close & (along <= within)
+    close = esdf_map.query_torch(points.detach(), raw=use_raw, outside="clamp") < threshold
     return close.any(dim=-1)
 
 
@@ -387,10 +353,6 @@ def planner_loss(
         eta = torch.sigmoid(eta_logit)
     if eta is None:
         raise PlannerError("planner_loss needs eta (B,): pass eta_logit=net(x, goal).eta_logit or a plan from PlannerNet.plan")
-    if cfg.eta_label != "map":
-        raise PlannerError(f'eta_label="{cfg.eta_label}" needs the candidates\' depth check: use candidate_loss')
-    if cfg.eta_positive_weight != 1.0:
-        raise PlannerError("eta_positive_weight weighs the judge of several candidates: use candidate_loss")
     traj = plan.trajectory
     B = traj.batch_size
     goal = torch.as_tensor(goal, dtype=plan.waypoints.dtype, device=plan.waypoints.device)
@@ -406,7 +368,7 @@ def planner_loss(
     smooth_pts = plan.waypoints if cfg.smoothness_on == "keypoints" else pts_body
     u_s = smoothness_cost(smooth_pts, torch.zeros_like(goal), goal)
     collided = collision_labels(pts_world, esdf_map, threshold=cfg.collision_threshold, raw=cfg.label_from_raw)
-    u_e = escape_cost(eta, _eta_labels(pts_world, esdf_map, cfg, collided), logit=eta_logit)
+    u_e = escape_cost(eta, collided, logit=eta_logit)
     if target_shares is None:
         target_shares = time_targets(
             plan.waypoints, total_time=plan.total_time, start=plan.start, end=_plan_end(plan),
@@ -451,7 +413,6 @@ def candidate_loss(
     start_velocity: torch.Tensor | None = None,
     end_speed: torch.Tensor | None = None,
     corridor: float | None = None,
-    camera: CameraInput | None = None,
     config: LossConfig | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The upper-level loss over every candidate path of ``out`` (B, M, K, 3), winner-takes-all.
@@ -465,24 +426,16 @@ def candidate_loss(
     Returns (total, terms): batch means of the unweighted terms of the CHOSEN candidate (the one
     deployed: "obstacle", "goal", "smoothness", "collision_rate"), plus "escape", "time", "score"
     (cross-entropy), "winner_collision_rate" (the best candidate's), "score_accuracy" (chosen = best)
-    and "total"; "collided_chosen" (B,) bool per sample, and "eta_label_chosen" (B,) the chosen
-    candidate's η label (the same unless ``eta_horizon`` or ``eta_label`` is not "map").
+    and "total"; "collided_chosen" (B,) bool per sample.
     """
     cfg = config or LossConfig()
     cand = out.candidates if out.candidates is not None else out.keypoints[:, None]
     logits = out.candidate_eta_logits if out.candidate_eta_logits is not None else out.eta_logit[:, None]
     B, M = cand.shape[:2]
     goal = torch.as_tensor(goal, dtype=cand.dtype, device=cand.device)
-    plan, u_o, u_g, u_s, collided, pts_body = _candidate_costs(net, cand, goal, T_world_body, esdf_map, cfg,
-                                                               start_velocity=start_velocity, end_speed=end_speed,
-                                                               corridor=corridor)
-    if cfg.eta_label == "seen":
-        eta_label = _seen_labels(pts_body.reshape(B, M, -1, 3), out, camera, cfg, max_depth=net.config.max_depth)
-    elif cfg.eta_label == "image":
-        eta_label = _image_labels(pts_body.reshape(B, M, -1, 3), out, camera, cfg, max_depth=net.config.max_depth)
-    else:
-        eta_label = _eta_labels(body_to_world(pts_body, _per_candidate(T_world_body, M)), esdf_map, cfg,
-                                collided.reshape(-1)).reshape(B, M)
+    plan, u_o, u_g, u_s, collided = _candidate_costs(net, cand, goal, T_world_body, esdf_map, cfg,
+                                                     start_velocity=start_velocity, end_speed=end_speed,
+                                                     corridor=corridor)
     path = cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s
     rows = torch.arange(B, device=cand.device)
     ranked = path.detach() + cfg.winner_collision_penalty * collided.to(path.dtype)
@@ -494,9 +447,7 @@ def candidate_loss(
             away = (cand - net.anchor_paths(goal)).square().sum(-1).mean(-1)  # (B, M) m²
             losers = torch.ones_like(away).scatter(1, winner[:, None], 0.0)
             per = per + cfg.candidate_anchor_pull * (away * losers).sum(dim=1) / (M - 1)
-    weight = torch.as_tensor(cfg.eta_positive_weight, dtype=logits.dtype, device=logits.device)
-    u_e = F.binary_cross_entropy_with_logits(logits, eta_label.to(logits.dtype), reduction="none",
-                                             pos_weight=weight).mean(dim=1)
+    u_e = F.binary_cross_entropy_with_logits(logits, collided.to(logits.dtype), reduction="none").mean(dim=1)
     u_score = _score_loss(out.scores, ranked, winner, like=per, config=cfg)
     u_t = _winner_time_cost(plan, rows, winner, M=M, config=cfg)
     per = per + cfg.gamma_escape * u_e + cfg.gamma_time * u_t + cfg.gamma_score * u_score
@@ -509,7 +460,6 @@ def candidate_loss(
         "escape": f(u_e), "time": f(u_t), "score": f(u_score), "collision_rate": f(coll_chosen),
         "winner_collision_rate": f(collided[rows, winner]), "score_accuracy": f(chosen == winner),
         "total": total.detach(), "collided_chosen": coll_chosen, "goal_chosen": u_g[rows, chosen].detach(),
-        "eta_label_chosen": eta_label[rows, chosen],
     }
     return total, terms
 
@@ -517,9 +467,9 @@ def candidate_loss(
 def _candidate_costs(
     net: PlannerNet, cand: torch.Tensor, goal: torch.Tensor, T_world_body: torch.Tensor, esdf_map: EsdfMap,
     cfg: LossConfig, *, start_velocity: torch.Tensor | None, end_speed: torch.Tensor | None, corridor: float | None,
-) -> tuple[Plan, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Every candidate's trajectory (a :class:`Plan` of B·M, sample-major), its (B, M) obstacle, goal
-    and smoothness costs and collision labels, and its samples (B·M, N, 3) body frame (:func:`candidate_loss`)."""
+) -> tuple[Plan, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every candidate's trajectory (a :class:`Plan` of B·M, sample-major) and its (B, M) obstacle, goal
+    and smoothness costs and collision labels (:func:`candidate_loss`)."""
     B, M, K, _ = cand.shape
     plan = net.trajectory(cand.reshape(B * M, K, 3),
                           start_velocity=None if start_velocity is None else _per_candidate(start_velocity, M),
@@ -534,64 +484,7 @@ def _candidate_costs(
     u_s = smoothness_cost(smooth_pts, torch.zeros_like(goal_m), goal_m).reshape(B, M)
     collided = collision_labels(pts_world, esdf_map, threshold=cfg.collision_threshold,
                                 raw=cfg.label_from_raw).reshape(B, M)
-    return plan, u_o, u_g, u_s, collided, pts_body
-
-
-def _labelled_stretch(pts_body: torch.Tensor, out: PlannerOutput, camera: CameraInput | None,
-                      cfg: LossConfig) -> torch.Tensor:
-    """The samples (B, M, N, 3) an image label looks at: those past ``eta_horizon`` metres repeat the
-    last one within it, so they add no new position. Raises when the net gives no depth pyramid."""
-    if camera is None or out.pyramid is None:
-        raise PlannerError(f'eta_label="{cfg.eta_label}" checks the trajectories against the depth image: it needs a '
-                           "net with depth_check, several candidates and the camera (candidate_loss(camera=...))")
-    pts = pts_body.detach()
-    if cfg.eta_horizon is not None:
-        step = (pts[..., 1:, :] - pts[..., :-1, :]).norm(dim=-1)
-        along = torch.cat([torch.zeros_like(step[..., :1]), step.cumsum(dim=-1)], dim=-1)
-        last = (along <= cfg.eta_horizon).sum(dim=-1, keepdim=True) - 1  # (B, M, 1), >= 0: the start is within
-        idx = torch.minimum(torch.arange(pts.shape[2], device=pts.device).expand_as(along), last)
-        pts = pts.gather(2, idx[..., None].expand_as(pts))
-    return pts
-
-
-def _seen_labels(pts_body: torch.Tensor, out: PlannerOutput, camera: CameraInput | None, cfg: LossConfig, *,
-                 max_depth: float) -> torch.Tensor:
-    """(B, M) η labels of ``eta_label="seen"``: some sample of the trajectories (B, M, N, 3), body frame,
-    within ``eta_horizon`` metres of the start, conflicts with the depth image behind ``out``."""
-    pts = _labelled_stretch(pts_body, out, camera, cfg)
-    assert camera is not None and out.pyramid is not None  # _labelled_stretch raises otherwise
-    B, M = pts.shape[:2]
-    r = cfg.collision_threshold
-    # depth_margins reads only the image size from its x when given the pyramid
-    f = depth_margins(pts.to(out.pyramid.dtype), out.pyramid, camera.expand(B).to(pts.device), max_depth=max_depth,
-                      robot_radius=r, pyramid=out.pyramid).reshape(B, M, -1, FEATURES_PER_POINT)
-    # in view, and nearer than the robot's size to the surface seen around it (margins are metres / 2)
-    return ((f[..., 0] > 0.5) & (2.0 * f[..., 1] < r)).any(dim=-1)
-
-
-def _image_labels(pts_body: torch.Tensor, out: PlannerOutput, camera: CameraInput | None, cfg: LossConfig, *,
-                  max_depth: float) -> torch.Tensor:
-    """(B, M) η labels of ``eta_label="image"``: some sample of the trajectories (B, M, N, 3), body
-    frame, within ``eta_horizon`` metres of the start, passes within ``collision_threshold`` of a point
-    of the depth image behind ``out`` (every second pixel of its nearest-depth pyramid's finest level)."""
-    pts = _labelled_stretch(pts_body, out, camera, cfg)
-    assert camera is not None and out.pyramid is not None  # _labelled_stretch raises otherwise
-    B, M, N, _ = pts.shape
-    image_pts = image_points(out.pyramid[:, 0], camera.expand(B).to(pts.device), max_depth=max_depth).to(pts.dtype)
-    near = torch.zeros(B, M * N, dtype=torch.bool, device=pts.device)
-    flat = pts.reshape(B, M * N, 3)
-    for i in range(B):  # one row at a time keeps the (M·N, pixels) distances small
-        near[i] = torch.cdist(flat[i], image_pts[i]).amin(dim=1) < cfg.collision_threshold
-    return near.reshape(B, M, N).any(dim=-1)
-
-
-def _eta_labels(pts_world: torch.Tensor, esdf_map: EsdfMap, cfg: LossConfig, collided: torch.Tensor) -> torch.Tensor:
-    """(B,) the label η learns: ``collided`` (the whole trajectory), or the collisions within
-    :attr:`LossConfig.eta_horizon` metres of its start."""
-    if cfg.eta_horizon is None:
-        return collided
-    return collision_labels(pts_world, esdf_map, threshold=cfg.collision_threshold, raw=cfg.label_from_raw,
-                            within=cfg.eta_horizon)
+    return plan, u_o, u_g, u_s, collided
 
 
 def _score_loss(scores: torch.Tensor | None, ranked: torch.Tensor, winner: torch.Tensor, *, like: torch.Tensor,

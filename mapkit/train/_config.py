@@ -61,7 +61,7 @@ class TrainConfig:
     changing the paths); its TAN options (``tan_boundary``, ``tan_hidden``, timing rule) may differ
     from the init model's. The best epoch is then chosen by the held-out U_T. "judge": only the
     candidates' judge (their scores and η; the η head of a one-path net), on the frozen key-points of
-    ``init``: a changed η label (``loss.eta_horizon``, ``loss.eta_label``) without moving the paths."""
+    ``init``: a judge retrained on other frames compares flight for flight, the paths unmoved."""
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     """The planner network's configuration (mapkit.planner)."""
     loss: LossConfig = field(default_factory=LossConfig)
