@@ -369,9 +369,10 @@ def test_body_to_world():
 
 
 def test_loss_config_checks():
-    with pytest.raises(PlannerError, match="obstacle_reduction"):
-        LossConfig(obstacle_reduction="max")
-    assert LossConfig(robot_radius=0.4).collision_threshold == 0.4
+    with pytest.raises(PlannerError, match="robot_radius"):
+        LossConfig(robot_radius=-0.1)
+    with pytest.raises(PlannerError, match="obstacle_softness"):
+        LossConfig(obstacle_softness=0.0)
 
 
 # ----------------------------------------------------------------------- torchvision weights

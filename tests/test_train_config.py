@@ -67,10 +67,13 @@ def test_a_saved_config_with_removed_loss_fields_at_their_old_behaviour_loads() 
     saved = json.loads((PRETRAINED / "config.json").read_text())
     old = {**saved, "loss": {**saved["loss"], **REMOVED_FIELDS, "detour_cap": 3.0}}  # no weight: the cap is moot
     assert TrainConfig.from_saved(old) == TrainConfig.from_saved(saved)
+    radius = {**saved, "loss": {**saved["loss"], "robot_radius": 0.4, "collision_distance": 0.4}}
+    assert TrainConfig.from_saved(radius).loss.robot_radius == 0.4  # the label's distance was the radius
 
 
 @pytest.mark.parametrize(("name", "value"), [("detour_weight", 2.0), ("eta_horizon", 2.5), ("eta_label", "seen"),
-                                           ("eta_positive_weight", 4.0)])
+                                           ("eta_positive_weight", 4.0), ("collision_distance", 0.5),
+                                           ("obstacle_reduction", "sum"), ("smoothness_on", "samples")])
 def test_a_saved_config_with_a_removed_loss_field_in_use_is_refused(name: str, value: object) -> None:
     saved = json.loads((PRETRAINED / "config.json").read_text())
     with pytest.raises(TrainConfigError, match=f"^loss {name}=.*removed in mapkit 0.1.0 .*issue 57") as exc:

@@ -31,10 +31,9 @@ class LossConfig:
     terms on comparable scales for a fresh net, not tuned values."""
 
     gamma_obstacle: float = 20.0
-    """γ1, weight of the obstacle cost U_O (:func:`obstacle_cost`, a per-sample mean by default).
-    Measured on a 1 m × 2 m pillar straight across the origin → goal line (cpu preset, 4 goals, Adam
-    lr 1e-3): γ1 = 2 left every trajectory inside the pillar after 200 steps; γ1 = 20 cleared all
-    four in 40 steps with the goal still reached (U_G ≈ 1 cm)."""
+    """γ1, weight of the obstacle cost U_O (:func:`obstacle_cost`, a mean over the samples). 20, not
+    2: at 2 paths trained across a pillar stayed inside it; at 20 they cleared it and still reached
+    the goal."""
     gamma_goal: float = 1.0
     """γ2, weight of the goal cost U_G (:func:`goal_cost`, metres)."""
     gamma_smooth: float = 0.5
@@ -58,37 +57,27 @@ class LossConfig:
     """β, 1/m²: every candidate that does not win a sample adds β × the mean squared distance (m²) of
     its key-points from its own anchor path's, divided among the M − 1 losers (only with several).
     ``candidate_spread`` pulls the losers toward the cheapest path, and the shipped model's eight
-    candidates ended up within a metre of each other; this pull keeps them apart instead. Off: a
-    fine-tune with it (β 0.1, no spread term) lost 15 of 240 office dev flights (docs/train.md)."""
+    candidates ended up within a metre of each other; this pull keeps them apart instead. Off by
+    default: on its own in a fine-tune (β 0.1, no spread term) it lost office flights (docs/results.md)."""
     winner_collision_penalty: float = 0.0
     """κ, metres of path cost added to every candidate whose path collides (the η label) when choosing
     the winner and the score's target only (no gradient): a candidate that keeps clear wins over one
     that reaches the goal through a wall. 0: the cheapest path cost wins."""
     robot_radius: float = 0.3
-    """Metres. The obstacle cost acts on the clearance d − robot_radius."""
+    """Metres. The obstacle cost acts on the clearance d − robot_radius, and a trajectory that comes
+    nearer than this to a surface counts as colliding (η's label, the collision rates)."""
     obstacle_softness: float = 1.0
     """ε, metres: width of the smooth hinge in :func:`obstacle_penalty`. Larger ε gives more gradient
     far from obstacles (it decays like ε²/(4 u²) at clearance u)."""
-    obstacle_reduction: str = "mean"
-    """"mean" (default: independent of the trajectory's duration and sample count) or "sum" (the
-    paper's sum over trajectory points) over the samples of each trajectory."""
     samples_per_second: float = 10.0
     """Trajectory samples per second of flight for U_O, U_S and the collision label (the longest
     trajectory of the batch sets the count N; every element is sampled at N instants evenly spread
     over its own duration)."""
     min_samples: int = 8
     """Lower bound on N, the samples per trajectory."""
-    collision_distance: float | None = None
-    """Metres; a trajectory whose sampled ESDF distance drops below this counts as colliding (label
-    1 for U_E). Default: ``robot_radius``."""
     label_from_raw: bool = True
     """Use the map's unsmoothed ``esdf_raw`` (exact distances) for the collision label when the map
     has it; the smoothed ``esdf`` otherwise. U_O always uses the smoothed field."""
-    smoothness_on: str = "keypoints"
-    """What U_S measures against the straight line: "keypoints" (default; the K+1 waypoints origin,
-    k1..kK, whose equal spacing on the line gives zero) or "samples" (the N time samples of the
-    trajectory; a rest-to-rest minimum-snap trajectory is never evenly spaced in time, so this
-    penalises its speed profile even on the straight line: measured ≈ 3.3 m for an 8 m path)."""
     time_target_iters: int = 10
     """Iterations of the Mellinger & Kumar gradient allocation for the U_T target (10: ≈ 20 ms for a
     batch of 16 on 2 CPU cores, MSE to the converged shares ≈ 4e-5 against ≈ 5e-3 for uniform
@@ -97,18 +86,12 @@ class LossConfig:
     """Relative cost decrease below which that allocation stops early."""
 
     def __post_init__(self) -> None:
-        for name in ("robot_radius", "collision_distance"):
-            v = getattr(self, name)
-            if v is not None and not v >= 0:
-                raise PlannerError(f"{name} must be >= 0 metres, got {v}")
+        if not self.robot_radius >= 0:
+            raise PlannerError(f"robot_radius must be >= 0 metres, got {self.robot_radius}")
         if not self.obstacle_softness > 0:
             raise PlannerError(f"obstacle_softness must be > 0 metres, got {self.obstacle_softness}")
-        if self.obstacle_reduction not in ("mean", "sum"):
-            raise PlannerError(f"obstacle_reduction must be 'mean' or 'sum', got {self.obstacle_reduction!r}")
         if not self.samples_per_second > 0:
             raise PlannerError(f"samples_per_second must be > 0, got {self.samples_per_second}")
-        if self.smoothness_on not in ("keypoints", "samples"):
-            raise PlannerError(f"smoothness_on must be 'keypoints' or 'samples', got {self.smoothness_on!r}")
         if not (math.isfinite(self.score_temperature) and self.score_temperature >= 0):
             raise PlannerError(f"score_temperature must be >= 0 metres, got {self.score_temperature}")
         if self.min_samples < 2:
@@ -117,14 +100,11 @@ class LossConfig:
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise PlannerError(f"{name} must be >= 0, got {getattr(self, name)}")
 
-    @property
-    def collision_threshold(self) -> float:
-        """The collision distance in effect (``collision_distance`` or ``robot_radius``), metres."""
-        return self.robot_radius if self.collision_distance is None else float(self.collision_distance)
 
-
-REMOVED_FIELDS: dict[str, Any] = {"detour_weight": 0.0, "detour_cap": 8.0, "eta_horizon": None, "eta_label": "map",
-                                  "eta_positive_weight": 1.0}
+REMOVED_FIELDS: dict[str, Any] = {
+    "detour_weight": 0.0, "detour_cap": 8.0, "eta_horizon": None, "eta_label": "map", "eta_positive_weight": 1.0,
+    "collision_distance": None, "obstacle_reduction": "mean", "smoothness_on": "keypoints",
+}
 """Fields LossConfig no longer has, each with the value that gives the behaviour the loss now always
 has: research options dropped in issue 57 that a saved run's config.json may still name."""
 
@@ -144,6 +124,8 @@ def _same_as_removed(name: str, value: Any, values: dict[str, Any]) -> bool:
     """Whether removed field ``name`` = ``value`` (among ``values``) trains as the loss now does."""
     if name == "detour_cap":  # only counted with a detour weight
         return values.get("detour_weight", 0.0) == 0.0
+    if name == "collision_distance" and value is not None:  # None meant the robot radius
+        return bool(value == values.get("robot_radius", LossConfig.robot_radius))
     return bool(value == REMOVED_FIELDS[name])
 
 
@@ -202,20 +184,15 @@ def obstacle_cost(
     *,
     robot_radius: float = 0.3,
     softness: float = 1.0,
-    reduction: str = "mean",
 ) -> torch.Tensor:
-    """U_O: obstacle cost (B,) of world points (B, N, 3) — the mean (or sum) over the N samples of
-    :func:`obstacle_penalty` of the smoothed ESDF distance there. Outside the map grid the distance is
-    that of the nearest grid point (``outside="clamp"``). Differentiable w.r.t. ``points``."""
+    """U_O: obstacle cost (B,) of world points (B, N, 3) — the mean over the N samples of
+    :func:`obstacle_penalty` of the smoothed ESDF distance there (the paper sums: a mean does not grow
+    with the trajectory's duration). Outside the map grid the distance is that of the nearest grid
+    point (``outside="clamp"``). Differentiable w.r.t. ``points``."""
     if points.ndim != 3 or points.shape[-1] != 3:
         raise PlannerError(f"points must have shape (B, N, 3) in the world frame, got {tuple(points.shape)}")
     d = esdf_map.query_torch(points, outside="clamp")
-    c = obstacle_penalty(d, robot_radius=robot_radius, softness=softness)
-    if reduction == "mean":
-        return c.mean(-1)
-    if reduction == "sum":
-        return c.sum(-1)
-    raise PlannerError(f"reduction must be 'mean' or 'sum', got {reduction!r}")
+    return obstacle_penalty(d, robot_radius=robot_radius, softness=softness).mean(-1)
 
 
 def goal_cost(end: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
@@ -360,14 +337,10 @@ def planner_loss(
         raise PlannerError(f"goal must have shape (B={B}, 3) in the body frame, got {tuple(goal.shape)}")
     pts_body = sample_trajectory(traj, samples_per_second=cfg.samples_per_second, min_samples=cfg.min_samples)
     pts_world = body_to_world(pts_body, T_world_body)
-    u_o = obstacle_cost(
-        pts_world, esdf_map, robot_radius=cfg.robot_radius, softness=cfg.obstacle_softness,
-        reduction=cfg.obstacle_reduction,
-    )
+    u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius, softness=cfg.obstacle_softness)
     u_g = goal_cost(plan.waypoints[:, -1], goal)
-    smooth_pts = plan.waypoints if cfg.smoothness_on == "keypoints" else pts_body
-    u_s = smoothness_cost(smooth_pts, torch.zeros_like(goal), goal)
-    collided = collision_labels(pts_world, esdf_map, threshold=cfg.collision_threshold, raw=cfg.label_from_raw)
+    u_s = smoothness_cost(plan.waypoints, torch.zeros_like(goal), goal)
+    collided = collision_labels(pts_world, esdf_map, threshold=cfg.robot_radius, raw=cfg.label_from_raw)
     u_e = escape_cost(eta, collided, logit=eta_logit)
     if target_shares is None:
         target_shares = time_targets(
@@ -477,12 +450,11 @@ def _candidate_costs(
     pts_body = sample_trajectory(plan.trajectory, samples_per_second=cfg.samples_per_second, min_samples=cfg.min_samples)
     pts_world = body_to_world(pts_body, _per_candidate(T_world_body, M))
     goal_m = _per_candidate(goal, M)
-    u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius, softness=cfg.obstacle_softness,
-                        reduction=cfg.obstacle_reduction).reshape(B, M)
+    u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius,
+                        softness=cfg.obstacle_softness).reshape(B, M)
     u_g = goal_cost(plan.waypoints[:, -1], goal_m).reshape(B, M)
-    smooth_pts = plan.waypoints if cfg.smoothness_on == "keypoints" else pts_body
-    u_s = smoothness_cost(smooth_pts, torch.zeros_like(goal_m), goal_m).reshape(B, M)
-    collided = collision_labels(pts_world, esdf_map, threshold=cfg.collision_threshold,
+    u_s = smoothness_cost(plan.waypoints, torch.zeros_like(goal_m), goal_m).reshape(B, M)
+    collided = collision_labels(pts_world, esdf_map, threshold=cfg.robot_radius,
                                 raw=cfg.label_from_raw).reshape(B, M)
     return plan, u_o, u_g, u_s, collided
 
