@@ -343,25 +343,15 @@ def planner_loss(
     collided = collision_labels(pts_world, esdf_map, threshold=cfg.robot_radius, raw=cfg.label_from_raw)
     u_e = escape_cost(eta, collided, logit=eta_logit)
     if target_shares is None:
-        target_shares = time_targets(
-            plan.waypoints, total_time=plan.total_time, start=plan.start, end=_plan_end(plan),
-            min_segment=plan.min_segment, max_iters=cfg.time_target_iters, rel_tol=cfg.time_target_tol,
-        )
+        target_shares = time_targets(plan.waypoints, total_time=plan.total_time, start=plan.start, end=_plan_end(plan),
+                                     min_segment=plan.min_segment, max_iters=cfg.time_target_iters,
+                                     rel_tol=cfg.time_target_tol)
     u_t = time_cost(plan.shares, target_shares)
-    per = (
-        cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s
-        + cfg.gamma_escape * u_e + cfg.gamma_time * u_t
-    )
-    total = per.mean()
-    terms = {
-        "obstacle": u_o.detach().mean(),
-        "goal": u_g.detach().mean(),
-        "smoothness": u_s.detach().mean(),
-        "escape": u_e.detach().mean(),
-        "time": u_t.detach().mean(),
-        "collision_rate": collided.to(total.dtype).mean(),
-        "total": total.detach(),
-    }
+    total = (cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s + cfg.gamma_escape * u_e
+             + cfg.gamma_time * u_t).mean()
+    f = functools.partial(_batch_mean, dtype=total.dtype)
+    terms = {"obstacle": f(u_o), "goal": f(u_g), "smoothness": f(u_s), "escape": f(u_e), "time": f(u_t),
+             "collision_rate": f(collided), "total": total.detach()}
     return total, terms
 
 
