@@ -62,6 +62,13 @@ def test_resume_continues_after_the_last_epoch(workspace: Path, tmp_path: Path) 
     train([workspace], tiny("r", epochs=1, max_steps=None), runs_dir=tmp_path, progress=False)
     with open(tmp_path / "r" / "metrics.jsonl", "a") as f:  # killed after epoch 2's row, before its checkpoint
         f.write(json.dumps({"epoch": 2, "step": 99}) + "\n")
+    saved_path = tmp_path / "r" / "config.json"
+    saved = json.loads(saved_path.read_text())
+    for old in (2.5, None):  # a run made before eta_horizon was removed: refused unless at the old default
+        saved_path.write_text(json.dumps({**saved, "loss": {**saved["loss"], "eta_horizon": old}}))
+        if old is not None:
+            with pytest.raises(TrainConfigError, match=r"eta_horizon=2\.5: the field was removed"):
+                train([workspace], tiny("r", epochs=2, max_steps=None), runs_dir=tmp_path, resume=True, progress=False)
     s = train([workspace], tiny("r", epochs=2, max_steps=None), runs_dir=tmp_path, resume=True, progress=False)
     rows = [json.loads(x) for x in (tmp_path / "r" / "metrics.jsonl").read_text().splitlines()]
     assert [row["epoch"] for row in rows] == [0, 1, 2] and rows[-1]["step"] != 99 and s.epochs_done == 2

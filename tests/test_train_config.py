@@ -76,7 +76,7 @@ def test_a_saved_config_with_removed_loss_fields_at_their_old_behaviour_loads() 
                                            ("obstacle_reduction", "sum"), ("smoothness_on", "samples")])
 def test_a_saved_config_with_a_removed_loss_field_in_use_is_refused(name: str, value: object) -> None:
     saved = json.loads((PRETRAINED / "config.json").read_text())
-    with pytest.raises(TrainConfigError, match=f"^loss {name}=.*removed in mapkit 0.1.0 .*issue 57") as exc:
+    with pytest.raises(TrainConfigError, match=rf"^loss {name}=.*: the field was removed in mapkit 0\.1\.0 \(issue 57\)") as exc:
         TrainConfig.from_saved({**saved, "loss": {**saved["loss"], name: value}})
     assert "\n" not in str(exc.value)
 
