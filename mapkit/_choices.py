@@ -13,11 +13,6 @@ TrainedWeights = Literal["all", "tan", "judge"]
 """Which weights a run trains: all, only the Time Allocation Net, or only the judge (scores and η)."""
 TRAINED_WEIGHTS: tuple[TrainedWeights, ...] = get_args(TrainedWeights)
 
-EtaLabel = Literal["map", "seen", "image"]
-"""What η learns to predict: a collision in the map (the paper), or with what the depth image shows
-(occluded space blocked, or free)."""
-ETA_LABELS: tuple[EtaLabel, ...] = get_args(EtaLabel)
-
 OnReject = Literal["continue", "brake"]
 """What a flying vehicle does with a rejected plan (``PilotConfig.on_reject``)."""
 ON_REJECT: tuple[OnReject, ...] = get_args(OnReject)

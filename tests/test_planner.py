@@ -288,19 +288,6 @@ def test_escape_labels_through_and_beside_box(box_map):
     assert float(logit.grad[1]) > 0.99
 
 
-def test_escape_labels_within_a_horizon_along_the_path(box_map):
-    # the path along y = 0 comes within 0.3 m of the box face (x = 4) after 3.7 m
-    through = _straight(0.0)
-    for within, expected in [(3.5, False), (3.9, True), (None, True)]:
-        assert collision_labels(through, box_map, threshold=0.3, within=within).tolist() == [expected]
-    # measured along the path, not straight from its start: a path that doubles back
-    back = torch.tensor([[[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 0.0], [3.8, 0.0, 0.0]]])
-    assert collision_labels(back, box_map, threshold=0.3, within=5.0).tolist() == [False]
-    assert collision_labels(back, box_map, threshold=0.3, within=7.9).tolist() == [True]
-    with pytest.raises(PlannerError, match="eta_horizon"):
-        LossConfig(eta_horizon=0.0)
-
-
 def _through_and_beside_the_box():
     """A two-candidate net's output toward (9, 0, 0), and candidates (1, 2, 5, 3): one straight through
     the box, one 1.5 m beside it all along; the body at the world origin."""
@@ -315,93 +302,18 @@ def _through_and_beside_the_box():
     return net, out, goal, cand, torch.eye(4, dtype=torch.float64)[None]
 
 
-def test_eta_learns_the_label_within_its_horizon(box_map):
-    """candidate_loss: with ``eta_horizon`` U_E's label counts the path's first metres only; the
-    collision rate (and the winner's penalty) still count the whole path."""
+def test_eta_learns_each_candidates_collision_label(box_map):
+    """candidate_loss: U_E is small exactly when each candidate's η matches its own collision label
+    (the path into the box 1, the one beside it 0)."""
     net, out, goal, cand, T = _through_and_beside_the_box()
-    for horizon, label in ((None, [True, False]), (2.0, [False, False]), (4.0, [True, False])):
-        for guess, low in ((label, True), ([not label[0], label[1]], False)):
-            logits = torch.tensor([[20.0 if g else -20.0 for g in guess]])
-            o = dataclasses.replace(out, candidates=cand, keypoints=cand[:, 0], candidate_eta_logits=logits,
-                                    chosen=torch.zeros(1, dtype=torch.long))
-            _, terms = candidate_loss(net, o, goal=goal, T_world_body=T, esdf_map=box_map,
-                                      config=LossConfig(eta_horizon=horizon))
-            assert float(terms["collision_rate"]) == 1.0  # the chosen path runs into the box
-            assert (float(terms["escape"]) < 1e-6) == low, (horizon, guess)
-
-
-def test_eta_positive_weight_scales_the_colliding_labels_only(box_map):
-    """U_E with ``eta_positive_weight`` w: η = 0.5 on a path into the box (label 1) and one beside it
-    (label 0) costs (w·ln 2 + ln 2) / 2, the cross-entropy with the colliding term weighted."""
-    net, out, goal, cand, T = _through_and_beside_the_box()
-    o = dataclasses.replace(out, candidates=cand, keypoints=cand[:, 0], candidate_eta_logits=torch.zeros(1, 2),
-                            chosen=torch.zeros(1, dtype=torch.long))
-    for w in (1.0, 4.0):
-        _, terms = candidate_loss(net, o, goal=goal, T_world_body=T, esdf_map=box_map,
-                                  config=LossConfig(eta_positive_weight=w))
-        assert float(terms["escape"]) == pytest.approx((w + 1) * math.log(2) / 2, rel=1e-5)
-    for bad in (0.0, -1.0, float("nan")):
-        with pytest.raises(PlannerError, match="eta_positive_weight"):
-            LossConfig(eta_positive_weight=bad)
-
-
-def _checking_net_and_camera():
-    """A two-candidate net with the depth check, and a 200 × 120 pinhole camera (f = 100 px) looking
-    along the body's x axis from its origin."""
-    torch.manual_seed(0)
-    net = PlannerNet(PlannerConfig(num_candidates=2, depth_check=True))
-    H, W = 120, 200
-    K = np.array([[100.0, 0.0, W / 2 - 0.5], [0.0, 100.0, H / 2 - 0.5], [0.0, 0.0, 1.0]])
-    T_body_camera = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]], float)
-    return net, CameraInput.from_calibration(K, W, H, T_body_camera), (H, W)
-
-
-@pytest.mark.parametrize("eta_label", ["seen", "image"])
-def test_eta_label_seen_is_what_the_depth_image_shows(eta_label: str) -> None:
-    """``eta_label="seen"`` and ``"image"``: a wall seen 3 m ahead (and nothing in the map) labels the
-    straight path colliding, within a horizon that reaches 0.3 m of the wall and not within a shorter one."""
-    net, camera, (H, W) = _checking_net_and_camera()
-    goal = torch.tensor([[8.0, 0.0, 0.0]])
-    out = net(net.preprocess(torch.full((1, H, W), 3.0)), goal, camera=camera)
-    line = torch.tensor([[[1.6, 0, 0], [3.2, 0, 0], [4.8, 0, 0], [6.4, 0, 0], [8.0, 0, 0]]])
-    aside = torch.tensor([[[-0.4, 0.6, 0], [-0.8, 1.2, 0], [-1.2, 1.8, 0], [-1.6, 2.4, 0], [-2.0, 3.0, 0]]])
-    cand = torch.stack([line, aside], dim=1)  # the second goes back and left, out of view
-    out = dataclasses.replace(out, candidates=cand, keypoints=cand[:, 0], candidate_eta_logits=torch.zeros(1, 2),
-                              chosen=torch.zeros(1, dtype=torch.long))
-    free_map = EsdfMap(esdf=np.full((60, 40, 20), 5.0, np.float32), voxel_size=0.2, origin=ORIGIN)
-    T = torch.eye(4, dtype=torch.float64)[None]
-    for horizon, expected in ((None, True), (2.0, False), (2.9, True)):
-        for m, label in ((0, expected), (1, False)):
-            o = dataclasses.replace(out, chosen=torch.full((1,), m))
-            _, terms = candidate_loss(net, o, goal=goal, T_world_body=T, esdf_map=free_map, camera=camera,
-                                      config=LossConfig(eta_label=eta_label, eta_horizon=horizon))
-            assert terms["eta_label_chosen"].tolist() == [label], (horizon, m)
-            assert float(terms["collision_rate"]) == 0.0  # the map is free everywhere
-    with pytest.raises(PlannerError, match="camera"):
-        candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=free_map, config=LossConfig(eta_label=eta_label))
-    with pytest.raises(PlannerError, match="eta_label"):
-        LossConfig(eta_label="exact")
-
-
-def test_eta_label_image_leaves_occluded_space_free() -> None:
-    """A wall 3 m ahead over the image's left part (its edge 1.5 m left of the axis): a path that passes
-    0.58 m from the edge and on behind the wall is labelled free by "image" (no image point within
-    0.3 m) and colliding by "seen" (it runs behind the surface the camera saw)."""
-    net, camera, (H, W) = _checking_net_and_camera()
-    depth = torch.zeros((1, H, W))  # no return
-    depth[:, :, : W // 2 - 50] = 3.0  # the wall: body y >= 1.5 at x = 3
-    goal = torch.tensor([[5.0, 3.0, 0.0]])
-    out = net(net.preprocess(depth), goal, camera=camera)
-    behind = torch.tensor([[[1.5, 0.3, 0], [3.0, 0.6, 0], [3.67, 1.4, 0], [4.33, 2.2, 0], [5.0, 3.0, 0]]])
-    cand = torch.stack([behind, behind], dim=1)
-    out = dataclasses.replace(out, candidates=cand, keypoints=cand[:, 0], candidate_eta_logits=torch.zeros(1, 2),
-                              chosen=torch.zeros(1, dtype=torch.long))
-    free_map = EsdfMap(esdf=np.full((60, 40, 20), 5.0, np.float32), voxel_size=0.2, origin=ORIGIN)
-    T = torch.eye(4, dtype=torch.float64)[None]
-    for eta_label, expected in (("image", False), ("seen", True)):
-        _, terms = candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=free_map, camera=camera,
-                                  config=LossConfig(eta_label=eta_label))
-        assert terms["eta_label_chosen"].tolist() == [expected], eta_label
+    label = [True, False]
+    for guess, low in ((label, True), ([not label[0], label[1]], False), ([label[0], not label[1]], False)):
+        logits = torch.tensor([[20.0 if g else -20.0 for g in guess]])
+        o = dataclasses.replace(out, candidates=cand, keypoints=cand[:, 0], candidate_eta_logits=logits,
+                                chosen=torch.zeros(1, dtype=torch.long))
+        _, terms = candidate_loss(net, o, goal=goal, T_world_body=T, esdf_map=box_map)
+        assert float(terms["collision_rate"]) == 1.0  # the chosen path runs into the box
+        assert (float(terms["escape"]) < 1e-6) == low, guess
 
 
 def test_image_points_of_a_wall() -> None:
@@ -457,9 +369,10 @@ def test_body_to_world():
 
 
 def test_loss_config_checks():
-    with pytest.raises(PlannerError, match="obstacle_reduction"):
-        LossConfig(obstacle_reduction="max")
-    assert LossConfig(robot_radius=0.4).collision_threshold == 0.4
+    with pytest.raises(PlannerError, match="robot_radius"):
+        LossConfig(robot_radius=-0.1)
+    with pytest.raises(PlannerError, match="obstacle_softness"):
+        LossConfig(obstacle_softness=0.0)
 
 
 # ----------------------------------------------------------------------- torchvision weights
@@ -683,6 +596,42 @@ def test_anchor_pull_adds_the_losers_squared_distance_from_their_anchors(box_map
     torch.testing.assert_close(loss[0.5] - loss[0.0], 0.5 * c.square().sum(), rtol=1e-5, atol=1e-6)
     with pytest.raises(PlannerError, match="candidate_anchor_pull"):
         LossConfig(candidate_anchor_pull=-1.0)
+
+
+@pytest.fixture(scope="module")
+def wall_map() -> EsdfMap:
+    """0.1 m voxels over x in [-2, 7.9], y in [-6, 5.9], z in [-1, 1.9]: a wall across x = 3 (0.2 m
+    thick, the whole height) from y = -6 up to y = 2; open beyond."""
+    origin, shape = (-2.0, -6.0, -1.0), (100, 120, 30)
+    x, y = (origin[a] + 0.1 * np.arange(shape[a]) for a in range(2))
+    occ = np.zeros(shape, bool)
+    occ[np.ix_((x > 2.85) & (x < 3.15), y < 2.0, np.ones(shape[2], bool))] = True
+    esdf = signed_distance(occ, voxel_size=0.1, max_dist=20.0)
+    return EsdfMap(esdf=esdf, esdf_raw=esdf, voxel_size=0.1, origin=origin)
+
+
+def test_the_collision_penalty_lets_a_clear_candidate_win(wall_map):
+    """Toward a goal straight behind the wall every candidate but the widest crosses it; the
+    cheapest path (by obstacle, goal and smoothness cost) is one that crosses, so without the
+    penalty the winner collides (with this seed's time allocation), and with it the clear one wins."""
+    torch.manual_seed(0)
+    net = PlannerNet(planner_preset("cpu", num_candidates=8, input_size=(32, 48), encoder_width=0.125))
+    with torch.no_grad():
+        net.keypoint_mlp[-1].weight.zero_()
+        net.keypoint_mlp[-1].bias.zero_()
+    depth = torch.full((1, 48, 64), 5.0)
+    goal = torch.tensor([[6.0, 0.0, 0.0]])
+    T = torch.eye(4)[None].clone()
+    T[0, :3, 3] = torch.tensor([0.0, 0.5, 0.5])
+    runs = {}
+    with torch.no_grad():
+        out = net(net.preprocess(depth), goal)
+        for kappa in (0.0, 10.0):
+            runs[kappa] = candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=wall_map,
+                                         config=LossConfig(obstacle_softness=0.3, winner_collision_penalty=kappa))[1]
+    assert float(runs[0.0]["winner_collision_rate"]) == 1.0
+    assert float(runs[10.0]["winner_collision_rate"]) == 0.0
+
 
 def test_depth_margins_against_a_wall_in_front():
     """Depth 4 m everywhere (a wall facing the camera): path points before it are in view with a

@@ -188,7 +188,7 @@ def test_the_graph_sees_lazy_and_type_checking_imports():
     assert "mapkit.esdf._build" in graph and "mapkit.cli.main" in graph and "mapkit.viewer._app" in graph
     # lazy (inside a function) and TYPE_CHECKING-only imports are edges too
     assert "mapkit.esdf._world" in graph["mapkit.esdf._build"]
-    assert "mapkit.esdf" in graph["mapkit.planner._detour"]
+    assert "mapkit.esdf" in graph["mapkit.planner._loss"]
     # `from package import submodule` points at the submodule
     assert "mapkit.esdf._checks" in graph["mapkit.esdf._store"]
 

@@ -62,6 +62,13 @@ def test_resume_continues_after_the_last_epoch(workspace: Path, tmp_path: Path) 
     train([workspace], tiny("r", epochs=1, max_steps=None), runs_dir=tmp_path, progress=False)
     with open(tmp_path / "r" / "metrics.jsonl", "a") as f:  # killed after epoch 2's row, before its checkpoint
         f.write(json.dumps({"epoch": 2, "step": 99}) + "\n")
+    saved_path = tmp_path / "r" / "config.json"
+    saved = json.loads(saved_path.read_text())
+    for old in (2.5, None):  # a run made before eta_horizon was removed: refused unless at the old default
+        saved_path.write_text(json.dumps({**saved, "loss": {**saved["loss"], "eta_horizon": old}}))
+        if old is not None:
+            with pytest.raises(TrainConfigError, match=r"eta_horizon=2\.5: the field was removed"):
+                train([workspace], tiny("r", epochs=2, max_steps=None), runs_dir=tmp_path, resume=True, progress=False)
     s = train([workspace], tiny("r", epochs=2, max_steps=None), runs_dir=tmp_path, resume=True, progress=False)
     rows = [json.loads(x) for x in (tmp_path / "r" / "metrics.jsonl").read_text().splitlines()]
     assert [row["epoch"] for row in rows] == [0, 1, 2] and rows[-1]["step"] != 99 and s.epochs_done == 2
@@ -127,8 +134,8 @@ def test_only_tan_trains_the_time_allocation_and_nothing_else(workspace: Path, t
 def test_only_judge_trains_the_judge_and_nothing_else(workspace: Path, tmp_path: Path) -> None:
     planner = {**TINY, "num_candidates": 4}
     train([workspace], tiny("base", planner=planner), runs_dir=tmp_path, progress=False)
-    train([workspace], tiny("judge", max_steps=3, lr=1e-2, init=str(tmp_path / "base"), only="judge", planner=planner,
-                            loss={"eta_horizon": 1.5}), runs_dir=tmp_path, progress=False)
+    train([workspace], tiny("judge", max_steps=3, lr=1e-2, init=str(tmp_path / "base"), only="judge", planner=planner),
+          runs_dir=tmp_path, progress=False)
     a = torch.load(tmp_path / "base" / "model.pt", weights_only=True)["state_dict"]
     b = torch.load(tmp_path / "judge" / "model.pt", weights_only=True)["state_dict"]
     judge = [k for k in a if k.startswith("judge_mlp.")]

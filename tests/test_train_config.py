@@ -12,6 +12,7 @@ import torch
 
 from mapkit._choices import ON_REJECT, PRESET_NAMES, TRAINED_WEIGHTS
 from mapkit.planner import LossConfig, PlannerConfig, PlannerNet
+from mapkit.planner._loss import REMOVED_FIELDS
 from mapkit.train import PRESETS, TrainConfig, TrainConfigError, preset
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "mapkit" / "flight" / "pretrained"
@@ -55,12 +56,41 @@ def test_presets_are_written_as_before() -> None:
 
 def test_the_shipped_models_config_loads_and_fits_its_weights() -> None:
     saved = json.loads((PRETRAINED / "config.json").read_text())
-    known = {f.name for f in dataclasses.fields(TrainConfig) if not f.name.startswith("_")}
-    config = TrainConfig.from_dict({k: v for k, v in saved.items() if k in known})
+    config = TrainConfig.from_saved(saved)
     assert config.to_dict()["planner"] == saved["planner"] and config.to_dict()["loss"] == saved["loss"]
     assert config.planner == PlannerConfig.from_dict(saved["planner_resolved"])
     model = torch.load(PRETRAINED / "model.pt", map_location="cpu", weights_only=True)
     PlannerNet(config.planner).load_state_dict(model["state_dict"])  # strict: every weight fits
+
+
+def test_a_saved_config_with_removed_loss_fields_at_their_old_behaviour_loads() -> None:
+    saved = json.loads((PRETRAINED / "config.json").read_text())
+    old = {**saved, "loss": {**saved["loss"], **REMOVED_FIELDS, "detour_cap": 3.0}}  # no weight: the cap is moot
+    assert TrainConfig.from_saved(old) == TrainConfig.from_saved(saved)
+    radius = {**saved, "loss": {**saved["loss"], "robot_radius": 0.4, "collision_distance": 0.4}}
+    assert TrainConfig.from_saved(radius).loss.robot_radius == 0.4  # the label's distance was the radius
+
+
+@pytest.mark.parametrize(("name", "value"), [("detour_weight", 2.0), ("eta_horizon", 2.5), ("eta_label", "seen"),
+                                           ("eta_positive_weight", 4.0), ("collision_distance", 0.5),
+                                           ("obstacle_reduction", "sum"), ("smoothness_on", "samples")])
+def test_a_saved_config_with_a_removed_loss_field_in_use_is_refused(name: str, value: object) -> None:
+    saved = json.loads((PRETRAINED / "config.json").read_text())
+    with pytest.raises(TrainConfigError, match=rf"^loss {name}=.*: the field was removed in mapkit 0\.1\.0 \(issue 57\)") as exc:
+        TrainConfig.from_saved({**saved, "loss": {**saved["loss"], name: value}})
+    assert "\n" not in str(exc.value)
+
+
+def test_a_removed_loss_field_on_the_command_line_is_unknown(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from mapkit.cli.main import main
+
+    r = CliRunner().invoke(main, ["train", "-w", str(tmp_path), "--loss", "detour_weight=0"])
+    assert r.exit_code == 1 and "has no field 'detour_weight'; known: " in r.output, r.output
+    assert "winner_collision_penalty" in r.output and "Traceback" not in r.output
+    with pytest.raises(TrainConfigError, match="has no field 'detour_weight'"):
+        TrainConfig.from_dict({"loss": {"detour_weight": 0.0}})  # removed fields load from saved runs only
 
 
 def test_a_non_object_nested_config_is_one_line() -> None:

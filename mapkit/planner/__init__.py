@@ -28,7 +28,6 @@ Loss: :func:`planner_loss` = γ1 U_O (:func:`obstacle_cost` on the ESDF) + γ2 U
 
 from mapkit.planner._config import PLANNER_PRESETS, PlannerConfig, planner_preset
 from mapkit.planner._depthcheck import CameraInput, depth_margins, image_points, point_margins, seen_conflicts
-from mapkit.planner._detour import DetourGrid, detour_excess
 from mapkit.planner._errors import PlannerError
 from mapkit.planner._flown import (
     CLEARANCE_CAP,
@@ -69,8 +68,6 @@ from mapkit.planner._timing import Allocation, Timing, plan_timing, total_time, 
 __all__ = [
     "Allocation",
     "CameraInput",
-    "DetourGrid",
-    "detour_excess",
     "depth_margins",
     "image_points",
     "point_margins",

@@ -9,16 +9,14 @@ frame with ``T_world_body`` (B, 4, 4) before every ESDF lookup.
 from __future__ import annotations
 
 import functools
+import json
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.nn.functional as F
 
-from mapkit._choices import ETA_LABELS, EtaLabel
-from mapkit.planner._depthcheck import FEATURES_PER_POINT, CameraInput, depth_margins, image_points
-from mapkit.planner._detour import detour_excess
 from mapkit.planner._errors import PlannerError
 from mapkit.planner._model import Plan, PlannerNet, PlannerOutput
 from mapkit.trajopt import Trajectory, allocate_times
@@ -33,10 +31,9 @@ class LossConfig:
     terms on comparable scales for a fresh net, not tuned values."""
 
     gamma_obstacle: float = 20.0
-    """γ1, weight of the obstacle cost U_O (:func:`obstacle_cost`, a per-sample mean by default).
-    Measured on a 1 m × 2 m pillar straight across the origin → goal line (cpu preset, 4 goals, Adam
-    lr 1e-3): γ1 = 2 left every trajectory inside the pillar after 200 steps; γ1 = 20 cleared all
-    four in 40 steps with the goal still reached (U_G ≈ 1 cm)."""
+    """γ1, weight of the obstacle cost U_O (:func:`obstacle_cost`, a mean over the samples). 20, not
+    2: at 2 paths trained across a pillar stayed inside it; at 20 they cleared it and still reached
+    the goal."""
     gamma_goal: float = 1.0
     """γ2, weight of the goal cost U_G (:func:`goal_cost`, metres)."""
     gamma_smooth: float = 0.5
@@ -60,64 +57,27 @@ class LossConfig:
     """β, 1/m²: every candidate that does not win a sample adds β × the mean squared distance (m²) of
     its key-points from its own anchor path's, divided among the M − 1 losers (only with several).
     ``candidate_spread`` pulls the losers toward the cheapest path, and the shipped model's eight
-    candidates ended up within a metre of each other; this pull keeps them apart instead. Off: a
-    fine-tune with it (β 0.1, no spread term) lost 15 of 240 office dev flights (docs/train.md)."""
-    detour_weight: float = 0.0
-    """λ: U_G also counts λ × how much longer the way from the path's end to the goal is through the
-    map's free space than straight (:func:`mapkit.planner.detour_excess`, level 0.2 m grid, at most
-    ``detour_cap``; in :func:`candidate_loss`, cached per map and goal). 0 (the paper's U_G): a goal behind a
-    wall rewards stopping at the wall."""
-    detour_cap: float = 8.0
-    """Metres: the largest detour excess counted."""
+    candidates ended up within a metre of each other; this pull keeps them apart instead. Off by
+    default: on its own in a fine-tune (β 0.1, no spread term) it lost office flights (docs/results.md)."""
     winner_collision_penalty: float = 0.0
     """κ, metres of path cost added to every candidate whose path collides (the η label) when choosing
     the winner and the score's target only (no gradient): a candidate that keeps clear wins over one
     that reaches the goal through a wall. 0: the cheapest path cost wins."""
     robot_radius: float = 0.3
-    """Metres. The obstacle cost acts on the clearance d − robot_radius."""
+    """Metres. The obstacle cost acts on the clearance d − robot_radius, and a trajectory that comes
+    nearer than this to a surface counts as colliding (η's label, the collision rates)."""
     obstacle_softness: float = 1.0
     """ε, metres: width of the smooth hinge in :func:`obstacle_penalty`. Larger ε gives more gradient
     far from obstacles (it decays like ε²/(4 u²) at clearance u)."""
-    obstacle_reduction: str = "mean"
-    """"mean" (default: independent of the trajectory's duration and sample count) or "sum" (the
-    paper's sum over trajectory points) over the samples of each trajectory."""
     samples_per_second: float = 10.0
     """Trajectory samples per second of flight for U_O, U_S and the collision label (the longest
     trajectory of the batch sets the count N; every element is sampled at N instants evenly spread
     over its own duration)."""
     min_samples: int = 8
     """Lower bound on N, the samples per trajectory."""
-    collision_distance: float | None = None
-    """Metres; a trajectory whose sampled ESDF distance drops below this counts as colliding (label
-    1 for U_E). Default: ``robot_radius``."""
-    eta_horizon: float | None = None
-    """Metres along the trajectory from its start: the collision label that η learns (U_E) counts only
-    this first stretch, the part flown before later plans from nearer views take over, and mostly
-    in view of the image it is judged from. None (the paper): the whole trajectory, whose far part
-    lies behind walls the image cannot show, so η learned to guess and vetoed plans toward goals out
-    of view. The winner's collision penalty and "collision_rate" still count the whole trajectory."""
-    eta_label: EtaLabel = "map"
-    """What η learns (U_E's label): "map" (the paper) a collision in the map's ESDF; "seen" the
-    trajectory passing closer than the robot's size to a surface the depth image shows, or behind it
-    (the judge's depth margins, :func:`mapkit.planner.depth_margins`, on the trajectory's samples;
-    points out of view count as free): the label one image can know, which needs ``depth_check``
-    and the camera (:func:`candidate_loss`'s ``camera``); "image" the trajectory passing closer than
-    ``collision_threshold`` to a point of the depth image (what the image does not show, occluded
-    space included, counts as free: it gives fewer vetoes than "seen", and flying with the vetoes of
-    a perfect such judge over the first 1.5 m did best without the flight stack, docs/results.md),
-    with the same needs. All honour ``eta_horizon``."""
-    eta_positive_weight: float = 1.0
-    """Weight of the colliding labels in the judge's cross-entropy (several candidates): above 1 when
-    they are rare, as within a short ``eta_horizon``, where an unweighted η learned to call every
-    candidate free."""
     label_from_raw: bool = True
     """Use the map's unsmoothed ``esdf_raw`` (exact distances) for the collision label when the map
     has it; the smoothed ``esdf`` otherwise. U_O always uses the smoothed field."""
-    smoothness_on: str = "keypoints"
-    """What U_S measures against the straight line: "keypoints" (default; the K+1 waypoints origin,
-    k1..kK, whose equal spacing on the line gives zero) or "samples" (the N time samples of the
-    trajectory; a rest-to-rest minimum-snap trajectory is never evenly spaced in time, so this
-    penalises its speed profile even on the straight line: measured ≈ 3.3 m for an 8 m path)."""
     time_target_iters: int = 10
     """Iterations of the Mellinger & Kumar gradient allocation for the U_T target (10: ≈ 20 ms for a
     batch of 16 on 2 CPU cores, MSE to the converged shares ≈ 4e-5 against ≈ 5e-3 for uniform
@@ -126,37 +86,47 @@ class LossConfig:
     """Relative cost decrease below which that allocation stops early."""
 
     def __post_init__(self) -> None:
-        if self.eta_horizon is not None and not (math.isfinite(self.eta_horizon) and self.eta_horizon > 0):
-            raise PlannerError(f"eta_horizon must be > 0 metres (or None: the whole trajectory), got {self.eta_horizon}")
-        if not (math.isfinite(self.eta_positive_weight) and self.eta_positive_weight > 0):
-            raise PlannerError(f"eta_positive_weight must be > 0, got {self.eta_positive_weight}")
-        if self.eta_label not in ETA_LABELS:
-            raise PlannerError(f"eta_label must be one of {', '.join(ETA_LABELS)}, got {self.eta_label!r}")
-        for name in ("robot_radius", "collision_distance"):
-            v = getattr(self, name)
-            if v is not None and not v >= 0:
-                raise PlannerError(f"{name} must be >= 0 metres, got {v}")
+        if not self.robot_radius >= 0:
+            raise PlannerError(f"robot_radius must be >= 0 metres, got {self.robot_radius}")
         if not self.obstacle_softness > 0:
             raise PlannerError(f"obstacle_softness must be > 0 metres, got {self.obstacle_softness}")
-        if self.obstacle_reduction not in ("mean", "sum"):
-            raise PlannerError(f"obstacle_reduction must be 'mean' or 'sum', got {self.obstacle_reduction!r}")
         if not self.samples_per_second > 0:
             raise PlannerError(f"samples_per_second must be > 0, got {self.samples_per_second}")
-        if self.smoothness_on not in ("keypoints", "samples"):
-            raise PlannerError(f"smoothness_on must be 'keypoints' or 'samples', got {self.smoothness_on!r}")
         if not (math.isfinite(self.score_temperature) and self.score_temperature >= 0):
             raise PlannerError(f"score_temperature must be >= 0 metres, got {self.score_temperature}")
         if self.min_samples < 2:
             raise PlannerError(f"min_samples must be >= 2, got {self.min_samples}")
-        for name in ("candidate_spread", "candidate_anchor_pull", "detour_weight", "detour_cap",
-                     "winner_collision_penalty"):
+        for name in ("candidate_spread", "candidate_anchor_pull", "winner_collision_penalty"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise PlannerError(f"{name} must be >= 0, got {getattr(self, name)}")
 
-    @property
-    def collision_threshold(self) -> float:
-        """The collision distance in effect (``collision_distance`` or ``robot_radius``), metres."""
-        return self.robot_radius if self.collision_distance is None else float(self.collision_distance)
+
+REMOVED_FIELDS: dict[str, Any] = {
+    "detour_weight": 0.0, "detour_cap": 8.0, "eta_horizon": None, "eta_label": "map", "eta_positive_weight": 1.0,
+    "collision_distance": None, "obstacle_reduction": "mean", "smoothness_on": "keypoints",
+}
+"""Fields LossConfig no longer has, each with the value that gives the behaviour the loss now always
+has: research options dropped in issue 57 that a saved run's config.json may still name."""
+
+
+def drop_removed_fields(values: dict[str, Any], error: type[Exception]) -> dict[str, Any]:
+    """A saved run's LossConfig fields ``values`` less those in :data:`REMOVED_FIELDS` that hold the
+    behaviour the loss now always has; one that holds another raises ``error`` naming it."""
+    for name, value in values.items():
+        if name in REMOVED_FIELDS and not _same_as_removed(name, value, values):
+            raise error(f"loss {name}={json.dumps(value)}: the field was removed in mapkit 0.1.0 (issue 57), whose "
+                        f"loss always trains as with {name}={json.dumps(REMOVED_FIELDS[name])}; train a new run "
+                        "without it, or use a mapkit checkout from before issue 57 for this one")
+    return {k: v for k, v in values.items() if k not in REMOVED_FIELDS}
+
+
+def _same_as_removed(name: str, value: Any, values: dict[str, Any]) -> bool:
+    """Whether removed field ``name`` = ``value`` (among ``values``) trains as the loss now does."""
+    if name == "detour_cap":  # only counted with a detour weight
+        return values.get("detour_weight", 0.0) == 0.0
+    if name == "collision_distance" and value is not None:  # None meant the robot radius
+        return bool(value == values.get("robot_radius", LossConfig.robot_radius))
+    return bool(value == REMOVED_FIELDS[name])
 
 
 # ------------------------------------------------------------------------------------ helpers
@@ -214,20 +184,15 @@ def obstacle_cost(
     *,
     robot_radius: float = 0.3,
     softness: float = 1.0,
-    reduction: str = "mean",
 ) -> torch.Tensor:
-    """U_O: obstacle cost (B,) of world points (B, N, 3) — the mean (or sum) over the N samples of
-    :func:`obstacle_penalty` of the smoothed ESDF distance there. Outside the map grid the distance is
-    that of the nearest grid point (``outside="clamp"``). Differentiable w.r.t. ``points``."""
+    """U_O: obstacle cost (B,) of world points (B, N, 3) — the mean over the N samples of
+    :func:`obstacle_penalty` of the smoothed ESDF distance there (the paper sums: a mean does not grow
+    with the trajectory's duration). Outside the map grid the distance is that of the nearest grid
+    point (``outside="clamp"``). Differentiable w.r.t. ``points``."""
     if points.ndim != 3 or points.shape[-1] != 3:
         raise PlannerError(f"points must have shape (B, N, 3) in the world frame, got {tuple(points.shape)}")
     d = esdf_map.query_torch(points, outside="clamp")
-    c = obstacle_penalty(d, robot_radius=robot_radius, softness=softness)
-    if reduction == "mean":
-        return c.mean(-1)
-    if reduction == "sum":
-        return c.sum(-1)
-    raise PlannerError(f"reduction must be 'mean' or 'sum', got {reduction!r}")
+    return obstacle_penalty(d, robot_radius=robot_radius, softness=softness).mean(-1)
 
 
 def goal_cost(end: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
@@ -255,19 +220,12 @@ def smoothness_cost(points: torch.Tensor, start: torch.Tensor, goal: torch.Tenso
 
 @torch.no_grad()
 def collision_labels(
-    points: torch.Tensor, esdf_map: EsdfMap, *, threshold: float, raw: bool = False, within: float | None = None
+    points: torch.Tensor, esdf_map: EsdfMap, *, threshold: float, raw: bool = False
 ) -> torch.Tensor:
     """(B,) bool: some world point of (B, N, 3) has ESDF distance < ``threshold`` metres (from
-    ``esdf_raw`` when ``raw`` and the map has it). Outside the grid: nearest grid point. No gradient.
-    ``within``: only the points whose distance along the polyline from the first point is at most this
-    many metres count (the points are a trajectory's samples in time order)."""
+    ``esdf_raw`` when ``raw`` and the map has it). Outside the grid: nearest grid point. No gradient."""
     use_raw = bool(raw and esdf_map.esdf_raw is not None)
-    points = points.detach()
-    close = esdf_map.query_torch(points, raw=use_raw, outside="clamp") < threshold
-    if within is not None:
-        step = (points[:, 1:] - points[:, :-1]).norm(dim=-1)
-        along = torch.cat([torch.zeros_like(step[:, :1]), step.cumsum(dim=-1)], dim=-1)
-        close = close & (along <= within)
+    close = esdf_map.query_torch(points.detach(), raw=use_raw, outside="clamp") < threshold
     return close.any(dim=-1)
 
 
@@ -372,10 +330,6 @@ def planner_loss(
         eta = torch.sigmoid(eta_logit)
     if eta is None:
         raise PlannerError("planner_loss needs eta (B,): pass eta_logit=net(x, goal).eta_logit or a plan from PlannerNet.plan")
-    if cfg.eta_label != "map":
-        raise PlannerError(f'eta_label="{cfg.eta_label}" needs the candidates\' depth check: use candidate_loss')
-    if cfg.eta_positive_weight != 1.0:
-        raise PlannerError("eta_positive_weight weighs the judge of several candidates: use candidate_loss")
     traj = plan.trajectory
     B = traj.batch_size
     goal = torch.as_tensor(goal, dtype=plan.waypoints.dtype, device=plan.waypoints.device)
@@ -383,35 +337,21 @@ def planner_loss(
         raise PlannerError(f"goal must have shape (B={B}, 3) in the body frame, got {tuple(goal.shape)}")
     pts_body = sample_trajectory(traj, samples_per_second=cfg.samples_per_second, min_samples=cfg.min_samples)
     pts_world = body_to_world(pts_body, T_world_body)
-    u_o = obstacle_cost(
-        pts_world, esdf_map, robot_radius=cfg.robot_radius, softness=cfg.obstacle_softness,
-        reduction=cfg.obstacle_reduction,
-    )
+    u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius, softness=cfg.obstacle_softness)
     u_g = goal_cost(plan.waypoints[:, -1], goal)
-    smooth_pts = plan.waypoints if cfg.smoothness_on == "keypoints" else pts_body
-    u_s = smoothness_cost(smooth_pts, torch.zeros_like(goal), goal)
-    collided = collision_labels(pts_world, esdf_map, threshold=cfg.collision_threshold, raw=cfg.label_from_raw)
-    u_e = escape_cost(eta, _eta_labels(pts_world, esdf_map, cfg, collided), logit=eta_logit)
+    u_s = smoothness_cost(plan.waypoints, torch.zeros_like(goal), goal)
+    collided = collision_labels(pts_world, esdf_map, threshold=cfg.robot_radius, raw=cfg.label_from_raw)
+    u_e = escape_cost(eta, collided, logit=eta_logit)
     if target_shares is None:
-        target_shares = time_targets(
-            plan.waypoints, total_time=plan.total_time, start=plan.start, end=_plan_end(plan),
-            min_segment=plan.min_segment, max_iters=cfg.time_target_iters, rel_tol=cfg.time_target_tol,
-        )
+        target_shares = time_targets(plan.waypoints, total_time=plan.total_time, start=plan.start, end=_plan_end(plan),
+                                     min_segment=plan.min_segment, max_iters=cfg.time_target_iters,
+                                     rel_tol=cfg.time_target_tol)
     u_t = time_cost(plan.shares, target_shares)
-    per = (
-        cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s
-        + cfg.gamma_escape * u_e + cfg.gamma_time * u_t
-    )
-    total = per.mean()
-    terms = {
-        "obstacle": u_o.detach().mean(),
-        "goal": u_g.detach().mean(),
-        "smoothness": u_s.detach().mean(),
-        "escape": u_e.detach().mean(),
-        "time": u_t.detach().mean(),
-        "collision_rate": collided.to(total.dtype).mean(),
-        "total": total.detach(),
-    }
+    total = (cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s + cfg.gamma_escape * u_e
+             + cfg.gamma_time * u_t).mean()
+    f = functools.partial(_batch_mean, dtype=total.dtype)
+    terms = {"obstacle": f(u_o), "goal": f(u_g), "smoothness": f(u_s), "escape": f(u_e), "time": f(u_t),
+             "collision_rate": f(collided), "total": total.detach()}
     return total, terms
 
 
@@ -436,7 +376,6 @@ def candidate_loss(
     start_velocity: torch.Tensor | None = None,
     end_speed: torch.Tensor | None = None,
     corridor: float | None = None,
-    camera: CameraInput | None = None,
     config: LossConfig | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The upper-level loss over every candidate path of ``out`` (B, M, K, 3), winner-takes-all.
@@ -450,24 +389,16 @@ def candidate_loss(
     Returns (total, terms): batch means of the unweighted terms of the CHOSEN candidate (the one
     deployed: "obstacle", "goal", "smoothness", "collision_rate"), plus "escape", "time", "score"
     (cross-entropy), "winner_collision_rate" (the best candidate's), "score_accuracy" (chosen = best)
-    and "total"; "collided_chosen" (B,) bool per sample, and "eta_label_chosen" (B,) the chosen
-    candidate's η label (the same unless ``eta_horizon`` or ``eta_label`` is not "map").
+    and "total"; "collided_chosen" (B,) bool per sample.
     """
     cfg = config or LossConfig()
     cand = out.candidates if out.candidates is not None else out.keypoints[:, None]
     logits = out.candidate_eta_logits if out.candidate_eta_logits is not None else out.eta_logit[:, None]
     B, M = cand.shape[:2]
     goal = torch.as_tensor(goal, dtype=cand.dtype, device=cand.device)
-    plan, u_o, u_g, u_s, collided, pts_body = _candidate_costs(net, cand, goal, T_world_body, esdf_map, cfg,
-                                                               start_velocity=start_velocity, end_speed=end_speed,
-                                                               corridor=corridor)
-    if cfg.eta_label == "seen":
-        eta_label = _seen_labels(pts_body.reshape(B, M, -1, 3), out, camera, cfg, max_depth=net.config.max_depth)
-    elif cfg.eta_label == "image":
-        eta_label = _image_labels(pts_body.reshape(B, M, -1, 3), out, camera, cfg, max_depth=net.config.max_depth)
-    else:
-        eta_label = _eta_labels(body_to_world(pts_body, _per_candidate(T_world_body, M)), esdf_map, cfg,
-                                collided.reshape(-1)).reshape(B, M)
+    plan, u_o, u_g, u_s, collided = _candidate_costs(net, cand, goal, T_world_body, esdf_map, cfg,
+                                                     start_velocity=start_velocity, end_speed=end_speed,
+                                                     corridor=corridor)
     path = cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s
     rows = torch.arange(B, device=cand.device)
     ranked = path.detach() + cfg.winner_collision_penalty * collided.to(path.dtype)
@@ -479,9 +410,7 @@ def candidate_loss(
             away = (cand - net.anchor_paths(goal)).square().sum(-1).mean(-1)  # (B, M) m²
             losers = torch.ones_like(away).scatter(1, winner[:, None], 0.0)
             per = per + cfg.candidate_anchor_pull * (away * losers).sum(dim=1) / (M - 1)
-    weight = torch.as_tensor(cfg.eta_positive_weight, dtype=logits.dtype, device=logits.device)
-    u_e = F.binary_cross_entropy_with_logits(logits, eta_label.to(logits.dtype), reduction="none",
-                                             pos_weight=weight).mean(dim=1)
+    u_e = F.binary_cross_entropy_with_logits(logits, collided.to(logits.dtype), reduction="none").mean(dim=1)
     u_score = _score_loss(out.scores, ranked, winner, like=per, config=cfg)
     u_t = _winner_time_cost(plan, rows, winner, M=M, config=cfg)
     per = per + cfg.gamma_escape * u_e + cfg.gamma_time * u_t + cfg.gamma_score * u_score
@@ -494,7 +423,6 @@ def candidate_loss(
         "escape": f(u_e), "time": f(u_t), "score": f(u_score), "collision_rate": f(coll_chosen),
         "winner_collision_rate": f(collided[rows, winner]), "score_accuracy": f(chosen == winner),
         "total": total.detach(), "collided_chosen": coll_chosen, "goal_chosen": u_g[rows, chosen].detach(),
-        "eta_label_chosen": eta_label[rows, chosen],
     }
     return total, terms
 
@@ -502,9 +430,9 @@ def candidate_loss(
 def _candidate_costs(
     net: PlannerNet, cand: torch.Tensor, goal: torch.Tensor, T_world_body: torch.Tensor, esdf_map: EsdfMap,
     cfg: LossConfig, *, start_velocity: torch.Tensor | None, end_speed: torch.Tensor | None, corridor: float | None,
-) -> tuple[Plan, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Every candidate's trajectory (a :class:`Plan` of B·M, sample-major), its (B, M) obstacle, goal
-    and smoothness costs and collision labels, and its samples (B·M, N, 3) body frame (:func:`candidate_loss`)."""
+) -> tuple[Plan, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every candidate's trajectory (a :class:`Plan` of B·M, sample-major) and its (B, M) obstacle, goal
+    and smoothness costs and collision labels (:func:`candidate_loss`)."""
     B, M, K, _ = cand.shape
     plan = net.trajectory(cand.reshape(B * M, K, 3),
                           start_velocity=None if start_velocity is None else _per_candidate(start_velocity, M),
@@ -512,75 +440,13 @@ def _candidate_costs(
     pts_body = sample_trajectory(plan.trajectory, samples_per_second=cfg.samples_per_second, min_samples=cfg.min_samples)
     pts_world = body_to_world(pts_body, _per_candidate(T_world_body, M))
     goal_m = _per_candidate(goal, M)
-    u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius, softness=cfg.obstacle_softness,
-                        reduction=cfg.obstacle_reduction).reshape(B, M)
+    u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius,
+                        softness=cfg.obstacle_softness).reshape(B, M)
     u_g = goal_cost(plan.waypoints[:, -1], goal_m).reshape(B, M)
-    if cfg.detour_weight > 0:
-        ends = body_to_world(plan.waypoints[:, -1:], _per_candidate(T_world_body, M)).reshape(B, M, 3)
-        goals_world = body_to_world(goal[:, None], T_world_body)[:, 0]
-        u_g = u_g + cfg.detour_weight * detour_excess(ends, goals_world, esdf_map, cap=cfg.detour_cap)
-    smooth_pts = plan.waypoints if cfg.smoothness_on == "keypoints" else pts_body
-    u_s = smoothness_cost(smooth_pts, torch.zeros_like(goal_m), goal_m).reshape(B, M)
-    collided = collision_labels(pts_world, esdf_map, threshold=cfg.collision_threshold,
+    u_s = smoothness_cost(plan.waypoints, torch.zeros_like(goal_m), goal_m).reshape(B, M)
+    collided = collision_labels(pts_world, esdf_map, threshold=cfg.robot_radius,
                                 raw=cfg.label_from_raw).reshape(B, M)
-    return plan, u_o, u_g, u_s, collided, pts_body
-
-
-def _labelled_stretch(pts_body: torch.Tensor, out: PlannerOutput, camera: CameraInput | None,
-                      cfg: LossConfig) -> torch.Tensor:
-    """The samples (B, M, N, 3) an image label looks at: those past ``eta_horizon`` metres repeat the
-    last one within it, so they add no new position. Raises when the net gives no depth pyramid."""
-    if camera is None or out.pyramid is None:
-        raise PlannerError(f'eta_label="{cfg.eta_label}" checks the trajectories against the depth image: it needs a '
-                           "net with depth_check, several candidates and the camera (candidate_loss(camera=...))")
-    pts = pts_body.detach()
-    if cfg.eta_horizon is not None:
-        step = (pts[..., 1:, :] - pts[..., :-1, :]).norm(dim=-1)
-        along = torch.cat([torch.zeros_like(step[..., :1]), step.cumsum(dim=-1)], dim=-1)
-        last = (along <= cfg.eta_horizon).sum(dim=-1, keepdim=True) - 1  # (B, M, 1), >= 0: the start is within
-        idx = torch.minimum(torch.arange(pts.shape[2], device=pts.device).expand_as(along), last)
-        pts = pts.gather(2, idx[..., None].expand_as(pts))
-    return pts
-
-
-def _seen_labels(pts_body: torch.Tensor, out: PlannerOutput, camera: CameraInput | None, cfg: LossConfig, *,
-                 max_depth: float) -> torch.Tensor:
-    """(B, M) η labels of ``eta_label="seen"``: some sample of the trajectories (B, M, N, 3), body frame,
-    within ``eta_horizon`` metres of the start, conflicts with the depth image behind ``out``."""
-    pts = _labelled_stretch(pts_body, out, camera, cfg)
-    assert camera is not None and out.pyramid is not None  # _labelled_stretch raises otherwise
-    B, M = pts.shape[:2]
-    r = cfg.collision_threshold
-    # depth_margins reads only the image size from its x when given the pyramid
-    f = depth_margins(pts.to(out.pyramid.dtype), out.pyramid, camera.expand(B).to(pts.device), max_depth=max_depth,
-                      robot_radius=r, pyramid=out.pyramid).reshape(B, M, -1, FEATURES_PER_POINT)
-    # in view, and nearer than the robot's size to the surface seen around it (margins are metres / 2)
-    return ((f[..., 0] > 0.5) & (2.0 * f[..., 1] < r)).any(dim=-1)
-
-
-def _image_labels(pts_body: torch.Tensor, out: PlannerOutput, camera: CameraInput | None, cfg: LossConfig, *,
-                  max_depth: float) -> torch.Tensor:
-    """(B, M) η labels of ``eta_label="image"``: some sample of the trajectories (B, M, N, 3), body
-    frame, within ``eta_horizon`` metres of the start, passes within ``collision_threshold`` of a point
-    of the depth image behind ``out`` (every second pixel of its nearest-depth pyramid's finest level)."""
-    pts = _labelled_stretch(pts_body, out, camera, cfg)
-    assert camera is not None and out.pyramid is not None  # _labelled_stretch raises otherwise
-    B, M, N, _ = pts.shape
-    image_pts = image_points(out.pyramid[:, 0], camera.expand(B).to(pts.device), max_depth=max_depth).to(pts.dtype)
-    near = torch.zeros(B, M * N, dtype=torch.bool, device=pts.device)
-    flat = pts.reshape(B, M * N, 3)
-    for i in range(B):  # one row at a time keeps the (M·N, pixels) distances small
-        near[i] = torch.cdist(flat[i], image_pts[i]).amin(dim=1) < cfg.collision_threshold
-    return near.reshape(B, M, N).any(dim=-1)
-
-
-def _eta_labels(pts_world: torch.Tensor, esdf_map: EsdfMap, cfg: LossConfig, collided: torch.Tensor) -> torch.Tensor:
-    """(B,) the label η learns: ``collided`` (the whole trajectory), or the collisions within
-    :attr:`LossConfig.eta_horizon` metres of its start."""
-    if cfg.eta_horizon is None:
-        return collided
-    return collision_labels(pts_world, esdf_map, threshold=cfg.collision_threshold, raw=cfg.label_from_raw,
-                            within=cfg.eta_horizon)
+    return plan, u_o, u_g, u_s, collided
 
 
 def _score_loss(scores: torch.Tensor | None, ranked: torch.Tensor, winner: torch.Tensor, *, like: torch.Tensor,

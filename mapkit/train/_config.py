@@ -11,6 +11,7 @@ from typing import Any
 from mapkit._choices import TRAINED_WEIGHTS, PresetName, TrainedWeights
 from mapkit.errors import MapkitError
 from mapkit.planner import LossConfig, PlannerConfig
+from mapkit.planner._loss import drop_removed_fields
 
 
 class TrainConfigError(MapkitError):
@@ -60,7 +61,7 @@ class TrainConfig:
     changing the paths); its TAN options (``tan_boundary``, ``tan_hidden``, timing rule) may differ
     from the init model's. The best epoch is then chosen by the held-out U_T. "judge": only the
     candidates' judge (their scores and η; the η head of a one-path net), on the frozen key-points of
-    ``init``: a changed η label (``loss.eta_horizon``, ``loss.eta_label``) without moving the paths."""
+    ``init``: a judge retrained on other frames compares flight for flight, the paths unmoved."""
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     """The planner network's configuration (mapkit.planner)."""
     loss: LossConfig = field(default_factory=LossConfig)
@@ -92,6 +93,16 @@ class TrainConfig:
         planner, planner_keys = _nested(options.pop("planner", {}), PlannerConfig, "--planner")
         loss, loss_keys = _nested(options.pop("loss", {}), LossConfig, "--loss")
         return cls(**options, planner=planner, loss=loss, _planner_keys=planner_keys, _loss_keys=loss_keys)
+
+    @classmethod
+    def from_saved(cls, data: dict[str, Any]) -> TrainConfig:
+        """The config of a run's config.json (whose other records, workspaces and camera, are skipped).
+        Loss fields since removed load while they hold the behaviour the loss now always has; the
+        CLI and recipes go through :meth:`from_dict`, which knows only today's fields."""
+        options = {k: v for k, v in data.items() if k in {f.name for f in _option_fields()}}
+        if isinstance(options.get("loss"), dict):
+            options["loss"] = drop_removed_fields(options["loss"], TrainConfigError)
+        return cls.from_dict(options)
 
     def validate(self) -> None:
         """Raise :class:`TrainConfigError` naming the first option out of its range."""

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import math
@@ -158,7 +157,7 @@ def validate(net: PlannerNet, samples: TupleSamples, maps: list[Any], loss_confi
     colliding) and "blocked_count", "active_units" (smallest fraction of the key-point MLP's
     hidden units active on some sample), and how the η gate would act on the chosen plans:
     "eta_catches" (share of colliding plans with η ≥ 0.5, i.e. rejected) and "eta_false_rejects"
-    (share of free plans rejected), colliding as η's label counts it (``eta_horizon``, ``eta_label``)."""
+    (share of free plans rejected)."""
     from mapkit.planner import candidate_loss
 
     totals = {k: 0.0 for k in METRIC_KEYS}
@@ -177,13 +176,11 @@ def validate(net: PlannerNet, samples: TupleSamples, maps: list[Any], loss_confi
                           batch["velocity"])
                 if straight:
                     out = _straight_output(net, batch["goal"])
-                    # the straight line has no depth check to label η by, and no η that the label would judge
-                    loss_config = dataclasses.replace(loss_config, eta_label="map")
                 m = len(part)
                 end_speed = _end_speeds(net.config, m, None, device)
                 _, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"],
                                           esdf_map=maps[k], start_velocity=batch["velocity"], end_speed=end_speed,
-                                          corridor=corridor, camera=batch["camera"], config=loss_config)
+                                          corridor=corridor, config=loss_config)
                 for key in METRIC_KEYS:
                     totals[key] += float(terms[key]) * m
                 n += m
@@ -194,7 +191,6 @@ def validate(net: PlannerNet, samples: TupleSamples, maps: list[Any], loss_confi
                 blocked_coll += float(coll[blk].sum())
                 blocked_reach += float(reach[blk].sum())
                 if not straight:
-                    coll = terms["eta_label_chosen"]
                     rejected = out.eta >= 0.5
                     gate["collided"] += float(coll.sum())
                     gate["caught"] += float((rejected & coll).sum())
@@ -444,9 +440,7 @@ def _resume_state(run_dir: Path, config: TrainConfig, *, resume: bool, overwrite
         if not checkpoint_path.exists():
             raise TrainConfigError(f"--resume: {shown + '/checkpoint.pt' if shown else checkpoint_path} does not exist; "
                                    "start without --resume")
-        saved_all = json.loads((run_dir / "config.json").read_text())
-        known = {f.name for f in dataclasses.fields(TrainConfig) if not f.name.startswith("_")}
-        theirs = TrainConfig.from_dict({k: v for k, v in saved_all.items() if k in known}).to_dict()
+        theirs = TrainConfig.from_saved(json.loads((run_dir / "config.json").read_text())).to_dict()
         mine = config.to_dict()
         for key in ("planner", "loss", "batch_size", "corridor", "preset"):
             if theirs[key] != mine[key]:
@@ -568,7 +562,7 @@ def _train_step(run: _Session, data: _Splits, k: int, part: Any) -> dict[str, An
     else:
         loss, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"],
                                      esdf_map=data.maps[k], start_velocity=batch["velocity"], end_speed=end_speed,
-                                     corridor=config.corridor, camera=batch["camera"], config=config.loss)
+                                     corridor=config.corridor, config=config.loss)
     if not torch.isfinite(loss):
         raise TrainConfigError(f"loss became {float(loss)} at step {run.step}; lower --lr (now {config.lr})")
     run.optimizer.zero_grad(set_to_none=True)
