@@ -134,7 +134,7 @@ def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val
 
 
 def _recipe(recipe: str | None, out: Path | None, force: bool) -> None:
-    from mapkit.train import RecipeError, load_recipe, run_recipe
+    from mapkit.recipe import RecipeError, load_recipe, run_recipe
 
     if recipe is None or out is None:
         raise click.UsageError("--recipe and -o go together: mapkit train --recipe pretrained -o DIR")

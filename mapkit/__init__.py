@@ -18,6 +18,7 @@ re-exports its public names from private ``_modules``:
   frame, for any vehicle loop) and its single-shot use, ``Planner.load("pretrained").plan(...)``.
 - ``mapkit.evaluation``: closed-loop flights of the pilot in unseen simulated worlds (linear tracker
   or rotorpy quadrotor) → results.json.
+- ``mapkit.recipe``: a model made from nothing by a declared, resumable chain of steps (``mapkit train --recipe``).
 - ``mapkit.viz``: the computations behind the viewer (slices, colours, clouds, corridors); no viser.
 - ``mapkit.exchange``: exports for Foxglove (MCAP) and Rerun (.rrd).
 - ``mapkit.cli`` (``cli/``) and ``mapkit.viewer`` (``viewer/``): the click commands and the viser app,

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapkit.train._recipe import RECIPES, RecipeError, load_recipe, parse_recipe, run_recipe
+from mapkit.recipe import RECIPES, RecipeError, load_recipe, parse_recipe, run_recipe
 
 DATASET = {"kind": "dataset", "name": "w", "worlds": 2, "seed": 1}
 TRAIN = {"kind": "train", "name": "m", "dataset": "w", "val_worlds": 1}

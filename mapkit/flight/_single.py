@@ -17,7 +17,7 @@ from mapkit.flight._recorded import RUN_CONFIG, RunCamera, load_network
 from mapkit.geometry import quat_xyzw_from_matrix
 
 if TYPE_CHECKING:
-    from mapkit.flight import Pilot, PilotStep
+    from mapkit.flight._pilot import Pilot, PilotStep
 
 
 @dataclass
@@ -110,7 +110,6 @@ class Planner:
     def load(cls, run_dir: str | Path, *, device: str = "cpu") -> Planner:
         """Load runs/NAME/model.pt (state dict + planner config; nothing pickled but tensors);
         ``run_dir="pretrained"`` loads the model shipped with mapkit."""
-        from mapkit.flight import FlightError
 
         if device.startswith("cuda") and not torch.cuda.is_available():
             raise FlightError(f"--device {device}: torch sees no CUDA device; use --device cpu")
@@ -139,7 +138,7 @@ class Planner:
 
         `widen`: factors of the widened candidates judged with the trained ones (:data:`WIDEN`; ()
         none). `shift`: sideways shifts of every candidate judged likewise (:data:`SHIFT`; () none)."""
-        from mapkit.flight import FlightError, VehicleState
+        from mapkit.flight._config import VehicleState
 
         asked = np.asarray(goal_body, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(asked)):
@@ -160,7 +159,10 @@ class Planner:
         import copy
         from dataclasses import replace
 
-        from mapkit.flight import Corridor, Execution, LearnedMethod, Pilot, PilotConfig
+        from mapkit.flight._config import PilotConfig
+        from mapkit.flight._layers import Corridor, Execution
+        from mapkit.flight._learned import LearnedMethod
+        from mapkit.flight._pilot import Pilot
         from mapkit.planner import CameraInput
 
         stack = Execution(widen=widen, shift=shift)

@@ -15,7 +15,6 @@ from mapkit.train._judge_tune import (
 )
 from mapkit.train._loop import TrainSummary, set_threads, train, validate
 from mapkit.train._provenance import simulated_worlds, workspace_camera
-from mapkit.train._recipe import RECIPES, Recipe, RecipeError, RecipeSummary, load_recipe, parse_recipe, run_recipe
 from mapkit.train._timing_compare import CostRatios, TimingComparison, compare_timing
 from mapkit.train._timing_tune import (
     PlanInputs,
@@ -30,13 +29,6 @@ from mapkit.train._timing_tune import (
 
 __all__ = [
     "PRESETS",
-    "RECIPES",
-    "Recipe",
-    "RecipeError",
-    "RecipeSummary",
-    "load_recipe",
-    "parse_recipe",
-    "run_recipe",
     "CostRatios",
     "JudgeRecords",
     "JudgeScore",

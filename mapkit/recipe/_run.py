@@ -1,15 +1,21 @@
-"""What each kind of recipe step does (:mod:`mapkit.train._recipe`): the library call of its stage,
-writing into ``DIR/steps/NAME``, resuming what a stopped run left there."""
+"""Running a recipe (:mod:`mapkit.recipe._recipe`): each step's library call, writing into
+``DIR/steps/NAME``; ``DIR/recipe.json`` records the steps done, so a stopped run resumes."""
 
 from __future__ import annotations
 
 import json
 import os
-from dataclasses import fields, replace
+import shutil
+import sys
+import time
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from mapkit.train._recipe import (
+from mapkit._version import __version__
+from mapkit.recipe._recipe import (
+    STATE_FILE,
+    STEP_KINDS,
     ConfigureStep,
     DatasetStep,
     FlightsStep,
@@ -127,3 +133,85 @@ def _flights(s: FlightsStep, model: Path, here: Path, progress: bool) -> None:
         folder = here / f"seed_{seed}"
         if not (folder / "results.json").is_file():
             evaluate(model, folder, replace(base, seed=seed), overwrite=True, progress=progress)
+
+
+@dataclass
+class RecipeSummary:
+    out_dir: Path
+    steps_run: list[str]
+    steps_skipped: list[str]
+    seconds: float
+
+
+def run_recipe(recipe: Recipe, out_dir: str | Path, *, force: bool = False, progress: bool = True) -> RecipeSummary:
+    """Run ``recipe`` into ``out_dir``, resuming the steps a previous run finished there. A run made by
+    another mapkit version is refused unless ``force``."""
+    out = Path(out_dir)
+    state = _open_state(out, recipe, force)
+    t0, run, skipped = time.perf_counter(), [], []
+    for i, s in enumerate(recipe.steps):
+        if s.name in state["done"]:
+            skipped.append(s.name)
+            continue
+        if progress:
+            _say(f"recipe {recipe.name}: step {i + 1}/{len(recipe.steps)} {_kind(s)} {s.name!r} "
+                 f"(about {s.minutes:g} min); {_eta(recipe, state, i, time.perf_counter() - t0)}")
+        started = time.perf_counter()
+        run_step(s, out, recipe, progress=progress)
+        state["done"][s.name] = {"seconds": round(time.perf_counter() - started, 1)}
+        _write_state(out, state)
+        run.append(s.name)
+    _publish(out, recipe)
+    summary = RecipeSummary(out, run, skipped, time.perf_counter() - t0)
+    if progress:
+        _say(f"recipe {recipe.name}: {len(run)} steps run, {len(skipped)} already done, "
+             f"{summary.seconds / 60:.1f} min; wrote {out / 'model.pt'}, config.json and recipe.toml")
+    return summary
+
+
+def _say(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def _kind(s: Step) -> str:
+    return next(k for k, cls in STEP_KINDS.items() if isinstance(s, cls))
+
+
+def _eta(recipe: Recipe, state: dict[str, Any], index: int, elapsed: float) -> str:
+    """The time left: the remaining steps' estimates, scaled by how this run has compared with them."""
+    left = sum(s.minutes for s in recipe.steps[index:] if s.name not in state["done"])
+    done_here = [s for s in recipe.steps[:index] if s.name in state["done"] and "seconds" in state["done"][s.name]]
+    estimated = sum(s.minutes for s in done_here)
+    pace = (elapsed / 60) / estimated if estimated > 0 and elapsed > 0 else 1.0
+    return f"elapsed {elapsed / 60:.0f} min, ETA {left * pace:.0f} min"
+
+
+def _open_state(out: Path, recipe: Recipe, force: bool) -> dict[str, Any]:
+    path = out / STATE_FILE
+    if not path.is_file():
+        out.mkdir(parents=True, exist_ok=True)
+        state = {"recipe": recipe.name, "mapkit": __version__, "done": {}}
+        (out / "recipe.toml").write_text(recipe.text)
+        _write_state(out, state)
+        return state
+    state = json.loads(path.read_text())
+    if state.get("recipe") != recipe.name:
+        raise RecipeError(f"-o {out} holds recipe {state.get('recipe')!r}, not {recipe.name!r}; use another folder")
+    if state.get("mapkit") != __version__ and not force:
+        raise RecipeError(f"-o {out} was started by mapkit {state.get('mapkit')}, this is {__version__}: its steps may "
+                          "differ; use a new folder, or --force to resume anyway")
+    state["mapkit"] = __version__
+    return state
+
+
+def _write_state(out: Path, state: dict[str, Any]) -> None:
+    tmp = out / (STATE_FILE + ".tmp")
+    tmp.write_text(json.dumps(state, indent=1))
+    tmp.replace(out / STATE_FILE)
+
+
+def _publish(out: Path, recipe: Recipe) -> None:
+    """The result model beside the recipe: DIR/model.pt and DIR/config.json."""
+    src = out / "steps" / recipe.model
+    for name in ("model.pt", "config.json"):
+        shutil.copyfile(src / name, out / name)
