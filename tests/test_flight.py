@@ -40,6 +40,7 @@ class Ahead:
 
     def __init__(self, eta: float = 0.0, blocked: bool = False) -> None:
         self.eta, self.blocked = eta, blocked
+        self.within_limits = True
         self.seen: list[Observation] = []
 
     def plan(self, obs: Observation) -> MethodPlan:
@@ -49,7 +50,8 @@ class Ahead:
         wp = torch.from_numpy(np.stack([start[0], goal]))[None]
         traj = min_snap(wp, torch.tensor([[3.0]], dtype=torch.float64), start=torch.from_numpy(start[1:])[None])
         pieces = pieces_from_body(traj.coeffs[0].numpy(), np.array([3.0]), obs.T_world_body, obs.t)
-        return MethodPlan(pieces=pieces, latency_ms=0.0, eta=self.eta, blocked=self.blocked)
+        return MethodPlan(pieces=pieces, latency_ms=0.0, eta=self.eta, blocked=self.blocked,
+                          within_limits=self.within_limits)
 
 
 def depth_image() -> np.ndarray:
@@ -153,6 +155,17 @@ def test_frames_that_see_nothing_mid_flight_count_as_missing_frames():
     assert kept.status == "cruising" and not kept.replanned and kept.reference is ref
     braking = step(2.1)
     assert braking.status == "braking" and "no depth frame with a valid pixel" in braking.reason
+
+
+def test_a_plan_that_breaks_the_limits_is_not_flown():
+    planner = Ahead()
+    pilot = Pilot(planner, camera=CAMERA)
+    ref = fly(pilot, 2)[-1].reference
+    planner.within_limits = False
+    step = pilot.step(1.0, VehicleState(ref.derivative(1.0, 0)[0], ref.derivative(1.0, 1)[0]), GOAL,
+                      depth_image(), T_world_body=level(ref.derivative(1.0, 0)[0]))
+    assert step.replanned and not step.taken and step.reference is ref
+    assert step.status == "cruising" and "breaks the speed or acceleration limits" in step.reason
 
 
 def test_a_frame_far_from_the_vehicle_state_brakes_and_says_why():
@@ -302,6 +315,6 @@ def test_bounds_in_the_qp_keep_the_norms_of_a_diagonal_plan():
     limits = SpeedProfile(v_max=3.0, a_max=4.0)
     free = min_snap(wp, T, start=start, end=end)
     assert float(free.max_acceleration(samples_per_segment=256)) > 4.0  # the plan needs the bounds
-    kept = _bounded(wp, T, start, end, limits, [{}], [])
+    kept = _bounded(wp, T, start, end, limits, [{}], free)
     assert float(kept.max_acceleration(samples_per_segment=256)) <= 4.0 + 1e-6
     assert float(kept.max_velocity(samples_per_segment=256)) <= 3.0 + 1e-6

@@ -18,6 +18,7 @@ spline), ``keypoints="straight"`` replaces the network's key-points by the strai
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass, fields, replace
@@ -87,9 +88,9 @@ def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
     within ``how``'s limits (norms, checked on a dense grid). A plan that breaks them is flown slower:
     the same problem with its durations stretched by how far it is over (speed falls with the stretch,
     acceleration with its square; the start state is fixed, so a few rounds), at most
-    :data:`MAX_STRETCH`. Past that, the limits join the QP as per-axis bounds of limit / √3 (which keep
-    the norms), in the corridor, then through the key-points; else the closest is flown. An infeasible
-    corridor never leaves the plan without a reference: the trajectory then passes the key-points."""
+    :data:`MAX_STRETCH`, while that helps. Else the limits join the QP (:func:`_bounded`); else the
+    closest is returned, and the pilot flies its last reference instead. An infeasible corridor never
+    leaves the plan without a reference: the trajectory then passes the key-points."""
     with torch.no_grad():
         kw: dict[str, Any] = {} if corridor is None else {"corridor": corridor}
         traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", **kw)
@@ -97,21 +98,20 @@ def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
             kw = {}
             traj = min_snap(wp, T, start=start, end=end)
         limits = how.speed
-        tried, stretch = [traj], 1.0
-        while (excess := _excess(traj, limits)) > 1.0 + 1e-6 and stretch < MAX_STRETCH:
-            stretch = min(MAX_STRETCH, stretch * min(max(1.05 * excess, 1.1), 2.0))
+        tried, stretch = [(_excess(traj, limits), 1.0, traj)], 1.0
+        while tried[-1][0] > 1.0 + 1e-6 and stretch < MAX_STRETCH and tried[-1][0] <= min(x[0] for x in tried):
+            stretch = min(MAX_STRETCH, stretch * min(max(1.05 * tried[-1][0], 1.1), 2.0))
             slower = min_snap(wp, T * stretch, start=start, end=_slowed(end, stretch), on_infeasible="ignore", **kw)
             if kw and not _solved(slower):  # a narrow corridor can refuse a slower flight
                 kw = {}
                 slower = min_snap(wp, T * stretch, start=start, end=_slowed(end, stretch), on_infeasible="ignore")
             if not _solved(slower):
                 break
-            traj = slower
-            tried.append(traj)
-        else:
-            if excess <= 1.0 + 1e-6:
-                return traj
-        return _bounded(wp, T * stretch, start, _slowed(end, stretch), limits, [kw, {}] if kw else [kw], tried)
+            tried.append((_excess(slower, limits), stretch, slower))
+        excess, best, traj = min(tried, key=lambda x: x[0])
+        if excess <= 1.0 + 1e-6:
+            return traj
+        return _bounded(wp, T * best, start, _slowed(end, best), limits, [kw, {}] if kw else [kw], traj)
 
 
 def _slowed(end: torch.Tensor, stretch: float) -> torch.Tensor:
@@ -129,21 +129,22 @@ MAX_STRETCH = 8.0
 
 
 def _bounded(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, limits: SpeedProfile,
-             corridors: list[dict[str, Any]], tried: list[Trajectory]) -> Trajectory:
-    """The first of ``corridors`` whose QP with per-axis bounds of limit / √3 keeps the limits, else the
-    closest of ``tried`` and those."""
-    axis = 1.0 / math.sqrt(3.0)
-    v_max = None if limits.v_max is None else limits.v_max * axis
-    a_max = None if limits.a_max is None else limits.a_max * axis
-    for kw in corridors:
+             corridors: list[dict[str, Any]], closest: Trajectory) -> Trajectory:
+    """The first QP with the limits as per-axis bounds that keeps them (norms): bounds of limit / √3
+    (which keep the norms) then of the limit itself (feasible from a start state beyond limit / √3 on
+    one axis), each in ``corridors`` in turn; else the closest of those and ``closest``."""
+    out = [closest]
+    for scale, kw in itertools.product((1.0 / math.sqrt(3.0), 1.0), corridors):
+        v_max = None if limits.v_max is None else limits.v_max * scale
+        a_max = None if limits.a_max is None else limits.a_max * scale
         traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", limits_everywhere=True, v_max=v_max,
                         a_max=a_max, **kw)
         if not _solved(traj):
             continue
         if _within(traj, limits):
             return traj
-        tried.append(traj)
-    return min(tried, key=lambda t: _excess(t, limits))
+        out.append(traj)
+    return min(out, key=lambda t: _excess(t, limits))
 
 
 def _solved(traj: Trajectory) -> bool:
@@ -776,6 +777,7 @@ class LearnedMethod:
         kp_world = attempt.kp @ obs.T_world_body[:3, :3].T + obs.T_world_body[:3, 3]
         return MethodPlan(pieces=pieces, latency_ms=latency, eta=attempt.eta, keypoints_world=kp_world,
                           allocation_ms=None if self.spline else attempt.allocation_ms, overrides_eta=overrides,
+                          within_limits=self.spline or _within(attempt.traj, self.execution.speed),
                           blocked=attempt.blocked, brake_direction=brake, turn_side=side, look_at=aim,
                           candidate=self._chosen)
 

@@ -289,12 +289,13 @@ class Pilot:
         c = self.config
         self._look_at = mp.look_at
         vetoed = c.respect_eta and mp.eta is not None and mp.eta >= 0.5 and not mp.overrides_eta
-        if not (vetoed or mp.blocked):
+        if not (vetoed or mp.blocked or not mp.within_limits):
             self._braking = False
             self._look = 0.0
             self._adopt(mp.pieces, stamp)
             return self._answer("cruising", "flying the new plan", taken=True, plan=mp)
-        why = "no way ahead" if mp.blocked else f"plan vetoed (η = {mp.eta:.2f})"
+        why = ("no way ahead" if mp.blocked else f"plan vetoed (η = {mp.eta:.2f})" if vetoed
+               else "the plan breaks the speed or acceleration limits")
         if self._at_rest(stamp):  # a new look around, the way the planner asks
             if self._look == 0.0 and mp.turn_side:
                 self._turn = float(np.sign(mp.turn_side))

@@ -77,6 +77,9 @@ class MethodPlan:
     """(3,) world point a hovering vehicle faces at the next observation (None: the goal)."""
     candidate: int | None = None
     """Which of the network's candidates the plan flies (None: none of them, or no network)."""
+    within_limits: bool = True
+    """False when the plan breaks the speed profile's limits even flown slower: the pilot flies the last
+    reference instead (as after a veto), which keeps them."""
     blocked: bool = False
     """The method found no way ahead it can fly (every path it could take runs into what the camera
     sees): the loop brakes to rest and then turns to look elsewhere, whatever η says."""
