@@ -75,7 +75,7 @@ class Memory:
 @dataclass(frozen=True)
 class SpeedProfile:
     """How fast learned plans fly: the cruise speed (slowed for turns, for stops, raised while
-    searching) and the per-axis limits."""
+    searching) and the speed and acceleration limits."""
 
     cruise: float | None = 1.2
     """m/s: the cruise speed of the profile that times learned plans (and the speed at which a plan
@@ -103,8 +103,9 @@ class SpeedProfile:
     """m/s²: until a flight searches for its way, plans that end at rest (at the goal) slow down to it
     at this rate instead of the model's ``accel`` (None)."""
     v_max: float | None = 3.0
-    """Speed limit of every plan, m/s (None: none): the QP bounds each axis by it when a plan breaks it, and
-    a plan that still breaks it is flown slower."""
+    """Speed limit of every plan (its norm), m/s (None: none). A plan that breaks it is flown slower, or
+    re-solved with the limits in its QP; one that still breaks it is not flown (the pilot keeps its
+    last reference)."""
     a_max: float | None = 4.0
     """Acceleration limit of every plan (its norm), m/s² (None: none), kept the same way."""
 
