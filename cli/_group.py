@@ -10,7 +10,8 @@ import functools
 import logging
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +47,18 @@ def library_call(func: Callable[..., Any]) -> Callable[..., Any]:
             sys.exit(130)
 
     return wrapper
+
+
+@contextmanager
+def option_values() -> Iterator[None]:
+    """The block turns a command's option values into configs (parsing and checking them, e.g. with
+    their ``validate()``): a value the library refuses there is a usage error, exit 2 like a bad number
+    that click refuses, in the library's one line (it names the option, the value and the fix). What
+    depends on the inputs' contents or the machine belongs outside the block (exit 1)."""
+    try:
+        yield
+    except MapkitError as exc:
+        raise click.UsageError(" ".join(str(exc).split()), click.get_current_context(silent=True)) from None
 
 
 class Number(click.ParamType):

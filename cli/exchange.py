@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli._group import COUNT, POSITIVE, library_call, main, workspace_option
+from mapkit.cli._group import COUNT, POSITIVE, library_call, main, option_values, workspace_option
 
 
 @main.command("export-foxglove")
@@ -25,7 +25,10 @@ def export_foxglove_cmd(workspace: Path, output: Path, model: str | None, eval_d
     """One MCAP of the flight, cloud, ESDF, plans and evaluation paths that Foxglove opens as is."""
     from mapkit.exchange import FoxgloveConfig, export_foxglove
 
-    config = FoxgloveConfig(model=model, eval_dir=eval_dir, plan_count=plan_count, goal_ahead=goal_ahead, overwrite=overwrite)
+    with option_values():
+        config = FoxgloveConfig(model=model, eval_dir=eval_dir, plan_count=plan_count, goal_ahead=goal_ahead,
+                                overwrite=overwrite)
+        config.validate()
     s = export_foxglove(workspace, output, config)
     topics = ", ".join(f"{topic} {count}" for topic, count in s.messages.items())
     for note in s.notes:
@@ -50,7 +53,10 @@ def export_rerun_cmd(workspace: Path, output: Path, model: str | None, eval_dir:
     """One .rrd of the flight, cloud, ESDF, plans and evaluation paths, with a default layout for Rerun."""
     from mapkit.exchange import RerunConfig, export_rerun, open_in_rerun
 
-    config = RerunConfig(model=model, eval_dir=eval_dir, plan_count=plan_count, goal_ahead=goal_ahead, overwrite=overwrite)
+    with option_values():
+        config = RerunConfig(model=model, eval_dir=eval_dir, plan_count=plan_count, goal_ahead=goal_ahead,
+                             overwrite=overwrite)
+        config.validate()
     s = export_rerun(workspace, output, config)
     for note in s.notes:
         click.echo(f"note: {note}", err=True)

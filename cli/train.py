@@ -16,7 +16,18 @@ from mapkit._choices import (
     BoundaryScale,
     TimingObjective,
 )
-from mapkit.cli._group import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, STORE_PATH, WIDTHS, library_call, main
+from mapkit.cli._group import (
+    COUNT,
+    FINITE,
+    INDEX,
+    NONNEGATIVE,
+    POSITIVE,
+    STORE_PATH,
+    WIDTHS,
+    library_call,
+    main,
+    option_values,
+)
 
 
 def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
@@ -88,7 +99,9 @@ def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val
             overrides[key] = value
     overrides["planner"] = _pairs(planner_items, "--planner")
     overrides["loss"] = _pairs(loss_items, "--loss")
-    config = make_preset(preset, **overrides)
+    with option_values():  # unknown --planner/--loss fields too
+        config = make_preset(preset, **overrides)
+        config.validate()
     train_ws: list[Path | str] = list(workspaces)
     val_ws: list[Path | str] = list(val_workspaces)
     if dataset_root is not None:
@@ -154,8 +167,11 @@ def tune_timing_cmd(model: Path, plans: tuple[Path, ...], val: tuple[Path, ...],
     """Fine-tune the Time Allocation Net alone on plans the planner made in flight (lower snap per plan)."""
     from mapkit.train import TimingTuneConfig, tune_timing
 
-    config = TimingTuneConfig(steps=steps, lr=lr, boundary_inputs=boundary_inputs, boundary_scale=boundary_scale,
-                              tan_hidden=tan_hidden, lr_decay=lr_decay, objective=objective, first_weight=first_weight)
+    with option_values():
+        config = TimingTuneConfig(steps=steps, lr=lr, boundary_inputs=boundary_inputs, boundary_scale=boundary_scale,
+                                  tan_hidden=tan_hidden, lr_decay=lr_decay, objective=objective,
+                                  first_weight=first_weight)
+        config.validate()
     s = tune_timing(model, plans, val, output, config, overwrite=overwrite)
     click.echo(f"{s.train_plans} plans to learn from, {s.val_plans} to validate; snap per plan against the "
                f"gradient-descent split (median / summed): {s.before[0]:.2f}× / {s.before[1]:.3f}× before, "
@@ -186,8 +202,10 @@ def tune_judge_cmd(model: Path, records: tuple[Path, ...], val: tuple[Path, ...]
     (and the flight's recent frames, as recorded with `mapkit eval --judge-history`)."""
     from mapkit.train import JudgeTuneConfig, tune_judge
 
-    s = tune_judge(model, records, val, output, JudgeTuneConfig(steps=steps, lr=lr, positive_weight=positive_weight),
-                   overwrite=overwrite)
+    with option_values():
+        config = JudgeTuneConfig(steps=steps, lr=lr, positive_weight=positive_weight)
+        config.validate()
+    s = tune_judge(model, records, val, output, config, overwrite=overwrite)
     click.echo(f"{s.train_rows} candidates to learn from, {s.val_rows} to validate ({100 * s.colliding_share:.1f} % "
                f"colliding; clearances to the image{f' and the last {s.history:g} s of frames' if s.history else ''}); "
                "caught / false alarms on the validation candidates:")

@@ -70,7 +70,7 @@ def run(*args: object) -> tuple[int, str]:
 def test_cli_fuse_and_bad_inputs(tmp_path: Path, box_flight: Path) -> None:
     ws = tmp_path / "ws"
     code, out = run("fuse", box_flight, "-w", ws, "--voxel", "0")
-    assert code == 1 and "--voxel 0.0 must be positive" in out and "Traceback" not in out
+    assert code == 2 and "--voxel 0.0 must be positive" in out and "Traceback" not in out  # a usage error
     code, out = run("fuse", box_flight, "-w", ws, "--device", "cuda:99")
     assert code == 1 and ("cuda" in out.lower()) and "Traceback" not in out
     assert not ws.exists() or not any(ws.iterdir())  # refused before ingesting anything

@@ -146,7 +146,7 @@ def test_cli_bad_inputs(workspace: Path, tmp_path: Path) -> None:
     result = runner.invoke(main, ["train", "-w", str(workspace), "--device", "cuda:7", "--runs-dir", str(tmp_path / "runs")])
     assert result.exit_code == 1 and "cuda" in result.output.lower() and "Traceback" not in result.output
     result = runner.invoke(main, ["train", "-w", str(workspace), "--lr", "-1", "--runs-dir", str(tmp_path / "runs")])
-    assert result.exit_code == 1 and "--lr" in result.output
+    assert result.exit_code == 2 and "--lr -1.0 must be positive" in result.output  # a usage error, before any work
 
 
 @pytest.mark.slow
