@@ -148,6 +148,12 @@ def refuse_url(ctx: click.Context, option: str, value: Any, why: str) -> None:
         )
 
 
+def current_folder() -> Path:
+    """The current directory as the workspace when -w is not given, announced on stderr."""
+    click.echo(f"workspace: {Path.cwd()} (the current directory; -w chooses another)", err=True)
+    return Path(".")
+
+
 def workspace_option(help: str, *, urls: bool = False,
                      local_reason: str = "it reads or writes files outside the zarr stores"
                      ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
@@ -161,8 +167,7 @@ def workspace_option(help: str, *, urls: bool = False,
             if not urls:
                 refuse_url(ctx, "-w/--workspace", value, local_reason)
             return value
-        click.echo(f"workspace: {Path.cwd()} (the current directory; -w chooses another)", err=True)
-        return Path(".")
+        return current_folder()
 
     more = " A local folder or an fsspec URL (s3://, gs://, memory://)." if urls else ""
     return click.option("-w", "--workspace", type=STORE_PATH, default=None, callback=resolve,

@@ -24,6 +24,7 @@ from mapkit.cli._group import (
     POSITIVE,
     STORE_PATH,
     WIDTHS,
+    current_folder,
     library_call,
     main,
     option_values,
@@ -45,7 +46,8 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
 
 @main.command("train")
 @click.option("-w", "--workspace", "workspaces", multiple=True, type=STORE_PATH,
-              help="Workspace with tuples.zarr and map.zarr (a local folder or an fsspec URL); repeat to train on several.")
+              help="Workspace with tuples.zarr and map.zarr (a local folder or an fsspec URL); repeat to train on "
+                   "several. Default: the current directory, unless --dataset is given.")
 @click.option("--dataset", "dataset_root", type=click.Path(path_type=Path), default=None,
               help="A `mapkit dataset` directory: train on its worlds (added to any -w).")
 @click.option("--val-worlds", type=INDEX, default=None,
@@ -102,7 +104,11 @@ def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val
     with option_values():  # unknown --planner/--loss fields too
         config = make_preset(preset, **overrides)
         config.validate()
-    train_ws: list[Path | str] = list(workspaces)
+    if val_worlds is not None and dataset_root is None:
+        raise click.UsageError("--val-worlds needs --dataset")
+    # -w defaults to the current directory, as for every command with a workspace; --dataset alone
+    # trains on the dataset's worlds only
+    train_ws: list[Path | str] = list(workspaces) or ([] if dataset_root is not None else [current_folder()])
     val_ws: list[Path | str] = list(val_workspaces)
     if dataset_root is not None:
         from mapkit.dataset import dataset_workspaces, split_worlds
@@ -110,10 +116,6 @@ def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val
         n_val = val_worlds if val_worlds is not None else max(1, len(dataset_workspaces(dataset_root)) // 8)
         more_train, more_val = split_worlds(dataset_root, n_val)
         train_ws, val_ws = [*more_train, *train_ws], [*val_ws, *more_val]
-    elif val_worlds is not None:
-        raise click.UsageError("--val-worlds needs --dataset")
-    if not train_ws:
-        raise click.UsageError("pass -w WS (repeatable) or --dataset ROOT")
     if runs_dir is None and dataset_root is not None:
         runs_dir = dataset_root / "runs"
     s = train(train_ws, config, runs_dir=runs_dir, resume=resume, overwrite=overwrite, progress=True,

@@ -338,6 +338,20 @@ def test_a_model_of_random_bytes_is_one_line_without_unsafe_advice(workspace: Pa
     assert result.exit_code == 1 and "is not a mapkit planner" in result.output and "Traceback" not in result.output
 
 
+def test_train_alone_trains_in_the_current_directory(workspace: Path, tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without -w (or --dataset) the workspace is the current directory, as for every other command:
+    here one without map.zarr, so the run stops at once, naming that folder's missing map."""
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(workspace, ws, ignore=shutil.ignore_patterns("map.zarr", "runs"))
+    monkeypatch.chdir(ws)
+    result = CliRunner().invoke(main, ["train", "--max-steps", "1"])
+    assert f"workspace: {ws} (the current directory" in result.output, result.output
+    assert result.exit_code == 1 and "map.zarr is missing" in result.output and "mapkit esdf -w ." in result.output
+
+
 def test_a_missing_map_names_the_command_that_makes_it(workspace: Path, tmp_path: Path) -> None:
     import shutil
 
