@@ -34,6 +34,8 @@ def export_foxglove_cmd(workspace: Path, output: Path, model: str | None, eval_d
     for note in s.notes:
         click.echo(f"note: {note}", err=True)
     click.echo(f"wrote {s.path} ({s.bytes / 1e6:.1f} MB): {topics}; ESDF as {s.esdf_as or 'none'}; {s.seconds:.1f} s")
+    if model is not None:
+        click.echo(_plans_line(s.messages.get("/planner/plans", 0), plan_count, s.plans_skipped))
 
 
 @main.command("export-rerun")
@@ -62,5 +64,13 @@ def export_rerun_cmd(workspace: Path, output: Path, model: str | None, eval_dir:
         click.echo(f"note: {note}", err=True)
     click.echo(f"wrote {s.path} ({s.bytes / 1e6:.1f} MB): {s.frames} frames, {s.plans} plans, {s.eval_paths} evaluation "
                f"paths; {', '.join(s.entities)}; {s.seconds:.1f} s")
+    if model is not None:
+        click.echo(_plans_line(s.plans, plan_count, s.plans_skipped))
     if spawn:
         open_in_rerun(s.path)
+
+
+def _plans_line(written: int, asked: int, skipped: dict[str, int]) -> str:
+    """How many of the --plans frames got a plan, and why the others did not (frames per reason)."""
+    why = "; ".join(f"{frames} {reason}" for reason, frames in skipped.items())
+    return f"plans: {written} of {asked} written" + (f"; skipped: {why}" if why else "")
