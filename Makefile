@@ -19,7 +19,7 @@ lint: setup
 	@VENV=$(VENV) bash scripts/lint.sh
 
 bench: setup
-	@bash scripts/bench.sh
+	@VENV=$(VENV) bash scripts/bench.sh
 
 docs: setup
 	$(PY) scripts/cli_reference.py > docs/commands.md.tmp && mv docs/commands.md.tmp docs/commands.md

@@ -189,6 +189,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="smaller large-grid runs")
     ap.add_argument("--dask-only", action="store_true", help="only the chunked-on-Dask section")
+    ap.add_argument("--grid", type=int, default=256, help="edge of the in-process grid (voxels)")
+    ap.add_argument("--large-grid", type=int, help="edge of the fresh-subprocess grid (default 512, 384 with --quick)")
+    ap.add_argument("--chunked-grid", type=_grid_shape, metavar="X,Y,Z",
+                    help="the Dask section's grid (default 768,768,256, 512,512,256 with --quick); its growth rows "
+                         "are then half of it in x and y, and it")
+    ap.add_argument("--growth", action=argparse.BooleanOptionalAction, default=True,
+                    help="time the Dask section's growth with the grid size")
     ap.add_argument("--worker-dense", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--worker-chunked", type=str, help=argparse.SUPPRESS)
     a = ap.parse_args()
@@ -211,12 +218,24 @@ def main() -> None:
           f"{os.cpu_count()} CPUs, load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     print(f"scene: forest (floor + trees + boxes), voxel {VOXEL} m, sigma {SIGMA} m ({SIGMA / VOXEL:g} voxels, truncate {TRUNCATE})")
     del edt
-    if a.dask_only:
-        _dask_section(a.quick)
-        print(f"\nbenchmark wall time {time.perf_counter() - t_start:.0f} s")
-        return
+    if not a.dask_only:
+        _dense_section(a.grid)
+        _large_section(a.large_grid or (384 if a.quick else 512))
+    _dask_section(a.quick, a.chunked_grid, growth=a.growth)
+    print(f"\nbenchmark wall time {time.perf_counter() - t_start:.0f} s")
 
-    n = 256
+
+def _grid_shape(text: str) -> tuple[int, int, int]:
+    """``X,Y,Z`` → a grid shape (argparse's type for --chunked-grid)."""
+    parts = text.split(",")
+    if len(parts) != 3 or not all(p.strip().isdigit() and int(p) > 0 for p in parts):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected three positive voxel counts X,Y,Z, e.g. 256,256,128")
+    x, y, z = (int(p) for p in parts)
+    return x, y, z
+
+
+def _dense_section(n: int) -> None:
+    """Ours (both backends) against the scipy peer on an n^3 grid in this process."""
     occ = forest((n, n, n))
     print(f"\n== {n}^3 = {n ** 3 / 1e6:.1f} M voxels, {occ.mean() * 100:.1f} % occupied ==")
     _ours(occ)  # warm-up: imports, thread pools, first touch of fresh memory
@@ -239,9 +258,10 @@ def main() -> None:
     print(f"ratio peer / ours: {ratio:.1f}x (goal >= 7x); ours total {ours_total:.3f} s (goal <= 0.8 s) -> "
           f"{'MET' if ratio >= 7 and ours_total <= 0.8 else 'NOT MET'}")
     print(f"sign flips prevented by the guard: {best[2]}")
-    del occ
 
-    n = 384 if a.quick else 512
+
+def _large_section(n: int) -> None:
+    """Cold and warm runs on an n^3 grid in a fresh subprocess, with its peak memory."""
     d = _subprocess(["--worker-dense", str(n)])
     cold, warm = d["cold"], d["warm"]
     print(f"\n== {n}^3 = {n ** 3 / 1e6:.0f} M voxels, fresh subprocess ==")
@@ -253,13 +273,10 @@ def main() -> None:
           f"goal <= 5 s -> {'MET' if min(cold[0] + cold[1], warm[0] + warm[1]) <= 5 else 'NOT MET'} (warm), "
           f"{'MET' if cold[0] + cold[1] <= 5 else 'NOT MET'} (cold)")
 
-    _dask_section(a.quick)
-    print(f"\nbenchmark wall time {time.perf_counter() - t_start:.0f} s")
 
-
-def _dask_section(quick: bool) -> None:
+def _dask_section(quick: bool, grid: tuple[int, int, int] | None = None, *, growth: bool = True) -> None:
     """Today's in-process chunked path against the Dask graph with 1 and 2 workers, same grid, same run."""
-    shape = (512, 512, 256) if quick else (768, 768, 256)
+    shape = grid or ((512, 512, 256) if quick else (768, 768, 256))
     nvox = shape[0] * shape[1] * shape[2]
     max_dist = 1.5
     print(f"\n== chunked on Dask: {shape[0]}x{shape[1]}x{shape[2]} = {nvox / 1e6:.0f} M voxels, zarr occupancy -> map.zarr "
@@ -286,12 +303,21 @@ def _dask_section(quick: bool) -> None:
           "and stop included: unlike the wall time it does not depend on what else the shared cores run. The peer "
           "already used both cores inside each chunk (EDT and Gaussian threads), so a second worker process can add "
           "only what those threads left idle.")
-    sizes = [(384, 384, 256), (512, 512, 256)] if quick else [(384, 384, 256), (768, 384, 256), shape]
+    if growth:
+        _growth(shape, res[("cluster", 2)], quick=quick, explicit=grid is not None, max_dist=max_dist)
+
+
+def _growth(shape: tuple[int, int, int], full: dict, *, quick: bool, explicit: bool, max_dist: float) -> None:
+    """How the 2-worker time grows with the grid; ``full`` is the run on ``shape`` already made."""
+    if explicit:
+        sizes = [(max(1, shape[0] // 2), max(1, shape[1] // 2), shape[2]), shape]
+    else:
+        sizes = [(384, 384, 256), (512, 512, 256)] if quick else [(384, 384, 256), (768, 384, 256), shape]
     print("\n== growth with grid size (ours, 2 worker processes; start-up excluded) ==")
     print(f"{'grid':>14s} {'M voxels':>9s} {'time':>7s} {'ns/voxel':>9s}")
     for sz in sizes:
         n = sz[0] * sz[1] * sz[2]
-        r = res[("cluster", 2)] if sz == shape else _subprocess(
+        r = full if sz == shape else _subprocess(
             ["--worker-chunked", json.dumps({"shape": sz, "max_dist": max_dist, "mode": "cluster", "workers": 2})])
         print(f"{'x'.join(map(str, sz)):>14s} {n / 1e6:9.0f} {r['seconds']:6.1f}s {r['seconds'] / n * 1e9:9.1f}")
 

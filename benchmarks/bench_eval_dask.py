@@ -6,7 +6,7 @@ the Dask path's wall time over the pool's. CPU seconds (this process and its rea
 the pool's processes, the LocalCluster's workers) are printed beside, since wall time on a shared
 machine moves with the load.
 
-    python benchmarks/bench_eval_dask.py [--pairs 4] [--world office,garage]
+    python benchmarks/bench_eval_dask.py [--pairs 4] [--world office,garage] [--methods learned,straight]
 """
 
 from __future__ import annotations
@@ -39,17 +39,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=4, help="pairs per world")
     parser.add_argument("--world", default="office,garage", help="comma list of worlds")
+    parser.add_argument("--methods", default=",".join(EvalConfig().methods), help="comma list of methods (default: every one)")
     args = parser.parse_args()
-    worlds = tuple(args.world.split(","))
-    runs = {"--workers 1 (in process)": EvalConfig(worlds=worlds, pairs=args.pairs, seed=5, workers=1),
-            "--workers 2 (process pool, the peer)": EvalConfig(worlds=worlds, pairs=args.pairs, seed=5, workers=2),
-            "--scheduler local --workers 2 (Dask)": EvalConfig(worlds=worlds, pairs=args.pairs, seed=5, workers=2,
-                                                               scheduler="local")}
+    common = dict(worlds=tuple(args.world.split(",")), pairs=args.pairs, seed=5, methods=tuple(args.methods.split(",")))
+    runs = {"--workers 1 (in process)": EvalConfig(**common, workers=1),
+            "--workers 2 (process pool, the peer)": EvalConfig(**common, workers=2),
+            "--scheduler local --workers 2 (Dask)": EvalConfig(**common, workers=2, scheduler="local")}
+    worlds = common["worlds"]
     with tempfile.TemporaryDirectory() as tmp:
         seconds = {name: timed(Path(tmp) / str(i), config) for i, (name, config) in enumerate(runs.items())}
         docs = {(Path(tmp) / str(i) / "results.json").read_bytes() for i in range(len(runs))}
     n = len(worlds) * args.pairs
-    print(f"eval of the shipped model, every method, {n} pairs ({', '.join(worlds)}, seed 5):")
+    named = "every method" if args.methods == parser.get_default("methods") else f"methods {args.methods}"
+    print(f"eval of the shipped model, {named}, {n} pairs ({', '.join(worlds)}, seed 5):")
     for name, (wall, cpu) in seconds.items():
         print(f"  {name:<40} {wall:7.1f} s wall  {n / wall:5.2f} pairs/s  {cpu:7.1f} s CPU")
     pool, dask = seconds["--workers 2 (process pool, the peer)"], seconds["--scheduler local --workers 2 (Dask)"]

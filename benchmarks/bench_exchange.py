@@ -1,6 +1,6 @@
 """Foxglove / Rerun export speed (goals: the sample forest workspace ≤ 5 s; the ESDF channel of a 256³ map ≤ 2 s).
 
-    .venv/bin/python benchmarks/bench_exchange.py
+    .venv/bin/python benchmarks/bench_exchange.py [--workspace demo_ws/forest] [--grid 256]
 
 Workspace: the demo's forest (`make demo` builds `demo_ws/forest`: 300 frames, cloud, map.zarr);
 skipped with a note when it is missing. Rows: `export_foxglove` and `export_rerun` of it (flight,
@@ -11,6 +11,7 @@ one raw message (what the channel costs beyond copying its payload).
 
 from __future__ import annotations
 
+import argparse
 import tempfile
 import time
 from pathlib import Path
@@ -26,10 +27,10 @@ def _workspace_rows(ws: Path, tmp: Path) -> None:
     for name, export, out in (("foxglove", export_foxglove, tmp / "forest.mcap"), ("rerun", export_rerun, tmp / "forest.rrd")):
         t0 = time.perf_counter()
         s = export(ws, out, FoxgloveConfig(overwrite=True))
-        print(f"forest workspace → {name:8s} {time.perf_counter() - t0:6.2f} s   {s.bytes / 1e6:6.1f} MB   (goal ≤ 5 s)")
+        print(f"{ws.name} workspace → {name:8s} {time.perf_counter() - t0:6.2f} s   {s.bytes / 1e6:6.1f} MB   (goal ≤ 5 s)")
 
 
-def _voxel_grid_row(tmp: Path) -> None:
+def _voxel_grid_row(tmp: Path, n: int) -> None:
     import foxglove
     from foxglove.channels import VoxelGridChannel
     from foxglove.messages import Vector3, VoxelGrid
@@ -37,7 +38,6 @@ def _voxel_grid_row(tmp: Path) -> None:
 
     from mapkit.exchange._foxglove import _fields, _pose
 
-    n = 256
     cells = np.zeros((n, n, n), dtype=[("distance", "<f4"), ("observed", "u1")])
     cells["distance"] = np.random.default_rng(0).normal(size=(n, n, n)).astype(np.float32)
     cells["observed"] = 1
@@ -59,19 +59,24 @@ def _voxel_grid_row(tmp: Path) -> None:
         raw.add_message(ch, log_time=0, publish_time=0, data=cells.tobytes())
         raw.finish()
     peer = time.perf_counter() - t0
-    print(f"256³ VoxelGrid channel  {ours:6.2f} s   {(tmp / 'grid.mcap').stat().st_size / 1e6:6.1f} MB   (goal ≤ 2 s); "
+    print(f"{n}³ VoxelGrid channel  {ours:6.2f} s   {(tmp / 'grid.mcap').stat().st_size / 1e6:6.1f} MB   (goal ≤ 2 s); "
           f"peer mcap raw write {peer:.2f} s → ratio {ours / peer:.2f}×")
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--workspace", type=Path, default=REPO / "demo_ws" / "forest",
+                        help="the workspace exported in the first rows (default: the demo's forest)")
+    parser.add_argument("--grid", type=int, default=256, help="edge of the ESDF channel's cubic grid (voxels)")
+    args = parser.parse_args()
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        ws = REPO / "demo_ws" / "forest"
+        ws = args.workspace
         if (ws / "frames.zarr").exists():
             _workspace_rows(ws, tmp)
         else:
             print(f"forest workspace: {ws} missing; run `make demo` first")
-        _voxel_grid_row(tmp)
+        _voxel_grid_row(tmp, args.grid)
 
 
 if __name__ == "__main__":

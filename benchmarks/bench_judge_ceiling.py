@@ -158,13 +158,13 @@ def fly(model: str, kind: str, seed: int, pairs: int, judge: Judge) -> list[str]
                              execution=config.execution, loop=config.loop)
     run._init_worker(setup)
     bundle = run._world_bundle(kind)
-    method = bundle.methods[0]
-    stand_in(method, bundle.world, setup.camera, judge)
+    pilot = bundle.pilots[0]  # the loop flies a pilot; the judge is swapped inside its planner
+    stand_in(pilot.planner, bundle.world, setup.camera, judge)
     T_body_camera = np.asarray(setup.camera.T_body_camera)
     outcomes = []
     for pair in world_pairs[kind]:
         p = pair.to_dict()
-        episode = run_episode(bundle.world, np.asarray(p["start"]), np.asarray(p["goal"]), method, config.loop,
+        episode = run_episode(bundle.world, np.asarray(p["start"]), np.asarray(p["goal"]), pilot, config.loop,
                               render=lambda T: render_depth(bundle.world, T @ T_body_camera, bundle.camera,
                                                             rays=bundle.rays))
         outcomes.append(episode.outcome)

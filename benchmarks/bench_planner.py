@@ -176,13 +176,15 @@ def _min_snap(net, frames, camera, repeats: int) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="60 repeats per piece instead of 300")
+    parser.add_argument("--repeats", type=int, help="calls per piece (default 300, 60 with --quick); 10 rounds of a tenth")
+    parser.add_argument("--frames", type=int, default=20, help="depth frames the calls cycle through")
     args = parser.parse_args()
     torch.set_num_threads(1)
     from mapkit.flight import Planner, resolve_model
 
-    repeats = 60 if args.quick else 300
+    repeats = args.repeats or (60 if args.quick else 300)
     net = Planner.load(resolve_model("pretrained")).net.eval()
-    frames, camera = _frames(20)
+    frames, camera = _frames(args.frames)
     print(f"shipped planner, input {net.config.input_size}, one thread, {repeats} repeats (torch {torch.__version__})")
     _network(net, frames, camera, repeats)
     _pyramid(net, frames, repeats)

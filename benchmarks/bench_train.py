@@ -43,11 +43,11 @@ def throughput(preset_name: str, esdf_map, *, batch: int, steps: int, goals_per_
     """Training samples/s of the preset's full step (network, every candidate's min-snap, loss,
     backward); ``goals_per_image`` > 1 shares each depth image among that many goals, as the cpu
     preset's batches do (``goals_together``)."""
-    from mapkit.planner import LossConfig, PlannerConfig, PlannerNet, candidate_loss
+    from mapkit.planner import PlannerNet, candidate_loss
     from mapkit.train import preset
 
     cfg = preset(preset_name)
-    net = PlannerNet(PlannerConfig.from_dict(cfg.planner))
+    net = PlannerNet(cfg.planner)
     opt = torch.optim.Adam(net.parameters(), lr=1e-4)
     images = max(1, batch // goals_per_image)
     depth = torch.rand(images, 480, 640) * 8 + 0.5
@@ -56,14 +56,13 @@ def throughput(preset_name: str, esdf_map, *, batch: int, steps: int, goals_per_
     T = torch.eye(4).repeat(batch, 1, 1)
     T[:, 2, 3] = 1.5
     vel = torch.zeros(batch, 3)
-    loss_cfg = LossConfig(**cfg.loss)
     camera = d435_camera(640, 480).expand(batch)
     times = []
     for i in range(steps + 1):
         t = time.perf_counter()
         out = net(net.preprocess(depth), goal, index, camera, vel)
         loss, _ = candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=esdf_map, start_velocity=vel,
-                                 config=loss_cfg)
+                                 config=cfg.loss)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -73,10 +72,10 @@ def throughput(preset_name: str, esdf_map, *, batch: int, steps: int, goals_per_
 
 
 def latency(esdf_map) -> tuple[float, float]:
-    from mapkit.planner import PlannerConfig, PlannerNet
+    from mapkit.planner import PlannerNet
     from mapkit.train import preset
 
-    net = PlannerNet(PlannerConfig.from_dict(preset("cpu").planner)).eval()
+    net = PlannerNet(preset("cpu").planner).eval()
     depth = torch.rand(1, 480, 640) * 8 + 0.5
     goal = torch.tensor([[6.0, 0.5, 0.0]])
     vel = torch.zeros(1, 3)
@@ -94,8 +93,11 @@ def latency(esdf_map) -> tuple[float, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=5, help="Timed training steps per cpu-preset row.")
+    parser.add_argument("--paper-steps", type=int, default=2, help="Timed training steps of the paper-preset row.")
+    parser.add_argument("--batch", type=int, default=16, help="Training batch of every row (goals per step).")
     parser.add_argument("--pairs", type=int, default=5, help="Unseen pairs per world for the shipped model's success.")
+    parser.add_argument("--world", default="office,garage,forest", help="Comma list of worlds for the shipped model's success.")
     args = parser.parse_args()
     torch.manual_seed(0)
     esdf_map = synthetic_map()
@@ -104,17 +106,18 @@ def main() -> None:
 
     set_threads()
     print(f"{'preset':<8}{'input':>10}{'batch':>7}{'goals/image':>13}{'train samples/s':>17}")
-    for name, size, batch, per_image in (("cpu", "96x160", 16, 1), ("cpu", "96x160", 16, 5), ("paper", "360x640", 16, 1)):
-        rate = throughput(name, esdf_map, batch=batch, steps=args.steps if name == "cpu" else 2, goals_per_image=per_image)
-        print(f"{name:<8}{size:>10}{batch:>7}{per_image:>13}{rate:>17.1f}")
+    for name, size, per_image in (("cpu", "96x160", 1), ("cpu", "96x160", 5), ("paper", "360x640", 1)):
+        steps = args.steps if name == "cpu" else args.paper_steps
+        rate = throughput(name, esdf_map, batch=args.batch, steps=steps, goals_per_image=per_image)
+        print(f"{name:<8}{size:>10}{args.batch:>7}{per_image:>13}{rate:>17.1f}")
     torch.set_num_threads(1)
     med, p90 = latency(esdf_map)
     print(f"planning latency (cpu preset, 1 thread, batch 1, depth 640x480 → trajectory): median {med:.2f} ms, "
           f"p90 {p90:.2f} ms; goal <= 13 ms")
-    shipped_success(args.pairs)
+    shipped_success(args.pairs, tuple(args.world.split(",")))
 
 
-def shipped_success(pairs: int) -> None:
+def shipped_success(pairs: int, worlds: tuple[str, ...]) -> None:
     """Closed-loop success of the shipped model (`--model pretrained`) on a few unseen pairs, with
     the straight line and the oracle on the same pairs (the full protocol: README, 60 pairs per world)."""
     import tempfile
@@ -122,11 +125,11 @@ def shipped_success(pairs: int) -> None:
     from mapkit.evaluation import EvalConfig, evaluate
 
     with tempfile.TemporaryDirectory() as tmp:
-        config = EvalConfig(pairs=pairs, seed=101, methods=("learned", "straight", "oracle"))
+        config = EvalConfig(worlds=worlds, pairs=pairs, seed=101, methods=("learned", "straight", "oracle"))
         result = evaluate("pretrained", f"{tmp}/eval", config, overwrite=True)
     s = result.summary["success"]
     cells = ", ".join(f"{m} {100 * (s[m]['overall']['success_rate'] or 0):.0f} %" for m in config.methods)
-    print(f"shipped model, {pairs} unseen pairs per world (seed 101): success {cells}")
+    print(f"shipped model, {pairs} unseen pairs per world ({', '.join(worlds)}; seed 101): success {cells}")
 
 
 if __name__ == "__main__":

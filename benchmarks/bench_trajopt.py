@@ -324,7 +324,7 @@ def main() -> None:
     import warnings
 
     mods = {"daqp": "daqp", "proxqp": "proxsuite", "clarabel": "clarabel", "piqp": "piqp"}
-    nsub = B if not args.quick else 64
+    nsub = B if not args.quick else min(B, 64)
     for s in SOLVERS:
         if importlib.util.find_spec(mods[s]) is None:
             solver_rows.append((s, "not installed", "", ""))
@@ -344,7 +344,7 @@ def main() -> None:
                             f"{total / nsub * 1e6:.0f}", f"{int((~ok).sum())}/{nsub}", f"{e:.1e}"))
 
     # ---- time allocation
-    n_ga = 5 if args.quick else 20
+    n_ga = min(B, 5 if args.quick else 20)  # one problem each: a batch smaller than that has no more
     t0 = time.perf_counter()
     for k in range(n_ga):
         allocate_times(w[k], "gradient")

@@ -10,7 +10,8 @@ import functools
 import logging
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +47,18 @@ def library_call(func: Callable[..., Any]) -> Callable[..., Any]:
             sys.exit(130)
 
     return wrapper
+
+
+@contextmanager
+def option_values() -> Iterator[None]:
+    """The block turns a command's option values into configs (parsing and checking them, e.g. with
+    their ``validate()``): a value the library refuses there is a usage error, exit 2 like a bad number
+    that click refuses, in the library's one line (it names the option, the value and the fix). What
+    depends on the inputs' contents or the machine belongs outside the block (exit 1)."""
+    try:
+        yield
+    except MapkitError as exc:
+        raise click.UsageError(" ".join(str(exc).split()), click.get_current_context(silent=True)) from None
 
 
 class Number(click.ParamType):
@@ -135,6 +148,12 @@ def refuse_url(ctx: click.Context, option: str, value: Any, why: str) -> None:
         )
 
 
+def current_folder() -> Path:
+    """The current directory as the workspace when -w is not given, announced on stderr."""
+    click.echo(f"workspace: {Path.cwd()} (the current directory; -w chooses another)", err=True)
+    return Path(".")
+
+
 def workspace_option(help: str, *, urls: bool = False,
                      local_reason: str = "it reads or writes files outside the zarr stores"
                      ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
@@ -148,8 +167,7 @@ def workspace_option(help: str, *, urls: bool = False,
             if not urls:
                 refuse_url(ctx, "-w/--workspace", value, local_reason)
             return value
-        click.echo(f"workspace: {Path.cwd()} (the current directory; -w chooses another)", err=True)
-        return Path(".")
+        return current_folder()
 
     more = " A local folder or an fsspec URL (s3://, gs://, memory://)." if urls else ""
     return click.option("-w", "--workspace", type=STORE_PATH, default=None, callback=resolve,

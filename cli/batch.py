@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from mapkit.cli._group import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, library_call, main
+from mapkit.cli._group import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, library_call, main, option_values
 from mapkit.cli.ingest import build_config, ingest_options
 
 
@@ -49,13 +49,17 @@ def batch(recordings: tuple[str, ...], output: str, steps: str, scheduler: str |
     from mapkit.export import ExportConfig
     from mapkit.fusion import FuseConfig
 
-    config = BatchConfig(
-        recordings=resolve_recordings(recordings, build_config(**kw)), root=parse_root(output), steps=parse_steps(steps),
-        scheduler=scheduler, workers=workers, retries=retries,
-        fuse=FuseConfig(voxel=fuse_voxel, trunc=trunc, max_depth=max_depth, mesh=mesh),
-        esdf=EsdfConfig(voxel=esdf_voxel, padding=padding, sigma=sigma, unknown=unknown, max_dist=max_dist),
-        export=ExportConfig(goals_per_frame=goals_per_frame, clearance=clearance, seed=seed),
-    )
+    ingest_config = build_config(**kw)
+    with option_values():  # the recordings and ROOT are checked apart (exit 1): their files decide
+        parsed = parse_steps(steps)
+        stages = (FuseConfig(voxel=fuse_voxel, trunc=trunc, max_depth=max_depth, mesh=mesh),
+                  EsdfConfig(voxel=esdf_voxel, padding=padding, sigma=sigma, unknown=unknown, max_dist=max_dist),
+                  ExportConfig(goals_per_frame=goals_per_frame, clearance=clearance, seed=seed))
+        for stage in stages:
+            stage.validate()
+    fuse, esdf, export = stages
+    config = BatchConfig(recordings=resolve_recordings(recordings, ingest_config), root=parse_root(output), steps=parsed,
+                         scheduler=scheduler, workers=workers, retries=retries, fuse=fuse, esdf=esdf, export=export)
     summary = run_batch(config, progress=True)
     click.echo("\n".join(summary.lines()))
     if summary.failed:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli._group import COUNT, INDEX, NONNEGATIVE, POSITIVE, library_call, main
+from mapkit.cli._group import COUNT, INDEX, NONNEGATIVE, POSITIVE, library_call, main, option_values
 
 
 @main.command("dataset")
@@ -46,11 +46,13 @@ def dataset_cmd(root: Path, worlds: int, kinds: str, seed: int, duration: float,
     from mapkit.dataset import DatasetConfig, build_dataset, parse_cameras, world_specs
     from mapkit.export import ExportConfig
 
-    config = DatasetConfig(worlds=worlds, kinds=tuple(k.strip() for k in kinds.split(",") if k.strip()), seed=seed,
-                           duration=duration, rate=rate, speed=speed, density_scale=density_scale,
-                           size_scale=size_scale, tilt_deg=tilt_deg, cameras=parse_cameras(cameras),
-                           noise_fraction=noise_fraction, workers=workers,
-                           export=ExportConfig(goals_per_frame=goals_per_frame, goal_mix=goal_mix))
+    with option_values():
+        config = DatasetConfig(worlds=worlds, kinds=tuple(k.strip() for k in kinds.split(",") if k.strip()), seed=seed,
+                               duration=duration, rate=rate, speed=speed, density_scale=density_scale,
+                               size_scale=size_scale, tilt_deg=tilt_deg, cameras=parse_cameras(cameras),
+                               noise_fraction=noise_fraction, workers=workers,
+                               export=ExportConfig(goals_per_frame=goals_per_frame, goal_mix=goal_mix))
+        config.validate()
     s = build_dataset(root, config, progress=True, dry_run=dry_run)
     if dry_run:
         for spec in world_specs(config):

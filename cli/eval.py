@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 import click
 
 from mapkit._choices import ON_REJECT, VEHICLES, OnReject, VehicleKind
-from mapkit.cli._group import COUNT, FINITE, FRACTION, INDEX, library_call, main
+from mapkit.cli._group import COUNT, FINITE, FRACTION, INDEX, library_call, main, option_values
 
 if TYPE_CHECKING:
     from mapkit.flight import Execution
@@ -179,24 +179,27 @@ def eval_cmd(run_dir: Path | None, world: str, pairs: int, seed: int, output: Pa
     )
     from mapkit.flight import PilotConfig
 
-    worlds = WORLD_ORDER if world.strip() == "all" else tuple(w.strip() for w in world.split(",") if w.strip())
-    names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
-    execution = _flight_stack(corridor=corridor, corridor_check=corridor_check, check_memory=check_memory,
-                              unchecked_corridor=unchecked_corridor,
-                              memory=memory, subgoal_speed=subgoal_speed, turn_toward_open=turn_toward_open,
-                              route_after=route_after, follow=follow, keep_choice=keep_choice, flown_judge=flown_judge, shift=shift, speed=speed,
-                              search_speed=search_speed, turn_accel=turn_accel, turn_min_speed=turn_min_speed, stop_decel=stop_decel,
-                              v_max=v_max, a_max=a_max)
-    config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
-                        stacks=parse_stacks(stacks),
-                        untrained_seeds=parse_untrained_seeds(untrained_seeds),
-                        workers=workers, scheduler=scheduler, record_plans=record_plans, record_judge=record_judge,
-                        judge_history=judge_history, execution=execution, vehicle=vehicle, gimbal=gimbal,
-                        loop=LoopConfig(pilot=PilotConfig(
-                            replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
-                            on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,
-                            look_ahead=look_ahead),
-                            faults=Faults(drop=drop_frames, delay=depth_delay, pose_noise=pose_noise, seed=seed)))
+    with option_values():
+        worlds = WORLD_ORDER if world.strip() == "all" else tuple(w.strip() for w in world.split(",") if w.strip())
+        names = METHODS if methods.strip() == "all" else tuple(m.strip() for m in methods.split(",") if m.strip())
+        execution = _flight_stack(corridor=corridor, corridor_check=corridor_check, check_memory=check_memory,
+                                  unchecked_corridor=unchecked_corridor,
+                                  memory=memory, subgoal_speed=subgoal_speed, turn_toward_open=turn_toward_open,
+                                  route_after=route_after, follow=follow, keep_choice=keep_choice,
+                                  flown_judge=flown_judge, shift=shift, speed=speed, search_speed=search_speed,
+                                  turn_accel=turn_accel, turn_min_speed=turn_min_speed, stop_decel=stop_decel,
+                                  v_max=v_max, a_max=a_max)
+        config = EvalConfig(worlds=worlds, pairs=pairs, seed=seed, methods=names, min_distance=min_distance,
+                            stacks=parse_stacks(stacks),
+                            untrained_seeds=parse_untrained_seeds(untrained_seeds),
+                            workers=workers, scheduler=scheduler, record_plans=record_plans, record_judge=record_judge,
+                            judge_history=judge_history, execution=execution, vehicle=vehicle, gimbal=gimbal,
+                            loop=LoopConfig(pilot=PilotConfig(
+                                replan_interval=replan_interval, horizon=horizon, respect_eta=not ignore_eta,
+                                on_reject=on_reject, plan_latency=plan_latency, final_approach=final_approach,
+                                look_ahead=look_ahead),
+                                faults=Faults(drop=drop_frames, delay=depth_delay, pose_noise=pose_noise, seed=seed)))
+        config.validate()
     result = evaluate(run_dir, output, config, overwrite=overwrite)
     s, lat = result.summary["success"], result.summary["latency"]
     cols = [*config.worlds, "overall"]

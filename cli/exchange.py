@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli._group import COUNT, POSITIVE, library_call, main, workspace_option
+from mapkit.cli._group import COUNT, POSITIVE, library_call, main, option_values, workspace_option
 
 
 @main.command("export-foxglove")
@@ -25,12 +25,17 @@ def export_foxglove_cmd(workspace: Path, output: Path, model: str | None, eval_d
     """One MCAP of the flight, cloud, ESDF, plans and evaluation paths that Foxglove opens as is."""
     from mapkit.exchange import FoxgloveConfig, export_foxglove
 
-    config = FoxgloveConfig(model=model, eval_dir=eval_dir, plan_count=plan_count, goal_ahead=goal_ahead, overwrite=overwrite)
+    with option_values():
+        config = FoxgloveConfig(model=model, eval_dir=eval_dir, plan_count=plan_count, goal_ahead=goal_ahead,
+                                overwrite=overwrite)
+        config.validate()
     s = export_foxglove(workspace, output, config)
     topics = ", ".join(f"{topic} {count}" for topic, count in s.messages.items())
     for note in s.notes:
         click.echo(f"note: {note}", err=True)
     click.echo(f"wrote {s.path} ({s.bytes / 1e6:.1f} MB): {topics}; ESDF as {s.esdf_as or 'none'}; {s.seconds:.1f} s")
+    if model is not None:
+        click.echo(_plans_line(s.messages.get("/planner/plans", 0), plan_count, s.plans_skipped))
 
 
 @main.command("export-rerun")
@@ -50,11 +55,22 @@ def export_rerun_cmd(workspace: Path, output: Path, model: str | None, eval_dir:
     """One .rrd of the flight, cloud, ESDF, plans and evaluation paths, with a default layout for Rerun."""
     from mapkit.exchange import RerunConfig, export_rerun, open_in_rerun
 
-    config = RerunConfig(model=model, eval_dir=eval_dir, plan_count=plan_count, goal_ahead=goal_ahead, overwrite=overwrite)
+    with option_values():
+        config = RerunConfig(model=model, eval_dir=eval_dir, plan_count=plan_count, goal_ahead=goal_ahead,
+                             overwrite=overwrite)
+        config.validate()
     s = export_rerun(workspace, output, config)
     for note in s.notes:
         click.echo(f"note: {note}", err=True)
     click.echo(f"wrote {s.path} ({s.bytes / 1e6:.1f} MB): {s.frames} frames, {s.plans} plans, {s.eval_paths} evaluation "
                f"paths; {', '.join(s.entities)}; {s.seconds:.1f} s")
+    if model is not None:
+        click.echo(_plans_line(s.plans, plan_count, s.plans_skipped))
     if spawn:
         open_in_rerun(s.path)
+
+
+def _plans_line(written: int, asked: int, skipped: dict[str, int]) -> str:
+    """How many of the --plans frames got a plan, and why the others did not (frames per reason)."""
+    why = "; ".join(f"{frames} {reason}" for reason, frames in skipped.items())
+    return f"plans: {written} of {asked} written" + (f"; skipped: {why}" if why else "")

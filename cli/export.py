@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli._group import COUNT, INDEX, NONNEGATIVE, POSITIVE, library_call, main, workspace_option
+from mapkit.cli._group import COUNT, INDEX, NONNEGATIVE, POSITIVE, library_call, main, option_values, workspace_option
 
 
 @main.command("export")
@@ -30,10 +30,12 @@ def export_cmd(workspace: Path, goals_per_frame: int, goal_mix: tuple[float, flo
     """Training tuples (depth, poses, velocity, goals in the body frame, split) → WS/tuples.zarr."""
     from mapkit.export import ExportConfig, export_tuples
 
-    config = ExportConfig(goals_per_frame=goals_per_frame, goal_mix=goal_mix, goal_range=goal_range,
-                          hidden_bearing_deg=hidden_bearing, future_horizon=future_horizon,
-                          clearance=clearance, val_fraction=val_fraction, segment_seconds=segment_seconds,
-                          seed=seed, stride=stride)
+    with option_values():
+        config = ExportConfig(goals_per_frame=goals_per_frame, goal_mix=goal_mix, goal_range=goal_range,
+                              hidden_bearing_deg=hidden_bearing, future_horizon=future_horizon,
+                              clearance=clearance, val_fraction=val_fraction, segment_seconds=segment_seconds,
+                              seed=seed, stride=stride)
+        config.validate()
     s = export_tuples(workspace, config, overwrite=overwrite, progress=True)
     click.echo(
         f"wrote {s.path}: {s.frames} tuples ({s.train} train, {s.val} val), {s.goals} goals "

@@ -8,7 +8,7 @@ from typing import Any
 
 import click
 
-from mapkit.cli._group import COUNT, POSITIVE, library_call, main, workspace_option
+from mapkit.cli._group import COUNT, POSITIVE, library_call, main, option_values, workspace_option
 from mapkit.ingest import IngestConfig, IngestError, ingest, inspect_recordings
 from mapkit.ingest._decode import parse_extrinsic, parse_intrinsics
 
@@ -37,6 +37,14 @@ def ingest_options(func: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def build_config(**kw: Any) -> IngestConfig:
+    """The ingest options as a checked config; a malformed or out-of-range value is a usage error."""
+    with option_values():
+        config = _ingest_config(**kw)
+        config.validate()
+    return config
+
+
+def _ingest_config(**kw: Any) -> IngestConfig:
     return IngestConfig(
         depth_topic=kw["depth_topic"],
         camera_info_topic=kw["camera_info_topic"],

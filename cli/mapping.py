@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from mapkit._stores import Location
-from mapkit.cli._group import COUNT, FINITE, NONNEGATIVE, POSITIVE, library_call, main, workspace_option
+from mapkit.cli._group import COUNT, FINITE, NONNEGATIVE, POSITIVE, library_call, main, option_values, workspace_option
 from mapkit.cli.ingest import build_config, ingest_options
 
 if TYPE_CHECKING:
@@ -43,7 +43,9 @@ def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float, trunc: flo
     from mapkit.fusion import FuseConfig
     from mapkit.fusion import fuse as fuse_fn
 
-    config = FuseConfig(voxel=voxel, trunc=trunc, max_depth=max_depth, device=device, stride=frame_stride, mesh=mesh)
+    with option_values():
+        config = FuseConfig(voxel=voxel, trunc=trunc, max_depth=max_depth, device=device, stride=frame_stride, mesh=mesh)
+        config.validate()
     s = fuse_fn(list(recordings), workspace, config, build_config(**kw), overwrite=overwrite, progress=True)
     dropped = ", ".join(f"{k} {v}" for k, v in s.dropped.items()) or "none"
     lo, hi = s.bounds
@@ -88,8 +90,10 @@ def fuse_world_cmd(workspaces: tuple[Path, ...], output: Path, voxel: float, tsd
     from mapkit.fusion import FuseConfig, WorldConfig, fuse_world
 
     box = None if bounds is None else ((bounds[0], bounds[1], bounds[2]), (bounds[3], bounds[4], bounds[5]))
-    config = WorldConfig(voxel=voxel, padding=padding, tile=tile, solid_depth=solid_depth, bounds=box,
-                         fuse=FuseConfig(voxel=tsdf_voxel, trunc=trunc, max_depth=max_depth, stride=frame_stride))
+    with option_values():
+        config = WorldConfig(voxel=voxel, padding=padding, tile=tile, solid_depth=solid_depth, bounds=box,
+                             fuse=FuseConfig(voxel=tsdf_voxel, trunc=trunc, max_depth=max_depth, stride=frame_stride))
+        config.validate()
     s = fuse_world(list(workspaces), output, config, overwrite=overwrite, progress=True,
                    scheduler=scheduler_address(scheduler), workers=workers)
     nx, ny, nz = s.shape
@@ -131,8 +135,10 @@ def esdf(workspace: Path, voxel: float, padding: float, sigma: float, unknown: s
     from mapkit._dask import scheduler_address
     from mapkit.esdf import EsdfConfig, build_esdf
 
-    config = EsdfConfig(voxel=voxel, padding=padding, sigma=sigma, unknown=unknown, solid_depth=solid_depth,
-                        max_dist=max_dist, backend=backend)
+    with option_values():
+        config = EsdfConfig(voxel=voxel, padding=padding, sigma=sigma, unknown=unknown, solid_depth=solid_depth,
+                            max_dist=max_dist, backend=backend)
+        config.validate()
     s = build_esdf(workspace, config, overwrite=overwrite, progress=True, scheduler=scheduler_address(scheduler),
                    workers=workers, output=output)
     nx, ny, nz = s.shape

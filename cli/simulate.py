@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from mapkit.cli._group import INDEX, NONNEGATIVE, POSITIVE, Number, library_call, main
+from mapkit.cli._group import INDEX, NONNEGATIVE, POSITIVE, Number, library_call, main, option_values
 
 
 @main.command()
@@ -43,9 +43,11 @@ def simulate(world: str, seed: int, out: Path, fmt: str, duration: float, rate: 
     from mapkit.sim import SimConfig
     from mapkit.sim import simulate as run
 
-    config = SimConfig(world=world, seed=seed, format=fmt, duration=duration, rate=rate, width=width,
-                       height=height, noise=noise, depth_encoding=depth_encoding, size=size, density=density,
-                       speed=speed, overwrite=overwrite)
+    with option_values():
+        config = SimConfig(world=world, seed=seed, format=fmt, duration=duration, rate=rate, width=width,
+                           height=height, noise=noise, depth_encoding=depth_encoding, size=size, density=density,
+                           speed=speed, overwrite=overwrite)
+        config.validate()
     result = run(config, out, progress=True)
     size_bytes = _size(result.bag_path)
     click.echo(

@@ -16,7 +16,19 @@ from mapkit._choices import (
     BoundaryScale,
     TimingObjective,
 )
-from mapkit.cli._group import COUNT, FINITE, INDEX, NONNEGATIVE, POSITIVE, STORE_PATH, WIDTHS, library_call, main
+from mapkit.cli._group import (
+    COUNT,
+    FINITE,
+    INDEX,
+    NONNEGATIVE,
+    POSITIVE,
+    STORE_PATH,
+    WIDTHS,
+    current_folder,
+    library_call,
+    main,
+    option_values,
+)
 
 
 def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
@@ -34,7 +46,8 @@ def _pairs(values: tuple[str, ...], option: str) -> dict[str, Any]:
 
 @main.command("train")
 @click.option("-w", "--workspace", "workspaces", multiple=True, type=STORE_PATH,
-              help="Workspace with tuples.zarr and map.zarr (a local folder or an fsspec URL); repeat to train on several.")
+              help="Workspace with tuples.zarr and map.zarr (a local folder or an fsspec URL); repeat to train on "
+                   "several. Default: the current directory, unless --dataset is given.")
 @click.option("--dataset", "dataset_root", type=click.Path(path_type=Path), default=None,
               help="A `mapkit dataset` directory: train on its worlds (added to any -w).")
 @click.option("--val-worlds", type=INDEX, default=None,
@@ -99,8 +112,14 @@ def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val
             overrides[key] = value
     overrides["planner"] = _pairs(planner_items, "--planner")
     overrides["loss"] = _pairs(loss_items, "--loss")
-    config = make_preset(preset, **overrides)
-    train_ws: list[Path | str] = list(workspaces)
+    with option_values():  # unknown --planner/--loss fields too
+        config = make_preset(preset, **overrides)
+        config.validate()
+    if val_worlds is not None and dataset_root is None:
+        raise click.UsageError("--val-worlds needs --dataset")
+    # -w defaults to the current directory, as for every command with a workspace; --dataset alone
+    # trains on the dataset's worlds only
+    train_ws: list[Path | str] = list(workspaces) or ([] if dataset_root is not None else [current_folder()])
     val_ws: list[Path | str] = list(val_workspaces)
     if dataset_root is not None:
         from mapkit.dataset import dataset_workspaces, split_worlds
@@ -108,10 +127,6 @@ def train_cmd(workspaces: tuple[Path | str, ...], dataset_root: Path | None, val
         n_val = val_worlds if val_worlds is not None else max(1, len(dataset_workspaces(dataset_root)) // 8)
         more_train, more_val = split_worlds(dataset_root, n_val)
         train_ws, val_ws = [*more_train, *train_ws], [*val_ws, *more_val]
-    elif val_worlds is not None:
-        raise click.UsageError("--val-worlds needs --dataset")
-    if not train_ws:
-        raise click.UsageError("pass -w WS (repeatable) or --dataset ROOT")
     if runs_dir is None and dataset_root is not None:
         runs_dir = dataset_root / "runs"
     s = train(train_ws, config, runs_dir=runs_dir, resume=resume, overwrite=overwrite, progress=True,
@@ -177,8 +192,11 @@ def tune_timing_cmd(model: Path, plans: tuple[Path, ...], val: tuple[Path, ...],
     """Fine-tune the Time Allocation Net alone on plans the planner made in flight (lower snap per plan)."""
     from mapkit.train import TimingTuneConfig, tune_timing
 
-    config = TimingTuneConfig(steps=steps, lr=lr, boundary_inputs=boundary_inputs, boundary_scale=boundary_scale,
-                              tan_hidden=tan_hidden, lr_decay=lr_decay, objective=objective, first_weight=first_weight)
+    with option_values():
+        config = TimingTuneConfig(steps=steps, lr=lr, boundary_inputs=boundary_inputs, boundary_scale=boundary_scale,
+                                  tan_hidden=tan_hidden, lr_decay=lr_decay, objective=objective,
+                                  first_weight=first_weight)
+        config.validate()
     s = tune_timing(model, plans, val, output, config, overwrite=overwrite)
     click.echo(f"{s.train_plans} plans to learn from, {s.val_plans} to validate; snap per plan against the "
                f"gradient-descent split (median / summed): {s.before[0]:.2f}× / {s.before[1]:.3f}× before, "
@@ -209,8 +227,10 @@ def tune_judge_cmd(model: Path, records: tuple[Path, ...], val: tuple[Path, ...]
     (and the flight's recent frames, as recorded with `mapkit eval --judge-history`)."""
     from mapkit.train import JudgeTuneConfig, tune_judge
 
-    s = tune_judge(model, records, val, output, JudgeTuneConfig(steps=steps, lr=lr, positive_weight=positive_weight),
-                   overwrite=overwrite)
+    with option_values():
+        config = JudgeTuneConfig(steps=steps, lr=lr, positive_weight=positive_weight)
+        config.validate()
+    s = tune_judge(model, records, val, output, config, overwrite=overwrite)
     click.echo(f"{s.train_rows} candidates to learn from, {s.val_rows} to validate ({100 * s.colliding_share:.1f} % "
                f"colliding; clearances to the image{f' and the last {s.history:g} s of frames' if s.history else ''}); "
                "caught / false alarms on the validation candidates:")

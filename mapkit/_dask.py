@@ -7,7 +7,7 @@ Every stage that fans out over Dask (``mapkit batch``, the chunked ESDF, ``mapki
 - else the Dask convention ``DASK_SCHEDULER_ADDRESS`` (Dask's own ``scheduler-address`` config);
 - else a :class:`distributed.LocalCluster` of one worker process per available core (the process's
   CPU affinity, not the machine's total; one task at a time each, native libraries get the cores
-  divided among the workers), dashboard on a free port, workers without
+  divided among the workers), listening on loopback only (dashboard on a free port), workers without
   Dask's statistical profiler (the dashboard's Profile page stays empty; it cost ~10 % CPU).
 
 A scheduler that cannot be reached is a :class:`SchedulerError` naming the address and the fix.
@@ -30,6 +30,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 CONNECT_TIMEOUT_S = 10.0
+LOOPBACK = "127.0.0.1"
+"""The host a local cluster's sockets (scheduler, workers, dashboard) listen on."""
 
 
 class SchedulerError(MapkitError):
@@ -118,9 +120,12 @@ def _client(address: str | None, workers: int | None, timeout_s: float) -> Itera
         # more CPU on the batch pipeline (2 flights of 24 s, one worker: 25.0 vs 23.0 CPU-s, the
         # single commands 22.1). Local clusters go without it; a cluster of your own keeps Dask's default.
         environ = _worker_environ(n)
+        # Every socket of a local cluster listens on loopback: given no host, the dashboard binds every
+        # interface and shows this machine's tasks (and their code) to its network.
         with _worker_environment(environ), dask.config.set({"distributed.nanny.pre-spawn-environ": environ,
                                                            "distributed.worker.profile.enabled": False}), \
-                LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
+                LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=LOOPBACK,
+                             dashboard_address=f"{LOOPBACK}:0",
                              silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
             yield client, _info(client, local=True)
         return

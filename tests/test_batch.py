@@ -256,14 +256,14 @@ def test_bad_recordings_and_steps_are_one_line_errors(flights: list[Path], tmp_p
         ([str(flights[0]), str(twin)], "would both be workspace 'flight1'"),
         ([str(tmp_path / "none*.mcap")], "matches no recording"),
         ([str(tmp_path / "absent.mcap")], "does not exist"),
-        ([str(flights[0]), "--steps", "ingest,mesh"], "unknown step 'mesh'"),
+        ([str(flights[0]), "--steps", "ingest,mesh"], "unknown step 'mesh'"),  # a usage error: exit 2
         ([str(tmp_path / "bad.toml")], "cannot be read"),
     ]
     write_manifest(tmp_path / "broken.toml", "[[recordings]\n")
     cases.append(([str(tmp_path / "broken.toml")], "is not valid TOML"))
     for args, message in cases:
         result = CliRunner().invoke(main, ["batch", *args, "-o", str(tmp_path / "root")])
-        assert result.exit_code == 1, (args, result.output)
+        assert result.exit_code == (2 if "--steps" in args else 1), (args, result.output)
         assert result.output.count("\n") == 1 and message in result.output, result.output
 
 

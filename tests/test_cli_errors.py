@@ -61,6 +61,42 @@ def test_usage_errors_are_one_line_with_exit_2_and_help_still_works():
     assert r.exit_code == 0 and "Usage: mapkit esdf" in r.output
 
 
+# Values that click's types let through but a command's config refuses (a range that depends on the
+# option, or on another one, or text the library parses): (arguments, what the one line names).
+LIBRARY_CHECKED = [
+    (["esdf", "-w", "ws", "--voxel", "-1"], "--voxel -1.0 must be positive"),
+    (["fuse", "-w", "ws", "--voxel", "0"], "--voxel 0.0 must be positive"),
+    (["fuse", "-w", "ws", "--trunc", "0.5"], "--trunc 0.5 must be at least 1 voxel"),
+    (["fuse-world", "ws", "-o", "world", "--tile", "100"], "--tile 100 must be a positive multiple of 64"),
+    (["ingest", "x.mcap", "-w", "ws", "--extrinsic", "1,2"], "--extrinsic '1,2' is not x,y,z"),
+    (["ingest", "x.mcap", "-w", "ws", "--intrinsics", "-1,1,1,1"], "focal lengths must be positive"),
+    (["batch", "x.mcap", "-o", "root", "--esdf-voxel", "0"], "--voxel 0.0 must be positive"),
+    (["batch", "x.mcap", "-o", "root", "--steps", "ingest,mesh"], "unknown step 'mesh'"),
+    (["export", "-w", "ws", "--goal-range", "5", "1"], "--goal-range 5.0 1.0: need 0 < min < max"),
+    (["simulate", "-o", "flight", "--width", "0"], "bad resolution width=0"),
+    (["dataset", "-o", "d", "--speed", "0.5", "2"], "--speed 0.5 2.0: need 1.0 <= min <= max <= 3.0"),
+    (["dataset", "-o", "d", "--cameras", "640by360"], "is not WIDTHxHEIGHT"),
+    (["train", "-w", "ws", "--lr", "-1"], "--lr -1.0 must be positive"),
+    (["train", "-w", "ws", "--planner", "no_such_field=1"], "PlannerConfig has no field 'no_such_field'"),
+    (["eval", "-o", "ev", "--methods", "straight", "--replan-interval", "0.13"], "--replan-interval 0.13 s"),
+    (["eval", "-o", "ev", "--methods", "straight", "--stack", "full,full"], "flight stack given twice"),
+    (["tune-timing", "--plans", "p", "--val", "v", "-o", "t", "--boundary-scale", "duration"], "add --boundary-inputs"),
+]
+
+
+@pytest.mark.parametrize("args, needle", LIBRARY_CHECKED, ids=[" ".join(a[:1] + a[-2:]) for a, _ in LIBRARY_CHECKED])
+def test_a_value_the_library_refuses_is_a_usage_error_before_any_work(args: list[str], needle: str, tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch):
+    """Exit 2 and one line naming the option, its value and the fix, as for the values click refuses;
+    nothing is written (the inputs do not even exist)."""
+    monkeypatch.chdir(tmp_path)
+    r = CliRunner().invoke(main, args, prog_name="mapkit")
+    lines = r.output.strip().splitlines()
+    assert r.exit_code == 2, r.output
+    assert len(lines) == 1 and lines[0].startswith(f"error: mapkit {args[0]}: ") and needle in lines[0], r.output
+    assert lines[0].endswith(f"(see mapkit {args[0]} --help)") and not list(tmp_path.iterdir())
+
+
 def _dead_pid() -> int:
     import subprocess
     import sys

@@ -20,7 +20,7 @@ def run(*args: str) -> tuple[int, str]:
 
 
 def assert_one_line_error(code: int, out: str, *needles: str, usage: bool = False) -> None:
-    """One ``error:`` line naming ``needles``; exit 2 for a usage error click catches, else 1."""
+    """One ``error:`` line naming ``needles``; exit 2 for a usage error (a value the options alone rule out), else 1."""
     assert code == (2 if usage else 1), out
     errors = [line for line in out.splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and "Traceback" not in out, out
@@ -120,7 +120,7 @@ def test_no_camera_info_then_intrinsics(tmp_path: Path) -> None:
     code, out = run("ingest", rec.path, "-w", tmp_path / "ws")
     assert_one_line_error(code, out, "no camera info", "--intrinsics")
     code, out = run("ingest", rec.path, "-w", tmp_path / "ws", "--intrinsics", "50,50,31.5")
-    assert_one_line_error(code, out, "fx,fy,cx,cy")
+    assert_one_line_error(code, out, "fx,fy,cx,cy", usage=True)
     code, out = run("ingest", rec.path, "-w", tmp_path / "ws", "--intrinsics", "50,50,31.5,23.5")
     assert code == 0, out
 
@@ -167,7 +167,7 @@ def test_zero_sized_image(tmp_path: Path) -> None:
 @pytest.mark.parametrize("option,value,needle,usage", [
     ("--stride", "0", "--stride", True),
     ("--max-pose-gap", "-1", "--max-pose-gap", True),
-    ("--extrinsic", "1,2,3", "--extrinsic", False),
+    ("--extrinsic", "1,2,3", "--extrinsic", True),
     ("--pose-topic", "/nope", "no such topic", False),
 ])
 def test_bad_options(tmp_path: Path, option: str, value: str, needle: str, usage: bool) -> None:

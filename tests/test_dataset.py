@@ -90,7 +90,8 @@ def test_cli_ranges_reach_the_worlds(tmp_path: Path) -> None:
     assert len(lines) == 3 and all("density 0.1, 1.2 m/s" in line and "noise none" in line for line in lines)
     assert "tilt 0.0 deg" in lines[0] and all("tilt 5.0 deg" in line for line in lines[1:])  # world 0 flies level
     bad = CliRunner().invoke(main, args + ["--speed", "0.5", "2"])
-    assert bad.exit_code == 1 and bad.output.strip() == "error: --speed 0.5 2.0: need 1.0 <= min <= max <= 3.0"
+    assert bad.exit_code == 2 and bad.output.strip() == ("error: main dataset: --speed 0.5 2.0: need 1.0 <= min <= max <= 3.0 "
+                                                         "(see main dataset --help)")  # a usage error
 
 
 def test_cameras_option_sets_every_worlds_camera(tmp_path: Path) -> None:
@@ -106,4 +107,4 @@ def test_cameras_option_sets_every_worlds_camera(tmp_path: Path) -> None:
     for text, message in (("640by360", "is not WIDTHxHEIGHT[:FX_SCALE]"), (",", "names no camera"),
                           ("8x8", "need 16..4096 pixels a side"), ("640x360:9", "focal-length scale in 0.25..4")):
         bad = CliRunner().invoke(main, args + ["--cameras", text])
-        assert bad.exit_code == 1 and message in bad.output and len(bad.output.strip().splitlines()) == 1, bad.output
+        assert bad.exit_code == 2 and message in bad.output and len(bad.output.strip().splitlines()) == 1, bad.output

@@ -95,6 +95,24 @@ def test_local_workers_start_without_the_profiler_and_the_malloc_setting(client,
     assert os.environ["MALLOC_TRIM_THRESHOLD_"] == "65536" and os.environ.get("OMP_NUM_THREADS") == omp
 
 
+def test_a_local_cluster_listens_on_loopback_only(client) -> None:
+    """The scheduler, the workers and the dashboard of a cluster we start take no socket that the
+    machine's network can reach (Dask's dashboard alone binds every interface unless told a host)."""
+    import ipaddress
+    from urllib.parse import urlparse
+
+    import psutil
+
+    info = client.scheduler_info()
+    hosts = {urlparse(a).hostname for a in [info["address"], *info["workers"]]}
+    assert hosts == {"127.0.0.1"}
+    port = urlparse(client.dashboard_link).port
+    listening = [c for c in psutil.Process().net_connections(kind="inet")
+                 if c.status == psutil.CONN_LISTEN and c.laddr.port == port]
+    assert listening, f"no socket listens on the dashboard's port {port}"
+    assert all(ipaddress.ip_address(c.laddr.ip).is_loopback for c in listening), [c.laddr for c in listening]
+
+
 def test_numpy_destinations_are_refused_on_a_cluster(client) -> None:
     occ = random_scene((20, 20, 20), seed=1)
     with pytest.raises(EsdfError, match="numpy array, which Dask workers cannot write"):

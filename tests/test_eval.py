@@ -328,30 +328,31 @@ def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
     assert r.exit_code == 1 and "exists" in r.output and "--overwrite" in r.output
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--world", "moon"], "unknown world 'moon'"),
-    (["--methods", "learned,teleport"], "unknown method 'teleport'"),
-    (["--world", "office", "--pairs", "3", "--min-distance", "200"], "could sample only 0 of 3"),
-    (["--replan-interval", "0.01"], "whole number of depth frames"),
-    (["--corridor", "-0.5"], "--corridor must be a positive number"),
-    (["--unchecked-corridor", "-1"], "--unchecked-corridor must be a positive number"),
-    (["--v-max", "-1"], "--v-max must be a positive number"),
-    (["--memory", "-8"], "--memory must be a positive number"),
-    (["--plan-latency", "0.7"], "--plan-latency must be in"),
-    (["--final-approach", "-1"], "--final-approach must be >= 0"),
-    (["--subgoal-speed", "-1"], "--subgoal-speed must be >= 0"),
-    (["--turn-accel", "-1"], "--turn-accel must be a positive number"),
-    (["--stop-decel", "-1"], "--stop-decel must be a positive number"),
-    (["--turn-min-speed", "0"], "--turn-min-speed must be a positive speed"),
-    (["--route-after", "-2"], "--route-after must be a positive number"),
-    (["--horizon", "-3"], "--horizon must be > 0"),
-    (["--min-distance", "0"], "--min-distance must be > 0"),
-    (["--gimbal"], "--gimbal levels the camera of the rotorpy quadrotor"),
-    (["--depth-delay", "0.6"], "--depth-delay 0.6 must be in [0, replan interval 0.5 s)"),
+# 2: a value the options alone rule out (a usage error); 1: one the worlds rule out once sampling starts
+@pytest.mark.parametrize("args, message, code", [
+    (["--world", "moon"], "unknown world 'moon'", 2),
+    (["--methods", "learned,teleport"], "unknown method 'teleport'", 2),
+    (["--world", "office", "--pairs", "3", "--min-distance", "200"], "could sample only 0 of 3", 1),
+    (["--replan-interval", "0.01"], "whole number of depth frames", 2),
+    (["--corridor", "-0.5"], "--corridor must be a positive number", 2),
+    (["--unchecked-corridor", "-1"], "--unchecked-corridor must be a positive number", 2),
+    (["--v-max", "-1"], "--v-max must be a positive number", 2),
+    (["--memory", "-8"], "--memory must be a positive number", 2),
+    (["--plan-latency", "0.7"], "--plan-latency must be in", 2),
+    (["--final-approach", "-1"], "--final-approach must be >= 0", 2),
+    (["--subgoal-speed", "-1"], "--subgoal-speed must be >= 0", 2),
+    (["--turn-accel", "-1"], "--turn-accel must be a positive number", 2),
+    (["--stop-decel", "-1"], "--stop-decel must be a positive number", 2),
+    (["--turn-min-speed", "0"], "--turn-min-speed must be a positive speed", 2),
+    (["--route-after", "-2"], "--route-after must be a positive number", 2),
+    (["--horizon", "-3"], "--horizon must be > 0", 2),
+    (["--min-distance", "0"], "--min-distance must be > 0", 2),
+    (["--gimbal"], "--gimbal levels the camera of the rotorpy quadrotor", 2),
+    (["--depth-delay", "0.6"], "--depth-delay 0.6 must be in [0, replan interval 0.5 s)", 2),
 ])
-def test_cli_bad_settings(tiny_run: Path, tmp_path: Path, args: list[str], message: str):
+def test_cli_bad_settings(tiny_run: Path, tmp_path: Path, args: list[str], message: str, code: int):
     r = CliRunner().invoke(main, ["eval", "--model", str(tiny_run), "-o", str(tmp_path / "ev"), *args])
-    assert r.exit_code == 1, r.output
+    assert r.exit_code == code, r.output
     assert message in r.output and "Traceback" not in r.output
     assert len(r.output.strip().splitlines()) == 1
 

@@ -99,8 +99,8 @@ def test_an_evaluation_config_with_an_unknown_stack_is_refused():
 
 def test_cli_refuses_an_unknown_stack_and_untrained_without_a_model(tmp_path: Path):
     r = CliRunner().invoke(main, ["eval", "--stack", "paper", "--methods", "straight", "-o", str(tmp_path / "a")])
-    assert r.exit_code == 1 and "Traceback" not in r.output
-    assert r.output.strip().splitlines()[-1].endswith("use a comma list of full, none")
+    assert r.exit_code == 2 and "Traceback" not in r.output  # a usage error
+    assert r.output.strip().splitlines()[-1].endswith("use a comma list of full, none (see main eval --help)")
     r = CliRunner().invoke(main, ["eval", "--methods", "untrained", "-o", str(tmp_path / "b")])
     assert r.exit_code == 1 and "--model pretrained" in r.output and "untrained copies its architecture" in r.output
 

@@ -96,7 +96,7 @@ def test_cli_unreachable_scheduler_is_one_line(tiny_run: Path, tmp_path: Path) -
 def test_cli_bad_scheduler_settings(tiny_run: Path, tmp_path: Path,  # noqa: F811 - fixture
                                     args: list[str], message: str) -> None:
     r = CliRunner().invoke(main, ["eval", "--model", str(tiny_run), "-o", str(tmp_path / "ev"), *args])
-    assert r.exit_code == 1, r.output
+    assert r.exit_code == 2, r.output  # a usage error
     assert message in r.output and "Traceback" not in r.output
     assert len(r.output.strip().splitlines()) == 1
 

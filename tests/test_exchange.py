@@ -139,6 +139,26 @@ def _eval_without_goals(tmp_path: Path) -> Path:
     return evald
 
 
+def test_the_summary_says_how_many_plans_were_written_and_why_the_others_were_not(workspace: Path,
+                                                                                 tmp_path: Path) -> None:
+    """More --plans than frames, and the flight's last frame with no later one to plan toward: the line
+    names each reason with its count, and the counts and the plans written add up to --plans."""
+    import re
+
+    out = tmp_path / "plans.mcap"
+    frames = len(open_frames_store(workspace).stamp_ns)
+    r = CliRunner().invoke(main, ["export-foxglove", "-w", str(workspace), "-o", str(out), "--model", "pretrained",
+                                  "--plans", str(frames + 6), "--goal-ahead", "0.5"])
+    assert r.exit_code == 0, r.output
+    line = next(line for line in r.output.splitlines() if line.startswith("plans: "))
+    written, skipped = re.fullmatch(rf"plans: (\d+) of {frames + 6} written; skipped: (.+)", line).groups()
+    assert int(written) == len(_read(out).get("/planner/plans", []))
+    reasons = dict(re.fullmatch(r"(\d+) (.+)", part).group(2, 1) for part in skipped.split("; "))
+    assert reasons[f"the flight has only {frames} frames"] == "6"
+    assert any(reason.startswith("no frame 0.5 s later in its recording") for reason in reasons), reasons
+    assert int(written) + sum(int(n) for n in reasons.values()) == frames + 6
+
+
 def test_bad_requests_are_one_line(workspace: Path, tmp_path: Path) -> None:
     runner = CliRunner()
     for args, needle in ((["-o", str(tmp_path / "x.txt")], "ending in .mcap"),
@@ -180,6 +200,7 @@ def test_rerun_recording_reads_back_equal_to_the_stores(workspace: Path, tmp_pat
     summary = export_rerun(workspace, out, RerunConfig(model="pretrained", plan_count=3, goal_ahead=0.2, eval_dir=evald))
     frames = open_frames_store(workspace)
     assert summary.frames == len(frames.stamp_ns) and summary.plans >= 1 and summary.eval_paths == 1
+    assert summary.plans + sum(summary.plans_skipped.values()) == 3  # each frame asked for: a plan or a reason
 
     body = _rerun_columns(out, "/world/body")
     stamps = body["recording"]

@@ -58,6 +58,23 @@ def test_the_recorded_camera_is_refused_for_depth_of_another_size_and_half_a_cal
         planner.plan(_depth(), GOAL, K=planner.camera.K)
 
 
+def test_messages_name_the_recorded_camera_without_the_training_machine_s_paths():
+    """The shipped model's config.json records where its run read the camera on the machine that
+    trained it; the warning and the refusal name only the workspace and store (a fresh planner, so
+    the once-only warning is said)."""
+    source = Path(json.loads((pretrained_dir() / "config.json").read_text())["camera"]["source"])
+    assert source.is_absolute() and len(source.parts) > 3  # the foreign path the messages must not show
+    shown = f"{source.parent.name}/{source.name}"
+    planner = Planner.load("pretrained")
+    with pytest.warns(UserWarning) as said:
+        planner.plan(_depth(), GOAL)
+    with pytest.raises(FlightError) as refused:
+        planner.plan(_depth(200, 100), GOAL)
+    for message in (str(said[0].message), str(refused.value)):
+        assert f"({shown}" in message or f"from {shown})" in message, message
+        assert str(source.parent) not in message, message
+
+
 def test_a_run_that_records_no_camera_keeps_the_refusal_naming_the_fix(tmp_path: Path):
     run = tmp_path / "run"
     run.mkdir()

@@ -70,7 +70,7 @@ def run(*args: object) -> tuple[int, str]:
 def test_cli_fuse_and_bad_inputs(tmp_path: Path, box_flight: Path) -> None:
     ws = tmp_path / "ws"
     code, out = run("fuse", box_flight, "-w", ws, "--voxel", "0")
-    assert code == 1 and "--voxel 0.0 must be positive" in out and "Traceback" not in out
+    assert code == 2 and "--voxel 0.0 must be positive" in out and "Traceback" not in out  # a usage error
     code, out = run("fuse", box_flight, "-w", ws, "--device", "cuda:99")
     assert code == 1 and ("cuda" in out.lower()) and "Traceback" not in out
     assert not ws.exists() or not any(ws.iterdir())  # refused before ingesting anything
@@ -80,6 +80,10 @@ def test_cli_fuse_and_bad_inputs(tmp_path: Path, box_flight: Path) -> None:
     assert code == 1 and "run `mapkit fuse" in out
     code, out = run("fuse", box_flight, "-w", ws, "--voxel", "0.1")
     assert code == 0 and "fused 36 of 36 frames" in out and "frames/s" in out, out
+    # the summary names every file it wrote: the store it ingested, the fused files and their manifest
+    assert f"wrote {ws}/frames.zarr, {ws}/cloud.ply, {ws}/tsdf.npz, {ws}/fuse.json\n" in out, out
+    code, out = run("fuse", "-w", ws, "--voxel", "0.1", "--mesh", "--overwrite")
+    assert code == 0 and f"wrote {ws}/cloud.ply, {ws}/tsdf.npz, {ws}/mesh.ply, {ws}/fuse.json\n" in out, out
 
 
 def test_no_depth_in_range_is_an_error(tmp_path: Path, box_flight: Path) -> None:

@@ -109,11 +109,11 @@ def test_cli_fuse_world_then_esdf_and_bad_input(two_flights: Path, tmp_path: Pat
     result = runner.invoke(main, ["esdf", "-w", str(out), "--voxel", "0.2", "--max-dist", "1.0"])
     assert result.exit_code == 0, result.output
     assert EsdfMap.open(out / "map.zarr").shape == tuple(open_world(out).attrs["shape"])
-    for args, message in (
-        (["esdf", "-w", str(out), "--overwrite"], "--voxel 0.2"),  # the world's grid is fixed at fuse-world
-        (["fuse-world", str(two_flights), "-o", str(out), "--tile", "100"], "--tile 100"),
-        (["fuse-world", str(tmp_path / "nowhere"), "-o", str(tmp_path / "w2")], "does not exist"),
+    for args, message, code in (
+        (["esdf", "-w", str(out), "--overwrite"], "--voxel 0.2", 1),  # the world's grid is fixed at fuse-world
+        (["fuse-world", str(two_flights), "-o", str(out), "--tile", "100"], "--tile 100", 2),  # a usage error
+        (["fuse-world", str(tmp_path / "nowhere"), "-o", str(tmp_path / "w2")], "does not exist", 1),
     ):
         result = runner.invoke(main, args)
-        assert result.exit_code == 1, (args, result.output)
+        assert result.exit_code == code, (args, result.output)
         assert message in result.output and "Traceback" not in result.output, result.output

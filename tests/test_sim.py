@@ -330,5 +330,5 @@ def test_cli(tmp_path: Path) -> None:
     res = runner.invoke(main, args + ["--overwrite"])
     assert res.exit_code == 0, res.output
     res = runner.invoke(main, ["simulate", "-o", str(tmp_path / "bad"), "--width", "0"])
-    assert res.exit_code == 1 and "bad resolution" in res.output
+    assert res.exit_code == 2 and "bad resolution" in res.output  # a usage error
     assert "--depth-encoding" in runner.invoke(main, ["simulate", "--help"]).output

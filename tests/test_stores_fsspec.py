@@ -402,7 +402,8 @@ def test_fuse_and_esdf_on_a_workspace_at_a_url_equal_the_local_ones(local: tuple
     assert "has no complete fused map" in _one_line(["esdf", "-w", mem])
     out = CliRunner().invoke(main, ["fuse", str(bag), "-w", mem, "--voxel", "0.1"])
     assert out.exit_code == 0, out.output
-    assert f"wrote {mem}/cloud.ply, {mem}/tsdf.npz" in out.output and "mapkit-fuse-" not in out.output
+    assert f"wrote {mem}/frames.zarr, {mem}/cloud.ply, {mem}/tsdf.npz, {mem}/fuse.json" in out.output, out.output
+    assert "mapkit-fuse-" not in out.output
     meta = json.loads(fs.cat_file(f"{base}/fuse.json"))
     assert {n: fs.size(f"{base}/{n}") for n in meta["outputs"]} == meta["outputs"]
     assert (ws / "tsdf.npz").read_bytes() == fs.cat_file(f"{base}/tsdf.npz")

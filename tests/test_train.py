@@ -153,7 +153,7 @@ def test_cli_bad_inputs(workspace: Path, tmp_path: Path) -> None:
     result = runner.invoke(main, ["train", "-w", str(workspace), "--device", "cuda:7", "--runs-dir", str(tmp_path / "runs")])
     assert result.exit_code == 1 and "cuda" in result.output.lower() and "Traceback" not in result.output
     result = runner.invoke(main, ["train", "-w", str(workspace), "--lr", "-1", "--runs-dir", str(tmp_path / "runs")])
-    assert result.exit_code == 1 and "--lr" in result.output
+    assert result.exit_code == 2 and "--lr -1.0 must be positive" in result.output  # a usage error, before any work
 
 
 @pytest.mark.slow
@@ -343,6 +343,20 @@ def test_a_model_of_random_bytes_is_one_line_without_unsafe_advice(workspace: Pa
     result = CliRunner().invoke(main, ["train", "-w", str(workspace), "--init", str(run), "--runs-dir", str(tmp_path / "r"),
                                        "--max-steps", "1"])
     assert result.exit_code == 1 and "is not a mapkit planner" in result.output and "Traceback" not in result.output
+
+
+def test_train_alone_trains_in_the_current_directory(workspace: Path, tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without -w (or --dataset) the workspace is the current directory, as for every other command:
+    here one without map.zarr, so the run stops at once, naming that folder's missing map."""
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(workspace, ws, ignore=shutil.ignore_patterns("map.zarr", "runs"))
+    monkeypatch.chdir(ws)
+    result = CliRunner().invoke(main, ["train", "--max-steps", "1"])
+    assert f"workspace: {ws} (the current directory" in result.output, result.output
+    assert result.exit_code == 1 and "map.zarr is missing" in result.output and "mapkit esdf -w ." in result.output
 
 
 def test_a_missing_map_names_the_command_that_makes_it(workspace: Path, tmp_path: Path) -> None:

@@ -72,6 +72,8 @@ class FoxgloveSummary:
     """"VoxelGrid", "Grid slices" or "" (no map)."""
     notes: list[str] = field(default_factory=list)
     """Layers left out, each with the command that makes them."""
+    plans_skipped: dict[str, int] = field(default_factory=dict)
+    """With a model: why some of the ``plan_count`` frames got no plan (reason → frames)."""
     bytes: int = 0
     seconds: float = 0.0
 
@@ -236,10 +238,16 @@ PLAN_CORRIDOR = 1.0
 """Metres: the flight corridor of exported plans (``mapkit eval``'s default, ``Corridor.width``)."""
 
 
-def _plan_results(frames: Any, config: FoxgloveConfig) -> Iterator[tuple[int, NDArray[np.float64], Any, float]]:
+HOVER_DISTANCE = 0.5
+"""Metres: a goal this close leaves nowhere to plan to (the vehicle hovered); such frames get no plan."""
+
+
+def _plan_results(frames: Any, config: FoxgloveConfig, skipped: dict[str, int]
+                  ) -> Iterator[tuple[int, NDArray[np.float64], Any, float]]:
     """(stamp, T_world_body, PlanResult, corridor) of ``config.model`` at evenly spread frames, each
     toward where the flight was ``goal_ahead`` seconds later (same recording), clipped to the
-    planner's range; frames with nowhere to go are skipped."""
+    planner's range; the ``plan_count`` frames that get none are counted in ``skipped`` by reason,
+    for the summary to say why fewer plans were written."""
     from mapkit.export import body_velocities
     from mapkit.flight import FlightError, Planner
     from mapkit.flight._single import LOCAL_GOAL_RANGE
@@ -250,26 +258,37 @@ def _plan_results(frames: Any, config: FoxgloveConfig) -> Iterator[tuple[int, ND
         raise ExchangeError(f"--model: {exc}") from None
     stamps = frames.stamp_ns.astype(np.int64)
     velocity = body_velocities(stamps, frames.T_world_body, frames.source_index)
-    for i in np.unique(np.linspace(0, len(stamps) - 1, config.plan_count).round().astype(int)).tolist():
+    picks = np.unique(np.linspace(0, len(stamps) - 1, config.plan_count).round().astype(int)).tolist()
+    if len(picks) < config.plan_count:  # evenly spread over fewer frames than plans: each frame once
+        _count(skipped, f"the flight has only {len(stamps)} frames", config.plan_count - len(picks))
+    for i in picks:
         later = np.flatnonzero((frames.source_index == frames.source_index[i]) & (stamps >= stamps[i] + int(config.goal_ahead * 1e9)))
         if not len(later):
+            _count(skipped, f"no frame {config.goal_ahead:g} s later in its recording to plan toward (the flight's "
+                            "end, see --goal-ahead)")
             continue
         T_wb = frames.T_world_body[i]
         goal = (invert_transform(T_wb) @ np.append(frames.T_world_body[later[0]][:3, 3], 1.0))[:3]
         distance = float(np.linalg.norm(goal))
-        if distance < 0.5:
-            continue  # hovering: nowhere to plan to
+        if distance < HOVER_DISTANCE:
+            _count(skipped, f"under {HOVER_DISTANCE:g} m flown in the next {config.goal_ahead:g} s: nowhere to plan to "
+                            "(hovering, or a short --goal-ahead)")
+            continue
         result = planner.plan(np.asarray(frames.depth[i]), goal * min(1.0, LOCAL_GOAL_RANGE / distance),
                               velocity_body=velocity[i], corridor=PLAN_CORRIDOR, K=frames.K,
                               T_body_camera=invert_transform(T_wb) @ frames.T_world_camera[i])
         yield int(stamps[i]), T_wb, result, PLAN_CORRIDOR
 
 
-def _log_plans(frames: Any, world: str, config: FoxgloveConfig, channel: Any) -> int:
+def _count(skipped: dict[str, int], reason: str, frames: int = 1) -> None:
+    skipped[reason] = skipped.get(reason, 0) + frames
+
+
+def _log_plans(frames: Any, world: str, config: FoxgloveConfig, channel: Any, skipped: dict[str, int]) -> int:
     from foxglove.messages import SceneUpdate
 
     count = 0
-    for ns, T_wb, result, corridor in _plan_results(frames, config):
+    for ns, T_wb, result, corridor in _plan_results(frames, config, skipped):
         channel.log(SceneUpdate(entities=[_plan_entity(result, T_wb, ns, world, corridor, count)]), log_time=ns)
         count += 1
     return count
@@ -364,7 +383,8 @@ def export_foxglove(workspace: str | Path, output: str | Path, config: FoxgloveC
                         f"well ({config.voxel_limit:,}); wrote Grid slices at z = "
                         f"{', '.join(f'{z:g}' for z in config.slice_heights)} m on /map/esdf_slices instead")
             if config.model is not None:
-                summary.messages["/planner/plans"] = _log_plans(frames, world, config, channels["/planner/plans"])
+                summary.messages["/planner/plans"] = _log_plans(frames, world, config, channels["/planner/plans"],
+                                                                summary.plans_skipped)
             if config.eval_dir is not None:
                 summary.messages["/eval/*"] = _log_eval(Path(config.eval_dir), first, channels, context)
         finally:

@@ -50,6 +50,8 @@ class RerunSummary:
     path: Path
     frames: int = 0
     plans: int = 0
+    plans_skipped: dict[str, int] = field(default_factory=dict)
+    """With a model: why some of the ``plan_count`` frames got no plan (reason → frames)."""
     eval_paths: int = 0
     entities: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
@@ -109,11 +111,11 @@ def _log_maps(rec: Any, workspace: Path, frames: Any) -> list[str]:
     return logged
 
 
-def _log_plans(rec: Any, frames: Any, config: RerunConfig) -> int:
+def _log_plans(rec: Any, frames: Any, config: RerunConfig, skipped: dict[str, int]) -> int:
     import rerun as rr
 
     count = 0
-    for ns, T_wb, result, corridor in _plan_results(frames, config):
+    for ns, T_wb, result, corridor in _plan_results(frames, config, skipped):
         _at(rec, ns)
         R, p = T_wb[:3, :3], T_wb[:3, 3]
         ends = np.concatenate([np.zeros((1, 3)), result.keypoints])
@@ -171,7 +173,7 @@ def export_rerun(workspace: str | Path, output: str | Path, config: RerunConfig 
             summary.frames = _log_flight(rec, frames)
             summary.entities = ["/world/body", "/world/body/camera", "/world/body/camera/depth", *_log_maps(rec, workspace, frames)]
             if config.model is not None:
-                summary.plans = _log_plans(rec, frames, config)
+                summary.plans = _log_plans(rec, frames, config, summary.plans_skipped)
             if config.eval_dir is not None:
                 summary.eval_paths = _log_eval(rec, Path(config.eval_dir))
         finally:

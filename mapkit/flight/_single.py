@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import warnings
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -192,13 +192,21 @@ class Planner:
                                 f"camera to use instead: no `camera` in its {RUN_CONFIG})")
         if tuple(shape[-2:]) != (cam.height, cam.width):
             raise FlightError(f"depth is {shape[-1]}x{shape[-2]} pixels but the camera this model's run recorded "
-                                f"({cam.source}) is {cam.width}x{cam.height}: {fix}")
+                                f"({_source_name(cam.source)}) is {cam.width}x{cam.height}: {fix}")
         if not self._said_camera:
             self._said_camera = True
             warnings.warn(f"no K / T_body_camera given: checking the depth image with the camera the model's run "
-                          f"recorded ({cam.width}x{cam.height}, from {cam.source}); pass K and T_body_camera for "
-                          "another camera", stacklevel=3)
+                          f"recorded ({cam.width}x{cam.height}, from {_source_name(cam.source)}); pass K and "
+                          "T_body_camera for another camera", stacklevel=3)
         return cam.K, cam.T_body_camera, True
+
+
+def _source_name(source: str) -> str:
+    """Where a run read its camera, as messages show it: the training workspace's folder and store
+    (``000-forest-s20000/frames.zarr``). The full path is the one on the machine that trained the run,
+    for the shipped model another machine's, which means nothing (and tells too much) here."""
+    parts = PurePath(source).parts[-2:]
+    return "/".join(parts) if parts else f"the run's {RUN_CONFIG}"
 
 
 def check_output_folder(out_dir: Path) -> None:

@@ -84,8 +84,9 @@ class FuseSummary:
     seconds: float
     integrate_seconds: float
     outputs: list[Path] = field(default_factory=list)
-    """The files written; for a workspace at a URL, the local copies they were published from
-    (``urls`` names them where they now are)."""
+    """Every file and store written, in order: frames.zarr when this call ingested it, cloud.ply,
+    tsdf.npz, mesh.ply (``mesh``), fuse.json; for a workspace at a URL, the local copies they were
+    published from (``urls`` names them where they now are)."""
     urls: list[str] = field(default_factory=list)
     """For a workspace at a URL: where each of ``outputs`` was published."""
 
@@ -326,7 +327,7 @@ def fuse_store(store: FramesStore, workspace: Path, config: FuseConfig, *, overw
     return FuseSummary(
         frames_used=len(indices) - skipped, frames_total=len(store), dropped=dict(store.attrs.get("dropped", {})),
         blocks=active, voxels=active * BLOCK_RESOLUTION**3, points=n_points, bounds=bounds,
-        seconds=time.perf_counter() - t0, integrate_seconds=integrate_s, outputs=outputs,
+        seconds=time.perf_counter() - t0, integrate_seconds=integrate_s, outputs=[*outputs, workspace / FUSE_META],
     )
 
 
@@ -425,6 +426,7 @@ def fuse(
         return _fuse_at_url(recordings, url, config, ingest_config, overwrite=overwrite, progress=progress)
     workspace = Path(workspace)
     frames_path = workspace / FRAMES
+    ingested = False
     if recordings:
         current = False
         if frames_path.exists():
@@ -434,11 +436,15 @@ def fuse(
                 current = False
         if not current:
             ingest(recordings, workspace, ingest_config, overwrite=overwrite or not frames_path.exists(), progress=progress)
+            ingested = True
         else:
             log.info("reusing up-to-date %s", frames_path)
     elif not frames_path.exists():
         raise FusionError(f"no recordings given and {frames_path} does not exist; pass BAG... or run `mapkit ingest` first")
-    return fuse_store(open_frames_store(workspace), workspace, config, overwrite=overwrite, progress=progress)
+    summary = fuse_store(open_frames_store(workspace), workspace, config, overwrite=overwrite, progress=progress)
+    if ingested:  # the summary names every output of the call, the store it ingested too
+        summary.outputs.insert(0, frames_path)
+    return summary
 
 
 def _fuse_at_url(recordings: Sequence[str | Path], url: str, config: FuseConfig, ingest_config: IngestConfig, *,
