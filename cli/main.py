@@ -26,6 +26,7 @@ from mapkit.cli._group import (
 # isort: split
 # Bound above first: a command module may import these names from here while this module is importing it.
 from mapkit.cli import batch as _batch  # noqa: F401 - registers its commands on main
+from mapkit.cli import config as _config  # noqa: F401 - registers its commands on main
 from mapkit.cli import dataset as _dataset  # noqa: F401 - registers its commands on main
 from mapkit.cli import eval as _eval  # noqa: F401 - registers its commands on main
 from mapkit.cli import exchange as _exchange  # noqa: F401 - registers its commands on main
