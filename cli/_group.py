@@ -174,9 +174,27 @@ def workspace_option(help: str, *, urls: bool = False,
                         help=f"{help}{more} Default: the current directory.")
 
 
-class _Group(click.Group):
+PIPELINE_ORDER = ("info", "ingest", "fuse", "fuse-world", "esdf", "slice", "export", "batch", "simulate", "dataset",
+                  "train", "eval", "plan", "view", "export-foxglove", "export-rerun", "copy-store", "config", "lab")
+"""`mapkit --help` lists the commands along the pipeline (recordings → maps → training data → a
+planner → its flights → looking at the results), not alphabetically; the tools come last."""
+
+
+class OrderedGroup(click.Group):
+    """A group whose commands are listed in ``order`` (any other after them, by name)."""
+
+    order: tuple[str, ...] = ()
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        names = super().list_commands(ctx)
+        return [n for n in self.order if n in names] + [n for n in names if n not in self.order]
+
+
+class _Group(OrderedGroup):
     """Usage errors (unknown option, bad value) as one line, like every other error: ``error:
-    <command>: <what> (see mapkit <command> --help)``, exit 2."""
+    <command>: <what> (see mapkit <command> --help)``, exit 2. Commands in pipeline order."""
+
+    order = PIPELINE_ORDER
 
     def main(self, *args: Any, **kwargs: Any) -> Any:
         kwargs["standalone_mode"] = False
@@ -205,3 +223,12 @@ def main(verbose: int) -> None:
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
 
+
+
+class _Lab(OrderedGroup):
+    order = ("tune-timing", "tune-judge", "compare-timing")
+
+
+@main.group("lab", cls=_Lab)
+def lab() -> None:
+    """Research tools: the shipped recipe runs them for you (`mapkit train --recipe pretrained -o DIR`)."""

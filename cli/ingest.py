@@ -7,70 +7,89 @@ from pathlib import Path
 from typing import Any
 
 import click
+import numpy as np
 
-from mapkit.cli._group import COUNT, POSITIVE, library_call, main, option_values, workspace_option
+from mapkit.cli._config import Codec, ConfigSpec, Settings, config_options, field_option
+from mapkit.cli._group import library_call, main, option_values, workspace_option
 from mapkit.ingest import IngestConfig, IngestError, ingest, inspect_recordings
 from mapkit.ingest._decode import parse_extrinsic, parse_intrinsics
 
 RECORDINGS = click.argument("recordings", nargs=-1, required=True, type=click.Path(path_type=Path))
 
 
-def ingest_options(func: Callable[..., Any]) -> Callable[..., Any]:
-    """The role overrides and sync options shared by every command that reads recordings."""
+def _text(value: Any, what: str) -> str:
+    """A TOML value of numbers as the comma text the parsers read (a list of numbers, or the text itself)."""
+    if isinstance(value, str):
+        return value
+    if isinstance(value, (list, tuple)) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+        return ",".join(str(v) for v in value)
+    raise ValueError(f"expected {what}")
+
+
+def _read_extrinsic(value: Any) -> Any:
+    if isinstance(value, list) and len(value) == 4:  # the 4x4 matrix, as `mapkit config` shows one
+        return np.asarray(value, dtype=np.float64)
+    return parse_extrinsic(_text(value, '"identity", "X,Y,Z,QX,QY,QZ,QW" or a list of those 7 numbers'))
+
+
+INGEST_TABLE = ("ingest", IngestConfig)
+"""Every command that reads recordings has the ingest settings as the table ``ingest``: one file
+serves info, ingest, fuse and batch alike."""
+INGEST_CODECS = {
+    "ingest.intrinsics": Codec(
+        read=lambda v: parse_intrinsics(_text(v, '"FX,FY,CX,CY" or a list of those 4 numbers')),
+        show=lambda K: [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]),
+    "ingest.extrinsic": Codec(read=_read_extrinsic, show=lambda T: np.asarray(T).tolist()),
+}
+"""The camera's matrices: written as the numbers that make them."""
+
+
+def ingest_options(spec: ConfigSpec) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """The role overrides a recording without the usual topics needs every time (the other ingest
+    settings are ``--set ingest.NAME=VALUE``): --depth-topic, --pose-topic, --intrinsics."""
     options = [
-        click.option("--depth-topic", help="Depth image topic (default: auto-detect by type and encoding)."),
-        click.option("--camera-info-topic", help="CameraInfo topic (default: auto-detect)."),
-        click.option("--pose-topic", help="Odometry/PoseStamped topic, or 'tf' to use the tf tree only."),
-        click.option("--world-frame", help="Fixed frame of output poses (default: the pose topic's frame or tf root)."),
-        click.option("--camera-frame", help="Optical frame of the depth camera (default: the images' frame_id)."),
-        click.option("--body-frame", help="Body frame (default: Odometry child frame / start of the static chain)."),
-        click.option("--intrinsics", metavar="FX,FY,CX,CY", help="Camera intrinsics when the recording has no CameraInfo."),
-        click.option("--extrinsic", metavar="X,Y,Z,QX,QY,QZ,QW", help="T_body_camera (optical), overriding tf_static; or 'identity'."),
-        click.option("--max-pose-gap", type=POSITIVE, default=0.1, show_default=True, help="Seconds; drop frames inside longer pose gaps."),
-        click.option("--stride", type=COUNT, default=1, show_default=True, help="Keep every N-th depth message."),
-        click.option("--max-frames", type=COUNT, default=None, help="Stop after this many frames."),
-        click.option("--drop-nonmonotonic", is_flag=True, help="Drop messages whose stamp goes backwards instead of failing."),
+        field_option("--depth-topic", spec=spec, key="ingest.depth_topic",
+                     help="Depth image topic (default: auto-detect by type and encoding)."),
+        field_option("--pose-topic", spec=spec, key="ingest.pose_topic",
+                     help="Odometry/PoseStamped topic, or 'tf' to use the tf tree only (default: auto-detect)."),
+        field_option("--intrinsics", spec=spec, key="ingest.intrinsics", metavar="FX,FY,CX,CY",
+                     help="Camera intrinsics when the recording has no CameraInfo."),
     ]
-    for option in reversed(options):
-        func = option(func)
-    return func
+
+    def decorate(func: Callable[..., Any]) -> Callable[..., Any]:
+        for option in reversed(options):
+            func = option(func)
+        return func
+
+    return decorate
 
 
-def build_config(**kw: Any) -> IngestConfig:
-    """The ingest options as a checked config; a malformed or out-of-range value is a usage error."""
+def build_config(settings: Settings, depth_topic: str | None, pose_topic: str | None,
+                 intrinsics: str | None) -> IngestConfig:
+    """The ingest settings and options as a checked config; a malformed or out-of-range value is a usage error."""
     with option_values():
-        config = _ingest_config(**kw)
+        given = {"ingest.depth_topic": depth_topic, "ingest.pose_topic": pose_topic,
+                 "ingest.intrinsics": parse_intrinsics(intrinsics) if intrinsics else None}
+        config = settings.build(IngestConfig(), given, table="ingest")
         config.validate()
     return config
 
 
-def _ingest_config(**kw: Any) -> IngestConfig:
-    return IngestConfig(
-        depth_topic=kw["depth_topic"],
-        camera_info_topic=kw["camera_info_topic"],
-        pose_topic=kw["pose_topic"],
-        world_frame=kw["world_frame"],
-        camera_frame=kw["camera_frame"],
-        body_frame=kw["body_frame"],
-        intrinsics=parse_intrinsics(kw["intrinsics"]) if kw["intrinsics"] else None,
-        extrinsic=parse_extrinsic(kw["extrinsic"]) if kw["extrinsic"] else None,
-        max_pose_gap=kw["max_pose_gap"],
-        stride=kw["stride"],
-        max_frames=kw["max_frames"],
-        drop_nonmonotonic=kw["drop_nonmonotonic"],
-    )
+INFO = ConfigSpec("info", (INGEST_TABLE,), codecs=INGEST_CODECS, example="ingest.extrinsic=identity")
+INGEST = ConfigSpec("ingest", (INGEST_TABLE,), codecs=INGEST_CODECS, example="ingest.stride=2")
 
 
 @main.command()
 @RECORDINGS
-@ingest_options
+@ingest_options(INFO)
+@config_options(INFO)
 @library_call
-def info(recordings: tuple[Path, ...], **kw: Any) -> None:
+def info(recordings: tuple[Path, ...], settings: Settings, **kw: Any) -> None:
     """Topics, types, counts, rates and time span of RECORDINGS, and the topics ingestion would use.
 
     Exits 1 when a recording lacks a depth, camera-info or pose source.
     """
-    config = build_config(**kw)
+    config = build_config(settings, **kw)
     problems = []
     for item in inspect_recordings(list(recordings), config):
         s = item.summary
@@ -102,11 +121,12 @@ def info(recordings: tuple[Path, ...], **kw: Any) -> None:
 @RECORDINGS
 @workspace_option("Workspace directory.", urls=True)
 @click.option("--overwrite", is_flag=True, help="Replace an existing frames.zarr.")
-@ingest_options
+@ingest_options(INGEST)
+@config_options(INGEST)
 @library_call
-def ingest_cmd(recordings: tuple[Path, ...], workspace: Path, overwrite: bool, **kw: Any) -> None:
-    """Decode and synchronise RECORDINGS into WORKSPACE/frames.zarr."""
-    summary = ingest(list(recordings), workspace, build_config(**kw), overwrite=overwrite, progress=True)
+def ingest_cmd(recordings: tuple[Path, ...], workspace: Path, overwrite: bool, settings: Settings, **kw: Any) -> None:
+    """Decode and synchronise RECORDINGS into WORKSPACE/frames.zarr (every setting: `mapkit config ingest`)."""
+    summary = ingest(list(recordings), workspace, build_config(settings, **kw), overwrite=overwrite, progress=True)
     for w in summary.warnings:
         click.echo(f"warning: {w}", err=True)
     dropped = ", ".join(f"{k} {v}" for k, v in summary.dropped.items()) or "none"

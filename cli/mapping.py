@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import click
 
 from mapkit._stores import Location
-from mapkit.cli._group import COUNT, FINITE, NONNEGATIVE, POSITIVE, library_call, main, option_values, workspace_option
-from mapkit.cli.ingest import build_config, ingest_options
-
-if TYPE_CHECKING:
-    from mapkit.esdf import Backend
+from mapkit.cli._config import ConfigSpec, Settings, config_options, field_option
+from mapkit.cli._group import COUNT, FINITE, library_call, main, option_values, workspace_option
+from mapkit.cli.ingest import INGEST_CODECS, INGEST_TABLE, build_config, ingest_options
 
 FUSE_WORKSPACE = workspace_option("Workspace directory, or an fsspec URL (fused in a local temporary folder, then published there).",
                                   urls=True)
@@ -22,31 +20,52 @@ SLICE_WORKSPACE = workspace_option("Workspace with map.zarr.", urls=True)
 OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace existing outputs.")
 
 
+def _fuse_defaults() -> Any:
+    from mapkit.fusion import FuseConfig
+
+    return FuseConfig()
+
+
+def _world_defaults() -> Any:
+    from mapkit.fusion import WorldConfig
+
+    return WorldConfig()
+
+
+def _esdf_defaults() -> Any:
+    from mapkit.esdf import EsdfConfig
+
+    return EsdfConfig()
+
+
+FUSE = ConfigSpec("fuse", (("", _fuse_defaults), INGEST_TABLE), codecs=INGEST_CODECS, example="max_depth=6")
+FUSE_WORLD = ConfigSpec("fuse-world", (("", _world_defaults),), example="fuse.voxel=0.05")
+ESDF = ConfigSpec("esdf", (("", _esdf_defaults),), example="unknown=occupied")
+
+
 @main.command()
 @click.argument("recordings", nargs=-1, type=click.Path(path_type=Path))
 @FUSE_WORKSPACE
-@click.option("--voxel", type=FINITE, default=0.05, show_default=True, help="TSDF voxel size (m).")
-@click.option("--trunc", type=POSITIVE, default=4.0, show_default=True, help="TSDF truncation (voxels).")
-@click.option("--max-depth", type=POSITIVE, default=8.0, show_default=True, help="Ignore depth beyond this (m).")
-@click.option("--device", default="cpu", show_default=True, help="cpu or cuda:N.")
-@click.option("--frame-stride", "frame_stride", type=COUNT, default=1, show_default=True, help="Integrate every N-th frame.")
-@click.option("--mesh", is_flag=True, help="Also write WS/mesh.ply (marching cubes).")
+@field_option("--voxel", spec=FUSE, key="voxel", type=FINITE, help="TSDF voxel size (m).")
+@field_option("--mesh", spec=FUSE, key="mesh", is_flag=True, help="Also write WS/mesh.ply (marching cubes).")
+@field_option("--device", spec=FUSE, key="device", help="cpu or cuda:N.")
 @OVERWRITE
-@ingest_options
+@ingest_options(FUSE)
+@config_options(FUSE)
 @library_call
-def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float, trunc: float, max_depth: float, device: str,
-         frame_stride: int, mesh: bool, overwrite: bool, **kw: Any) -> None:
+def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float | None, mesh: bool | None, device: str | None,
+         overwrite: bool, settings: Settings, **kw: Any) -> None:
     """TSDF-fuse RECORDINGS (or WS/frames.zarr when none are given) into WS/cloud.ply.
 
-    Ingests first unless WS/frames.zarr is up to date for the same recordings and options.
+    Ingests first unless WS/frames.zarr is up to date for the same recordings and options. Every
+    setting (truncation, max depth, frame stride, ingest.*): `mapkit config fuse`.
     """
-    from mapkit.fusion import FuseConfig
     from mapkit.fusion import fuse as fuse_fn
 
     with option_values():
-        config = FuseConfig(voxel=voxel, trunc=trunc, max_depth=max_depth, device=device, stride=frame_stride, mesh=mesh)
+        config = settings.build(_fuse_defaults(), {"voxel": voxel, "mesh": mesh, "device": device})
         config.validate()
-    s = fuse_fn(list(recordings), workspace, config, build_config(**kw), overwrite=overwrite, progress=True)
+    s = fuse_fn(list(recordings), workspace, config, build_config(settings, **kw), overwrite=overwrite, progress=True)
     dropped = ", ".join(f"{k} {v}" for k, v in s.dropped.items()) or "none"
     lo, hi = s.bounds
     click.echo(
@@ -62,37 +81,26 @@ def fuse(recordings: tuple[Path, ...], workspace: Path, voxel: float, trunc: flo
 @click.argument("workspaces", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
               help="World directory: OUTPUT/world.zarr (then `mapkit esdf -w OUTPUT`).")
-@click.option("--voxel", type=FINITE, default=0.1, show_default=True, help="World grid (= ESDF) voxel size (m).")
-@click.option("--tsdf-voxel", type=FINITE, default=0.05, show_default=True, help="TSDF voxel size (m), as mapkit fuse --voxel.")
-@click.option("--trunc", type=POSITIVE, default=4.0, show_default=True, help="TSDF truncation (voxels).")
-@click.option("--max-depth", type=POSITIVE, default=8.0, show_default=True, help="Ignore depth beyond this (m).")
-@click.option("--frame-stride", "frame_stride", type=COUNT, default=1, show_default=True, help="Integrate every N-th frame.")
-@click.option("--padding", type=NONNEGATIVE, default=1.0, show_default=True, help="Metres around the bounds.")
-@click.option("--solid-depth", type=NONNEGATIVE, default=0.5, show_default=True,
-              help="Unseen space this far (m) behind measured surfaces is marked solid-behind (mapkit esdf --unknown free).")
-@click.option("--tile", type=COUNT, default=128, show_default=True, help="Voxels per tile edge (a multiple of 64); one Dask task each.")
-@click.option("--bounds", type=FINITE, nargs=6, default=None, metavar="X0 Y0 Z0 X1 Y1 Z1",
-              help="World box (m); default: the flights' depth points.")
+@field_option("--voxel", spec=FUSE_WORLD, key="voxel", type=FINITE, help="World grid (= ESDF) voxel size (m).")
 @click.option("--scheduler", metavar="ADDRESS",
               help="Dask scheduler (tcp://HOST:8786; default: DASK_SCHEDULER_ADDRESS); paths must be on storage the workers share.")
 @click.option("--workers", type=COUNT, default=None, help="N local Dask worker processes (default: 1, this process).")
 @OVERWRITE
+@config_options(FUSE_WORLD)
 @library_call
-def fuse_world_cmd(workspaces: tuple[Path, ...], output: Path, voxel: float, tsdf_voxel: float, trunc: float,
-                   max_depth: float, frame_stride: int, padding: float, solid_depth: float, tile: int,
-                   bounds: tuple[float, ...] | None, scheduler: str | None, workers: int | None, overwrite: bool) -> None:
+def fuse_world_cmd(workspaces: tuple[Path, ...], output: Path, voxel: float | None, scheduler: str | None,
+                   workers: int | None, overwrite: bool, settings: Settings) -> None:
     """Fuse the flights of WORKSPACES (each with frames.zarr, one world frame) into one world map,
     tile by tile on Dask: OUTPUT/world.zarr, the chunked occupancy `mapkit esdf -w OUTPUT` reads.
 
     With one workspace the result equals `mapkit fuse` + `mapkit esdf --workers 1` on the same grid.
+    The TSDF (fuse.voxel, fuse.trunc, ...), tiles and bounds are settings: `mapkit config fuse-world`.
     """
     from mapkit._dask import scheduler_address
-    from mapkit.fusion import FuseConfig, WorldConfig, fuse_world
+    from mapkit.fusion import fuse_world
 
-    box = None if bounds is None else ((bounds[0], bounds[1], bounds[2]), (bounds[3], bounds[4], bounds[5]))
     with option_values():
-        config = WorldConfig(voxel=voxel, padding=padding, tile=tile, solid_depth=solid_depth, bounds=box,
-                             fuse=FuseConfig(voxel=tsdf_voxel, trunc=trunc, max_depth=max_depth, stride=frame_stride))
+        config = settings.build(_world_defaults(), {"voxel": voxel})
         config.validate()
     s = fuse_world(list(workspaces), output, config, overwrite=overwrite, progress=True,
                    scheduler=scheduler_address(scheduler), workers=workers)
@@ -106,15 +114,7 @@ def fuse_world_cmd(workspaces: tuple[Path, ...], output: Path, voxel: float, tsd
 
 @main.command()
 @ESDF_WORKSPACE
-@click.option("--voxel", type=FINITE, default=0.1, show_default=True, help="ESDF voxel size (m).")
-@click.option("--padding", type=NONNEGATIVE, default=1.0, show_default=True, help="Metres around the fused map.")
-@click.option("--sigma", type=NONNEGATIVE, default=0.1, show_default=True, help="Gaussian smoothing (m); 0 = none.")
-@click.option("--unknown", type=click.Choice(["free", "occupied"]), default="free", show_default=True,
-              help="Unobserved space: free (as the paper; enclosed unseen pockets stay solid) or occupied (conservative).")
-@click.option("--solid-depth", type=NONNEGATIVE, default=0.5, show_default=True,
-              help="With --unknown free: unseen space this far (m) behind measured surfaces is solid.")
-@click.option("--max-dist", type=POSITIVE, default=None, help="Clamp |distance| to this (m).")
-@click.option("--backend", type=click.Choice(["edt", "scipy"]), default="edt", show_default=True, help="Exact EDT implementation.")
+@field_option("--voxel", spec=ESDF, key="voxel", type=FINITE, help="ESDF voxel size (m).")
 @click.option("--scheduler", metavar="ADDRESS",
               help="Compute the chunked ESDF on this Dask scheduler (tcp://HOST:8786; default: DASK_SCHEDULER_ADDRESS); "
                    "the workspace must be on storage the workers share.")
@@ -123,21 +123,21 @@ def fuse_world_cmd(workspaces: tuple[Path, ...], output: Path, voxel: float, tsd
 @click.option("-o", "--output", metavar="PATH|URL", default=None,
               help="Write map.zarr here instead of WS/map.zarr: a path or an fsspec URL (s3://bucket/site/map.zarr).")
 @OVERWRITE
+@config_options(ESDF)
 @library_call
-def esdf(workspace: Path, voxel: float, padding: float, sigma: float, unknown: str, solid_depth: float,
-         max_dist: float | None, backend: Backend, scheduler: str | None, workers: int | None, output: str | None,
-         overwrite: bool) -> None:
+def esdf(workspace: Path, voxel: float | None, scheduler: str | None, workers: int | None, output: str | None,
+         overwrite: bool, settings: Settings) -> None:
     """Signed, Gaussian-smoothed ESDF of the fused map → WS/map.zarr.
 
     Grids too large for memory, or any grid with --workers / --scheduler, are computed chunk by chunk
-    as a Dask graph (exact up to --max-dist, default 2 m there).
+    as a Dask graph (exact up to max_dist, default 2 m there). Padding, smoothing, unseen space and
+    the rest are settings: `mapkit config esdf`.
     """
     from mapkit._dask import scheduler_address
-    from mapkit.esdf import EsdfConfig, build_esdf
+    from mapkit.esdf import build_esdf
 
     with option_values():
-        config = EsdfConfig(voxel=voxel, padding=padding, sigma=sigma, unknown=unknown, solid_depth=solid_depth,
-                            max_dist=max_dist, backend=backend)
+        config = settings.build(_esdf_defaults(), {"voxel": voxel})
         config.validate()
     s = build_esdf(workspace, config, overwrite=overwrite, progress=True, scheduler=scheduler_address(scheduler),
                    workers=workers, output=output)

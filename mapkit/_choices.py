@@ -23,7 +23,7 @@ GoalFrame = Literal["body", "world"]
 GOAL_FRAMES: tuple[GoalFrame, ...] = get_args(GoalFrame)
 
 TimingObjective = Literal["snap", "imitate"]
-"""What `mapkit tune-timing` fits the Time Allocation Net to (``TimingTuneConfig.objective``)."""
+"""What `mapkit lab tune-timing` fits the Time Allocation Net to (``TimingTuneConfig.objective``)."""
 TIMING_OBJECTIVES: tuple[TimingObjective, ...] = get_args(TimingObjective)
 
 BoundaryScale = Literal["limits", "duration"]

@@ -1,4 +1,4 @@
-"""Type checks of user-given dataclass fields (``--planner FIELD=VALUE``, ``--loss FIELD=VALUE``), so
+"""Type checks of user-given dataclass fields (a recipe's ``planner`` and ``loss`` tables, config.json), so
 a wrong value is a one-line error naming the field rather than a TypeError deep inside."""
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ EVAL_FORMAT = "mapkit-eval/1"
 """``format`` of a `mapkit eval` folder's results.json and latency.json."""
 PLANS_FILE = "plans.npz"
 JUDGE_FILE = "judge.npz"
-"""``mapkit eval --record-plans``: the learned method's time allocation inputs (``mapkit tune-timing``
+"""``EvalConfig.record_plans``: the learned method's time allocation inputs (``mapkit lab tune-timing``
 reads them)."""
 
 Outcome = Literal["success", "collision", "timeout"]

@@ -32,7 +32,7 @@ from mapkit.sim import SimConfig, simulate
 FUSE = FuseConfig(voxel=0.1)
 ESDF = EsdfConfig(voxel=0.2)
 EXPORT = ExportConfig(goals_per_frame=2)
-OPTIONS = ["--fuse-voxel", "0.1", "--esdf-voxel", "0.2", "--goals-per-frame", "2"]
+OPTIONS = ["--set", "fuse.voxel=0.1", "--set", "esdf.voxel=0.2", "--set", "export.goals_per_frame=2"]
 STORES = ("frames.zarr", "map.zarr", "tuples.zarr")
 
 
@@ -53,7 +53,7 @@ def reference(flights: list[Path], tmp_path_factory: pytest.TempPathFactory) -> 
     for flight in flights:
         ws = tmp / flight.stem
         for args in (["ingest", str(flight)], ["fuse", "--voxel", "0.1"], ["esdf", "--voxel", "0.2"],
-                     ["export", "--goals-per-frame", "2"]):
+                     ["export", "--set", "goals_per_frame=2"]):
             result = runner.invoke(main, [*args, "-w", str(ws)])
             assert result.exit_code == 0, result.output
         out[flight.stem] = ws
@@ -233,7 +233,7 @@ stride = 2
 
 @pytest.mark.parametrize("entry,message", [
     ('path = "{p}"\nextrinsc = "identity"', "recording 1 ({p}): unknown field 'extrinsc'"),
-    ('path = "{p}"\nextrinsic = "1,2"', "recording 1 ({p}): field 'extrinsic': --extrinsic '1,2' is not x,y,z"),
+    ('path = "{p}"\nextrinsic = "1,2"', "recording 1 ({p}): field 'extrinsic': extrinsic '1,2' is not x,y,z"),
     ('path = "{p}"\nstride = 0', "recording 1 ({p}): field 'stride' = 0: expected an integer >= 1"),
     ('path = "{p}"\npose_topic = 3', "recording 1 ({p}): field 'pose_topic' = 3: expected a string"),
     ('path = "nothere.mcap"', "recording 1 (nothere.mcap): recording"),

@@ -51,7 +51,7 @@ def test_ingest_then_existing_output(tmp_path: Path) -> None:
     assert code == 0 and "5 frames" in out, out
     code, out = run("ingest", rec.path, "-w", ws)
     assert_one_line_error(code, out, "already exists", "--overwrite")
-    code, out = run("ingest", rec.path, "-w", ws, "--overwrite", "--stride", "2")
+    code, out = run("ingest", rec.path, "-w", ws, "--overwrite", "--set", "ingest.stride=2")
     assert code == 0 and "3 frames" in out, out
 
 
@@ -144,9 +144,9 @@ def test_non_monotonic_stamps(tmp_path: Path) -> None:
                 msg.header.stamp.nanosec = rec.stamps_ns[1] - (T0 // 10**9) * 10**9  # clock jumps back
             bag.write_raw(raw.topic, raw.msgtype, msg, raw.log_time_ns)
     code, out = run("ingest", path, "-w", tmp_path / "ws")
-    assert_one_line_error(code, out, "goes backwards at message 4", "--drop-nonmonotonic")
+    assert_one_line_error(code, out, "goes backwards at message 4", "--set ingest.drop_nonmonotonic=true")
     _ws_untouched(tmp_path / "ws")
-    code, out = run("ingest", path, "-w", tmp_path / "ws", "--drop-nonmonotonic")
+    code, out = run("ingest", path, "-w", tmp_path / "ws", "--set", "ingest.drop_nonmonotonic=true")
     assert code == 0 and "non_monotonic_stamp 1" in out, out
 
 
@@ -165,9 +165,9 @@ def test_zero_sized_image(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("option,value,needle,usage", [
-    ("--stride", "0", "--stride", True),
-    ("--max-pose-gap", "-1", "--max-pose-gap", True),
-    ("--extrinsic", "1,2,3", "--extrinsic", True),
+    ("--set", "ingest.stride=0", "stride 0", True),
+    ("--set", "ingest.max_pose_gap=-1", "max_pose_gap -1", True),
+    ("--set", "ingest.extrinsic=1,2,3", "extrinsic '1,2,3'", True),
     ("--pose-topic", "/nope", "no such topic", False),
 ])
 def test_bad_options(tmp_path: Path, option: str, value: str, needle: str, usage: bool) -> None:

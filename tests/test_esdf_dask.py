@@ -127,7 +127,7 @@ def _arrays(ws: Path) -> dict[str, np.ndarray]:
 @pytest.mark.slow
 @pytest.mark.parametrize("unknown", ["free", "occupied"])
 def test_build_esdf_on_dask_equals_the_in_core_path(box_ws: Path, unknown: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    """`mapkit esdf --workers N` / `--scheduler` give the in-core map exactly (same --max-dist, without the
+    """`mapkit esdf --workers N` / `--scheduler` give the in-core map exactly (same max_dist, without the
     sub-voxel refinement that only the in-core path has): esdf, esdf_raw and observed, array for array."""
     config = EsdfConfig(voxel=0.1, sigma=0.1, max_dist=0.8, unknown=unknown, subvoxel=False)
     build_esdf(box_ws, config, overwrite=True, progress=False)
@@ -147,7 +147,7 @@ def test_build_esdf_on_dask_equals_the_in_core_path(box_ws: Path, unknown: str, 
 def test_cli_esdf_workers_and_an_unreachable_scheduler(box_ws: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("DASK_SCHEDULER_ADDRESS", raising=False)
     runner = CliRunner()
-    result = runner.invoke(main, ["esdf", "-w", str(box_ws), "--workers", "1", "--max-dist", "0.8", "--overwrite"])
+    result = runner.invoke(main, ["esdf", "-w", str(box_ws), "--workers", "1", "--set", "max_dist=0.8", "--overwrite"])
     assert result.exit_code == 0, result.output
     assert "on 1 Dask worker(s)" in result.output
     result = runner.invoke(main, ["esdf", "-w", str(box_ws), "--scheduler", "tcp://127.0.0.1:9", "--overwrite"])

@@ -135,7 +135,7 @@ def test_large_grids_run_chunked(workspaces: dict, monkeypatch: pytest.MonkeyPat
     import mapkit.esdf._build as build
 
     ws, _ = workspaces["box"]
-    # With --unknown occupied both paths measure distances to the same obstacles.
+    # With unknown = "occupied" both paths measure distances to the same obstacles.
     config = EsdfConfig(voxel=0.1, sigma=0.0, max_dist=1.0, unknown="occupied")
     build_esdf(ws, config, overwrite=True, progress=False)
     dense = np.asarray(EsdfMap.open(ws / "map.zarr").esdf[:])

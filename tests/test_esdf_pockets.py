@@ -1,4 +1,4 @@
-"""The --unknown free pocket rule chunk by chunk equals fill_unknown on the whole grid."""
+"""The unknown = "free" pocket rule chunk by chunk equals fill_unknown on the whole grid."""
 
 from __future__ import annotations
 

@@ -332,23 +332,25 @@ def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
 @pytest.mark.parametrize("args, message, code", [
     (["--world", "moon"], "unknown world 'moon'", 2),
     (["--methods", "learned,teleport"], "unknown method 'teleport'", 2),
-    (["--world", "office", "--pairs", "3", "--min-distance", "200"], "could sample only 0 of 3", 1),
-    (["--replan-interval", "0.01"], "whole number of depth frames", 2),
-    (["--corridor", "-0.5"], "--corridor must be a positive number", 2),
-    (["--unchecked-corridor", "-1"], "--unchecked-corridor must be a positive number", 2),
-    (["--v-max", "-1"], "--v-max must be a positive number", 2),
-    (["--memory", "-8"], "--memory must be a positive number", 2),
-    (["--plan-latency", "0.7"], "--plan-latency must be in", 2),
-    (["--final-approach", "-1"], "--final-approach must be >= 0", 2),
-    (["--subgoal-speed", "-1"], "--subgoal-speed must be >= 0", 2),
-    (["--turn-accel", "-1"], "--turn-accel must be a positive number", 2),
-    (["--stop-decel", "-1"], "--stop-decel must be a positive number", 2),
-    (["--turn-min-speed", "0"], "--turn-min-speed must be a positive speed", 2),
-    (["--route-after", "-2"], "--route-after must be a positive number", 2),
-    (["--horizon", "-3"], "--horizon must be > 0", 2),
-    (["--min-distance", "0"], "--min-distance must be > 0", 2),
-    (["--gimbal"], "--gimbal levels the camera of the rotorpy quadrotor", 2),
-    (["--depth-delay", "0.6"], "--depth-delay 0.6 must be in [0, replan interval 0.5 s)", 2),
+    (["--world", "office", "--pairs", "3", "--set", "min_distance=200"], "could sample only 0 of 3", 1),
+    (["--set", "loop.pilot.replan_interval=0.01"], "whole number of depth frames", 2),
+    (["--set", "execution.corridor.width=-0.5"], "execution.corridor.width must be a positive number", 2),
+    (["--set", "execution.corridor.unchecked_width=-1"], "execution.corridor.unchecked_width must be a positive number", 2),
+    (["--set", "execution.speed.v_max=-1"], "execution.speed.v_max must be a positive number", 2),
+    (["--set", "execution.memory.seconds=-8"], "execution.memory.seconds must be a positive number", 2),
+    (["--set", "loop.pilot.plan_latency=0.7"], "loop.pilot.plan_latency must be in", 2),
+    (["--set", "execution.speed.turn_accel=-1"], "execution.speed.turn_accel must be a positive number", 2),
+    (["--set", "execution.speed.stop_decel=-1"], "execution.speed.stop_decel must be a positive number", 2),
+    (["--set", "execution.route.after=-2"], "execution.route.after must be a positive number", 2),
+    (["--set", "loop.pilot.horizon=-3"], "loop.pilot.horizon must be > 0", 2),
+    (["--set", "min_distance=0"], "min_distance must be > 0", 2),
+    (["--set", "gimbal=true"], "gimbal levels the camera of the rotorpy quadrotor", 2),
+    (["--faults", "0,0.6,0"], "fault delay 0.6 must be in [0, replan interval 0.5 s)", 2),
+    (["--set", "execution.follow=lots"], "execution.follow takes a finite number", 2),
+    # research-only fields are no settings (the recipe sets them through the library)
+    (["--set", "loop.pilot.final_approach=1"], "has no setting 'loop.pilot.final_approach'", 2),
+    (["--set", "execution.memory.subgoal_speed=1"], "has no setting 'execution.memory.subgoal_speed'", 2),
+    (["--set", "execution.speed.turn_min_speed=1"], "has no setting 'execution.speed.turn_min_speed'", 2),
 ])
 def test_cli_bad_settings(tiny_run: Path, tmp_path: Path, args: list[str], message: str, code: int):
     r = CliRunner().invoke(main, ["eval", "--model", str(tiny_run), "-o", str(tmp_path / "ev"), *args])
@@ -745,7 +747,7 @@ def test_a_follow_fraction_outside_0_1_is_refused_by_name(follow: float):
     from mapkit.evaluation import EvalError
     from mapkit.flight import Execution
 
-    with pytest.raises(EvalError, match="--follow must be in"):
+    with pytest.raises(EvalError, match=r"execution\.follow must be in"):
         EvalConfig(execution=Execution(follow=follow)).validate()
 
 
@@ -887,8 +889,8 @@ def test_a_flight_searches_once_it_has_flown_much_farther_than_it_came_closer():
 def test_a_speed_that_is_not_positive_is_refused_by_name(option: str, value: float):
     from mapkit.evaluation import EvalError
 
-    flag = "--" + {"cruise": "speed"}.get(option, option).replace("_", "-")
-    with pytest.raises(EvalError, match=f"{flag} must be a positive speed in m/s"):
+    name = {"turn_min_speed": "SpeedProfile.turn_min_speed"}.get(option, f"execution.speed.{option}")
+    with pytest.raises(EvalError, match=f"{name} must be a positive speed in m/s"):
         EvalConfig(execution=_pace(**{option: value})).validate()
 
 
@@ -936,7 +938,7 @@ def test_a_negative_subgoal_speed_is_refused_by_name(speed: float):
     from mapkit.evaluation import EvalError
     from mapkit.flight import Execution, Memory
 
-    with pytest.raises(EvalError, match="--subgoal-speed must be >= 0"):
+    with pytest.raises(EvalError, match=r"Memory\.subgoal_speed must be >= 0"):
         EvalConfig(execution=Execution(memory=Memory(subgoal_speed=speed))).validate()
 
 
@@ -1005,7 +1007,7 @@ def test_an_unchecked_corridor_is_at_most_its_unchecked_width():
 
 @pytest.mark.slow
 def test_time_limit_follows_the_pace_the_flights_are_asked_for(tiny_run: Path, tmp_path: Path):
-    """The time limit is timeout_factor × distance / cruise speed: the model's cruise speed, or --speed."""
+    """The time limit is timeout_factor × distance / cruise speed: the model's cruise speed, or execution.speed.cruise."""
 
     docs = {}
     for name, speed in (("model", None), ("slow", 0.8)):
@@ -1059,7 +1061,7 @@ def test_a_negative_keep_choice_margin_is_refused_by_name(margin: float):
     from mapkit.evaluation import EvalError
     from mapkit.flight import Execution
 
-    with pytest.raises(EvalError, match="--keep-choice must be a positive number"):
+    with pytest.raises(EvalError, match=r"execution\.keep_choice must be a positive number"):
         EvalConfig(execution=Execution(keep_choice=margin)).validate()
 
 

@@ -238,19 +238,19 @@ def test_an_ablation_run_records_the_stack_of_every_episode_and_reports_the_diff
     assert "learned − straight-keypoints" in r.output
 
 
-def test_eval_help_lists_every_option_once_under_its_layer():
+def test_eval_help_lists_every_option_and_the_stack_layers_are_settings():
+    """--help names every option; the flight stack's layers are tables of `mapkit config eval`."""
     import re
 
     r = CliRunner().invoke(main, ["eval", "--help"])
     assert r.exit_code == 0
-    headings = re.findall(r"^(\S[^\n]*):$", r.output, flags=re.M)
-    assert headings[:3] == ["What to fly", "Output and parallelism", "The closed loop (every method)"]
-    assert {"Flight stack: corridor", "Flight stack: depth memory", "Flight stack: speed profile"} <= set(headings)
     for param in main.commands["eval"].params:
         for opt in param.opts:
             assert len(re.findall(rf"(?<![\w-]){re.escape(opt)}(?![\w-])", r.output)) >= 1, opt
-    section = r.output.split("Flight stack: speed profile:")[1].split("\n\n")[0]
-    assert "--speed" in section and "--v-max" in section and "--memory" not in section
+    settings = CliRunner().invoke(main, ["config", "eval"]).output
+    assert {"[execution.corridor]", "[execution.memory]", "[execution.route]", "[execution.speed]"} <= set(settings.split("\n"))
+    section = settings.split("\n[execution.speed]\n")[1].split("\n[")[0]
+    assert "\ncruise = 1.2\n" in section and "\nv_max = 3.0\n" in section and "\nseconds = " not in section
 
 
 @pytest.mark.parametrize("stack", ["full", "none"])

@@ -83,7 +83,7 @@ def test_export_bad_inputs(workspace: tuple[Path, World], tmp_path: Path) -> Non
     ws, _ = workspace
     with pytest.raises(ExportError, match="no valid goals"):
         export_tuples(ws, ExportConfig(clearance=50.0), overwrite=True, progress=False)
-    with pytest.raises(ExportError, match="--goal-range"):
+    with pytest.raises(ExportError, match=r"goal_range 5\.0 1\.0"):
         export_tuples(ws, ExportConfig(goal_range=(5.0, 1.0)), overwrite=True, progress=False)
     # Export before esdf.
     only_frames = tmp_path / "frames_only"

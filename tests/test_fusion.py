@@ -87,7 +87,7 @@ def test_cli_fuse_and_bad_inputs(tmp_path: Path, box_flight: Path) -> None:
 
 
 def test_no_depth_in_range_is_an_error(tmp_path: Path, box_flight: Path) -> None:
-    with pytest.raises(FusionError, match=r"depth within --max-depth 0.3 m is needed"):
+    with pytest.raises(FusionError, match=r"depth within max_depth 0.3 m is needed"):
         fuse([box_flight], tmp_path, FuseConfig(voxel=0.05, max_depth=0.3), progress=False)
     assert not (tmp_path / "cloud.ply").exists()
 

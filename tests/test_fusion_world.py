@@ -89,9 +89,9 @@ def test_tiles_and_world_esdf_on_a_local_cluster_equal_them_in_process(two_fligh
 
 
 def test_world_config_and_inputs_are_checked(tmp_path: Path) -> None:
-    with pytest.raises(FusionError, match="--tile 100 must be a positive multiple of 64"):
+    with pytest.raises(FusionError, match="tile 100 must be a positive multiple of 64"):
         fuse_world([tmp_path], tmp_path / "w", WorldConfig(tile=100))
-    with pytest.raises(FusionError, match="--bounds"):
+    with pytest.raises(FusionError, match="bounds"):
         fuse_world([tmp_path], tmp_path / "w", WorldConfig(bounds=((0, 0, 0), (1, -1, 1))))
     with pytest.raises(FusionError, match="no workspaces given"):
         fuse_world([], tmp_path / "w")
@@ -103,15 +103,15 @@ def test_world_config_and_inputs_are_checked(tmp_path: Path) -> None:
 def test_cli_fuse_world_then_esdf_and_bad_input(two_flights: Path, tmp_path: Path) -> None:
     runner = CliRunner()
     out = tmp_path / "world"
-    result = runner.invoke(main, ["fuse-world", str(two_flights), "-o", str(out), "--voxel", "0.2", "--tile", "64"])
+    result = runner.invoke(main, ["fuse-world", str(two_flights), "-o", str(out), "--voxel", "0.2", "--set", "tile=64"])
     assert result.exit_code == 0, result.output
     assert "tiles reached by 28 frames" in result.output and (out / "world.zarr").is_dir()
-    result = runner.invoke(main, ["esdf", "-w", str(out), "--voxel", "0.2", "--max-dist", "1.0"])
+    result = runner.invoke(main, ["esdf", "-w", str(out), "--voxel", "0.2", "--set", "max_dist=1.0"])
     assert result.exit_code == 0, result.output
     assert EsdfMap.open(out / "map.zarr").shape == tuple(open_world(out).attrs["shape"])
     for args, message, code in (
         (["esdf", "-w", str(out), "--overwrite"], "--voxel 0.2", 1),  # the world's grid is fixed at fuse-world
-        (["fuse-world", str(two_flights), "-o", str(out), "--tile", "100"], "--tile 100", 2),  # a usage error
+        (["fuse-world", str(two_flights), "-o", str(out), "--set", "tile=100"], "tile 100", 2),  # a usage error
         (["fuse-world", str(tmp_path / "nowhere"), "-o", str(tmp_path / "w2")], "does not exist", 1),
     ):
         result = runner.invoke(main, args)

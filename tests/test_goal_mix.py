@@ -94,5 +94,5 @@ def test_blocked_lines_against_the_wall(wall_workspace: tuple[Path, World]) -> N
 def test_goal_mix_is_validated(wall_workspace: tuple[Path, World]) -> None:
     ws, _ = wall_workspace
     for mix in ((0.0, 0.0, 0.0), (-1.0, 1.0, 1.0), (float("nan"), 1.0, 1.0)):
-        with pytest.raises(ExportError, match="--goal-mix"):
+        with pytest.raises(ExportError, match="goal_mix"):
             export_tuples(ws, ExportConfig(goal_mix=mix), overwrite=True, progress=False)

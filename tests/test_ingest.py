@@ -119,7 +119,7 @@ def test_extrinsic_override_and_intrinsics_option(tmp_path: Path) -> None:
     with pytest.raises(IngestError, match="--intrinsics"):
         open_frames([rec.path])
     config = IngestConfig(intrinsics=K.copy())
-    with pytest.raises(IngestError, match="--extrinsic"):
+    with pytest.raises(IngestError, match=r"ingest\.extrinsic"):
         open_frames([rec.path], config)
     config.extrinsic = T_BODY_CAMERA.copy()
     assert_matches(list(open_frames([rec.path], config)), rec)

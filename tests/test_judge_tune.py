@@ -1,5 +1,5 @@
 """The flown-path judge: points along each candidate's trajectory as flown, what the depth image shows
-about them, `mapkit eval --record-judge` and `mapkit tune-judge`."""
+about them, candidates recorded in flight (``EvalConfig.record_judge``) and `mapkit lab tune-judge`."""
 
 from __future__ import annotations
 
@@ -215,7 +215,7 @@ def test_record_judge_then_tune_judge_through_the_cli(tmp_path: Path):
             assert z["features"].shape[1:] == (16, FLOWN_FEATURES) and z["collides"].dtype == bool
             assert float(z["horizon"]) == 1.5 and float(z["robot_radius"]) == 0.3 and float(z["history"]) == 1.0
             assert np.all((z["lengths"] > 0) & (z["lengths"] <= 1.5)) and set(z["world"]) == {"office"}
-    out = CliRunner().invoke(main, ["tune-judge", "--model", str(run), "--records", str(tmp_path / "e3"),
+    out = CliRunner().invoke(main, ["lab", "tune-judge", "--model", str(run), "--records", str(tmp_path / "e3"),
                                     "--val", str(tmp_path / "e4"), "-o", str(tmp_path / "judged"), "--steps", "20"])
     assert out.exit_code == 0, out.output
     assert "depth image, clearance < robot radius" in out.output and "fitted head" in out.output
@@ -229,7 +229,7 @@ def test_record_judge_then_tune_judge_through_the_cli(tmp_path: Path):
     assert run_config["judge_tune"]["train_rows"] > 0
     PlannerNet(PlannerConfig.from_dict(run_config["planner_resolved"])).load_state_dict(judged.state_dict())
     # the head flies without the stack; with it (by default) the model flies exactly as the one it was
-    # fitted on, unless asked (--flown-judge)
+    # fitted on, unless asked (Execution.flown_judge)
     config = EvalConfig(worlds=("office",), pairs=2, seed=5, methods=("learned",), stacks=("none",))
     assert evaluate(tmp_path / "judged", tmp_path / "e5", config, progress=False).summary["success"]
     full = dataclasses.replace(config, stacks=("full",))
@@ -244,25 +244,25 @@ def test_record_judge_then_tune_judge_through_the_cli(tmp_path: Path):
     other["horizon"] = np.float64(2.5)
     (tmp_path / "e6").mkdir()
     np.savez(tmp_path / "e6" / "judge.npz", **other)
-    out = CliRunner().invoke(main, ["tune-judge", "--model", str(tmp_path / "judged"), "--records", str(tmp_path / "e6"),
+    out = CliRunner().invoke(main, ["lab", "tune-judge", "--model", str(tmp_path / "judged"), "--records", str(tmp_path / "e6"),
                                     "--val", str(tmp_path / "e6"), "-o", str(tmp_path / "again")])
     assert out.exit_code == 1 and "Traceback" not in out.output and "over 2.5 m" in out.output
     # records that read other histories do not mix
     other["horizon"], other["history"] = np.float64(1.5), np.float64(0.5)
     np.savez(tmp_path / "e6" / "judge.npz", **other)
-    out = CliRunner().invoke(main, ["tune-judge", "--model", str(run), "--records", str(tmp_path / "e3"),
+    out = CliRunner().invoke(main, ["lab", "tune-judge", "--model", str(run), "--records", str(tmp_path / "e3"),
                                     "--records", str(tmp_path / "e6"), "--val", str(tmp_path / "e4"), "-o", str(tmp_path / "mixed")])
-    assert out.exit_code == 1 and "same --judge-history" in out.output
-    with pytest.raises(EvalError, match="--record-judge"):
+    assert out.exit_code == 1 and "same judge_history" in out.output
+    with pytest.raises(EvalError, match="set record_judge too"):
         EvalConfig(worlds=("office",), judge_history=1.0).validate()
 
 
 def test_folders_without_recorded_candidates_are_refused_in_one_line(tmp_path: Path):
-    with pytest.raises(JudgeTuneError, match="--record-judge"):
+    with pytest.raises(JudgeTuneError, match="record_judge=True"):
         load_judge_records([tmp_path])
-    out = CliRunner().invoke(main, ["tune-judge", "--records", str(tmp_path), "--val", str(tmp_path), "-o",
+    out = CliRunner().invoke(main, ["lab", "tune-judge", "--records", str(tmp_path), "--val", str(tmp_path), "-o",
                                     str(tmp_path / "out")])
-    assert out.exit_code == 1 and "Traceback" not in out.output and "--record-judge" in out.output
-    out = CliRunner().invoke(main, ["tune-judge", "--records", str(tmp_path), "--val", str(tmp_path), "-o",
-                                    str(tmp_path / "out"), "--positive-weight", "0"])
+    assert out.exit_code == 1 and "Traceback" not in out.output and "record_judge=True" in out.output
+    out = CliRunner().invoke(main, ["lab", "tune-judge", "--records", str(tmp_path), "--val", str(tmp_path), "-o",
+                                    str(tmp_path / "out"), "--set", "positive_weight=0"])
     assert out.exit_code != 0 and "Traceback" not in out.output

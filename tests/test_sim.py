@@ -315,8 +315,8 @@ def test_cli(tmp_path: Path) -> None:
 
     runner = CliRunner()
     out = tmp_path / "flight"
-    args = ["simulate", "--world", "garage", "--seed", "3", "-o", str(out), "--width", "32", "--height", "24",
-            "--duration", "0.3", "--rate", "10"]
+    args = ["simulate", "--world", "garage", "--seed", "3", "-o", str(out), "--set", "width=32", "--set", "height=24",
+            "--duration", "0.3", "--set", "rate=10"]
     res = runner.invoke(main, args)
     assert res.exit_code == 0, res.output
     assert "3 frames" in res.output and "flight.mcap" in res.output
@@ -329,6 +329,6 @@ def test_cli(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == files
     res = runner.invoke(main, args + ["--overwrite"])
     assert res.exit_code == 0, res.output
-    res = runner.invoke(main, ["simulate", "-o", str(tmp_path / "bad"), "--width", "0"])
+    res = runner.invoke(main, ["simulate", "-o", str(tmp_path / "bad"), "--set", "width=0"])
     assert res.exit_code == 2 and "bad resolution" in res.output  # a usage error
-    assert "--depth-encoding" in runner.invoke(main, ["simulate", "--help"]).output
+    assert "\ndepth_encoding = \"16UC1\"\n" in runner.invoke(main, ["config", "simulate"]).output

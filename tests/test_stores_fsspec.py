@@ -164,7 +164,7 @@ def test_overwrite_on_a_url(local: tuple[Path, Path], mem: str) -> None:
         ingest([bag], mem, progress=False)
     result = CliRunner().invoke(main, ["ingest", str(bag), "-w", mem])
     assert result.exit_code == 1 and "already exists; pass --overwrite" in result.output
-    result = CliRunner().invoke(main, ["ingest", str(bag), "-w", mem, "--overwrite", "--stride", "2"])
+    result = CliRunner().invoke(main, ["ingest", str(bag), "-w", mem, "--overwrite", "--set", "ingest.stride=2"])
     assert result.exit_code == 0, result.output
     assert len(open_frames_store(mem)) == len(open_frames_store(local[1])) // 2 + len(open_frames_store(local[1])) % 2
 
@@ -237,7 +237,7 @@ def test_a_run_folder_at_a_url(local: tuple[Path, Path], mem: str) -> None:
     names = {p.rsplit("/", 1)[-1] for p in fs.find(Location.of(run).path)}
     assert {"config.json", "metrics.jsonl", "checkpoint.pt", "model.pt", "training_curves.png"} <= names
     assert json.loads(fs.cat_file(f"{Location.of(run).path}/config.json"))["workspaces"] == [mem]
-    line = _one_line(["train", "-w", mem, "--name", "r", "--max-steps", "1"])
+    line = _one_line(["train", "-w", mem, "--name", "r", "--set", "max_steps=1"])
     assert f"run {run} exists" in line
     train([mem], dataclasses.replace(config, epochs=2, max_steps=2), resume=True, progress=False)
     rows = [json.loads(x) for x in fs.cat_file(f"{Location.of(run).path}/metrics.jsonl").decode().splitlines()]
@@ -344,8 +344,8 @@ def test_two_gloo_ranks_train_on_tuples_over_http_with_uneven_batches(local: tup
         env = {**os.environ, "MAPKIT_DDP_BACKEND": "gloo", "OMP_NUM_THREADS": "1"}
         cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", "29547",
                "-m", "mapkit.cli", "train", "-w", url, "--name", "ddp", "--runs-dir", str(tmp_path / "runs"),
-               "--epochs", "1", "--batch-size", str(batch_size), "--val-batches", "1",
-               "--planner", "input_size=[32,48]", "--planner", "encoder_width=0.125"]
+               "--epochs", "1", "--set", f"batch_size={batch_size}", "--set", "val_batches=1",
+               "--set", "planner.input_size=[32,48]", "--set", "planner.encoder_width=0.125"]
         result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=540)
     finally:
         server.terminate()
@@ -382,7 +382,7 @@ def test_cli_esdf_writes_map_zarr_to_a_url_equal_to_the_local_one(local: tuple[P
     """`mapkit esdf -w WS -o URL`: the workspace's fusion stays local, the map goes to the URL, equal
     array for array (and in its attrs) to the map the same options wrote into the workspace."""
     _, ws = local
-    args = ["esdf", "-w", str(ws), "--voxel", "0.2", "--sigma", "0", "-o", f"{mem}/map.zarr"]
+    args = ["esdf", "-w", str(ws), "--voxel", "0.2", "--set", "sigma=0", "-o", f"{mem}/map.zarr"]
     out = CliRunner().invoke(main, args)
     assert out.exit_code == 0, out.output
     assert f"{mem}/map.zarr" in out.output
@@ -409,9 +409,9 @@ def test_fuse_and_esdf_on_a_workspace_at_a_url_equal_the_local_ones(local: tuple
     assert (ws / "tsdf.npz").read_bytes() == fs.cat_file(f"{base}/tsdf.npz")
     _assert_same_group(_group(ws / "frames.zarr"), _group(f"{mem}/frames.zarr"))
     assert f"{mem}/fuse.json exists" in _one_line(["fuse", str(bag), "-w", mem, "--voxel", "0.1"])
-    out = CliRunner().invoke(main, ["esdf", "-w", mem, "--voxel", "0.2", "--sigma", "0"])
+    out = CliRunner().invoke(main, ["esdf", "-w", mem, "--voxel", "0.2", "--set", "sigma=0"])
     assert out.exit_code == 0 and f"wrote {mem}/map.zarr" in out.output, out.output
     _assert_same_group(_group(ws / "map.zarr"), _group(f"{mem}/map.zarr"))
-    out = CliRunner().invoke(main, ["export", "-w", mem, "--goals-per-frame", "3", "--seed", "1"])
+    out = CliRunner().invoke(main, ["export", "-w", mem, "--set", "goals_per_frame=3", "--seed", "1"])
     assert out.exit_code == 0, out.output
     _assert_same_group(_group(ws / "tuples.zarr"), _group(f"{mem}/tuples.zarr"), skip_attrs=("map", "frames"))

@@ -107,7 +107,7 @@ def test_init_starts_from_another_models_weights(workspace: Path, tmp_path: Path
     with pytest.raises(TrainConfigError, match="input_size"):
         train([workspace], preset("cpu", name="c", epochs=1, batch_size=4, max_steps=1, init=str(tmp_path / "a"),
                                   planner={**TINY, "input_size": [48, 64]}), runs_dir=tmp_path, progress=False)
-    r = CliRunner().invoke(main, ["train", "-w", str(workspace), "--init", str(tmp_path / "nope"), "--max-steps", "1",
+    r = CliRunner().invoke(main, ["train", "-w", str(workspace), "--init", str(tmp_path / "nope"), "--set", "max_steps=1",
                                   "--runs-dir", str(tmp_path / "runs")])
     assert r.exit_code == 1 and "no model.pt" in r.output, r.output
 
@@ -152,8 +152,8 @@ def test_cli_bad_inputs(workspace: Path, tmp_path: Path) -> None:
     assert result.exit_code == 1 and "mapkit export" in result.output and "Traceback" not in result.output
     result = runner.invoke(main, ["train", "-w", str(workspace), "--device", "cuda:7", "--runs-dir", str(tmp_path / "runs")])
     assert result.exit_code == 1 and "cuda" in result.output.lower() and "Traceback" not in result.output
-    result = runner.invoke(main, ["train", "-w", str(workspace), "--lr", "-1", "--runs-dir", str(tmp_path / "runs")])
-    assert result.exit_code == 2 and "--lr -1.0 must be positive" in result.output  # a usage error, before any work
+    result = runner.invoke(main, ["train", "-w", str(workspace), "--set", "lr=-1", "--runs-dir", str(tmp_path / "runs")])
+    assert result.exit_code == 2 and "lr -1.0 must be positive" in result.output  # a usage error, before any work
 
 
 @pytest.mark.slow
@@ -186,8 +186,8 @@ def test_two_process_ddp_with_gloo(workspace: Path, tmp_path: Path) -> None:
     env = {**os.environ, "MAPKIT_DDP_BACKEND": "gloo", "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", "29531",
            "-m", "mapkit.cli", "train", "-w", str(workspace), "--name", "ddp", "--runs-dir", str(tmp_path),
-           "--epochs", "1", "--batch-size", "4", "--max-steps", "2", "--val-batches", "1",
-           "--planner", "input_size=[32,48]", "--planner", "encoder_width=0.125"]
+           "--epochs", "1", "--set", "batch_size=4", "--set", "max_steps=2", "--set", "val_batches=1",
+           "--set", "planner.input_size=[32,48]", "--set", "planner.encoder_width=0.125"]
     result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     assert (tmp_path / "ddp" / "model.pt").exists()
@@ -199,7 +199,7 @@ def test_two_process_ddp_with_gloo(workspace: Path, tmp_path: Path) -> None:
 def test_corridor_training_step(workspace: Path, tmp_path: Path) -> None:
     s = train([workspace], tiny("corr", corridor=0.2), runs_dir=tmp_path, progress=False)
     assert s.steps == 2 and (tmp_path / "corr" / "model.pt").exists()
-    with pytest.raises(TrainConfigError, match="--corridor"):
+    with pytest.raises(TrainConfigError, match=r"corridor -1\.0"):
         train([workspace], tiny("bad", corridor=-1.0), runs_dir=tmp_path, progress=False)
 
 
@@ -313,10 +313,10 @@ def test_set_threads_follows_the_cpu_affinity() -> None:
 
 
 @pytest.mark.parametrize("planner, loss, message", [
-    ({"input_size": 0}, {}, "--planner input_size=0: expected a list of 2 (an integer, an integer)"),
+    ({"input_size": 0}, {}, "planner input_size=0: expected a list of 2 (an integer, an integer)"),
     ({"head_activation": "tanh"}, {}, 'expected one of "relu", "leaky_relu"'),
-    ({"num_candidates": 2.5}, {}, "--planner num_candidates=2.5: expected an integer"),
-    ({}, {"robot_radius": "abc"}, '--loss robot_radius="abc": expected a number'),
+    ({"num_candidates": 2.5}, {}, "planner num_candidates=2.5: expected an integer"),
+    ({}, {"robot_radius": "abc"}, 'loss robot_radius="abc": expected a number'),
     ({}, {"no_such_field": 1}, "LossConfig has no field 'no_such_field'"),
 ])
 def test_nested_options_are_type_checked(planner: dict, loss: dict, message: str) -> None:
@@ -341,7 +341,7 @@ def test_a_model_of_random_bytes_is_one_line_without_unsafe_advice(workspace: Pa
         assert result.exit_code == 1 and len(lines) == 1 and "is not a mapkit planner" in lines[0], result.output
         assert "weights_only" not in result.output
     result = CliRunner().invoke(main, ["train", "-w", str(workspace), "--init", str(run), "--runs-dir", str(tmp_path / "r"),
-                                       "--max-steps", "1"])
+                                       "--set", "max_steps=1"])
     assert result.exit_code == 1 and "is not a mapkit planner" in result.output and "Traceback" not in result.output
 
 
@@ -354,7 +354,7 @@ def test_train_alone_trains_in_the_current_directory(workspace: Path, tmp_path: 
     ws = tmp_path / "ws"
     shutil.copytree(workspace, ws, ignore=shutil.ignore_patterns("map.zarr", "runs"))
     monkeypatch.chdir(ws)
-    result = CliRunner().invoke(main, ["train", "--max-steps", "1"])
+    result = CliRunner().invoke(main, ["train", "--set", "max_steps=1"])
     assert f"workspace: {ws} (the current directory" in result.output, result.output
     assert result.exit_code == 1 and "map.zarr is missing" in result.output and "mapkit esdf -w ." in result.output
 
@@ -364,5 +364,5 @@ def test_a_missing_map_names_the_command_that_makes_it(workspace: Path, tmp_path
 
     ws = tmp_path / "ws"
     shutil.copytree(workspace, ws, ignore=shutil.ignore_patterns("map.zarr", "runs"))
-    result = CliRunner().invoke(main, ["train", "-w", str(ws), "--runs-dir", str(tmp_path / "r"), "--max-steps", "1"])
+    result = CliRunner().invoke(main, ["train", "-w", str(ws), "--runs-dir", str(tmp_path / "r"), "--set", "max_steps=1"])
     assert result.exit_code == 1 and "map.zarr is missing" in result.output and "mapkit esdf -w" in result.output

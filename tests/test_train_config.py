@@ -86,15 +86,15 @@ def test_a_removed_loss_field_on_the_command_line_is_unknown(tmp_path: Path) -> 
 
     from mapkit.cli.main import main
 
-    r = CliRunner().invoke(main, ["train", "-w", str(tmp_path), "--loss", "detour_weight=0"])
-    assert r.exit_code == 1 and "has no field 'detour_weight'; known: " in r.output, r.output
-    assert "winner_collision_penalty" in r.output and "Traceback" not in r.output
+    r = CliRunner().invoke(main, ["train", "-w", str(tmp_path), "--set", "loss.detour_weight=0"])
+    assert r.exit_code == 2 and "has no setting 'loss.detour_weight'" in r.output, r.output
+    assert "`mapkit config train` lists every one" in r.output and "Traceback" not in r.output
     with pytest.raises(TrainConfigError, match="has no field 'detour_weight'"):
         TrainConfig.from_dict({"loss": {"detour_weight": 0.0}})  # removed fields load from saved runs only
 
 
 def test_a_non_object_nested_config_is_one_line() -> None:
-    with pytest.raises(TrainConfigError, match="--planner: expected PlannerConfig fields"):
+    with pytest.raises(TrainConfigError, match="planner: expected PlannerConfig fields"):
         TrainConfig.from_dict({"planner": [1, 2]})
 
 

@@ -43,7 +43,7 @@ class CameraVariant:
 
 
 def parse_cameras(text: str) -> tuple[CameraVariant, ...]:
-    """Cameras from ``WxH[:FX_SCALE],...`` (``--cameras``), e.g. ``640x360`` for the paper preset's
+    """Cameras from ``WxH[:FX_SCALE],...`` (the ``cameras`` setting), e.g. ``640x360`` for the paper preset's
     D435 or the default ``160x120,212x120:1.1,192x144:0.9``; a malformed entry is a one-line error."""
     out = []
     for entry in (e.strip() for e in text.split(",") if e.strip()):
@@ -52,9 +52,9 @@ def parse_cameras(text: str) -> tuple[CameraVariant, ...]:
         try:
             out.append(CameraVariant(int(w), int(h), float(scale) if scale else 1.0))
         except ValueError:
-            raise DatasetError(f"--cameras entry {entry!r} is not WIDTHxHEIGHT[:FX_SCALE] (e.g. 640x360 or 212x120:1.1)") from None
+            raise DatasetError(f"cameras entry {entry!r} is not WIDTHxHEIGHT[:FX_SCALE] (e.g. 640x360 or 212x120:1.1)") from None
     if not out:
-        raise DatasetError(f"--cameras {text!r} names no camera; e.g. 160x120 or 640x360,848x480")
+        raise DatasetError(f"cameras {text!r} names no camera; e.g. 160x120 or 640x360,848x480")
     return tuple(out)
 
 
@@ -106,25 +106,25 @@ class DatasetConfig:
             raise DatasetError(f"--worlds {self.worlds} must be at least 1")
         bad = [k for k in self.kinds if k not in WORLD_KINDS]
         if bad or not self.kinds:
-            raise DatasetError(f"--kinds {','.join(self.kinds)}: choose from {', '.join(WORLD_KINDS)}")
+            raise DatasetError(f"kinds {','.join(self.kinds)}: choose from {', '.join(WORLD_KINDS)}")
         for name in ("duration", "rate", "fuse_voxel", "esdf_voxel"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
-                raise DatasetError(f"--{name.replace('_', '-')} {v} must be a positive finite number")
+                raise DatasetError(f"{name} {v} must be a positive finite number")
         for name, lo_min, hi_max in (("speed", 1.0, 3.0), ("density_scale", 0.1, 5.0), ("size_scale", 0.3, 2.0),
                                      ("tilt_deg", 0.0, 45.0)):
             lo, hi = getattr(self, name)
             if not (np.isfinite(lo) and np.isfinite(hi) and lo_min <= lo <= hi <= hi_max):
-                raise DatasetError(f"--{name.replace('_', '-')} {lo} {hi}: need {lo_min} <= min <= max <= {hi_max}")
+                raise DatasetError(f"{name} {lo} {hi}: need {lo_min} <= min <= max <= {hi_max}")
         for cam in self.cameras:
             if not (16 <= cam.width <= 4096 and 16 <= cam.height <= 4096 and np.isfinite(cam.fx_scale)
                     and 0.25 <= cam.fx_scale <= 4.0):
-                raise DatasetError(f"--cameras {cam.width}x{cam.height}:{cam.fx_scale}: need 16..4096 pixels a side "
+                raise DatasetError(f"cameras {cam.width}x{cam.height}:{cam.fx_scale}: need 16..4096 pixels a side "
                                    f"and a focal-length scale in 0.25..4")
         if not self.cameras:
-            raise DatasetError("--cameras names no camera; e.g. 160x120 or 640x360")
+            raise DatasetError("cameras names no camera; e.g. 160x120 or 640x360")
         if not 0 <= self.noise_fraction <= 1:
-            raise DatasetError(f"--noise-fraction {self.noise_fraction} must be in [0, 1]")
+            raise DatasetError(f"noise_fraction {self.noise_fraction} must be in [0, 1]")
         if self.workers < 0:
             raise DatasetError(f"--workers {self.workers} must be >= 0 (0 = one per core)")
         self.export.validate()
@@ -286,7 +286,7 @@ def build_dataset(root: str | Path, config: DatasetConfig, *, progress: bool = T
     print(msg, flush=True)
     if need_bytes * frac > 0.9 * free:
         raise DatasetError(f"the dataset needs about {need_bytes * frac / 1e9:.1f} GB but {root} has "
-                           f"{free / 1e9:.1f} GB free; lower --worlds or --duration, or choose another -o")
+                           f"{free / 1e9:.1f} GB free; lower --worlds or duration, or choose another -o")
     _write_manifest(root, config, specs)
     if dry_run:
         return DatasetSummary(root, [], skipped, {}, 0, 0, 0.0)

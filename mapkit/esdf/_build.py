@@ -236,7 +236,7 @@ def _occupancy(workspace: Path, grid: Grid, fuse_cfg: dict[str, Any], config: Es
         what = "no free space" if solid.all() else "no obstacle"
         raise EsdfBuildError(
             f"the occupancy grid has {what} ({int(observed.sum())} observed voxels); check the fused map "
-            f"(mapkit fuse) and --unknown {config.unknown}"
+            f"(mapkit fuse) and unknown = {config.unknown!r}"
         )
     return occupied, solid, observed, str(store.attrs.get("world_frame", "world"))
 

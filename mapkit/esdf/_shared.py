@@ -32,7 +32,7 @@ class EsdfBuildError(EsdfError):
 
 @dataclass
 class EsdfConfig:
-    """Options of `mapkit esdf` (each has a CLI option of the same name)."""
+    """Options of `mapkit esdf`: each field is a setting (`mapkit config esdf`)."""
 
     voxel: float = 0.1
     """ESDF voxel size in metres (a multiple of the TSDF voxel keeps samples on voxel centres)."""
@@ -46,7 +46,7 @@ class EsdfConfig:
     the ground under the floor, stay solid) or 'occupied' (conservative: everything no ray saw is an
     obstacle, which puts walls at the edge of every field of view)."""
     solid_depth: float = 0.5
-    """With --unknown free: unobserved space up to this far (metres) behind each measured surface,
+    """With unknown = "free": unobserved space up to this far (metres) behind each measured surface,
     along the sensor's rays, counts as solid (object interiors, the ground under the floor)."""
     max_dist: float | None = None
     """Clamp |distance| to this (metres); required for chunked computation of large maps."""
@@ -60,15 +60,15 @@ class EsdfConfig:
         if not self.voxel > 0:
             raise EsdfBuildError(f"--voxel {self.voxel} must be positive (metres, e.g. 0.1)")
         if self.padding < 0:
-            raise EsdfBuildError(f"--padding {self.padding} must be >= 0 metres")
+            raise EsdfBuildError(f"padding {self.padding} must be >= 0 metres")
         if self.sigma < 0:
-            raise EsdfBuildError(f"--sigma {self.sigma} must be >= 0 metres (0 = no smoothing)")
+            raise EsdfBuildError(f"sigma {self.sigma} must be >= 0 metres (0 = no smoothing)")
         if self.unknown not in ("occupied", "free"):
-            raise EsdfBuildError(f"--unknown {self.unknown!r}: expected occupied or free")
+            raise EsdfBuildError(f"unknown {self.unknown!r}: expected occupied or free")
         if self.solid_depth < 0:
-            raise EsdfBuildError(f"--solid-depth {self.solid_depth} must be >= 0 metres")
+            raise EsdfBuildError(f"solid_depth {self.solid_depth} must be >= 0 metres")
         if self.max_dist is not None and not self.max_dist > 0:
-            raise EsdfBuildError(f"--max-dist {self.max_dist} must be positive (metres)")
+            raise EsdfBuildError(f"max_dist {self.max_dist} must be positive (metres)")
 
 
 @dataclass

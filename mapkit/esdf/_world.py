@@ -80,7 +80,7 @@ def build_world_esdf(directory: Path, config: EsdfConfig, *, overwrite: bool, pr
         n_observed = _copy_observed(arrays["observed"], writer.observed)
         if n_observed == 0:
             raise EsdfBuildError(f"{directory / 'world.zarr'} has no observed voxel; check the flights and "
-                                 "`mapkit fuse-world --bounds / --max-depth`")
+                                 "the bounds and fuse.max_depth of `mapkit fuse-world`")
         solid: Any
         if config.unknown == "occupied":
             solid = WorldSolid(arrays["tsdf"], arrays["observed"])
@@ -107,8 +107,8 @@ def _check_matches(directory: Path, config: EsdfConfig, attrs: dict[str, Any]) -
         raise EsdfBuildError(f"{directory} holds a world fused on a {attrs['voxel_size']} m grid; pass "
                              f"--voxel {attrs['voxel_size']} (or re-run `mapkit fuse-world --voxel {config.voxel}`)")
     if config.unknown == "free" and not np.isclose(config.solid_depth, attrs["solid_depth"]):
-        raise EsdfBuildError(f"{directory} holds a world fused with --solid-depth {attrs['solid_depth']}; pass "
-                             f"--solid-depth {attrs['solid_depth']} (or re-run `mapkit fuse-world`)")
+        raise EsdfBuildError(f"{directory} holds a world fused with solid_depth {attrs['solid_depth']}; pass "
+                             f"--set solid_depth={attrs['solid_depth']} (or re-run `mapkit fuse-world`)")
 
 
 def _copy_observed(observed: Any, out: Any) -> int:

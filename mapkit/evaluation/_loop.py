@@ -34,7 +34,7 @@ _JUMP_TOL = 1e-6  # smaller reference jumps (m, m/s, m/s², m/s³) are float noi
 
 @dataclass(frozen=True)
 class Faults:
-    """Faults injected into the frames the pilot gets (``mapkit eval --drop-frames/--depth-delay/--pose-noise``),
+    """Faults injected into the frames the pilot gets (``mapkit eval --faults DROP,DELAY,NOISE``),
     drawn per flight from a generator seeded by ``seed`` and the pair (the same faults for every method)."""
 
     drop: float = 0.0
@@ -72,7 +72,7 @@ class LoopConfig:
     """Seconds, the smallest time limit."""
     cruise_speed: float = 2.0
     """m/s of the planners' total-time rule; sets the time limit. ``mapkit eval`` sets it to the
-    learned model's cruise speed, or to ``--speed`` when given (the pace the flights are asked for)."""
+    learned model's cruise speed, or to ``execution.speed.cruise`` when set (the pace the flights are asked for)."""
     tracking_bandwidth: float = 5.0
     """ω, rad/s: all four poles of the tracking error at −ω."""
     faults: Faults = field(default_factory=Faults)

@@ -65,6 +65,6 @@ def sample_pairs(graph: FreeSpaceGraph, count: int, *, seed: int, min_distance: 
         raise EvalError(
             f"could sample only {len(pairs)} of {count} start-goal pairs in {world.kind} (seed {world.seed}) "
             f"with {graph.clearance} m clearance at least {min_distance} m apart; the free space is too small or "
-            f"too cluttered: lower --min-distance or --pairs, or use another --seed"
+            f"too cluttered: lower min_distance (--set min_distance=M) or --pairs, or use another --seed"
         )
     return pairs

@@ -112,11 +112,11 @@ class EvalConfig:
     """With ``vehicle="rotorpy"``: render the camera level (on a gimbal) instead of at the airframe's attitude."""
     record_plans: bool = False
     """Also write plans.npz: what the ``learned`` method's time allocation was given at every plan
-    (:class:`~mapkit.flight.PlanInput`), for ``mapkit tune-timing``. Results do not depend on it."""
+    (:class:`~mapkit.flight.PlanInput`), for ``mapkit lab tune-timing``. Results do not depend on it."""
     record_judge: bool = False
     """Also write judge.npz: what a flown-path head reads about every candidate of the ``learned``
     method's plans, each labelled by whether its judged stretch comes within the robot's radius of the
-    world (:func:`write_judgements`), for ``mapkit tune-judge``. Results do not depend on it."""
+    world (:func:`write_judgements`), for ``mapkit lab tune-judge``. Results do not depend on it."""
     judge_history: float | None = None
     """With ``record_judge``: seconds of each flight's earlier frames whose points the recorded
     clearances also read (a head fitted to them gets this ``flown_history``); None: the model's
@@ -137,45 +137,46 @@ class EvalConfig:
         if self.vehicle not in VEHICLES:
             raise EvalError(f"--vehicle {self.vehicle!r}: use one of {', '.join(VEHICLES)}")
         if self.gimbal and self.vehicle != "rotorpy":
-            raise EvalError("--gimbal levels the camera of the rotorpy quadrotor; the tracker's camera is always "
-                            "level: pass --vehicle rotorpy too, or drop --gimbal")
+            raise EvalError("gimbal levels the camera of the rotorpy quadrotor; the tracker's camera is always "
+                            "level: pass --vehicle rotorpy too, or drop gimbal=true")
         faults, interval = self.loop.faults, self.loop.pilot.replan_interval
-        for name, value, ok, where in (("--drop-frames", faults.drop, 0.0 <= faults.drop < 1.0, "[0, 1)"),
-                                       ("--depth-delay", faults.delay, 0.0 <= faults.delay < interval,
+        for name, value, ok, where in (("fault drop", faults.drop, 0.0 <= faults.drop < 1.0, "[0, 1)"),
+                                       ("fault delay", faults.delay, 0.0 <= faults.delay < interval,
                                         f"[0, replan interval {interval} s)"),
-                                       ("--pose-noise", faults.pose_noise, 0.0 <= faults.pose_noise <= 1.0, "[0, 1] metres")):
+                                       ("fault pose_noise", faults.pose_noise, 0.0 <= faults.pose_noise <= 1.0,
+                                        "[0, 1] metres")):
             if not ok:
                 raise EvalError(f"{name} {value:g} must be in {where}")
         if self.pairs < 1:
             raise EvalError(f"--pairs must be >= 1, got {self.pairs}")
         seeds = self.untrained_seeds
         if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
-            raise EvalError(f"--untrained-seeds {','.join(map(str, seeds)) or '(none)'}: give distinct seeds >= 0, e.g. 0,1,2,3")
+            raise EvalError(f"untrained_seeds {','.join(map(str, seeds)) or '(none)'}: give distinct seeds >= 0, e.g. 0,1,2,3")
         if self.workers < 1:
             raise EvalError(f"--workers must be >= 1, got {self.workers}")
         if self.judge_history is not None:
             if not self.record_judge:
-                raise EvalError("--judge-history sets what --record-judge records; pass --record-judge too")
+                raise EvalError("judge_history sets what record_judge records; set record_judge too")
             if not (math.isfinite(self.judge_history) and self.judge_history >= 0):
-                raise EvalError(f"--judge-history must be >= 0 seconds, got {self.judge_history}")
+                raise EvalError(f"judge_history must be >= 0 seconds, got {self.judge_history}")
         self._validate_scheduler()
         if not (math.isfinite(self.min_distance) and self.min_distance > 0):
-            raise EvalError(f"--min-distance must be > 0 metres, got {self.min_distance}")
+            raise EvalError(f"min_distance must be > 0 metres, got {self.min_distance}")
         ex, loop = self.execution, self.loop
         pilot = loop.pilot
         if not (math.isfinite(pilot.horizon) and pilot.horizon > 0):
-            raise EvalError(f"--horizon must be > 0 metres (the local goal's distance), got {pilot.horizon}")
+            raise EvalError(f"loop.pilot.horizon must be > 0 metres (the local goal's distance), got {pilot.horizon}")
         frames = pilot.replan_interval * loop.depth_rate
         if not (math.isfinite(frames) and frames >= 1 - 1e-9 and abs(frames - round(frames)) < 1e-6):
-            raise EvalError(f"--replan-interval {pilot.replan_interval} s is not a whole number of depth frames at "
+            raise EvalError(f"loop.pilot.replan_interval {pilot.replan_interval} s is not a whole number of depth frames at "
                             f"{loop.depth_rate:g} Hz; use a multiple of {1 / loop.depth_rate:.4g} s")
         _validate_execution(ex)
         if not (math.isfinite(pilot.plan_latency) and 0 <= pilot.plan_latency < pilot.replan_interval):
-            raise EvalError(f"--plan-latency must be in [0, replan interval {pilot.replan_interval} s), got {pilot.plan_latency}")
+            raise EvalError(f"loop.pilot.plan_latency must be in [0, replan interval {pilot.replan_interval} s), got {pilot.plan_latency}")
         if not (math.isfinite(pilot.look_ahead) and pilot.look_ahead >= 0):
-            raise EvalError(f"--look-ahead must be >= 0 seconds (0: head along the velocity), got {pilot.look_ahead}")
+            raise EvalError(f"loop.pilot.look_ahead must be >= 0 seconds (0: head along the velocity), got {pilot.look_ahead}")
         if not (math.isfinite(pilot.final_approach) and pilot.final_approach >= 0):
-            raise EvalError(f"--final-approach must be >= 0 metres (0 turns it off), got {pilot.final_approach}")
+            raise EvalError(f"loop.pilot.final_approach must be >= 0 metres (0 turns it off), got {pilot.final_approach}")
         try:
             pilot.validate()
         except FlightError as exc:
@@ -646,7 +647,7 @@ def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> 
     if "robot_radius" in loss:
         context.loop = dataclasses.replace(context.loop, robot_radius=float(loss["robot_radius"]))
     # The time limit is a multiple of the straight flight at the pace the planner is asked to fly: a
-    # flight slowed by --speed is not judged by the clock of a faster one.
+    # flight slowed by execution.speed.cruise is not judged by the clock of a faster one.
     cruise = config.execution.speed.cruise
     pace = net.config.cruise_speed if cruise is None else cruise
     context.loop = dataclasses.replace(context.loop, cruise_speed=float(pace))
@@ -1026,23 +1027,25 @@ def evaluate(
 
 
 def _validate_execution(ex: Execution) -> None:
-    """One line naming the flight stack's first bad setting (its option, where it has one)."""
+    """One line naming the flight stack's first bad setting (its key under ``execution``)."""
     pace, memory = ex.speed, ex.memory
-    for option, value in (("--corridor", ex.corridor.width), ("--unchecked-corridor", ex.corridor.unchecked_width),
-                          ("--v-max", pace.v_max), ("--a-max", pace.a_max),
-                          ("--memory", None if memory is None else memory.seconds), ("--turn-accel", pace.turn_accel),
-                          ("--stop-decel", pace.stop_decel), ("--keep-choice", ex.keep_choice)):
+    for key, value in (("corridor.width", ex.corridor.width), ("corridor.unchecked_width", ex.corridor.unchecked_width),
+                       ("speed.v_max", pace.v_max), ("speed.a_max", pace.a_max),
+                       ("memory.seconds", None if memory is None else memory.seconds),
+                       ("speed.turn_accel", pace.turn_accel), ("speed.stop_decel", pace.stop_decel),
+                       ("keep_choice", ex.keep_choice)):
         if value is not None and not (math.isfinite(value) and value > 0):
-            raise EvalError(f"{option} must be a positive number (0 turns it off), got {value}")
+            raise EvalError(f"execution.{key} must be a positive number (\"none\" turns it off), got {value}")
     if memory is not None:
         _validate_memory(memory)
     if ex.route is not None:
         _validate_route(ex.route)
-    for option, value in (("--speed", pace.cruise), ("--search-speed", pace.search_speed)):
+    for key, value in (("cruise", pace.cruise), ("search_speed", pace.search_speed)):
         if value is not None and not (math.isfinite(value) and value > 0):
-            raise EvalError(f"{option} must be a positive speed in m/s (or left out: the model's cruise speed), got {value}")
+            raise EvalError(f"execution.speed.{key} must be a positive speed in m/s (or \"none\": the model's cruise "
+                            f"speed), got {value}")
     if not (math.isfinite(pace.turn_min_speed) and pace.turn_min_speed > 0):
-        raise EvalError(f"--turn-min-speed must be a positive speed in m/s, got {pace.turn_min_speed}")
+        raise EvalError(f"SpeedProfile.turn_min_speed must be a positive speed in m/s, got {pace.turn_min_speed}")
     if not (math.isfinite(pace.search_ratio) and pace.search_ratio >= 1):
         raise EvalError(f"SpeedProfile.search_ratio must be >= 1 (flown path over progress), got {pace.search_ratio}")
     if not (math.isfinite(pace.search_margin) and pace.search_margin >= 0):
@@ -1050,7 +1053,7 @@ def _validate_execution(ex: Execution) -> None:
     if not all(math.isfinite(s) for s in ex.shift):
         raise EvalError(f"Execution.shift must be finite metres, got {ex.shift}")
     if not (math.isfinite(ex.follow) and 0 <= ex.follow <= 1):
-        raise EvalError(f"--follow must be in [0, 1] (the fraction of the way toward the reference), got {ex.follow}")
+        raise EvalError(f"execution.follow must be in [0, 1] (the fraction of the way toward the reference), got {ex.follow}")
 
 
 def _validate_memory(memory: Memory) -> None:
@@ -1060,14 +1063,15 @@ def _validate_memory(memory: Memory) -> None:
             raise EvalError(f"Memory.{name} must be a positive number of seconds, got {value}")
     speed = memory.subgoal_speed
     if speed is not None and not (math.isfinite(speed) and speed >= 0):
-        raise EvalError(f"--subgoal-speed must be >= 0 m/s (0: stop at the way out; default: the cruise speed), "
+        raise EvalError(f"Memory.subgoal_speed must be >= 0 m/s (0: stop at the way out; default: the cruise speed), "
                         f"got {speed}")
 
 
 def _validate_route(route: RouteConfig) -> None:
     """One line naming the flight map's first bad setting."""
     if not (math.isfinite(route.after) and route.after > 0):
-        raise EvalError(f"--route-after must be a positive number of seconds (0 turns the flight map off), got {route.after}")
+        raise EvalError(f"execution.route.after must be a positive number of seconds (execution.route = \"none\" turns "
+                        f"the flight map off), got {route.after}")
     positive = ("progress", "cell", "extent", "height", "inflate", "horizon")
     for name in positive + ("descend", "detour", "sight"):
         value = getattr(route, name)

@@ -36,7 +36,7 @@ class ExportError(MapkitError):
 
 @dataclass
 class ExportConfig:
-    """Options of `mapkit export` (each has a CLI option of the same name)."""
+    """Options of `mapkit export`: each field is a setting (`mapkit config export`)."""
 
     goals_per_frame: int = 5
     """Goals stored per frame, split by ``goal_mix``."""
@@ -71,29 +71,29 @@ class ExportConfig:
     def validate(self) -> None:
         lo, hi = self.goal_range
         if not (np.isfinite(hi) and 0 < lo < hi):
-            raise ExportError(f"--goal-range {lo} {hi}: need 0 < min < max metres")
+            raise ExportError(f"goal_range {lo} {hi}: need 0 < min < max metres")
         a, b = self.future_horizon
         if not (np.isfinite(b) and 0 < a <= b):
-            raise ExportError(f"--future-horizon {a} {b}: need 0 < min <= max seconds")
+            raise ExportError(f"future_horizon {a} {b}: need 0 < min <= max seconds")
         mix = tuple(float(v) for v in self.goal_mix)
         if len(mix) != 3 or not all(np.isfinite(v) and v >= 0 for v in mix) or sum(mix) <= 0:
-            raise ExportError(f"--goal-mix {self.goal_mix}: need three shares >= 0 (future visible hidden) with a positive sum")
+            raise ExportError(f"goal_mix {self.goal_mix}: need three shares >= 0 (future visible hidden) with a positive sum")
         if not (0 < self.hidden_bearing_deg <= 180):
-            raise ExportError(f"--hidden-bearing {self.hidden_bearing_deg} must be in (0, 180] degrees")
+            raise ExportError(f"hidden_bearing_deg {self.hidden_bearing_deg} must be in (0, 180] degrees")
         for name in ("hidden_height", "blocked_distance"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
-                raise ExportError(f"--{name.replace('_', '-')} {v} must be a positive number of metres")
+                raise ExportError(f"{name} {v} must be a positive number of metres")
         if self.goals_per_frame < 1:
-            raise ExportError(f"--goals-per-frame {self.goals_per_frame} must be at least 1")
+            raise ExportError(f"goals_per_frame {self.goals_per_frame} must be at least 1")
         if not (0 <= self.val_fraction < 1):
-            raise ExportError(f"--val-fraction {self.val_fraction} must be in [0, 1)")
+            raise ExportError(f"val_fraction {self.val_fraction} must be in [0, 1)")
         if not self.segment_seconds > 0:
-            raise ExportError(f"--segment-seconds {self.segment_seconds} must be positive")
+            raise ExportError(f"segment_seconds {self.segment_seconds} must be positive")
         if not (np.isfinite(self.clearance) and self.clearance >= 0):
-            raise ExportError(f"--clearance {self.clearance} must be >= 0 metres")
+            raise ExportError(f"clearance {self.clearance} must be >= 0 metres")
         if self.stride < 1:
-            raise ExportError(f"--stride {self.stride} must be at least 1")
+            raise ExportError(f"stride {self.stride} must be at least 1")
 
 
 @dataclass
@@ -371,8 +371,8 @@ def _collect_goals(store: FramesStore, esdf: _ObservedMap, indices: NDArray[np.i
         frac = float(np.asarray(esdf.map.observed[:]).mean())
         raise ExportError(
             f"no valid goals in any of {len(indices)} frames: no observed free space with {config.clearance} m clearance "
-            f"within --goal-range {config.goal_range[0]}–{config.goal_range[1]} m in front of the camera "
-            f"(observed voxels: {100 * frac:.1f} %); lower --clearance or change --goal-range"
+            f"within goal_range {config.goal_range[0]}–{config.goal_range[1]} m in front of the camera "
+            f"(observed voxels: {100 * frac:.1f} %); lower clearance or change goal_range (--set clearance=M)"
         )
     return out
 

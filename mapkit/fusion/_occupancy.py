@@ -270,7 +270,7 @@ def fill_unknown(
     if policy == "occupied":
         return occupied | ~observed
     if policy != "free":
-        raise FusionError(f"--unknown {policy!r}: expected occupied or free")
+        raise FusionError(f"unknown {policy!r}: expected occupied or free")
     from scipy import ndimage
 
     solid = occupied | (behind & ~observed) if behind is not None else occupied.copy()

@@ -42,7 +42,7 @@ class FusionError(MapkitError):
 
 @dataclass
 class FuseConfig:
-    """TSDF fusion options (each has a `mapkit fuse` option of the same name)."""
+    """TSDF fusion options: each field is a setting of `mapkit fuse` (`mapkit config fuse`)."""
 
     voxel: float = 0.05
     """TSDF voxel size in metres."""
@@ -63,11 +63,11 @@ class FuseConfig:
         if not self.voxel > 0:
             raise FusionError(f"--voxel {self.voxel} must be positive (metres, e.g. 0.05)")
         if not self.trunc >= 1:
-            raise FusionError(f"--trunc {self.trunc} must be at least 1 voxel (e.g. 4)")
+            raise FusionError(f"trunc {self.trunc} must be at least 1 voxel (e.g. 4)")
         if not self.max_depth > 0:
-            raise FusionError(f"--max-depth {self.max_depth} must be positive (metres)")
+            raise FusionError(f"max_depth {self.max_depth} must be positive (metres)")
         if self.stride < 1:
-            raise FusionError(f"--stride {self.stride} must be at least 1")
+            raise FusionError(f"stride {self.stride} must be at least 1")
 
 
 @dataclass
@@ -384,9 +384,9 @@ def _integrate(vbg: Any, store: FramesStore, indices: range, config: FuseConfig,
     bar.close()
     if skipped == len(indices):
         raise FusionError(
-            f"no frame touches the map: depth within --max-depth {config.max_depth} m is needed (nearest valid "
+            f"no frame touches the map: depth within max_depth {config.max_depth} m is needed (nearest valid "
             f"depth in the first frame: {np.nanmin(store.depth[0]):.2f} m) on images of more than a few pixels "
-            f"(these are {store.depth.shape[2]}x{store.depth.shape[1]}); raise --max-depth or check the depth topic"
+            f"(these are {store.depth.shape[2]}x{store.depth.shape[1]}); raise max_depth (--set max_depth=M) or check the depth topic"
         )
     return skipped, integrate_s
 
@@ -397,9 +397,9 @@ def _extract_cloud(vbg: Any, config: FuseConfig, n_frames: int) -> tuple[Any, in
     n_points = int(pcd.point.positions.shape[0]) if pcd is not None and "positions" in pcd.point else 0
     if n_points == 0:
         raise FusionError(
-            f"fusion produced an empty cloud from {n_frames} frames (--voxel {config.voxel} m, --max-depth "
+            f"fusion produced an empty cloud from {n_frames} frames (--voxel {config.voxel} m, max_depth "
             f"{config.max_depth} m, weight threshold {config.weight_threshold}): no voxel saw a surface often enough; "
-            f"use a voxel near the depth's resolution (e.g. --voxel 0.05) and check --max-depth and the frames' depth"
+            f"use a voxel near the depth's resolution (e.g. --voxel 0.05) and check max_depth and the frames' depth"
         )
     return pcd.cpu(), n_points
 

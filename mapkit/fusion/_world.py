@@ -62,7 +62,7 @@ _MAX_TILE_BLOCKS = 1 << 18  # TSDF hash map capacity cap per tile (it grows if a
 
 @dataclass(frozen=True)
 class WorldConfig:
-    """Options of `mapkit fuse-world` (each has a CLI option of the same name)."""
+    """Options of `mapkit fuse-world`: each field is a setting (`mapkit config fuse-world`)."""
 
     voxel: float = 0.1
     """Voxel of the world grid in metres: the ESDF's voxel (`mapkit esdf --voxel` must match)."""
@@ -72,7 +72,7 @@ class WorldConfig:
     """Voxels per tile edge (a multiple of 64): one Dask task each."""
     solid_depth: float = 0.5
     """Unobserved space up to this far (metres) behind measured surfaces is marked `behind`
-    (`mapkit esdf --solid-depth` must match)."""
+    (`mapkit esdf`'s ``solid_depth`` must match)."""
     bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     """World box [lo, hi] in metres; default: the depth points of the flights (about the fused
     surface's bounds, which `mapkit fuse` uses)."""
@@ -84,15 +84,15 @@ class WorldConfig:
         if not self.voxel > 0:
             raise FusionError(f"--voxel {self.voxel} must be positive (metres, e.g. 0.1)")
         if self.padding < 0:
-            raise FusionError(f"--padding {self.padding} must be >= 0 metres")
+            raise FusionError(f"padding {self.padding} must be >= 0 metres")
         if self.solid_depth < 0:
-            raise FusionError(f"--solid-depth {self.solid_depth} must be >= 0 metres")
+            raise FusionError(f"solid_depth {self.solid_depth} must be >= 0 metres")
         if isinstance(self.tile, bool) or self.tile < CHUNK or self.tile % CHUNK:
-            raise FusionError(f"--tile {self.tile} must be a positive multiple of {CHUNK} voxels (e.g. 128)")
+            raise FusionError(f"tile {self.tile} must be a positive multiple of {CHUNK} voxels (e.g. 128)")
         if self.bounds is not None:
             lo, hi = np.asarray(self.bounds[0], float), np.asarray(self.bounds[1], float)
             if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(lo) & np.isfinite(hi)) or np.any(hi <= lo):
-                raise FusionError(f"--bounds {self.bounds}: expected x0 y0 z0 x1 y1 z1 with x1 > x0, y1 > y0, z1 > z0")
+                raise FusionError(f"bounds {self.bounds}: expected [[x0, y0, z0], [x1, y1, z1]] with x1 > x0, y1 > y0, z1 > z0")
 
 
 @dataclass(frozen=True)
@@ -217,8 +217,8 @@ def _depth_bounds(stores: list[FramesStore], fuse: FuseConfig) -> tuple[NDArray[
             world = pts @ T[:3, :3].T + T[:3, 3]
             lo, hi = np.minimum(lo, world.min(axis=0)), np.maximum(hi, world.max(axis=0))
     if not np.all(np.isfinite(lo)):
-        raise FusionError(f"no depth within --max-depth {fuse.max_depth} m in the sampled frames; raise --max-depth "
-                          "or pass --bounds")
+        raise FusionError(f"no depth within fuse.max_depth {fuse.max_depth} m in the sampled frames; raise fuse.max_depth "
+                          "or set bounds")
     return lo, hi
 
 
@@ -310,7 +310,7 @@ def _tile_tsdf(stores: list[FramesStore], grid: Grid, tile: _Tile, fc: FuseConfi
     for store, frames in zip(stores, tile.frames, strict=True):
         K = _o3d_intrinsics(store.K)
         for i in frames:
-            if i % fc.stride:  # `mapkit fuse --frame-stride`: every stride-th frame
+            if i % fc.stride:  # FuseConfig.stride: every stride-th frame
                 continue
             raw = np.asarray(store.depth[i])
             if not np.any(raw <= fc.max_depth):  # as mapkit fuse: Open3D aborts on a frame that touches no block

@@ -193,7 +193,7 @@ def parse_extrinsic(text: str) -> NDArray[np.float64]:
         vals = []
     if len(vals) != 7 or not np.all(np.isfinite(vals)) or np.linalg.norm(vals[3:]) < 1e-6:
         raise IngestError(
-            f"--extrinsic {text!r} is not x,y,z,qx,qy,qz,qw (T_body_camera, camera optical frame) "
+            f"extrinsic {text!r} is not x,y,z,qx,qy,qz,qw (T_body_camera, camera optical frame) "
             "with a non-zero quaternion, nor 'identity'"
         )
     return transform_from_pose(vals[:3], vals[3:])

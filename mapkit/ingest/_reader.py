@@ -42,7 +42,7 @@ NON_MONOTONIC = "non_monotonic_stamp"
 
 @dataclass
 class IngestConfig:
-    """How recordings are read. Every field has a CLI option of the same name."""
+    """How recordings are read: the ``ingest`` settings of every command that reads recordings (`mapkit config ingest`)."""
 
     depth_topic: str | None = None
     """Depth image topic; auto-detected from message type and encoding when None."""
@@ -71,11 +71,11 @@ class IngestConfig:
 
     def validate(self) -> None:
         if not self.max_pose_gap > 0:
-            raise IngestError(f"--max-pose-gap {self.max_pose_gap} must be positive (seconds)")
+            raise IngestError(f"max_pose_gap {self.max_pose_gap} must be positive (seconds)")
         if self.stride < 1:
-            raise IngestError(f"--stride {self.stride} must be at least 1")
+            raise IngestError(f"stride {self.stride} must be at least 1")
         if self.max_frames is not None and self.max_frames < 1:
-            raise IngestError(f"--max-frames {self.max_frames} must be at least 1")
+            raise IngestError(f"max_frames {self.max_frames} must be at least 1")
 
     def to_attrs(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
@@ -271,8 +271,8 @@ def _choose_camera_info(s: BagSummary, config: IngestConfig, by_type: dict[str, 
     """Camera info: the given one, else the CameraInfo sharing the depth topic's namespace."""
     infos = by_type.get(CAMERA_INFO_TYPE, [])
     if config.camera_info_topic:
-        topic = _find(s, config.camera_info_topic, "--camera-info-topic")
-        return RoleChoice(topic, CAMERA_INFO_TYPE, "given by --camera-info-topic")
+        topic = _find(s, config.camera_info_topic, "ingest.camera_info_topic")
+        return RoleChoice(topic, CAMERA_INFO_TYPE, "given by ingest.camera_info_topic")
     if config.intrinsics is not None:
         return RoleChoice(None, None, "--intrinsics given")
     if infos:
@@ -331,7 +331,7 @@ class _PoseFeed:
     @classmethod
     def for_plan(cls, plan: SourcePlan, config: IngestConfig) -> _PoseFeed:
         """A feed for streaming a planned recording: the pose topic pinned to world → body, the
-        ``--extrinsic`` pinned to body → camera, /tf only when the plan needs it."""
+        ``extrinsic`` pinned to body → camera, /tf only when the plan needs it."""
         tf = [t for t in plan.tf_topics if plan.needs_dynamic_tf or "static" in t]
         feed = cls(plan.pose.topic, tf, config)
         body = plan.body_frame
@@ -366,7 +366,7 @@ class _PoseFeed:
             if not self.config.drop_nonmonotonic:
                 raise IngestError(
                     f"pose topic {topic}: stamp goes backwards ({stamp} ns after {last} ns); fix the "
-                    "recording's clock or pass --drop-nonmonotonic to drop such messages"
+                    "recording's clock or pass --set ingest.drop_nonmonotonic=true to drop such messages"
                 )
             self.dropped_poses += 1
             return
@@ -381,7 +381,7 @@ def _resolve(source: Source, roles: Roles, config: IngestConfig) -> _Resolved:
     first = _first_message(source, roles.depth.topic)
     camera = frame_name(config.camera_frame or first.header.frame_id)
     if not camera:
-        raise IngestError(f"depth topic {roles.depth.topic} has an empty header.frame_id; pass --camera-frame")
+        raise IngestError(f"depth topic {roles.depth.topic} has an empty header.frame_id; set ingest.camera_frame")
     feed, info_msg = _read_until_planned(source, roles, config, camera)
     K, width, height = _intrinsics(roles, config, info_msg)
     tree, pose_series = feed.tree, feed.pose_series
@@ -395,14 +395,14 @@ def _resolve(source: Source, roles: Roles, config: IngestConfig) -> _Resolved:
         if camera not in tree.frames:
             raise IngestError(
                 f"camera frame {camera!r} is not in the tf tree (frames: {', '.join(sorted(tree.frames)) or 'none'}); "
-                "pass --camera-frame or --pose-topic"
+                "pass --set ingest.camera_frame=NAME or --pose-topic"
             )
         pose_parent = ""
         world = frame_name(config.world_frame or tree.root(camera))
         body = frame_name(config.body_frame or tree.static_top(camera))
     _attach_extrinsic(config, tree, body, camera)
     known = ", ".join(sorted(tree.frames)) or "none"
-    for a, b, hint in ((world, body, "pass --world-frame"), (body, camera, "pass --extrinsic x,y,z,qx,qy,qz,qw (T_body_camera)")):
+    for a, b, hint in ((world, body, "pass --set ingest.world_frame=NAME"), (body, camera, "pass --set ingest.extrinsic=x,y,z,qx,qy,qz,qw (T_body_camera)")):
         if a != b and (a not in tree.frames or b not in tree.frames or not tree.connected(a, b)):
             raise IngestError(f"no transform from frame {a!r} to frame {b!r} (tf frames: {known}); {hint}")
     # With a pose topic, /tf is only read again if a moving frame other than the body's lies on the
@@ -459,7 +459,7 @@ def _intrinsics(roles: Roles, config: IngestConfig, info_msg: Any) -> tuple[NDAr
 
 
 def _body_of_pose_topic(roles: Roles, config: IngestConfig, tree: TfTree, pose_series: EdgeSeries, camera: str) -> str:
-    """The body frame the pose topic locates: its child frame, ``--body-frame``, or the top of the
+    """The body frame the pose topic locates: its child frame, ``body_frame``, or the top of the
     camera's static chain."""
     if pose_series.child:
         return frame_name(config.body_frame or pose_series.child)
@@ -471,18 +471,18 @@ def _body_of_pose_topic(roles: Roles, config: IngestConfig, tree: TfTree, pose_s
         return "body"
     raise IngestError(
         f"pose topic {roles.pose.topic} ({(roles.pose.msgtype or '').split('/')[-1]}) does not name the frame it "
-        f"locates and camera frame {camera!r} has no tf_static chain; pass --extrinsic "
+        f"locates and camera frame {camera!r} has no tf_static chain; pass --set ingest.extrinsic="
         "(T_body_camera as x,y,z,qx,qy,qz,qw, or 'identity' if the pose is the camera's)"
     )
 
 
 def _attach_extrinsic(config: IngestConfig, tree: TfTree, body: str, camera: str) -> None:
-    """Put ``--extrinsic`` (T_body_camera) into the tree; with body == camera it must be the identity."""
+    """Put ``extrinsic`` (T_body_camera) into the tree; with body == camera it must be the identity."""
     if config.extrinsic is None:
         return
     if body == camera:
         if not np.allclose(config.extrinsic, np.eye(4)):
-            raise IngestError(f"body frame and camera frame are both {camera!r}; --extrinsic must be 'identity'")
+            raise IngestError(f"body frame and camera frame are both {camera!r}; ingest.extrinsic must be 'identity'")
     else:
         tree.set_static(body, camera, np.asarray(config.extrinsic, dtype=np.float64))
 
@@ -558,7 +558,7 @@ class FrameStream:
                     f"{p0 / 1e9:.3f}–{p1 / 1e9:.3f} s: no pose overlaps the depth stamps (different clocks?)"
                 )
         elif self.dropped.get(POSE_GAP):
-            msg += f"; raise --max-pose-gap (now {self.config.max_pose_gap} s)"
+            msg += f"; raise ingest.max_pose_gap (now {self.config.max_pose_gap} s)"
         return msg
 
 
@@ -607,7 +607,7 @@ class _SourceReader:
                 raise IngestError(
                     f"depth topic {self.plan.depth.topic} in {str(self.path)!r}: stamp goes backwards at "
                     f"message {self.n} ({stamp} ns after {self.last_stamp} ns); fix the recording's clock "
-                    "or pass --drop-nonmonotonic to drop such frames"
+                    "or pass --set ingest.drop_nonmonotonic=true to drop such frames"
                 )
             self.stream.dropped[NON_MONOTONIC] += 1
             return False
@@ -635,7 +635,7 @@ class _SourceReader:
         if self.width and (depth.shape[1], depth.shape[0]) != (self.width, self.height):
             raise IngestError(
                 f"depth topic {plan.depth.topic} has {depth.shape[1]}x{depth.shape[0]} images but its "
-                f"camera info says {self.width}x{self.height}; pass --camera-info-topic or --intrinsics"
+                f"camera info says {self.width}x{self.height}; pass --set ingest.camera_info_topic=TOPIC or --intrinsics"
             )
         if not self.width:
             self.height, self.width = depth.shape
@@ -716,6 +716,6 @@ def open_frames(paths: Sequence[str | Path], config: IngestConfig | None = None)
         if plan.world_frame != first.world_frame:
             raise IngestError(
                 f"{str(plan.summary.path)!r} uses world frame {plan.world_frame!r} but "
-                f"{str(first.summary.path)!r} uses {first.world_frame!r}; pass --world-frame"
+                f"{str(first.summary.path)!r} uses {first.world_frame!r}; pass --set ingest.world_frame=NAME"
             )
     return stream

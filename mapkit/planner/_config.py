@@ -61,8 +61,8 @@ class PlannerConfig:
     """N > 0: a second collision head (``flown_mlp``) judges each candidate by its trajectory as the
     flight flies it: the clearance to the depth image's points of N points evenly spaced along its
     first ``flown_horizon`` metres (:func:`mapkit.planner.flown_clearance`), and its η replaces the
-    judge's. The flight computes those trajectories (``PlannerNet.judge_flown``); ``mapkit tune-judge``
-    fits the head to flights recorded by ``mapkit eval --record-judge``. 0 = the judge's η (the paper)."""
+    judge's. The flight computes those trajectories (``PlannerNet.judge_flown``); ``mapkit lab tune-judge``
+    fits the head to flights recorded with ``EvalConfig.record_judge``. 0 = the judge's η (the paper)."""
     flown_horizon: float = 1.5
     """Metres of each candidate's flown trajectory the flown-path head reads (``flown_samples``)."""
     flown_history: float = 0.0

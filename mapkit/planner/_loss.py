@@ -486,7 +486,7 @@ def time_allocation_loss(
     config: LossConfig | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """γ5 U_T alone for the deployed key-points (B, K, 3): what trains the TAN when nothing else
-    learns (``mapkit train --only tan``). The paths' costs are not computed (they do not depend on
+    learns (``mapkit train --set only=tan``). The paths' costs are not computed (they do not depend on
     the TAN), so a step costs a forward pass and the gradient-descent targets. Returns (total,
     terms) with "time" and "total"."""
     from mapkit.planner._timing import plan_timing

@@ -544,7 +544,7 @@ class PlannerNet(nn.Module):
         ``flown_horizon`` (...), metres."""
         c = self.config
         if self.flown_mlp is None:
-            raise PlannerError("this model has no flown-path head (flown_samples=0); fit one with mapkit tune-judge")
+            raise PlannerError("this model has no flown-path head (flown_samples=0); fit one with mapkit lab tune-judge")
         if features.shape[-2:] != (c.flown_samples, FLOWN_FEATURES) or features.shape[:-2] != lengths.shape:
             raise PlannerError(f"features must be (..., {c.flown_samples}, {FLOWN_FEATURES}) with lengths (...), got "
                                f"{tuple(features.shape)} and {tuple(lengths.shape)}")

@@ -55,7 +55,7 @@ class CameraModel:
         for name in ("width", "height"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or v < 8 or v > 4096:
-                raise SimError(f"bad resolution {name}={v!r}; use an integer 8..4096 (e.g. --width 640 --height 480)")
+                raise SimError(f"bad resolution {name}={v!r}; use an integer 8..4096 (e.g. width = 640, height = 480)")
         if not (0.0 < self.min_range < self.max_range) or not math.isfinite(self.max_range):
             raise SimError(f"bad depth range {self.min_range}..{self.max_range} m; need 0 < min_range < max_range")
         for name in ("fx", "fy"):

@@ -155,7 +155,7 @@ def plan_flight(
     # Time per segment from its mean speed (finite even where v touches 0 at a cusp).
     t_k = np.concatenate([[0.0], np.cumsum(np.diff(s_k) / np.maximum(0.5 * (v[1:] + v[:-1]), 1e-3))])
     if t_k[-1] < duration:
-        raise SimError(f"planned flight lasts only {t_k[-1]:.1f} s < {duration} s; enlarge --size or lower --duration")
+        raise SimError(f"planned flight lasts only {t_k[-1]:.1f} s < {duration} s; enlarge size or lower --duration")
     yaw_t, yaw, yaw_rate = _yaw_table(spline, u_k, s_k, t_k, rng)
     return Flight(spline=spline, u_k=u_k, s_k=s_k, t_k=t_k, v_k=v, yaw_t=yaw_t, yaw=yaw, yaw_rate=yaw_rate,
                   min_clearance=float(d_k.min()))
@@ -179,9 +179,9 @@ def _flight_space(world: World, margin: float, resolution: float | None) -> Free
     try:
         space = FreeSpaceGraph(world, clearance=need, resolution=res, cost_margin=margin)
     except _NoFreeSpace:
-        raise SimError(f"no free space with {margin} m clearance in world {world.kind!r}; lower --density or the margin") from None
+        raise SimError(f"no free space with {margin} m clearance in world {world.kind!r}; lower density or the margin") from None
     if space.num_free < 20:
-        raise SimError(f"world {world.kind!r} (seed {world.seed}) is too cluttered to fly through; lower --density")
+        raise SimError(f"world {world.kind!r} (seed {world.seed}) is too cluttered to fly through; lower density")
     return space
 
 
@@ -214,8 +214,8 @@ class _Router:
             legs.append(leg)
             goals.append(goal)
             length += float(np.linalg.norm(np.diff(self.centres[leg], axis=0), axis=1).sum())
-        raise SimError(f"could not plan a flight of {want:.0f} m in world {self.space.world.kind!r}; enlarge --size "
-                       "or lower --density")
+        raise SimError(f"could not plan a flight of {want:.0f} m in world {self.space.world.kind!r}; enlarge size "
+                       "or lower density")
 
     def pick_goal(self, visited: list[int], first: bool = False) -> int:
         """A free cell with room to turn, 4..15 m from the last goal and far from the goals visited."""
@@ -296,7 +296,7 @@ def _smooth(world: World, poly: np.ndarray, margin: float) -> tuple[BSpline, np.
         spacing *= 0.5
     raise SimError(
         f"no collision-free flight with margin {margin} m in world {world.kind!r} "
-        f"(closest {d_k.min():.3f} m); lower --density, the margin, or try another --seed"
+        f"(closest {d_k.min():.3f} m); lower density, the margin, or try another --seed"
     )
 
 

@@ -36,7 +36,7 @@ class _Grid:
         hi[:2] -= inset
         lo[2], hi[2] = world.flight_z
         if np.any(hi - lo < res):
-            raise SimError(f"flight volume {lo}..{hi} is empty; enlarge --size")
+            raise SimError(f"flight volume {lo}..{hi} is empty; enlarge size")
         self.axes = [np.arange(lo[i], hi[i] + 1e-9, res) for i in range(3)]
         self.shape = tuple(len(a) for a in self.axes)
         self.res = res

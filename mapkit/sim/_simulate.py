@@ -96,7 +96,7 @@ class SimConfig:
         if self.depth_encoding not in DEPTH_ENCODING_CHOICES:
             raise SimError(f"unknown depth encoding {self.depth_encoding!r}; use one of {', '.join(DEPTH_ENCODING_CHOICES)}")
         if not (0.5 <= self.rate <= 1000.0):
-            raise SimError(f"rate {self.rate} Hz out of range; use 0.5..1000 Hz (e.g. --rate 30)")
+            raise SimError(f"rate {self.rate} Hz out of range; use 0.5..1000 Hz (e.g. rate = 30)")
         if not (0.0 < self.duration <= 3600.0):
             raise SimError(f"duration {self.duration} s out of range; use 0 < duration <= 3600 s")
         self.camera()  # checks the resolution and range

@@ -20,8 +20,8 @@ class TrainConfigError(MapkitError):
 
 @dataclass
 class TrainConfig:
-    """Everything a run needs; saved as runs/NAME/config.json. Each field is a `mapkit train`
-    option (nested fields as --planner.FIELD / --loss.FIELD)."""
+    """Everything a run needs; saved as runs/NAME/config.json. Each field is a setting of `mapkit train`
+    (`mapkit config train`; nested fields as planner.FIELD / loss.FIELD)."""
 
     name: str = "run"
     """Run directory name under --runs-dir."""
@@ -67,7 +67,7 @@ class TrainConfig:
     loss: LossConfig = field(default_factory=LossConfig)
     """The training loss's weights and parameters (mapkit.planner)."""
     _planner_keys: tuple[str, ...] = field(default=(), repr=False, compare=False)
-    """PlannerConfig fields given by name (preset, --planner, config.json), in order: config.json
+    """PlannerConfig fields given by name (preset, planner settings, config.json), in order: config.json
     lists them even at their default value, as it did when ``planner`` was a dict of them."""
     _loss_keys: tuple[str, ...] = field(default=(), repr=False, compare=False)
     """LossConfig fields given by name, likewise."""
@@ -90,8 +90,8 @@ class TrainConfig:
         if unknown:
             raise TrainConfigError(f"unknown training options {unknown}; known: {sorted(known)}")
         options = dict(data)
-        planner, planner_keys = _nested(options.pop("planner", {}), PlannerConfig, "--planner")
-        loss, loss_keys = _nested(options.pop("loss", {}), LossConfig, "--loss")
+        planner, planner_keys = _nested(options.pop("planner", {}), PlannerConfig, "planner")
+        loss, loss_keys = _nested(options.pop("loss", {}), LossConfig, "loss")
         return cls(**options, planner=planner, loss=loss, _planner_keys=planner_keys, _loss_keys=loss_keys)
 
     @classmethod
@@ -109,20 +109,20 @@ class TrainConfig:
         if self.epochs < 1:
             raise TrainConfigError(f"--epochs {self.epochs} must be at least 1")
         if self.batch_size < 1:
-            raise TrainConfigError(f"--batch-size {self.batch_size} must be at least 1")
+            raise TrainConfigError(f"batch_size {self.batch_size} must be at least 1")
         if not self.lr > 0:
-            raise TrainConfigError(f"--lr {self.lr} must be positive")
+            raise TrainConfigError(f"lr {self.lr} must be positive")
         if self.grad_clip is not None and not (math.isfinite(self.grad_clip) and self.grad_clip > 0):
-            raise TrainConfigError(f"--grad-clip {self.grad_clip} must be a positive number")
+            raise TrainConfigError(f"grad_clip {self.grad_clip} must be a positive number")
         if self.corridor is not None and not self.corridor > 0:
-            raise TrainConfigError(f"--corridor {self.corridor} must be a positive half-width in metres")
+            raise TrainConfigError(f"corridor {self.corridor} must be a positive half-width in metres")
         if self.only not in TRAINED_WEIGHTS:
-            raise TrainConfigError(f"--only {self.only!r}: expected one of {', '.join(TRAINED_WEIGHTS)}")
+            raise TrainConfigError(f"only {self.only!r}: expected one of {', '.join(TRAINED_WEIGHTS)}")
         if self.only != "all" and not self.init:
-            raise TrainConfigError(f"--only {self.only} trains part of another model on its frozen key-points: "
+            raise TrainConfigError(f"only={self.only} trains part of another model on its frozen key-points: "
                                    "pass --init MODEL")
         if self.max_steps is not None and self.max_steps < 1:
-            raise TrainConfigError(f"--max-steps {self.max_steps} must be at least 1")
+            raise TrainConfigError(f"max_steps {self.max_steps} must be at least 1")
 
 
 def _option_fields() -> list[dataclasses.Field]:

@@ -1,4 +1,4 @@
-"""`mapkit tune-judge`: the flown-path head (``PlannerConfig.flown_samples``) fitted to flights.
+"""`mapkit lab tune-judge`: the flown-path head (``PlannerConfig.flown_samples``) fitted to flights.
 
 The network's judge reads each candidate's key-points, the image features and depth margins along
 the key-point polyline. The vehicle flies another path: the corridor's trajectory cuts the polyline's
@@ -7,8 +7,8 @@ flies more pairs without the flight stack than the network's judge. The flown-pa
 along its first ``flown_horizon`` metres as flown, the clearance to the depth image's points (and to
 those of the flight's frames of the last ``flown_history`` seconds), whether the point is in view and
 how far in front of or behind the measured surface it lies, and how long the stretch is
-(:func:`mapkit.planner.flown_features`). It learns from flights recorded by ``mapkit eval
---record-judge`` whether that stretch comes within the robot's radius of the world: labels from the
+(:func:`mapkit.planner.flown_features`). It learns from flights recorded with
+``EvalConfig.record_judge`` whether that stretch comes within the robot's radius of the world: labels from the
 world, not the image, so it learns what the image hides (occluded and out-of-view space). Everything
 else keeps its weights.
 """
@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 
 
 class JudgeTuneError(MapkitError):
-    """Bad input to `mapkit tune-judge`."""
+    """Bad input to `mapkit lab tune-judge`."""
 
 
 @dataclass(frozen=True)
@@ -55,16 +55,16 @@ class JudgeTuneConfig:
     def validate(self) -> None:
         for name in ("steps", "batch_size", "check_every"):
             if getattr(self, name) < 1:
-                raise JudgeTuneError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+                raise JudgeTuneError(f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("lr", "positive_weight"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
-                raise JudgeTuneError(f"--{name.replace('_', '-')} must be > 0, got {value}")
+                raise JudgeTuneError(f"{name} must be > 0, got {value}")
 
 
 @dataclass(frozen=True)
 class JudgeRecords:
-    """Labelled candidates (``judge.npz`` of ``mapkit eval --record-judge``)."""
+    """Labelled candidates (``judge.npz`` of ``EvalConfig.record_judge``)."""
 
     features: torch.Tensor
     """(R, N, F) float32 per point along each candidate's judged stretch (:func:`flown_features`)."""
@@ -77,7 +77,7 @@ class JudgeRecords:
     robot_radius: float
     """Metres the labels keep from the world."""
     history: float = 0.0
-    """Seconds of earlier frames the clearances read (``mapkit eval --judge-history``); the fitted head
+    """Seconds of earlier frames the clearances read (``EvalConfig.judge_history``); the fitted head
     reads as many (``flown_history``)."""
 
     def __len__(self) -> int:
@@ -98,7 +98,7 @@ class JudgeScore:
 
 @dataclass(frozen=True)
 class JudgeTuneSummary:
-    """What `mapkit tune-judge` did, on the validation candidates."""
+    """What `mapkit lab tune-judge` did, on the validation candidates."""
 
     out_dir: Path
     train_rows: int
@@ -124,8 +124,8 @@ def load_judge_records(folders: Sequence[Path]) -> JudgeRecords:
     for folder in folders:
         path = Path(folder) / JUDGE_FILE
         if not path.is_file():
-            raise JudgeTuneError(f"{folder} has no {JUDGE_FILE}; make it with `mapkit eval --methods learned "
-                                 "--record-judge -o FOLDER`")
+            raise JudgeTuneError(f"{folder} has no {JUDGE_FILE}; record it with the library's "
+                                 "EvalConfig(methods=('learned',), record_judge=True), as the recipe's flights steps do")
         with np.load(path) as z:
             part = {k: z[k] for k in ("features", "lengths", "collides", "horizon", "robot_radius")}
             part["history"] = z["history"] if "history" in z.files else np.float64(0.0)  # recorded before histories
@@ -141,7 +141,7 @@ def load_judge_records(folders: Sequence[Path]) -> JudgeRecords:
                                  "record them with the same model and robot radius")
         if len(p["collides"]) and float(p["history"]) != float(first["history"]):
             raise JudgeTuneError(f"{path} reads {float(p['history']):g} s of earlier frames, {first_path} "
-                                 f"{float(first['history']):g} s: record both with the same --judge-history")
+                                 f"{float(first['history']):g} s: record both with the same judge_history")
     cat = {k: np.concatenate([p[k] for _, p in parts]) for k in ("features", "lengths", "collides")}
     return JudgeRecords(torch.from_numpy(cat["features"]).float(), torch.from_numpy(cat["lengths"]).float(),
                         torch.from_numpy(cat["collides"]).bool(), float(first["horizon"]), float(first["robot_radius"]),
@@ -226,7 +226,7 @@ def tune_judge(model: str | Path, records: Sequence[Path], val: Sequence[Path], 
         raise JudgeTuneError("the training and validation records judge different stretches: record both with one model")
     if train_set.history != val_set.history:
         raise JudgeTuneError(f"the training records read {train_set.history:g} s of earlier frames, the validation "
-                             f"records {val_set.history:g} s: record both with the same --judge-history")
+                             f"records {val_set.history:g} s: record both with the same judge_history")
     before = _score(net, val_set, config.positive_weight) if _fits(net, train_set) else None
     if before is None:
         net = _with_new_head(net, train_set, config.seed)

@@ -277,7 +277,7 @@ def _camera_or_none(workspace: str | Path) -> dict[str, Any] | None:
 
 
 _TAN_FIELDS = frozenset({"tan_boundary", "tan_boundary_scale", "tan_hidden", "accel", "min_segment_time", "min_total_time", "max_total_time"})
-"""PlannerConfig fields that only change the time allocation (may differ from --init's with --only tan)."""
+"""PlannerConfig fields that only change the time allocation (may differ from --init's with only = "tan")."""
 
 
 def _init_worlds(init: str | None) -> set[tuple[str, int]]:
@@ -315,7 +315,7 @@ def _load_init(net: PlannerNet, init: str, *, tan_fresh: bool = False) -> None:
     if diff:
         k = diff[0]
         raise TrainConfigError(f"--init {init}: its planner has {k}={theirs[k]!r}, this run {mine[k]!r}; "
-                               f"train with the same --preset/--planner options")
+                               f"train with the same --preset and planner settings")
     state = saved["state_dict"]
     if tan_fresh:
         state = {k: v for k, v in state.items() if not k.startswith("tan.")} | {
@@ -466,7 +466,7 @@ def _splits(workspaces: Sequence[str | Path], val_workspaces: Sequence[str | Pat
         train_set = TupleSamples(stores, "train", goals_together=config.goals_together)
         val_set, val_maps = TupleSamples(stores, "val"), maps
     if len(train_set) == 0:
-        raise TrainDataError("no training samples: every tuple is in the validation split; lower --val-fraction at export")
+        raise TrainDataError("no training samples: every tuple is in the validation split; lower val_fraction at export")
     return _Splits(train_set, maps, val_set, val_maps)
 
 
@@ -564,7 +564,7 @@ def _train_step(run: _Session, data: _Splits, k: int, part: Any) -> dict[str, An
                                      esdf_map=data.maps[k], start_velocity=batch["velocity"], end_speed=end_speed,
                                      corridor=config.corridor, config=config.loss)
     if not torch.isfinite(loss):
-        raise TrainConfigError(f"loss became {float(loss)} at step {run.step}; lower --lr (now {config.lr})")
+        raise TrainConfigError(f"loss became {float(loss)} at step {run.step}; lower the learning rate (now {config.lr}; mapkit train --set lr=...)")
     run.optimizer.zero_grad(set_to_none=True)
     loss.backward()
     if config.grad_clip is not None:

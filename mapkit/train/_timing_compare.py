@@ -1,4 +1,4 @@
-"""`mapkit compare-timing`: a model's TAN against the gradient-descent split on the same recorded plans.
+"""`mapkit lab compare-timing`: a model's TAN against the gradient-descent split on the same recorded plans.
 
 Closed-loop flights cannot resolve a few per cent between two time allocations: a receding-horizon
 flight turns any small difference into another path (the same planner flown a little faster differs
@@ -48,7 +48,7 @@ class CostRatios:
 
 @dataclass(frozen=True)
 class TimingComparison:
-    """What `mapkit compare-timing` measured."""
+    """What `mapkit lab compare-timing` measured."""
 
     plans: int
     window: float
@@ -83,7 +83,7 @@ def allocation_costs(tan: TimeAllocationNet | None, config: PlannerConfig, plans
 
 def compare_timing(model: str | Path, plans: Sequence[Path], *, window: float = 0.5) -> TimingComparison:
     """The TAN of ``model`` (a run directory or "pretrained") against gradient descent on every plan
-    recorded in the eval folders ``plans`` (``mapkit eval --record-plans``)."""
+    recorded in the eval folders ``plans`` (``EvalConfig.record_plans``)."""
     from mapkit.flight import Planner
 
     if not (math.isfinite(window) and window > 0):

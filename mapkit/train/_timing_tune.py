@@ -1,10 +1,10 @@
-"""`mapkit tune-timing`: the Time Allocation Net fine-tuned on the plans the planner makes in flight.
+"""`mapkit lab tune-timing`: the Time Allocation Net fine-tuned on the plans the planner makes in flight.
 
 Training fits the TAN to the gradient-descent split of the key-points the network makes on training
 tuples. In the closed loop the network sees other inputs (its own flights, mid-manoeuvre start
 states), and there a TAN trained on tuples splits the time at several times the snap of the
 gradient-descent split. Here the TAN alone learns from
-plans recorded in flight (``mapkit eval --record-plans``) by minimising the minimum-snap cost of the
+plans recorded in flight (``EvalConfig.record_plans``) by minimising the minimum-snap cost of the
 trajectory through the key-points under its own split: no labels, the same cost the gradient-descent
 allocation minimises, in the same conditions (start state, end speed, total-time rule, minimum
 segment time) the planner uses it in. Everything but the TAN keeps its weights.
@@ -39,7 +39,7 @@ if TYPE_CHECKING:
 
 
 class TimingTuneError(MapkitError):
-    """Bad input to `mapkit tune-timing`."""
+    """Bad input to `mapkit lab tune-timing`."""
 
 
 @dataclass(frozen=True)
@@ -80,24 +80,24 @@ class TimingTuneConfig:
     def validate(self) -> None:
         for name in ("steps", "batch_size", "check_every"):
             if getattr(self, name) < 1:
-                raise TimingTuneError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+                raise TimingTuneError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not (math.isfinite(self.lr) and self.lr > 0):
-            raise TimingTuneError(f"--lr must be > 0, got {self.lr}")
+            raise TimingTuneError(f"lr must be > 0, got {self.lr}")
         if self.objective not in TIMING_OBJECTIVES:
-            raise TimingTuneError(f"--objective must be one of {', '.join(TIMING_OBJECTIVES)}, got {self.objective!r}")
+            raise TimingTuneError(f"objective must be one of {', '.join(TIMING_OBJECTIVES)}, got {self.objective!r}")
         if self.boundary_scale not in BOUNDARY_SCALES:
-            raise TimingTuneError(f"--boundary-scale must be one of {', '.join(BOUNDARY_SCALES)}, got {self.boundary_scale!r}")
+            raise TimingTuneError(f"boundary_scale must be one of {', '.join(BOUNDARY_SCALES)}, got {self.boundary_scale!r}")
         if self.boundary_scale != "limits" and not self.boundary_inputs:
-            raise TimingTuneError(f"--boundary-scale {self.boundary_scale} scales the boundary inputs: add --boundary-inputs")
+            raise TimingTuneError(f"boundary_scale {self.boundary_scale} scales the boundary inputs: set boundary_inputs too")
         if self.tan_hidden is not None and (not self.tan_hidden or min(self.tan_hidden) < 1):
-            raise TimingTuneError(f"--tan-hidden must be widths >= 1 separated by commas (e.g. 256,256,256), got {self.tan_hidden}")
+            raise TimingTuneError(f"tan_hidden must be widths >= 1 (e.g. 256,256,256), got {self.tan_hidden}")
         if not (math.isfinite(self.first_weight) and self.first_weight > 0):
-            raise TimingTuneError(f"--first-weight must be > 0, got {self.first_weight}")
+            raise TimingTuneError(f"first_weight must be > 0, got {self.first_weight}")
 
 
 @dataclass(frozen=True)
 class PlanInputs:
-    """Recorded plans (``plans.npz`` of ``mapkit eval --record-plans``), as float64 tensors."""
+    """Recorded plans (``plans.npz`` of ``EvalConfig.record_plans``), as float64 tensors."""
 
     waypoints: torch.Tensor
     """(P, K+1, 3) body frame metres: the start and the network's key-points."""
@@ -130,7 +130,7 @@ class PlanInputs:
 
 @dataclass(frozen=True)
 class TimingTuneSummary:
-    """What `mapkit tune-timing` did. Costs are the snap of the trajectory through each plan's key-points,
+    """What `mapkit lab tune-timing` did. Costs are the snap of the trajectory through each plan's key-points,
     as a ratio to the gradient-descent allocation's on the same plan."""
 
     out_dir: Path
@@ -154,8 +154,8 @@ def load_plan_inputs(folders: Sequence[Path], *, num_segments: int) -> PlanInput
     for folder in folders:
         path = Path(folder) / PLANS_FILE
         if not path.is_file():
-            raise TimingTuneError(f"{folder} has no {PLANS_FILE}; make it with `mapkit eval --methods learned "
-                                  "--record-plans -o FOLDER`")
+            raise TimingTuneError(f"{folder} has no {PLANS_FILE}; record it with the library's "
+                                  "EvalConfig(methods=('learned',), record_plans=True), as the recipe's flights steps do")
         with np.load(path) as z:
             part = {k: z[k] for k in ("waypoints", "start", "end_speed")}
             # plans recorded before 2026-12-03 have no speed profile: NaN, the model's own
