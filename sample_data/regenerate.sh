@@ -4,6 +4,6 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 MAPKIT=${MAPKIT:-.venv/bin/mapkit}
-$MAPKIT simulate --world forest --seed 1 -o sample_data/forest --width 160 --height 120 --rate 30 --duration 10 --noise none --overwrite
-$MAPKIT simulate --world office --seed 1 -o sample_data/office --width 160 --height 120 --rate 30 --duration 10 --noise realsense --overwrite
-$MAPKIT simulate --world garage --seed 1 -o sample_data/garage --width 160 --height 120 --rate 30 --duration 10 --noise none --overwrite
+$MAPKIT simulate --world forest --seed 1 -o sample_data/forest --set width=160 --set height=120 --set rate=30 --duration 10 --set noise=none --overwrite
+$MAPKIT simulate --world office --seed 1 -o sample_data/office --set width=160 --set height=120 --set rate=30 --duration 10 --set noise=realsense --overwrite
+$MAPKIT simulate --world garage --seed 1 -o sample_data/garage --set width=160 --set height=120 --set rate=30 --duration 10 --set noise=none --overwrite

@@ -26,7 +26,7 @@ for flight in "${flights[@]}"; do
   $MAPKIT export -w "$WS/$name" --overwrite
 done
 echo "== mapkit train (cpu preset, a few steps on the sample flights; the shipped planner trains on mapkit dataset worlds: mapkit/flight/pretrained/REPRODUCE.md)"
-$MAPKIT train -w "$WS/forest" -w "$WS/garage" -w "$WS/office" --preset cpu --name demo --max-steps 40 --overwrite
+$MAPKIT train -w "$WS/forest" -w "$WS/garage" -w "$WS/office" --preset cpu --name demo --set max_steps=40 --overwrite
 echo "== mapkit eval of the planner shipped with mapkit (closed loop in unseen worlds; the paper's protocol is --world all --pairs 60)"
 $MAPKIT eval --model pretrained --world all --pairs 2 --seed 0 \
   --methods learned,untrained,straight-keypoints,iplanner-style,straight,oracle --stack full,none -o "$WS/eval" --overwrite
