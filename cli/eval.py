@@ -23,9 +23,7 @@ def _defaults() -> EvalConfig:
 
 
 RESEARCH_ONLY = frozenset({
-    "untrained_seeds", "record_plans", "record_judge", "judge_history", "loop.pilot.respect_eta", "loop.pilot.on_reject",
-    "loop.pilot.final_approach", "execution.flown_judge", "execution.speed.search_speed",
-    "execution.speed.turn_min_speed", "execution.memory.subgoal_speed",
+    "untrained_seeds", "record_plans", "record_judge", "judge_history", "execution.flown_judge",
 })
 """EvalConfig fields that served one experiment: not on the command line (the recipe, which records
 plans and judgements, sets them through the library)."""

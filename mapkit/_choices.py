@@ -13,9 +13,6 @@ TrainedWeights = Literal["all", "tan", "judge"]
 """Which weights a run trains: all, only the Time Allocation Net, or only the judge (scores and η)."""
 TRAINED_WEIGHTS: tuple[TrainedWeights, ...] = get_args(TrainedWeights)
 
-OnReject = Literal["continue", "brake"]
-"""What a flying vehicle does with a rejected plan (``PilotConfig.on_reject``)."""
-ON_REJECT: tuple[OnReject, ...] = get_args(OnReject)
 
 GoalFrame = Literal["body", "world"]
 """The frame a planning goal is given in: the body frame of the frame planned from, or the world frame

@@ -53,11 +53,10 @@ of their own either: `--help` shows the dataclass's.
 - Errors are usage errors (exit 2, one line, before any work): an unknown key names the closest keys and
   `mapkit config COMMAND`; a value of the wrong type names the key, what it takes and an example; a value
   the dataclass's `validate()` refuses is named by the dataclass's own message.
-- Fields that served one experiment are no settings (`EvalConfig.record_plans`, `record_judge`,
-  `judge_history`, `untrained_seeds`; the pilot's `respect_eta`, `on_reject`, `final_approach`; the
-  stack's `flown_judge`, `search_speed`, `turn_min_speed`, `subgoal_speed`; tune-timing's
-  `objective`, `boundary_scale`, `first_weight`): the shipped recipe (`mapkit train --recipe pretrained`)
-  and the library set them. The research tools themselves are under `mapkit lab`.
+- Fields only the shipped recipe uses are no settings (`EvalConfig.record_plans`, `record_judge`,
+  `judge_history`, `untrained_seeds`, `execution.flown_judge`; tune-timing's `objective`,
+  `boundary_scale`, `first_weight`): the recipe (`mapkit train --recipe pretrained`) and the library set
+  them. The research tools themselves are under `mapkit lab`.
 """
 
 

@@ -348,9 +348,7 @@ def test_cli_eval_runs_and_prints_the_table(tiny_run: Path, tmp_path: Path):
     (["--faults", "0,0.6,0"], "fault delay 0.6 must be in [0, replan interval 0.5 s)", 2),
     (["--set", "execution.follow=lots"], "execution.follow takes a finite number", 2),
     # research-only fields are no settings (the recipe sets them through the library)
-    (["--set", "loop.pilot.final_approach=1"], "has no setting 'loop.pilot.final_approach'", 2),
-    (["--set", "execution.memory.subgoal_speed=1"], "has no setting 'execution.memory.subgoal_speed'", 2),
-    (["--set", "execution.speed.turn_min_speed=1"], "has no setting 'execution.speed.turn_min_speed'", 2),
+    (["--set", "record_plans=true"], "has no setting 'record_plans'", 2),
 ])
 def test_cli_bad_settings(tiny_run: Path, tmp_path: Path, args: list[str], message: str, code: int):
     r = CliRunner().invoke(main, ["eval", "--model", str(tiny_run), "-o", str(tmp_path / "ev"), *args])
@@ -426,8 +424,7 @@ def test_a_candidate_model_flies_with_the_rendered_camera_and_its_recorded_prove
                                 [0.0, 0.0, 0.0, 1.0]], "source": "recorded"}
     run = save_model(tmp_path / "multi", cfg, workspaces=["/nonexistent/ws"], camera=camera,
                      training_worlds=[["office", 5]])
-    config = EvalConfig(worlds=("office",), pairs=1, seed=3, methods=("learned",),
-                        loop=LoopConfig(pilot=PilotConfig(on_reject="brake")))
+    config = EvalConfig(worlds=("office",), pairs=1, seed=3, methods=("learned",))
     evaluate(run, tmp_path / "ev", config, progress=False)
     doc = json.loads((tmp_path / "ev" / "results.json").read_text())
     assert doc["camera"]["width"] == 80 and doc["camera"]["source"] == "recorded"
@@ -435,38 +432,6 @@ def test_a_candidate_model_flies_with_the_rendered_camera_and_its_recorded_prove
     r = CliRunner().invoke(main, ["eval", "--model", str(run), "--world", "office", "--seed", "5", "--pairs", "1",
                                   "-o", str(tmp_path / "ev5")])
     assert r.exit_code == 1 and "--seed 5 made the training world(s) office" in r.output, r.output
-
-
-def test_brake_on_reject_stops_instead_of_flying_on(tmp_path: Path):
-    """A method whose plans are always rejected after the first: with on_reject="brake" the vehicle
-    comes to rest short of a wall the first plan runs into; "continue" flies into it."""
-    from mapkit.sim import HalfSpace
-
-    world = World([HalfSpace((0.0, 0.0, 1.0), 0.0), Box((6.0, 0.0, 1.5), (0.1, 5.0, 1.5))],
-                  np.array([[-2.0, -5.0, 0.0], [12.0, 5.0, 3.0]]))
-
-    class Stubborn:
-        name, needs_depth, replans = "stubborn", False, True
-
-        def __init__(self) -> None:
-            self.calls = 0
-
-        def plan(self, obs: Observation) -> MethodPlan:
-            self.calls += 1
-            wp = torch.tensor([[[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]]], dtype=torch.float64)
-            R = obs.T_world_body[:3, :3]
-            with torch.no_grad():
-                traj = min_snap(wp, torch.tensor([[5.0]], dtype=torch.float64),
-                                start=torch.from_numpy(obs.state_world[1:4] @ R)[None])
-            pieces = pieces_from_body(traj.coeffs[0].numpy(), np.array([5.0]), obs.T_world_body, obs.t)
-            return MethodPlan(pieces=pieces, latency_ms=0.0, eta=0.0 if self.calls == 1 else 0.9)
-
-    start, goal = np.array([0.0, 0.0, 1.5]), np.array([10.0, 0.0, 1.5])
-    flown = run_episode(world, start, goal, Stubborn(), LoopConfig(timeout_min=8.0, pilot=PilotConfig(on_reject="continue")))
-    braked = run_episode(world, start, goal, Stubborn(), LoopConfig(timeout_min=8.0, pilot=PilotConfig(on_reject="brake")))
-    assert flown.outcome == "collision"
-    assert braked.outcome == "timeout" and braked.rejected_plans > 0
-    assert float(np.max(braked.samples[:, 1])) < 6.0 - 0.1 - 0.3
 
 
 def test_a_blocked_plan_brakes_whatever_eta_says():
@@ -797,8 +762,8 @@ def _open_view_at_start(t: float = 0.0) -> Observation:
 def test_plans_are_timed_at_the_execution_speed_and_at_the_search_speed_once_stalled(monkeypatch):
     """Plans toward a local goal beyond the horizon pass it at ``SpeedProfile.cruise``, and the speed
     profile cruises at it (so the same plan at 1 m/s takes longer than at the model's 2 m/s). Once the
-    flight has stalled, the rest of it flies at ``search_speed`` (None: the model's); a new flight
-    starts at ``speed`` again."""
+    flight has stalled, the rest of it flies at the model's own cruise speed; a new flight starts at
+    ``cruise`` again."""
     from mapkit.flight import _learned as methods
     from mapkit.flight._route import Progress
 
@@ -814,16 +779,17 @@ def test_plans_are_timed_at_the_execution_speed_and_at_the_search_speed_once_sta
     durations = [m.plan(_open_view_at_start()).pieces.t_end for m in (slow, model)]
     assert speeds == [1.0, model.config.cruise_speed] and durations[0] > 1.5 * durations[1]
     monkeypatch.setattr(Progress, "update", lambda self, t, distance, config: t >= 0.5)  # stalled from 0.5 s
-    fast = _tiny_learned_method(_pace(cruise=1.0, search_speed=1.5))
+    fast = _tiny_learned_method(_pace(cruise=1.0))
     for t in (0.0, 0.5, 1.0):
         fast.plan(_open_view_at_start(t))
     fast.plan(_open_view_at_start(0.0))  # a new flight (time starts over): not stalled yet
-    assert speeds[2:] == [1.0, 1.5, 1.5, 1.0]
+    own = fast.config.cruise_speed
+    assert own != 1.0 and speeds[2:] == [1.0, own, own, 1.0]
 
 
 def test_plans_that_turn_are_timed_at_the_speed_of_their_sharpest_turn():
     """With ``turn_accel`` a plan's cruise speed and its speed at a passed goal are √(a R) of its
-    sharpest turn (at least ``turn_min_speed``); a straight plan keeps the cruise speed, and without
+    sharpest turn (at least :data:`~mapkit.flight._layers.TURN_MIN_SPEED`); a straight plan keeps the cruise speed, and without
     ``turn_accel`` every plan does."""
     from mapkit.planner import plan_timing
 
@@ -833,16 +799,16 @@ def test_plans_that_turn_are_timed_at_the_speed_of_their_sharpest_turn():
     bent[3:, 0], bent[3:, 1] = bent[2, 0], x[1:4] - x[0]  # a right angle after 2.4 m, then 3.6 m sideways
     wp, start = torch.stack([line, bent]), torch.zeros(2, 3, 3, dtype=torch.float64)
     passing = torch.full((2,), 2.0, dtype=torch.float64)
-    method = _tiny_learned_method(_pace(turn_accel=1.0, turn_min_speed=0.5, cruise=None))
+    method = _tiny_learned_method(_pace(turn_accel=2.0, cruise=None))
     cruise = method.config.cruise_speed
-    slow = (1.0 * 0.6) ** 0.5  # R = half the 1.2 m segment / tan 45°
+    slow = (2.0 * 0.6) ** 0.5  # R = half the 1.2 m segment / tan 45°, above TURN_MIN_SPEED
     timing = method._timed(wp, start, passing)
     expected = plan_timing(wp, start, torch.tensor([2.0, slow], dtype=torch.float64), method.config,
                            tan=method.net.tan, cruise_speed=torch.tensor([cruise, slow], dtype=torch.float64))
     assert torch.allclose(timing.total, expected.total, rtol=1e-12) and float(timing.total[1]) > 1.5 * float(timing.total[0])
     assert timing.end[:, 0].norm(dim=-1).tolist() == pytest.approx([2.0, slow], rel=1e-12)
-    floor = _tiny_learned_method(_pace(turn_accel=0.1, turn_min_speed=1.5, cruise=None))._timed(wp, start, passing)
-    assert floor.end[1, 0].norm() == pytest.approx(1.5, rel=1e-12)
+    floor = _tiny_learned_method(_pace(turn_accel=0.1, cruise=None))._timed(wp, start, passing)
+    assert floor.end[1, 0].norm() == pytest.approx(1.0, rel=1e-12)  # TURN_MIN_SPEED
     plain = _tiny_learned_method(_pace(turn_accel=None, cruise=None))._timed(wp, start, passing)
     assert torch.allclose(plain.total, plan_timing(wp, start, passing, method.config, tan=method.net.tan).total, rtol=1e-12)
     assert plain.end[:, 0].norm(dim=-1).tolist() == pytest.approx([2.0, 2.0], rel=1e-12)
@@ -884,14 +850,12 @@ def test_a_flight_searches_once_it_has_flown_much_farther_than_it_came_closer():
     assert search.update(np.array([5.0, 2.0, 1.0]), 5.0, 1.4, 1.0) and search.searching
 
 
-@pytest.mark.parametrize("option, value", [("cruise", 0.0), ("cruise", float("nan")), ("search_speed", -2.0),
-                                           ("turn_min_speed", float("inf"))])
-def test_a_speed_that_is_not_positive_is_refused_by_name(option: str, value: float):
+@pytest.mark.parametrize("value", [0.0, float("nan"), -2.0])
+def test_a_speed_that_is_not_positive_is_refused_by_name(value: float):
     from mapkit.evaluation import EvalError
 
-    name = {"turn_min_speed": "SpeedProfile.turn_min_speed"}.get(option, f"execution.speed.{option}")
-    with pytest.raises(EvalError, match=f"{name} must be a positive speed in m/s"):
-        EvalConfig(execution=_pace(**{option: value})).validate()
+    with pytest.raises(EvalError, match=r"execution\.speed\.cruise must be a positive speed in m/s"):
+        EvalConfig(execution=_pace(cruise=value)).validate()
 
 
 @pytest.mark.parametrize("setting, message", [({"search_ratio": 0.9}, "SpeedProfile.search_ratio must be >= 1"),
@@ -903,17 +867,16 @@ def test_a_bad_search_setting_is_refused_by_name(setting: dict[str, float], mess
         EvalConfig(execution=_pace(**setting)).validate()
 
 
-@pytest.mark.parametrize("speed, expected", [(None, 2.0), (0.0, 0.0), (1.0, 1.0)])
-def test_plans_toward_a_way_out_pass_it_at_the_subgoal_speed(monkeypatch, speed: float | None, expected: float):
+def test_plans_toward_a_way_out_pass_it_at_the_cruise_speed(monkeypatch):
     """When nothing leads on toward the goal, the network plans toward the open direction, and keeps
-    that way-out point for the next plans; those plans pass it at ``subgoal_speed`` (None: the
-    model's cruise speed, 2 m/s)."""
+    that way-out point for the next plans; those plans pass it at the cruise speed."""
     import dataclasses
 
     from mapkit.flight import Execution, Memory, SpeedProfile
     from mapkit.flight import _learned as methods
 
-    method = _tiny_learned_method(Execution(memory=Memory(subgoal_speed=speed), speed=SpeedProfile(cruise=None)))
+    method = _tiny_learned_method(Execution(memory=Memory(), speed=SpeedProfile(cruise=1.5)))
+    expected = 1.5  # not the model's own 2 m/s
     speeds: list[float] = []
     attempt = methods.LearnedMethod._attempt
 
@@ -928,18 +891,9 @@ def test_plans_toward_a_way_out_pass_it_at_the_subgoal_speed(monkeypatch, speed:
     monkeypatch.setattr(methods, "open_direction", lambda *args, **kwargs: np.array([3.0, 1.0, 0.0]))
     obs = _open_view_at_start()
     method.plan(obs)
-    assert speeds == [method.config.cruise_speed, expected]
+    assert speeds == [expected, expected] and method.config.cruise_speed != expected
     method.plan(dataclasses.replace(obs, t=0.5))  # the way out is kept for subgoal_time
     assert speeds[2] == expected
-
-
-@pytest.mark.parametrize("speed", [-1.0, float("nan")])
-def test_a_negative_subgoal_speed_is_refused_by_name(speed: float):
-    from mapkit.evaluation import EvalError
-    from mapkit.flight import Execution, Memory
-
-    with pytest.raises(EvalError, match=r"Memory\.subgoal_speed must be >= 0"):
-        EvalConfig(execution=Execution(memory=Memory(subgoal_speed=speed))).validate()
 
 
 def test_the_corridor_keeps_clear_of_a_remembered_door_jamb():

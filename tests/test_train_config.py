@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from mapkit._choices import ON_REJECT, PRESET_NAMES, TRAINED_WEIGHTS
+from mapkit._choices import PRESET_NAMES, TRAINED_WEIGHTS
 from mapkit.planner import LossConfig, PlannerConfig, PlannerNet
 from mapkit.planner._loss import REMOVED_FIELDS
 from mapkit.train import PRESETS, TrainConfig, TrainConfigError, preset
@@ -101,9 +101,7 @@ def test_a_non_object_nested_config_is_one_line() -> None:
 def test_choices_are_the_librarys() -> None:
     from mapkit._choices import VEHICLES
     from mapkit.evaluation import EvalConfig
-    from mapkit.flight import PilotConfig
 
     assert set(PRESET_NAMES) == set(PRESETS)
     assert TRAINED_WEIGHTS == typing.get_args(typing.get_type_hints(TrainConfig)["only"])
-    assert ON_REJECT == typing.get_args(typing.get_type_hints(PilotConfig)["on_reject"])
     assert VEHICLES == typing.get_args(typing.get_type_hints(EvalConfig)["vehicle"])

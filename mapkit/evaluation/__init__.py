@@ -60,7 +60,6 @@ from mapkit.evaluation._stack import (
     UNTRAINED_SEEDS,
     Run,
     parse_stacks,
-    parse_untrained_seeds,
     plan_runs,
     split_label,
 )
@@ -75,5 +74,5 @@ __all__ = [
     "EffortComparison", "compare_effort", "effort_at_time", "DETOUR_EDGES", "DetourBin", "OutcomeCounts",
     "success_by_detour",
     "Ablation", "Interval", "RunSummary", "ablation", "comparison_lines", "paired_ratio", "success_difference",
-    "STACKED_METHODS", "UNTRAINED_SEEDS", "Run", "parse_stacks", "parse_untrained_seeds", "plan_runs", "split_label", "untrained_copy",
+    "STACKED_METHODS", "UNTRAINED_SEEDS", "Run", "parse_stacks", "plan_runs", "split_label", "untrained_copy",
 ]

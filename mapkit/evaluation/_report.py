@@ -118,7 +118,7 @@ def _setup_lines(doc: dict) -> list[str]:
         f"of the goal, collision when the body centre comes closer than {loop['robot_radius']} m to the world "
         f"(exact distance, {loop['control_rate']:g} Hz samples), time limit max({loop['timeout_min']:g} s, "
         f"{loop['timeout_factor']:g} × distance / {loop['cruise_speed']:g} m/s). Plans with η ≥ 0.5 are "
-        f"{'not executed' if pilot['respect_eta'] else 'executed anyway'}. Executed effort is ∫‖snap‖² dt (m²/s⁷) of the "
+        f"not executed. Executed effort is ∫‖snap‖² dt (m²/s⁷) of the "
         f"flown trajectory (reference tracked by a 4th-order loop with poles at −{loop['tracking_bandwidth']:g} rad/s); "
         f"per-plan effort is each executed plan's own whole ∫‖snap‖² dt (the paper's quantity), averaged over a "
         f"flight; both over successful flights. Peaks are the flown vehicle's largest speed, acceleration and jerk. "

@@ -175,8 +175,6 @@ class EvalConfig:
             raise EvalError(f"loop.pilot.plan_latency must be in [0, replan interval {pilot.replan_interval} s), got {pilot.plan_latency}")
         if not (math.isfinite(pilot.look_ahead) and pilot.look_ahead >= 0):
             raise EvalError(f"loop.pilot.look_ahead must be >= 0 seconds (0: head along the velocity), got {pilot.look_ahead}")
-        if not (math.isfinite(pilot.final_approach) and pilot.final_approach >= 0):
-            raise EvalError(f"loop.pilot.final_approach must be >= 0 metres (0 turns it off), got {pilot.final_approach}")
         try:
             pilot.validate()
         except FlightError as exc:
@@ -1040,12 +1038,9 @@ def _validate_execution(ex: Execution) -> None:
         _validate_memory(memory)
     if ex.route is not None:
         _validate_route(ex.route)
-    for key, value in (("cruise", pace.cruise), ("search_speed", pace.search_speed)):
-        if value is not None and not (math.isfinite(value) and value > 0):
-            raise EvalError(f"execution.speed.{key} must be a positive speed in m/s (or \"none\": the model's cruise "
-                            f"speed), got {value}")
-    if not (math.isfinite(pace.turn_min_speed) and pace.turn_min_speed > 0):
-        raise EvalError(f"SpeedProfile.turn_min_speed must be a positive speed in m/s, got {pace.turn_min_speed}")
+    if pace.cruise is not None and not (math.isfinite(pace.cruise) and pace.cruise > 0):
+        raise EvalError(f"execution.speed.cruise must be a positive speed in m/s (or \"none\": the model's cruise "
+                        f"speed), got {pace.cruise}")
     if not (math.isfinite(pace.search_ratio) and pace.search_ratio >= 1):
         raise EvalError(f"SpeedProfile.search_ratio must be >= 1 (flown path over progress), got {pace.search_ratio}")
     if not (math.isfinite(pace.search_margin) and pace.search_margin >= 0):
@@ -1061,10 +1056,6 @@ def _validate_memory(memory: Memory) -> None:
     for name, value in (("blocked_within", memory.blocked_within), ("subgoal_time", memory.subgoal_time)):
         if not (math.isfinite(value) and value > 0):
             raise EvalError(f"Memory.{name} must be a positive number of seconds, got {value}")
-    speed = memory.subgoal_speed
-    if speed is not None and not (math.isfinite(speed) and speed >= 0):
-        raise EvalError(f"Memory.subgoal_speed must be >= 0 m/s (0: stop at the way out; default: the cruise speed), "
-                        f"got {speed}")
 
 
 def _validate_route(route: RouteConfig) -> None:

@@ -40,18 +40,6 @@ def parse_stacks(text: str) -> tuple[FlightStack, ...]:
     return tuple(out)
 
 
-def parse_untrained_seeds(text: str) -> tuple[int, ...]:
-    """A comma list of untrained seeds (``"0,1,2,3"``) → the seeds; :class:`EvalError` names a part
-    that is not a whole number >= 0, or a repeated one."""
-    parts = [part.strip() for part in text.split(",") if part.strip()]
-    bad = [part for part in parts if not part.isdigit()]
-    if bad or not parts or len(set(map(int, parts))) != len(parts):
-        what = f"{bad[0]!r} is not a whole number >= 0" if bad else "give distinct seeds"
-        raise EvalError(f"untrained_seeds {text!r}: {what}; use a comma list such as "
-                        f"{','.join(map(str, UNTRAINED_SEEDS))}")
-    return tuple(int(part) for part in parts)
-
-
 @dataclass(frozen=True)
 class Run:
     """One method flown under one flight stack."""

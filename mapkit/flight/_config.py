@@ -7,7 +7,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapkit._choices import ON_REJECT, OnReject
 from mapkit.flight._errors import FlightError
 
 
@@ -28,13 +27,6 @@ class PilotConfig:
     network was trained on goals within the depth range) and plans pass it at cruise speed."""
     goal_radius: float = 0.5
     """Metres: within this of the goal the status is ``reached`` and the pilot stops replanning."""
-    respect_eta: bool = True
-    """Do not execute plans with collision probability η >= 0.5 (keep flying the previous one; when
-    hovering, turn ``look_turn_deg`` to look elsewhere), unless the planner's own check found the
-    previous reference no safer (:attr:`~mapkit.flight.MethodPlan.overrides_eta`)."""
-    on_reject: OnReject = "continue"
-    """What a flying vehicle does with a rejected plan: "continue" keeps flying the previous plan;
-    "brake" brakes to rest, then hovers and turns as above."""
     brake_deceleration: float = 3.0
     """m/s², about the peak deceleration of a brake to rest: it stops v² / this metres ahead."""
     look_ahead: float = 1.5
@@ -49,9 +41,6 @@ class PilotConfig:
     """rad/s²: nor speeds up or slows its turn faster than this (a quadrotor's yaw torque is small: a step
     in yaw saturates its rotors). A 60° look turn takes about 0.5 s; a hovering vehicle turns again
     only once it faces within ``LOOK_DONE_DEG`` of where the last turn aimed."""
-    final_approach: float = 0.0
-    """Metres: closer to the goal than this, the plan is replaced by one minimum-snap segment to rest at
-    the goal. 0 turns it off."""
     frame_timeout: float = 0.5
     """Seconds without a depth frame after which the pilot brakes to rest and holds (status
     ``braking``, then ``blocked``) until frames come again."""
@@ -72,15 +61,12 @@ class PilotConfig:
         for name, value in positive.items():
             if not (math.isfinite(value) and value > 0):
                 raise FlightError(f"PilotConfig.{name} must be a finite number > 0, got {value}")
-        for name, value in {"look_ahead": self.look_ahead, "final_approach": self.final_approach,
-                            "look_turn_deg": self.look_turn_deg}.items():
+        for name, value in {"look_ahead": self.look_ahead, "look_turn_deg": self.look_turn_deg}.items():
             if not (math.isfinite(value) and value >= 0):
                 raise FlightError(f"PilotConfig.{name} must be a finite number >= 0, got {value}")
         if not 0 <= self.plan_latency < self.replan_interval:
             raise FlightError(f"PilotConfig.plan_latency must be in [0, replan_interval {self.replan_interval} s), "
                               f"got {self.plan_latency}")
-        if self.on_reject not in ON_REJECT:
-            raise FlightError(f"PilotConfig.on_reject {self.on_reject!r}: use one of {', '.join(ON_REJECT)}")
 
 
 def finite_vector(value: object, name: str) -> np.ndarray:

@@ -63,8 +63,6 @@ class Memory:
     """Seconds a blocked plan's way out is kept: when nothing leads on toward the goal, the network
     plans toward the most open direction of the depth image (:func:`open_direction`) until it gets
     within a metre of that point or this time passes."""
-    subgoal_speed: float | None = None
-    """m/s at which plans pass the way-out point (None: the plans' cruise speed; 0: stop there)."""
     turn_toward_open: bool = True
     """A blocked vehicle that hovers and turns to look elsewhere (:attr:`~mapkit.flight.PilotConfig.look_turn_deg` at a
     time) turns toward the side with fewer remembered surfaces within 3 m
@@ -72,10 +70,14 @@ class Memory:
     corner it stood in)."""
 
 
+TURN_MIN_SPEED = 1.0
+"""m/s: the slowest cruise speed ``SpeedProfile.turn_accel`` sets (the cruise speed itself when slower)."""
+
+
 @dataclass(frozen=True)
 class SpeedProfile:
-    """How fast learned plans fly: the cruise speed (slowed for turns, for stops, raised while
-    searching) and the speed and acceleration limits."""
+    """How fast learned plans fly: the cruise speed (slowed for turns and for stops; the model's own
+    cruise speed once a flight searches for its way) and the speed and acceleration limits."""
 
     cruise: float | None = 1.2
     """m/s: the cruise speed of the profile that times learned plans (and the speed at which a plan
@@ -83,22 +85,16 @@ class SpeedProfile:
     model's ``cruise_speed``. The network still reads the velocity scaled by the model's own cruise
     speed. The same path flown in 1/k of the time costs k⁷ the snap. The time limit follows this speed
     (``mapkit.evaluation.LoopConfig.cruise_speed``)."""
-    search_speed: float | None = None
-    """m/s for the rest of a flight once it searches for its way: it has stalled (no 0.5 m of progress
-    for ``route.after`` seconds), or flown more than ``search_ratio`` × the distance it has come toward
-    the goal plus ``search_margin``. None: the model's ``cruise_speed``."""
     search_ratio: float = 1.4
-    """Flown path over progress toward the goal above which a flight counts as searching (a flight
-    weaving between trees flies 1.05–1.15×)."""
+    """Flown path over progress toward the goal above which a flight counts as searching for its way (a
+    flight weaving between trees flies 1.05–1.15×); a searching flight stalls for good unless it hurries."""
     search_margin: float = 1.0
     """Metres of flown path allowed before the ratio counts (turning toward the way at the start)."""
     turn_accel: float | None = 1.5
     """m/s²: each plan's cruise speed (and its speed at a passed goal) is at most √(``turn_accel`` R), R
     the radius of the sharpest turn of its key-points (:func:`mapkit.planner.turn_speed`), and at least
-    ``turn_min_speed``; None: every plan at the cruise speed. A turn's snap grows with the seventh power
+    :data:`TURN_MIN_SPEED`; None: every plan at the cruise speed. A turn's snap grows with the seventh power
     of its speed, and a straight path has none."""
-    turn_min_speed: float = 1.0
-    """m/s: the slowest cruise speed ``turn_accel`` sets (the cruise speed itself when slower)."""
     stop_decel: float | None = 0.75
     """m/s²: until a flight searches for its way, plans that end at rest (at the goal) slow down to it
     at this rate instead of the model's ``accel`` (None)."""

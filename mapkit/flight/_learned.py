@@ -29,7 +29,7 @@ import torch
 from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 
-from mapkit.flight._layers import Execution, SpeedProfile
+from mapkit.flight._layers import TURN_MIN_SPEED, Execution, SpeedProfile
 from mapkit.flight._pieces import pieces_from_body
 from mapkit.flight._plan import MethodPlan, Observation
 from mapkit.flight._route import FlightMap, Progress, depth_points
@@ -468,7 +468,7 @@ class LearnedMethod:
         self.config = net.config
         self.execution = execution
         self._timing_config = _at_speed(net.config, execution.speed.cruise)
-        """The planner config whose cruise speed times the plans: ``speed``, ``search_speed`` once searching."""
+        """The planner config whose cruise speed times the plans (:meth:`_speed_config`)."""
         self._search = _Search()
         self.plan_log: list[PlanInput] | None = None
         """A list to append every timed plan's :class:`PlanInput` to (``mapkit eval --record-plans``), or None."""
@@ -608,7 +608,7 @@ class LearnedMethod:
         config, how = self._timing_config, self.execution.speed
         cruise = decel = None
         if how.turn_accel is not None:
-            slowest = min(how.turn_min_speed, config.cruise_speed)
+            slowest = min(TURN_MIN_SPEED, config.cruise_speed)
             cruise = turn_speed(wp, how.turn_accel).clamp(slowest, config.cruise_speed)
             end_speed = torch.minimum(end_speed, cruise)
         if how.stop_decel is not None and not self._search.searching:
@@ -719,16 +719,16 @@ class LearnedMethod:
         return np.array([aim.xy[0], aim.xy[1], z])
 
     def _speed_config(self, obs: Observation) -> PlannerConfig:
-        """The planner config timed at ``speed``, or at ``search_speed`` once the flight searches."""
+        """The planner config timed at the profile's cruise speed, or at the model's own once the flight
+        searches for its way."""
         how = self.execution.speed
         p = obs.T_world_body[:3, 3]
         searching = self._search.update(p, float(np.linalg.norm(np.asarray(obs.goal_world) - p)),
                                         how.search_ratio, how.search_margin)
-        return _at_speed(self.config, how.search_speed if searching else how.cruise)
+        return _at_speed(self.config, None if searching else how.cruise)
 
     def _subgoal_speed(self) -> float:
-        speed = None if self.execution.memory is None else self.execution.memory.subgoal_speed
-        return self._timing_config.cruise_speed if speed is None else speed
+        return self._timing_config.cruise_speed
 
     def plan(self, obs: Observation) -> MethodPlan:
         t0 = time.perf_counter()

@@ -277,18 +277,14 @@ class Pilot:
         obs = Observation(t=t_take, T_world_body=T, state_world=self._ref.state(t_take), goal_world=goal,
                           local_goal_body=local, depth=frame.depth if with_depth else None, goal_clipped=n > c.horizon,
                           reference=self._ref.pieces, camera=frame.camera)
-        if self.planner.replans and float(np.linalg.norm(to_goal)) < c.final_approach:
-            mp = final_approach(obs, self._ref.state(t_take), 0.5)
-        else:
-            mp = self.planner.plan(obs)
-        return self._react(stamp, obs, mp)
+        return self._react(stamp, obs, self.planner.plan(obs))
 
     def _react(self, stamp: float, obs: Observation, mp: MethodPlan) -> PilotStep:
         """Take the plan, or keep the reference, brake, or turn to look elsewhere when it is rejected."""
         assert self._ref is not None  # set by step
         c = self.config
         self._look_at = mp.look_at
-        vetoed = c.respect_eta and mp.eta is not None and mp.eta >= 0.5 and not mp.overrides_eta
+        vetoed = mp.eta is not None and mp.eta >= 0.5 and not mp.overrides_eta
         if not (vetoed or mp.blocked or not mp.within_limits):
             self._braking = False
             self._look = 0.0
@@ -303,7 +299,7 @@ class Pilot:
                 self._look += self._turn * math.radians(c.look_turn_deg)
             self._adopt(self._ref.pieces, stamp)
             return self._answer("blocked", f"{why}: hovering, turning {c.look_turn_deg:.0f}° to look elsewhere", plan=mp)
-        if (mp.blocked or c.on_reject == "brake") and not self._braking:
+        if mp.blocked and not self._braking:
             self._braking = True
             direction = None if mp.brake_direction is None else obs.T_world_body[:3, :3] @ mp.brake_direction
             self._adopt(brake(self._ref.state(stamp), stamp, c.brake_deceleration, direction), stamp)
@@ -396,16 +392,6 @@ def brake(state_world: np.ndarray, t0: float, deceleration: float, direction: np
             break
         T *= max(1.1, math.sqrt(peak / allowed))
     return pieces
-
-
-def final_approach(obs: Observation, state_world: np.ndarray, min_speed: float) -> MethodPlan:
-    """One minimum-snap segment from ``state_world`` to rest at the goal, at half the current speed on
-    average (at least ``min_speed``)."""
-    t0 = time.perf_counter()
-    speed = max(0.5 * float(np.linalg.norm(state_world[1])), min_speed)
-    T = max(float(np.linalg.norm(obs.goal_world - state_world[0])) / speed, 0.2)
-    pieces = _segment(state_world, np.asarray(obs.goal_world, dtype=np.float64), T, obs.t)
-    return MethodPlan(pieces=pieces, latency_ms=1e3 * (time.perf_counter() - t0))
 
 
 def _segment(state_world: np.ndarray, end: np.ndarray, T: float, t0: float) -> Pieces:
