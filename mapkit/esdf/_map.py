@@ -142,26 +142,11 @@ class EsdfMap:
         hi = self.origin + self.voxel_size * (np.asarray(self.shape, dtype=np.float64) - 1)
         return np.stack([lo, hi])
 
-    @property
-    def parameters(self) -> dict[str, Any]:
-        """The parameters that made the map (from the store's attrs; empty for in-memory maps)."""
-        return dict(self.attrs.get("parameters", {}))
-
     def coords(self, axis: str) -> np.ndarray:
         """float64 [n]: voxel-centre coordinates along "x", "y" or "z"."""
         a = _axis_index(axis)
         centres: np.ndarray = self.origin[a] + self.voxel_size * np.arange(self.shape[a], dtype=np.float64)
         return centres
-
-    def voxel_centre(self, index: Any) -> np.ndarray:
-        """World position(s) (..., 3) of voxel centre(s) with integer index (..., 3)."""
-        centres: np.ndarray = self.origin + self.voxel_size * np.asarray(index, dtype=np.float64)
-        return centres
-
-    def world_to_voxel(self, points: Any) -> np.ndarray:
-        """Continuous voxel coordinates (..., 3) of world points (..., 3); integers at voxel centres."""
-        ijk: np.ndarray = (np.asarray(points, dtype=np.float64) - self.origin) / self.voxel_size
-        return ijk
 
     # ------------------------------------------------------------------ data
     def load(self) -> EsdfMap:
@@ -200,13 +185,6 @@ class EsdfMap:
         if found:
             raise EsdfError(f"cannot read {name!r} of map {str(self.path)!r} ({describe(found)}: the store is "
                             f"damaged); {_FIX}")
-
-    def distance_at_voxel(self, i: int, j: int, k: int, *, raw: bool = False) -> float:
-        """Stored signed distance (metres) of voxel [i, j, k] (reads one chunk if not loaded)."""
-        for v, n, ax in zip((i, j, k), self.shape, "xyz", strict=True):
-            if not 0 <= int(v) < n:
-                raise EsdfError(f"voxel index {ax}={v} is outside 0..{n - 1}")
-        return float(self.read("esdf_raw" if raw else "esdf", (int(i), int(j), int(k))))
 
     # ------------------------------------------------------------------ queries
     def query(self, points: Any, *, raw: bool = False, outside: Outside = "nan") -> tuple[np.ndarray, np.ndarray]:
@@ -295,7 +273,7 @@ class EsdfMap:
         Returns
         -------
         Tensor (...) of the points' dtype and device. The grid is copied to the device/dtype once and
-        cached (:meth:`clear_cache` frees it).
+        cached.
         """
         import torch
 
@@ -340,10 +318,6 @@ class EsdfMap:
             out = ((u < -_TOL) | (u > hi + _TOL)).any(dim=-1)
             value = torch.where(out, torch.full_like(value, float("nan")), value)
         return value.reshape(lead)
-
-    def clear_cache(self) -> None:
-        """Drop the torch copies of the grids made by :meth:`query_torch`."""
-        self._torch.clear()
 
     def __repr__(self) -> str:
         src = f" from {str(self.path)!r}" if self.path else ""
