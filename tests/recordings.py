@@ -26,6 +26,11 @@ T_BODY_LINK[:3, 3] = [0.10, 0.0, 0.05]
 T_LINK_OPTICAL = invert_transform(T_BODY_LINK) @ T_BODY_CAMERA
 
 
+def rotation_angle(R: np.ndarray) -> float:
+    """Angle (radians) of a 3x3 rotation."""
+    return float(Rotation.from_matrix(R).magnitude())
+
+
 def body_pose(t: float) -> np.ndarray:
     """A smooth, curving body trajectory (world ENU)."""
     T = np.eye(4)
