@@ -69,10 +69,6 @@ class Flight:
     def duration(self) -> float:
         return float(self.t_k[-1])
 
-    @property
-    def length(self) -> float:
-        return float(self.s_k[-1])
-
     def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(position (N,3), world velocity (N,3), yaw (N,), yaw rate (N,)) at times t (N,) s."""
         t = np.asarray(t, dtype=np.float64)
@@ -208,8 +204,8 @@ class _Router:
                     return poly
                 want *= 1.2
             goal = self.pick_goal(goals)
-            leg = self.leg_to(goals[-1], goal)
-            if leg is None:
+            leg = None if goal == goals[-1] else self.space.cell_path(goals[-1], goal)
+            if leg is None:  # the same cell, or unreachable
                 continue
             legs.append(leg)
             goals.append(goal)
@@ -237,12 +233,6 @@ class _Router:
         n = max(2, int(math.ceil(np.linalg.norm(b - a) / (0.5 * self.space.resolution))) + 1)
         pts = a[None, :] + np.linspace(0.0, 1.0, n)[:, None] * (b - a)[None, :]
         return bool(self.grid.interp_sdf(pts).min() >= self.need)
-
-    def leg_to(self, start: int, goal: int) -> list[int] | None:
-        """Cells of the cheapest leg from ``start`` to ``goal``; None when unreachable or the same cell."""
-        if goal == start:
-            return None
-        return self.space.cell_path(start, goal)
 
     def u_turn(self, prev: np.ndarray, g: np.ndarray, nxt: np.ndarray) -> list[np.ndarray]:
         """Half-circle control points replacing a reversal at goal g (empty if no room)."""
