@@ -188,21 +188,10 @@ class EsdfMap:
 
     # ------------------------------------------------------------------ queries
     def query(self, points: Any, *, raw: bool = False, outside: Outside = "nan") -> tuple[np.ndarray, np.ndarray]:
-        """Trilinearly interpolated signed distance and its gradient at world points.
-
-        Parameters
-        ----------
-        points
-            float (N, 3) (or any (..., 3)) world positions in metres.
-        raw
-            Interpolate ``esdf_raw`` instead of the smoothed ``esdf``.
-        outside
-            ``"nan"`` or ``"clamp"``; see the class docstring.
-
-        Returns
-        -------
-        distance float64 (N,), gradient float64 (N, 3) in metres per metre: the exact gradient of the
-        trilinear interpolant (piecewise; on a cell face the cell on the upper side is used).
+        """Trilinearly interpolated signed distance and its gradient at world points (N, 3) (or any
+        (..., 3)), metres: distance float64 (N,) and gradient float64 (N, 3), the exact gradient of the
+        trilinear interpolant (on a cell face, the cell on the upper side). ``raw`` interpolates
+        ``esdf_raw`` instead of ``esdf``; ``outside`` is "nan" or "clamp" (see the class docstring).
 
         Example: the field of a wall at x = 1 m is linear, so interpolation gives it exactly; a point
         outside the grid gets NaN:
@@ -259,21 +248,12 @@ class EsdfMap:
         return value.reshape(lead), grad.reshape((*lead, 3))
 
     def query_torch(self, points: torch.Tensor, *, raw: bool = False, outside: Outside = "nan") -> torch.Tensor:
-        """Differentiable trilinear signed distance at world points, as a torch tensor.
+        """Differentiable trilinear signed distance at world points, as a torch tensor (...) of the
+        points' dtype and device.
 
-        Parameters
-        ----------
-        points
-            float32 or float64 tensor (..., 3), metres, on any device. Gradients flow to `points`
-            (autograd through the trilinear weights; the grid itself is a constant).
-        raw, outside
-            As in :meth:`query`. With ``outside="nan"`` points outside get NaN (and a zero gradient,
-            the NaN being a constant); with ``"clamp"`` the clamped function and its gradient.
-
-        Returns
-        -------
-        Tensor (...) of the points' dtype and device. The grid is copied to the device/dtype once and
-        cached.
+        ``points``: float32 or float64 tensor (..., 3), metres, on any device; gradients flow to them
+        (the grid is a constant, copied to the device and dtype once and cached). ``raw`` and ``outside``
+        as in :meth:`query`; with "nan", points outside get NaN (and a zero gradient).
         """
         import torch
 
