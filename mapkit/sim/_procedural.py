@@ -137,8 +137,15 @@ def _office(rng: np.random.Generator, X: float, Y: float, Z: float, density: flo
             w = float(rng.uniform(1.5, 1.9))
             wall(1, float(x), y_split + 0.5 * t, Y, [y_split + float(rng.uniform(w, Y - y_split - w))], w)
 
+    return prims + _furniture(rng, X, Y, Z, density, prims), (0.6, Z - 0.6)
+
+
+def _furniture(rng: np.random.Generator, X: float, Y: float, Z: float, density: float,
+               structure: list[Primitive]) -> list[Primitive]:
+    """Pillars, desks and shelves placed among the office's walls (``structure``: floor, ceiling, the
+    four outer walls, then the inner ones). Pillars stand in the open; desks keep ~1 m of floor around
+    them for flying; shelves lean on outer walls but keep clear of inner walls so doorways stay open."""
     bounds = np.array([[0.0, 0.0, 0.0], [X, Y, Z]])
-    structure = list(prims)
     outer_and_inner, inner = structure[2:], structure[6:]
     placed: list[Primitive] = []
 
@@ -155,8 +162,6 @@ def _office(rng: np.random.Generator, X: float, Y: float, Z: float, density: flo
                 placed.append(prim)
                 return
 
-    # Pillars stand in the open; desks keep ~1 m of floor around them for flying; shelves lean
-    # on outer walls but keep clear of inner walls so doorways stay open.
     for _ in range(max(1, int(round(X * Y / 80.0)))):
         r = float(rng.uniform(0.2, 0.3))
         try_place(functools.partial(_pillar, rng, X, Y, Z, r), 1.6, outer_and_inner)
@@ -165,7 +170,7 @@ def _office(rng: np.random.Generator, X: float, Y: float, Z: float, density: flo
             try_place(lambda: _shelf(rng, X, Y), 1.2, inner)
         else:
             try_place(lambda: _desk(rng, X, Y), 1.1, outer_and_inner)
-    return structure + placed, (0.6, Z - 0.6)
+    return placed
 
 
 def _pillar(rng: np.random.Generator, X: float, Y: float, Z: float, r: float) -> Cylinder:
