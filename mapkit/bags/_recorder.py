@@ -2,8 +2,9 @@
 
 ``BagRecorder`` turns numpy depth images and 4x4 poses into the messages a real drone publishes
 (sensor_msgs/Image, CompressedImage in compressed_depth_image_transport format, CameraInfo,
-nav_msgs/Odometry, geometry_msgs poses, tf2_msgs/TFMessage) and writes them with rosbags' writers
-(ROS1 / rosbag2-sqlite3) or the ``mcap`` package (bare ``.mcap``, ROS2 CDR, zstd chunks).
+nav_msgs/Odometry, tf2_msgs/TFMessage; any other through :meth:`BagRecorder.write_raw`) and writes
+them with rosbags' writers (ROS1 / rosbag2-sqlite3) or the ``mcap`` package (bare ``.mcap``, ROS2
+CDR, zstd chunks).
 
 Output is atomic: everything is written under a hidden temporary name in the destination directory
 and renamed into place only when the context manager exits cleanly; on an exception the partial
@@ -425,22 +426,6 @@ class BagRecorder:
             ),
         )
         self.write_raw(topic, "nav_msgs/msg/Odometry", msg, stamp_ns)
-
-    def write_pose_stamped(self, topic: str, stamp_ns: int, T: np.ndarray, *, frame_id: str) -> None:
-        """Write geometry_msgs/PoseStamped (``T`` = T_frame_body)."""
-        PoseStamped = self._type("geometry_msgs/msg/PoseStamped")
-        msg = PoseStamped(header=self.header(stamp_ns, frame_id, topic=topic), pose=self.pose_message(T))
-        self.write_raw(topic, "geometry_msgs/msg/PoseStamped", msg, stamp_ns)
-
-    def write_pose_with_covariance(self, topic: str, stamp_ns: int, T: np.ndarray, *, frame_id: str) -> None:
-        """Write geometry_msgs/PoseWithCovarianceStamped with zero covariance."""
-        Msg = self._type("geometry_msgs/msg/PoseWithCovarianceStamped")
-        PoseWithCovariance = self._type("geometry_msgs/msg/PoseWithCovariance")
-        msg = Msg(
-            header=self.header(stamp_ns, frame_id, topic=topic),
-            pose=PoseWithCovariance(pose=self.pose_message(T), covariance=np.zeros(36)),
-        )
-        self.write_raw(topic, "geometry_msgs/msg/PoseWithCovarianceStamped", msg, stamp_ns)
 
     def _tf_message(self, transforms: Sequence[tuple[Any, ...]], stamp_ns: int, topic: str) -> Any:
         TransformStamped = self._type("geometry_msgs/msg/TransformStamped")
