@@ -4,8 +4,8 @@ Net module. Entry point: :func:`allocate_times`."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any, Literal, overload
+from dataclasses import dataclass
+from typing import Literal, overload
 
 import numpy as np
 import torch
@@ -408,8 +408,6 @@ class TimeAllocationNetConfig:
     slower from a start k (k²) times slower has the same minimum-snap split, and those inputs do not
     change with k, so one net serves every pace (``limits`` cannot tell a plan flown at 1.2 m/s from
     the same plan at 2 m/s). Needs the total time (:meth:`TimeAllocationNet.shares`)."""
-    extra: dict[str, Any] = field(default_factory=dict)
-    """Free-form notes stored with the config (ignored by the module)."""
 
 
 class TimeAllocationNet(nn.Module):
