@@ -34,8 +34,6 @@ import numpy as np
 from mapkit.bags._errors import BagError
 from mapkit.geometry import quat_xyzw_from_matrix
 
-__all__ = ["BagRecorder", "BagFormat", "DEPTH_ENCODINGS", "FORMATS", "output_path"]
-
 BagFormat = Literal["mcap", "ros2", "ros1"]
 FORMATS: tuple[str, ...] = ("mcap", "ros2", "ros1")
 DEPTH_ENCODINGS: tuple[str, ...] = ("16UC1", "mono16", "32FC1")

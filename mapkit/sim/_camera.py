@@ -16,15 +16,6 @@ import numpy as np
 from mapkit.sim._errors import SimError
 from mapkit.sim._world import World, ray_entry
 
-__all__ = [
-    "CameraModel",
-    "R_LINK_OPTICAL",
-    "camera_extrinsics",
-    "render_depth",
-    "apply_realsense_noise",
-    "NOISE_MODELS",
-]
-
 NOISE_MODELS: tuple[str, ...] = ("none", "realsense")
 
 # Optical axes expressed in the FLU camera_link: z_opt = x_link, x_opt = -y_link, y_opt = -z_link.

@@ -31,8 +31,6 @@ from mapkit.sim._errors import SimError
 from mapkit.sim._search import FreeSpaceGraph, _NoFreeSpace, _shortcut
 from mapkit.sim._world import World
 
-__all__ = ["Flight", "plan_flight", "MIN_SPEED", "MAX_SPEED"]
-
 MIN_SPEED = 1.0
 MAX_SPEED = 3.0
 _LONG_ACCEL = 1.5  # m/s², speeding up / slowing down

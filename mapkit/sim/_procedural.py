@@ -19,8 +19,6 @@ import numpy as np
 from mapkit.sim._errors import SimError
 from mapkit.sim._world import Box, Capsule, Cylinder, HalfSpace, Primitive, World
 
-__all__ = ["WORLD_KINDS", "DEFAULT_SIZES", "DEFAULT_DENSITIES", "MIN_SIZES", "make_world"]
-
 WORLD_KINDS: tuple[str, ...] = ("forest", "office", "garage")
 DEFAULT_SIZES: dict[str, tuple[float, float, float]] = {
     "forest": (40.0, 40.0, 10.0),

@@ -19,8 +19,6 @@ from scipy.sparse.csgraph import dijkstra
 from mapkit.sim._errors import SimError
 from mapkit.sim._world import World
 
-__all__ = ["FreeSpaceGraph"]
-
 
 class _NoFreeSpace(SimError):
     """No cell of the flight volume has the clearance asked for (callers may say it their way)."""
