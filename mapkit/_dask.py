@@ -8,7 +8,7 @@ Every stage that fans out over Dask (``mapkit batch``, the chunked ESDF, ``mapki
 - else a :class:`distributed.LocalCluster` of one worker process per available core (the process's
   CPU affinity, not the machine's total; one task at a time each, native libraries get the cores
   divided among the workers), listening on loopback only (dashboard on a free port), workers without
-  Dask's statistical profiler (the dashboard's Profile page stays empty; it cost ~10 % CPU).
+  Dask's statistical profiler (the dashboard's Profile page stays empty).
 
 A scheduler that cannot be reached is a :class:`SchedulerError` naming the address and the fix.
 """
@@ -116,9 +116,8 @@ def _client(address: str | None, workers: int | None, timeout_s: float) -> Itera
             raise SchedulerError(f"workers={n} must be at least 1")
         # One task at a time per worker process: the stages are numpy/torch code that holds the GIL in
         # places, and processes isolate a worker that dies; native threads come from _worker_environ.
-        # The workers' statistical profiler samples every running task's stack each 10 ms: about 10 %
-        # more CPU on the batch pipeline (2 flights of 24 s, one worker: 25.0 vs 23.0 CPU-s, the
-        # single commands 22.1). Local clusters go without it; a cluster of your own keeps Dask's default.
+        # The workers' statistical profiler (a stack sample of every task each 10 ms) costs CPU: local
+        # clusters go without it; a cluster of your own keeps Dask's default.
         environ = _worker_environ(n)
         # Every socket of a local cluster listens on loopback: given no host, the dashboard binds every
         # interface and shows this machine's tasks (and their code) to its network.
@@ -146,10 +145,8 @@ def _worker_environ(workers: int) -> dict[str, Any]:
     them) set to this machine's cores shared among the ``workers``, where Dask sets 1.
 
     ``MALLOC_TRIM_THRESHOLD_`` makes glibc hand freed memory back at once, and also fixes its mmap
-    threshold, so every large numpy temporary is mapped, faulted in and unmapped again: the batch
-    pipeline on a worker spent 4.5 s of system time where the same calls in one process spend 1.1 s
-    (20 % more wall time). A single worker on two cores with one thread leaves a core idle that the
-    single commands use.
+    threshold, so every large numpy temporary is mapped, faulted in and unmapped again (system time
+    the single commands do not spend). A single worker with one thread would leave cores idle.
     """
     import dask
 

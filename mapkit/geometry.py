@@ -9,11 +9,9 @@ __all__ = [
     "matrix_from_quat_xyzw",
     "quat_xyzw_from_matrix",
     "transform_from_pose",
-    "pose_from_transform",
     "invert_transform",
     "slerp_xyzw",
     "interpolate_transform",
-    "rotation_angle",
 ]
 
 
@@ -53,12 +51,6 @@ def transform_from_pose(translation: ArrayLike, q_xyzw: ArrayLike) -> NDArray[np
     T[:3, :3] = matrix_from_quat_xyzw(q_xyzw)
     T[:3, 3] = translation
     return T
-
-
-def pose_from_transform(T: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(translation, quaternion xyzw) of a 4x4 transform."""
-    T = np.asarray(T, dtype=np.float64)
-    return T[:3, 3].copy(), quat_xyzw_from_matrix(T[:3, :3])
 
 
 def invert_transform(T: ArrayLike) -> NDArray[np.float64]:
@@ -106,11 +98,3 @@ def interpolate_transform(
 ) -> NDArray[np.float64]:
     """Pose at fraction s between two poses: linear translation, slerp rotation."""
     return transform_from_pose(t0 + s * (t1 - t0), slerp_xyzw(q0, q1, s))
-
-
-def rotation_angle(R: ArrayLike) -> float:
-    """Angle (radians) of a 3x3 rotation; robust near 0 and pi."""
-    R = np.asarray(R, dtype=np.float64)
-    sin_theta = np.linalg.norm(R - R.T) / (2 * np.sqrt(2))
-    cos_theta = (np.trace(R) - 1.0) / 2.0
-    return float(np.arctan2(sin_theta, cos_theta))

@@ -26,6 +26,11 @@ T_BODY_LINK[:3, 3] = [0.10, 0.0, 0.05]
 T_LINK_OPTICAL = invert_transform(T_BODY_LINK) @ T_BODY_CAMERA
 
 
+def rotation_angle(R: np.ndarray) -> float:
+    """Angle (radians) of a 3x3 rotation."""
+    return float(Rotation.from_matrix(R).magnitude())
+
+
 def body_pose(t: float) -> np.ndarray:
     """A smooth, curving body trajectory (world ENU)."""
     T = np.eye(4)
@@ -50,6 +55,18 @@ class Recording:
     T_world_camera: list[np.ndarray]
     depth: list[np.ndarray]
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+def write_pose_message(bag: BagRecorder, kind: str, stamp: int, T: np.ndarray) -> None:
+    """geometry_msgs/PoseStamped on /mavros/local_position/pose ("pose_stamped") or
+    PoseWithCovarianceStamped (zero covariance) on /pose ("pose_cov"), in frame "map"."""
+    topic, msgtype = {"pose_stamped": ("/mavros/local_position/pose", "geometry_msgs/msg/PoseStamped"),
+                      "pose_cov": ("/pose", "geometry_msgs/msg/PoseWithCovarianceStamped")}[kind]
+    pose = bag.pose_message(T)
+    if kind == "pose_cov":
+        pose = bag.typestore.types["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36))
+    header = bag.header(stamp, "map", topic=topic)
+    bag.write_raw(topic, msgtype, bag.typestore.types[msgtype](header=header, pose=pose), stamp)
 
 
 def write_recording(
@@ -84,10 +101,8 @@ def write_recording(
         def write_pose(ps_written: int, T: np.ndarray) -> None:
             if pose == "odometry":
                 bag.write_odometry("/odom", ps_written, T, frame_id="world", child_frame_id="base_link")
-            elif pose == "pose_stamped":
-                bag.write_pose_stamped("/mavros/local_position/pose", ps_written, T, frame_id="map")
-            elif pose == "pose_cov":
-                bag.write_pose_with_covariance("/pose", ps_written, T, frame_id="map")
+            elif pose in ("pose_stamped", "pose_cov"):
+                write_pose_message(bag, pose, ps_written, T)
             elif pose == "tf":
                 # world → odom as a (constant) dynamic edge, odom → base_link moving.
                 T_world_odom = np.eye(4)

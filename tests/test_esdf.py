@@ -56,13 +56,12 @@ def random_scene(shape, seed=0, boxes=12):
 def small_map(tmp_path: Path, *, shape=(40, 30, 20), origin=(-1.0, 2.0, 0.25), vs=0.1, sigma=0.15, name="map.zarr"):
     occ = random_scene(shape, seed=3)
     raw = signed_distance(occ, voxel_size=vs)
-    esdf, n = smooth(raw, voxel_size=vs, sigma=sigma)
+    esdf, _ = smooth(raw, voxel_size=vs, sigma=sigma)
     observed = np.ones(shape, np.uint8)
     observed[: shape[0] // 3, :, shape[2] // 2 :] = 0
     path = write_map(
         tmp_path / name, esdf=esdf, esdf_raw=raw, observed=observed, origin=origin, voxel_size=vs,
         frame_id="world", sigma=sigma, unknown_policy="free", parameters={"max_dist": None, "note": "test"},
-        extra_attrs={"n_prevented": n},
     )
     return path, occ, raw, esdf, observed
 
@@ -236,12 +235,11 @@ def test_chunked_streams_into_a_map_store(tmp_path):
     with create_map(tmp_path / "map.zarr", shape=occ.shape, origin=(0, 0, 0), voxel_size=vs, frame_id="world",
                     sigma=sigma, unknown_policy="free", parameters={"max_dist": md}) as w:
         assert not (tmp_path / "map.zarr").exists()  # only the temporary exists while writing
-        s = signed_distance_chunked(occ, w.esdf, voxel_size=vs, max_dist=md, chunk=64, sigma=sigma, out_raw=w.esdf_raw, progress=False)
+        signed_distance_chunked(occ, w.esdf, voxel_size=vs, max_dist=md, chunk=64, sigma=sigma, out_raw=w.esdf_raw, progress=False)
         w.observed[:] = 1
-        w.finalize({"n_prevented": s.n_prevented})
+        w.finalize()
     m = EsdfMap.open(tmp_path / "map.zarr")
     np.testing.assert_array_equal(m.esdf_raw[:], signed_distance(occ, voxel_size=vs, max_dist=md))
-    assert m.attrs["n_prevented"] == s.n_prevented
     assert [p.name for p in tmp_path.iterdir()] == ["map.zarr"]
     with pytest.raises(EsdfError, match="multiple of"):
         signed_distance_chunked(occ, m.esdf, voxel_size=vs, max_dist=md, chunk=50, progress=False)
@@ -273,7 +271,7 @@ def test_map_round_trip_and_xarray_coordinates(tmp_path):
     np.testing.assert_array_equal(m.esdf_raw[:], raw)
     np.testing.assert_array_equal(m.observed[:], observed)
     assert m.attrs["kind"] == "mapkit.map" and m.attrs["units"] == "m" and m.attrs["unknown_policy"] == "free"
-    assert m.attrs["mapkit_version"] and m.parameters == {"max_dist": None, "note": "test"}
+    assert m.attrs["mapkit_version"] and m.attrs["parameters"] == {"max_dist": None, "note": "test"}
     np.testing.assert_allclose(m.bounds, [origin, np.add(origin, vs * (np.array(occ.shape) - 1))])
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # consolidated metadata: xarray opens it without complaint
@@ -328,7 +326,7 @@ def test_damaged_chunks_are_one_line_for_every_reader(tmp_path):
         if chunk.is_file():
             chunk.write_bytes(b"\x00garbage")
     m = EsdfMap.open(path)
-    for read in (lambda: m.distance_at_voxel(0, 0, 0), lambda: m.query(np.zeros((1, 3)))):
+    for read in (lambda: m.read("esdf", (0, 0, 0)), lambda: m.query(np.zeros((1, 3)))):
         with pytest.raises(EsdfError, match=r"cannot read 'esdf' of map .* re-run `mapkit esdf --overwrite`"):
             read()
     z = float(m.origin[2])
@@ -390,13 +388,11 @@ def test_query_at_voxel_centre_returns_the_voxel_exactly():
     field = rng.normal(size=(9, 8, 7)).astype(np.float32)
     m = EsdfMap(esdf=field, voxel_size=0.2, origin=(1.0, -2.0, 0.5))
     idx = np.stack([rng.integers(0, n, 50) for n in field.shape], axis=-1)
-    d, _ = m.query(m.voxel_centre(idx))
+    d, _ = m.query(m.origin + m.voxel_size * idx)
     np.testing.assert_array_equal(d, field[idx[:, 0], idx[:, 1], idx[:, 2]])
-    assert m.distance_at_voxel(3, 2, 1) == float(field[3, 2, 1])
-    np.testing.assert_allclose(m.world_to_voxel(m.voxel_centre([3, 2, 1])), [3, 2, 1], atol=1e-12)
     import torch
 
-    t = m.query_torch(torch.as_tensor(m.voxel_centre(idx)))
+    t = m.query_torch(torch.as_tensor(m.origin + m.voxel_size * idx))
     np.testing.assert_array_equal(t.numpy(), field[idx[:, 0], idx[:, 1], idx[:, 2]])
 
 
@@ -420,7 +416,7 @@ def test_query_gradient_matches_finite_differences_numpy_and_torch():
     m = EsdfMap(esdf=field, voxel_size=0.3, origin=(0.1, 0.2, -0.4))
     # points well inside cells (trilinear is smooth there; cell faces are kinks)
     cell = np.stack([rng.integers(0, n - 1, 40) for n in field.shape], axis=-1)
-    p = m.voxel_centre(cell + rng.uniform(0.1, 0.9, size=(40, 3)))
+    p = m.origin + m.voxel_size * (cell + rng.uniform(0.1, 0.9, size=(40, 3)))
     _, g = m.query(p)
     h = 1e-6
     fd = np.stack([(m.query(p + h * e)[0] - m.query(p - h * e)[0]) / (2 * h) for e in np.eye(3)], axis=-1)
@@ -504,7 +500,7 @@ def test_render_slices_png(tmp_path):
     observed[40:, 30:, :] = 0
     m = EsdfMap(esdf=esdf, esdf_raw=raw, observed=observed, voxel_size=0.1, origin=(0, 0, 0.0), sigma=0.1)
     heights = (1.0, 2.5, 3.5)
-    fig = _slice_figure(m, z=heights, x=(), y=(), raw=False, cmap="RdBu", vmin=None, vmax=None, columns=3, title=None)
+    fig = _slice_figure(m, z=heights, x=(), y=(), raw=False)
     panels = [a for a in fig.axes if a.get_label() != "<colorbar>" and a.get_visible()]
     assert len(panels) == 3
     assert [a.get_title() for a in panels] == [f"height z = {h:.2f} m" for h in heights]
@@ -513,7 +509,7 @@ def test_render_slices_png(tmp_path):
     img = mpimg.imread(out)
     non_white = np.any(img[..., :3] < 0.95, axis=-1).mean()
     assert non_white > 0.3  # the panels are filled, not blank
-    out2 = render_slices(m, z=(1.0,), y=(2.0,), cmap="viridis", vmin=-0.5, vmax=2.0, path=tmp_path / "v.png")
+    out2 = render_slices(m, z=(1.0,), y=(2.0,), path=tmp_path / "v.png")
     assert out2.exists()
     with pytest.raises(EsdfError, match="valid z"):
         render_slices(m, z=(9.0,), path=tmp_path / "bad.png")

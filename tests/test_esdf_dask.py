@@ -132,7 +132,7 @@ def test_build_esdf_on_dask_equals_the_in_core_path(box_ws: Path, unknown: str, 
     config = EsdfConfig(voxel=0.1, sigma=0.1, max_dist=0.8, unknown=unknown, subvoxel=False)
     build_esdf(box_ws, config, overwrite=True, progress=False)
     dense = _arrays(box_ws)
-    assert EsdfMap.open(box_ws / "map.zarr").parameters.get("chunked") is None
+    assert EsdfMap.open(box_ws / "map.zarr").attrs["parameters"].get("chunked") is None
     monkeypatch.setattr(build, "_CHUNK", 64)  # several chunks on this small grid
     for workers in (1, 2):
         s = build_esdf(box_ws, config, overwrite=True, progress=False, workers=workers)
@@ -140,7 +140,7 @@ def test_build_esdf_on_dask_equals_the_in_core_path(box_ws: Path, unknown: str, 
         chunked = _arrays(box_ws)
         for name in ("esdf", "esdf_raw", "observed"):
             np.testing.assert_array_equal(chunked[name], dense[name], err_msg=f"{name} with {workers} workers")
-        assert EsdfMap.open(box_ws / "map.zarr").parameters["chunked"] is True
+        assert EsdfMap.open(box_ws / "map.zarr").attrs["parameters"]["chunked"] is True
 
 
 @pytest.mark.slow

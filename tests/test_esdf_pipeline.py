@@ -143,7 +143,7 @@ def test_large_grids_run_chunked(workspaces: dict, monkeypatch: pytest.MonkeyPat
     build_esdf(ws, config, overwrite=True, progress=False)
     m = EsdfMap.open(ws / "map.zarr")
     chunked = np.asarray(m.esdf[:])
-    assert m.parameters["chunked"] is True and np.abs(chunked).max() <= 1.0 + 1e-6
+    assert m.attrs["parameters"]["chunked"] is True and np.abs(chunked).max() <= 1.0 + 1e-6
     inner = np.abs(dense) < 0.8
     # Same occupancy; only the sub-voxel refinement differs (distances to surface points instead
     # of the half-voxel convention; surface points also seed thin parts the occupancy missed).

@@ -65,7 +65,7 @@ def test_tiled_world_equals_the_single_process_map(two_flights: Path, tmp_path: 
         build_esdf(two_flights, esdf_config, overwrite=True, progress=False, workers=1)
         build_esdf(tmp_path / "world", esdf_config, overwrite=True, progress=False)
         _maps_equal(two_flights, tmp_path / "world")
-    assert EsdfMap.open(tmp_path / "world" / "map.zarr").parameters["world"] is True
+    assert EsdfMap.open(tmp_path / "world" / "map.zarr").attrs["parameters"]["world"] is True
 
 
 @pytest.mark.slow

@@ -8,11 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-from recordings import T0, T_BODY_CAMERA, K, write_recording
+from recordings import T0, T_BODY_CAMERA, K, rotation_angle, write_recording
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from mapkit.geometry import rotation_angle
 from mapkit.ingest import IngestConfig, IngestError, ingest, open_frames, open_frames_store
 
 

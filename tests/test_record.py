@@ -43,8 +43,6 @@ def _write_all(path: Path, fmt: str) -> Path:
         for i in range(3):
             rec.write_odometry("/odom", STAMP + i, T, frame_id="world", child_frame_id="base_link",
                                linear_velocity=[1.0, 0.0, 0.5], angular_velocity=[0, 0, 0.1])
-        rec.write_pose_stamped("/pose", STAMP, T, frame_id="world")
-        rec.write_pose_with_covariance("/posecov", STAMP, T, frame_id="world")
         rec.write_tf(STAMP, [(T, "world", "base_link", STAMP)])
         rec.write_tf_static(STAMP, [(np.eye(4), "base_link", "camera_link")])
         rec.write_bytes("/broken", "sensor_msgs/msg/Image", b"\x00\x01", STAMP)
@@ -72,8 +70,8 @@ def test_round_trip(tmp_path: Path, fmt: str) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]  # no temporaries left behind
     msgs = _read(path)
     assert {k: len(v) for k, v in msgs.items()} == {
-        "/d16": 1, "/d32": 1, "/c16": 1, "/c32": 1, "/info": 1, "/odom": 3, "/pose": 1,
-        "/posecov": 1, "/tf": 1, "/tf_static": 1, "/broken": 1,
+        "/d16": 1, "/d32": 1, "/c16": 1, "/c32": 1, "/info": 1, "/odom": 3, "/tf": 1, "/tf_static": 1,
+        "/broken": 1,
     }
     depth = _depth()
     valid = np.isfinite(depth)

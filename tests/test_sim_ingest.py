@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from recordings import rotation_angle
 
-from mapkit.geometry import rotation_angle
 from mapkit.ingest import open_frames
 from mapkit.sim import SimConfig, render_flight, simulate
 

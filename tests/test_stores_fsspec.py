@@ -96,7 +96,7 @@ def test_map_and_tuples_at_a_url_equal_the_local_stores(local: tuple[Path, Path]
     _assert_same_group(_group(ws / "map.zarr"), _group(f"{mem}/map.zarr"))
     assert map_digest(f"{mem}/map.zarr") == map_digest(ws / "map.zarr")
     remote, here = EsdfMap.open(f"{mem}/map.zarr"), EsdfMap.open(ws / "map.zarr")
-    points = here.voxel_centre(np.array([[1, 2, 3], [5, 4, 2]])) + 0.03
+    points = here.origin + here.voxel_size * np.array([[1, 2, 3], [5, 4, 2]]) + 0.03
     np.testing.assert_array_equal(remote.query(points)[0], here.query(points)[0])
     result = CliRunner().invoke(main, ["slice", "-w", mem, "-o", str(tmp_path / "s.png"), "--z", "1.0"])
     assert result.exit_code == 0 and (tmp_path / "s.png").stat().st_size > 0, result.output

@@ -65,10 +65,10 @@ def test_optimality_against_perturbation():
     J0 = float(traj.snap_cost())
     # A different feasible trajectory: the same problem with nonzero interior velocities is not
     # expressible through the API, so compare against a quadratic-form evaluation.
-    from mapkit.trajopt._system import coefficients, hessian, knot_values, layout, solve_equality
+    from mapkit.trajopt._system import coefficients, knot_values, layout, solve_knots
 
-    X = solve_equality(hessian(T, 4), knot_values(w, torch.zeros(1, 3, 3, dtype=F64),
-                                                  torch.zeros(1, 3, 3, dtype=F64), 4), layout(4, 4, False))
+    X = solve_knots(T, knot_values(w, torch.zeros(1, 3, 3, dtype=F64), torch.zeros(1, 3, 3, dtype=F64), 4),
+                    layout(4, 4, False))
     free = layout(4, 4, False).free
     g = torch.Generator().manual_seed(1)
     for _ in range(5):
@@ -162,36 +162,17 @@ def test_yaw_spline():
     assert (psi[:, 3] - psi[:, 2] - (2 * math.pi - 6.0)).abs().max() < 1e-10
     rate = traj.yaw(knots, order=1)
     assert rate[:, 0].abs().max() < 1e-10 and rate[:, -1].abs().max() < 1e-10
-    assert (traj.yaw_cost() > 0).all()
-    # single segment rest-to-rest cubic: integral (psi'')^2 = 12 d^2 / T^3
-    one = min_snap(w[0, :2], T[0, :1], yaw=torch.tensor([0.0, 1.0], dtype=F64))
-    assert abs(float(one.yaw_cost()) - 12.0 / float(T[0, 0]) ** 3) < 1e-9
 
 
-def test_sample_and_limits():
+def test_limits():
     w, T = random_problem(2, 3, seed=9)
     T[1] = T[1] * 1.5
     traj = min_snap(w, T)
-    s = traj.sample(50.0)
-    assert s.position.shape[0] == 2 and s.position.shape[2] == 3
-    assert s.valid[0].sum() < s.valid[1].sum()
-    assert torch.allclose(s.position[:, 0], w[:, 0])
+    t = torch.stack([torch.linspace(0.0, float(total), 1000, dtype=F64) for total in T.sum(-1)])
     vmax = traj.max_velocity()  # dense grid of 64 points per segment: close to the true maximum
-    assert torch.allclose(vmax, s.velocity.norm(dim=-1).amax(-1), rtol=2e-3)
+    assert torch.allclose(vmax, traj.derivative(t, 1).norm(dim=-1).amax(-1), rtol=2e-3)
     assert traj.max_velocity(per_axis=True).shape == (2, 3)
     assert (traj.max_acceleration() > 0).all()
-
-
-def test_feasibility_hover_and_aggressive():
-    w = torch.tensor([[0.0, 0, 1], [1, 0, 1]], dtype=F64)
-    slow = min_snap(w, torch.tensor([5.0], dtype=F64))
-    f = slow.feasibility(mass=1.0, thrust_max=20.0, body_rate_max=3.0)
-    assert bool(f.ok)
-    assert abs(float(f.thrust_min) - 9.81) < 0.5
-    fast = min_snap(w, torch.tensor([0.3], dtype=F64))
-    f2 = fast.feasibility(mass=1.0, thrust_max=20.0, body_rate_max=3.0)
-    assert not bool(f2.ok)
-    assert float(f2.body_rate_max) > float(f.body_rate_max)
 
 
 def test_bad_inputs_raise_trajopt_error():

@@ -95,7 +95,7 @@ def expected_colour(app: ViewerApp, idx: tuple[int, int, int]) -> np.ndarray | N
     m = app.map
     if not m.observed[idx]:
         return None
-    value = np.array([m.distance_at_voxel(*idx)])
+    value = np.array([float(m.read("esdf", idx))])
     return apply_colormap(value, app.slice.cmap, app.slice.norm)[0]
 
 

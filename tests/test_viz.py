@@ -147,7 +147,7 @@ def test_slice_texture_colours_layout_and_pose(map_path: Path, axis: str, ppv: i
         x_img = (col + 0.5) / W * tex.width_m - 0.5 * tex.width_m
         y_img = (r + 0.5) / H * tex.height_m - 0.5 * tex.height_m
         world = c + R @ np.array([x_img, y_img, 0.0])
-        centre = m.voxel_centre(idx)
+        centre = m.origin + m.voxel_size * np.asarray(idx)
         assert np.all(np.abs(world - centre) <= 0.5 * VOXEL + 1e-9), (world, centre)
     assert np.allclose(R.T @ R, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
     np.testing.assert_allclose(tex.corners_world[0] - tex.corners_world[3], -tex.height_m * R[:, 1])

@@ -1,7 +1,7 @@
 """Write ROS recordings (bare MCAP, rosbag2 directory, ROS1 bag) without ROS.
 
 :class:`BagRecorder` turns numpy depth images and 4x4 poses into the messages a real drone publishes
-(depth Image / compressedDepth, CameraInfo, Odometry, poses, tf) and writes them atomically. The
+(depth Image / compressedDepth, CameraInfo, Odometry, tf) and writes them atomically. The
 simulator (``mapkit simulate``), ``mapkit plan`` (nav_msgs/Path) and the tests write their bags with it;
 reading bags is :mod:`mapkit.ingest`'s job.
 

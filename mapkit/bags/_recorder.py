@@ -2,8 +2,9 @@
 
 ``BagRecorder`` turns numpy depth images and 4x4 poses into the messages a real drone publishes
 (sensor_msgs/Image, CompressedImage in compressed_depth_image_transport format, CameraInfo,
-nav_msgs/Odometry, geometry_msgs poses, tf2_msgs/TFMessage) and writes them with rosbags' writers
-(ROS1 / rosbag2-sqlite3) or the ``mcap`` package (bare ``.mcap``, ROS2 CDR, zstd chunks).
+nav_msgs/Odometry, tf2_msgs/TFMessage; any other through :meth:`BagRecorder.write_raw`) and writes
+them with rosbags' writers (ROS1 / rosbag2-sqlite3) or the ``mcap`` package (bare ``.mcap``, ROS2
+CDR, zstd chunks).
 
 Output is atomic: everything is written under a hidden temporary name in the destination directory
 and renamed into place only when the context manager exits cleanly; on an exception the partial
@@ -32,8 +33,6 @@ import numpy as np
 
 from mapkit.bags._errors import BagError
 from mapkit.geometry import quat_xyzw_from_matrix
-
-__all__ = ["BagRecorder", "BagFormat", "DEPTH_ENCODINGS", "FORMATS", "output_path"]
 
 BagFormat = Literal["mcap", "ros2", "ros1"]
 FORMATS: tuple[str, ...] = ("mcap", "ros2", "ros1")
@@ -267,29 +266,18 @@ class BagRecorder:
 
     def pose_message(self, T: np.ndarray) -> Any:
         """geometry_msgs/Pose of a 4x4 transform (for building messages such as nav_msgs/Path)."""
-        return self._pose(T)
-
-    def _pose(self, T: np.ndarray) -> Any:
-        T = _check_T(T)
-        Point = self._type("geometry_msgs/msg/Point")
-        Quaternion = self._type("geometry_msgs/msg/Quaternion")
-        Pose = self._type("geometry_msgs/msg/Pose")
-        q = quat_xyzw_from_matrix(T[:3, :3])
-        return Pose(
-            position=Point(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-            orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
-        )
+        return self._rigid(T, "geometry_msgs/msg/Pose", "geometry_msgs/msg/Point", "position", "orientation")
 
     def _transform(self, T: np.ndarray) -> Any:
+        return self._rigid(T, "geometry_msgs/msg/Transform", "geometry_msgs/msg/Vector3", "translation", "rotation")
+
+    def _rigid(self, T: np.ndarray, msgtype: str, point_type: str, point: str, rotation: str) -> Any:
+        """A Pose or Transform message of a 4x4 transform."""
         T = _check_T(T)
-        Vector3 = self._type("geometry_msgs/msg/Vector3")
-        Quaternion = self._type("geometry_msgs/msg/Quaternion")
-        Transform = self._type("geometry_msgs/msg/Transform")
         q = quat_xyzw_from_matrix(T[:3, :3])
-        return Transform(
-            translation=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-            rotation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
-        )
+        xyz = self._type(point_type)(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3]))
+        rot = self._type("geometry_msgs/msg/Quaternion")(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+        return self._type(msgtype)(**{point: xyz, rotation: rot})
 
     def _vector3(self, v: Sequence[float] | np.ndarray | None) -> Any:
         Vector3 = self._type("geometry_msgs/msg/Vector3")
@@ -351,22 +339,21 @@ class BagRecorder:
         *,
         frame_id: str,
         encoding: str = "16UC1",
-        depth_max: float = 10.0,
-        depth_quantization: float = 100.0,
     ) -> None:
         """Write sensor_msgs/CompressedImage in compressed_depth_image_transport's PNG format.
 
         ``data`` = 12-byte header (int32 format = 0 INV_DEPTH, float32 depthParam[2], little
         endian) + a 16-bit PNG. ``16UC1``: PNG of millimetres (0 invalid), params zero.
-        ``32FC1``: inverse depth, ``A = q(q+1)``, ``B = 1 - A/depth_max``, stored
-        ``A/depth + B`` (0 invalid or beyond ``depth_max``); decode ``depth = A/(value - B)``.
+        ``32FC1``: inverse depth, ``A = q(q+1)``, ``B = 1 - A/depth_max`` (the transport's defaults
+        q = 100, depth_max = 10 m), stored ``A/depth + B`` (0 invalid or beyond ``depth_max``); decode
+        ``depth = A/(value - B)``.
         """
         depth = _check_depth(depth_m)
         if encoding == "16UC1":
             pix = depth_to_mm(depth)
             params = (0.0, 0.0)
         elif encoding == "32FC1":
-            pix, params = encode_inverse_depth(depth, depth_max=depth_max, depth_quantization=depth_quantization)
+            pix, params = encode_inverse_depth(depth)
         else:
             raise BagError(f"unknown compressedDepth encoding {encoding!r}; use 16UC1 or 32FC1")
         header = struct.pack("<iff", _INV_DEPTH, float(params[0]), float(params[1]))
@@ -388,11 +375,10 @@ class BagRecorder:
         height: int,
         *,
         frame_id: str,
-        distortion: Sequence[float] | np.ndarray | None = None,
     ) -> None:
-        """Write sensor_msgs/CameraInfo: plumb_bob, distortion zeros unless given, R = I, P = [K|0]."""
+        """Write sensor_msgs/CameraInfo: plumb_bob, distortion zeros, R = I, P = [K|0]."""
         K = np.asarray(K, dtype=np.float64).reshape(3, 3)
-        D = np.zeros(5) if distortion is None else np.asarray(distortion, dtype=np.float64).reshape(-1)
+        D = np.zeros(5)
         P = np.zeros((3, 4))
         P[:, :3] = K
         CameraInfo = self._type("sensor_msgs/msg/CameraInfo")
@@ -431,29 +417,13 @@ class BagRecorder:
         msg = Odometry(
             header=self.header(stamp_ns, frame_id, topic=topic),
             child_frame_id=child_frame_id,
-            pose=PoseWithCovariance(pose=self._pose(T_parent_child), covariance=np.zeros(36)),
+            pose=PoseWithCovariance(pose=self.pose_message(T_parent_child), covariance=np.zeros(36)),
             twist=TwistWithCovariance(
                 twist=Twist(linear=self._vector3(linear_velocity), angular=self._vector3(angular_velocity)),
                 covariance=np.zeros(36),
             ),
         )
         self.write_raw(topic, "nav_msgs/msg/Odometry", msg, stamp_ns)
-
-    def write_pose_stamped(self, topic: str, stamp_ns: int, T: np.ndarray, *, frame_id: str) -> None:
-        """Write geometry_msgs/PoseStamped (``T`` = T_frame_body)."""
-        PoseStamped = self._type("geometry_msgs/msg/PoseStamped")
-        msg = PoseStamped(header=self.header(stamp_ns, frame_id, topic=topic), pose=self._pose(T))
-        self.write_raw(topic, "geometry_msgs/msg/PoseStamped", msg, stamp_ns)
-
-    def write_pose_with_covariance(self, topic: str, stamp_ns: int, T: np.ndarray, *, frame_id: str) -> None:
-        """Write geometry_msgs/PoseWithCovarianceStamped with zero covariance."""
-        Msg = self._type("geometry_msgs/msg/PoseWithCovarianceStamped")
-        PoseWithCovariance = self._type("geometry_msgs/msg/PoseWithCovariance")
-        msg = Msg(
-            header=self.header(stamp_ns, frame_id, topic=topic),
-            pose=PoseWithCovariance(pose=self._pose(T), covariance=np.zeros(36)),
-        )
-        self.write_raw(topic, "geometry_msgs/msg/PoseWithCovarianceStamped", msg, stamp_ns)
 
     def _tf_message(self, transforms: Sequence[tuple[Any, ...]], stamp_ns: int, topic: str) -> Any:
         TransformStamped = self._type("geometry_msgs/msg/TransformStamped")

@@ -28,6 +28,7 @@ from mapkit.esdf import MAP, EsdfConfig
 from mapkit.export import TUPLES, ExportConfig
 from mapkit.fusion import FUSE_META, FuseConfig, check_fused
 from mapkit.ingest import IngestConfig
+from mapkit.ingest._store import source_fingerprint
 from mapkit.workspace import FRAMES, atomic_output
 
 MARKERS = ".batch"
@@ -142,13 +143,6 @@ def _options(options: Any) -> Any:
     return json.loads(json.dumps(raw, default=lambda v: v.tolist()))
 
 
-def recording_fingerprint(path: Path) -> dict[str, Any]:
-    """Path, total bytes and latest mtime of a recording (a file, or every file of a rosbag2 folder)."""
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
-    stats = [p.stat() for p in files]
-    return {"path": str(path), "bytes": sum(s.st_size for s in stats), "mtime_ns": max((s.st_mtime_ns for s in stats), default=0)}
-
-
 def _read(workspace: Path | str, rel: str) -> bytes | None:
     """A file of the workspace (local or at a URL), None when it is not there."""
     if isinstance(workspace, str):
@@ -170,7 +164,7 @@ def step_key(job: StepJob) -> str:
     if job.step == "ingest":
         if not job.recording.exists():
             raise BatchError(f"recording {job.recording} does not exist (any more); check the path")
-        source: Any = recording_fingerprint(job.recording)
+        source: Any = source_fingerprint(job.recording)
     else:
         source = product_digest(job.workspace, PREVIOUS[job.step])
     return _digest({"step": job.step, "options": _options(job.options), "input": source})

@@ -1,5 +1,6 @@
 """Training data at scale: many simulated worlds → normal workspaces (`mapkit dataset`)."""
 
+from mapkit._dask import available_cpus
 from mapkit.dataset._build import (
     DONE,
     MANIFEST,
@@ -8,7 +9,6 @@ from mapkit.dataset._build import (
     DatasetError,
     DatasetSummary,
     WorldSpec,
-    available_cpus,
     build_dataset,
     build_world,
     dataset_workspaces,

@@ -14,10 +14,10 @@ import time
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
+from mapkit._dask import available_cpus
 from mapkit._version import __version__
 from mapkit.errors import MapkitError
 from mapkit.export import ExportConfig
@@ -25,7 +25,6 @@ from mapkit.sim import DEFAULT_DENSITIES, DEFAULT_SIZES, MIN_SIZES, WORLD_KINDS
 
 MANIFEST = "dataset.json"
 DONE = "dataset_item.json"  # written last in each world's workspace: the world is complete
-WorldKind = Literal["forest", "office", "garage"]
 
 
 class DatasetError(MapkitError):
@@ -158,10 +157,6 @@ class DatasetSummary:
     tuples: int
     seconds: float
 
-    @property
-    def workspaces(self) -> list[Path]:
-        return [self.root / n for n in sorted(self.done + self.skipped)]
-
 
 def world_specs(config: DatasetConfig) -> list[WorldSpec]:
     """The per-world parameters, deterministic in the config."""
@@ -255,14 +250,6 @@ def _worker(spec: WorldSpec, config: DatasetConfig, ws: str) -> tuple[int, int]:
     return build_world(spec, config, Path(ws))
 
 
-def available_cpus() -> int:
-    """CPU cores this process may run on (its affinity, not the machine's total)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
-
-
 def build_dataset(root: str | Path, config: DatasetConfig, *, progress: bool = True, dry_run: bool = False) -> DatasetSummary:
     """Generate ``config.worlds`` workspaces under ``root`` (resumable: complete worlds with the
     same parameters are skipped; a failed world is reported and the others go on)."""
@@ -333,8 +320,6 @@ def dataset_workspaces(root: str | Path) -> list[Path]:
     if not out:
         raise DatasetError(f"no complete world in {root}; run (or resume) `mapkit dataset -o {root}`")
     return out
-
-
 
 
 def split_worlds(root: str | Path, val_worlds: int) -> tuple[list[Path], list[Path]]:

@@ -33,6 +33,7 @@ from mapkit.workspace import FRAMES, check_writable
 # indices and outputs; the chunked path only the masks and TSDF samples plus one chunk with halo.
 _DENSE_BYTES_PER_VOXEL = 48
 _CHUNKED_BYTES_PER_VOXEL = 8
+_NEIGHBOURS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
 
 
 def subvoxel_signed_distance(
@@ -68,8 +69,6 @@ def subvoxel_signed_distance(
     has_point = np.zeros(shape, dtype=bool)
     has_point[tuple(cell[inside].T)] = True
     del cell, inside
-    offsets = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
-    upper = np.asarray(shape) - 1
     for region, target, sign in ((~solid, anchor, 1.0), (solid, ~solid, -1.0)):
         if not region.any():
             continue
@@ -79,33 +78,42 @@ def subvoxel_signed_distance(
         centres = origin + voxel_size * np.stack(np.unravel_index(boundary, shape), axis=1)
         gap, hit = tree.query(centres, distance_upper_bound=voxel_size)
         near = np.isfinite(gap)
-        point_id = np.full(solid.size, -1, dtype=np.int32)
-        point_id[boundary[near]] = np.arange(int(near.sum()), dtype=np.int32)
+        point_id = np.full(shape, -1, dtype=np.int32)
+        point_id.reshape(-1)[boundary[near]] = np.arange(int(near.sum()), dtype=np.int32)
         points = surface[hit[near]]
         del boundary, centres, gap, hit, near
         dist, idx = ndimage.distance_transform_edt(~target & ~has_point, return_indices=True)
-        flat_dist = dist.reshape(-1)
         nearest_xyz = [i.reshape(-1) for i in idx]
         cells = np.flatnonzero(region)
         for start in range(0, len(cells), slab):  # bounded temporaries on large grids
             part = cells[start : start + slab]
-            c = origin + voxel_size * np.stack(np.unravel_index(part, shape), axis=1)
-            o = np.stack([n[part] for n in nearest_xyz], axis=1)
-            best = np.full(len(part), np.inf)
-            for off in offsets:
-                q = np.clip(o + off, 0, upper)
-                pid = point_id[np.ravel_multi_index(q.T, shape)]
-                ok = pid >= 0
-                d = np.full(len(part), np.inf)
-                d[ok] = np.linalg.norm(c[ok] - points[pid[ok]], axis=1)
-                np.minimum(best, d, out=best)
-            fallback = (flat_dist[part] - 0.5) * voxel_size
+            best = _nearest_points(part, nearest_xyz, point_id, points, origin=origin, voxel_size=voxel_size)
+            fallback = (dist.reshape(-1)[part] - 0.5) * voxel_size
             flat_out[part] = sign * np.where(np.isfinite(best), best, fallback)
         del dist, idx, nearest_xyz, point_id
     del has_point
     if max_dist is not None:
         np.clip(out, -max_dist, max_dist, out=out)
     return out
+
+
+def _nearest_points(part: NDArray[np.int64], nearest_xyz: list[NDArray[np.int64]], point_id: NDArray[np.int32],
+                    points: NDArray[np.float64], *, origin: NDArray[np.float64], voxel_size: float) -> NDArray[np.float64]:
+    """Distance from the centres of the flat voxel indices ``part`` to the nearest surface point tied to
+    their nearest boundary voxel or its 26 neighbours (inf where none is tied)."""
+    shape = point_id.shape
+    upper = np.asarray(shape) - 1
+    c = origin + voxel_size * np.stack(np.unravel_index(part, shape), axis=1)
+    o = np.stack([n[part] for n in nearest_xyz], axis=1)
+    best = np.full(len(part), np.inf)
+    for off in _NEIGHBOURS:
+        q = np.clip(o + off, 0, upper)
+        pid = point_id[tuple(q.T)]
+        ok = pid >= 0
+        d = np.full(len(part), np.inf)
+        d[ok] = np.linalg.norm(c[ok] - points[pid[ok]], axis=1)
+        np.minimum(best, d, out=best)
+    return best
 
 
 def drop_stray_obstacles(occupied: NDArray[np.bool_], surface: NDArray[np.float64], *, origin: NDArray[np.float64],

@@ -10,24 +10,20 @@ import numpy as np
 from mapkit.esdf._errors import EsdfError
 
 
-def positive(name: str, value: Any, *, unit: str = "m") -> float:
+def positive(name: str, value: Any, *, unit: str = "m", zero: bool = False) -> float:
+    """``value`` as a finite float > 0 (>= 0 with ``zero``: 0 turns it off)."""
+    what = f"length >= 0 in {unit}" if zero else f"positive length in {unit}"
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise EsdfError(f"{name}={value!r} is not a number; pass a positive length in {unit}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise EsdfError(f"{name}={value!r} must be a finite positive length in {unit}")
+        raise EsdfError(f"{name}={value!r} is not a number; pass a {what}") from None
+    if not math.isfinite(v) or v < 0 or (v == 0 and not zero):
+        raise EsdfError(f"{name}={value!r} must be a finite {what}" + (" (0 turns it off)" if zero else ""))
     return v
 
 
 def non_negative(name: str, value: Any, *, unit: str = "m") -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise EsdfError(f"{name}={value!r} is not a number; pass a length >= 0 in {unit}") from None
-    if not math.isfinite(v) or v < 0:
-        raise EsdfError(f"{name}={value!r} must be a finite length >= 0 in {unit} (0 turns it off)")
-    return v
+    return positive(name, value, unit=unit, zero=True)
 
 
 def grid_shape(name: str, shape: Any) -> tuple[int, int, int]:

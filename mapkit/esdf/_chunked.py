@@ -41,11 +41,6 @@ class ChunkedSummary:
     peak_rss_bytes: int = 0
     """Largest peak resident memory of a process that ran chunks (``getrusage`` after each chunk)."""
 
-    @property
-    def voxels_per_second(self) -> float:
-        n = self.shape[0] * self.shape[1] * self.shape[2]
-        return n / self.seconds if self.seconds > 0 else float("inf")
-
 
 def chunk_halo(*, voxel_size: float, max_dist: float, sigma: float = 0.0, truncate: float = 3.0) -> int:
     """Halo (voxels) that makes a chunk's result exact: ceil(max_dist/voxel_size) + 1 + Gaussian radius."""
@@ -70,51 +65,26 @@ def signed_distance_chunked(
 ) -> ChunkedSummary:
     """Signed distance (and optionally its smoothing) of a large grid, as a Dask graph of chunks.
 
-    One task per chunk: it reads the chunk plus a halo from `occupied`, computes the exact EDT and
-    the Gaussian there and writes the chunk's core straight into `out` (and `out_raw`). Without
-    `client` the graph runs in this process: one chunk at a time on Dask's synchronous scheduler, or
-    `local_workers` chunks at once on its threaded one; with a :class:`distributed.Client` (see
-    :func:`mapkit._dask.dask_client`) on its workers.
+    One task per `chunk`³ cube: it reads the cube plus a halo of ``ceil(max_dist/voxel_size) + 1``
+    voxels (plus the Gaussian's radius) from `occupied`, computes the exact EDT and the Gaussian there
+    and writes the core straight into `out` (and `out_raw`), so the result equals
+    :func:`signed_distance` with the same `max_dist` (and :func:`smooth` of it) bit for bit: distances
+    up to `max_dist` are exact, larger ones clamped to +-max_dist. A task holds about
+    ``(chunk + 2*halo)**3 * 18`` bytes of work arrays; nothing grid-sized.
 
-    Parameters
-    ----------
-    occupied
-        bool [nx, ny, nz] occupancy; anything sliceable with ``occupied[x0:x1, y0:y1, z0:z1]`` that
-        returns a bool array (a zarr array, a numpy array or memmap). Each task reads only its chunk
-        plus halo. On a cluster a zarr array on storage the workers share is read in place; a numpy
-        array is sent once to each worker.
-    out
-        float32 [nx, ny, nz] destination for the field: smoothed when ``sigma > 0``, else the raw
-        signed distance. A zarr array (on a cluster: on storage the workers share), or a numpy array
-        without `client`. For a zarr array `chunk` must be a multiple of its chunk shape, so that every
-        zarr chunk is written once, whole, by one task.
-    voxel_size, max_dist
-        Metres. Each chunk is computed with a halo of ``ceil(max_dist/voxel_size) + 1`` voxels (plus
-        the Gaussian's radius), so the result equals :func:`signed_distance` with the same
-        `max_dist` (and :func:`smooth` of it) bit for bit: every distance up to `max_dist` is exact,
-        larger ones are clamped to +-max_dist.
-    chunk
-        Edge, in voxels, of the cube one task computes. Peak memory per task is about
-        ``(chunk + 2*halo)**3 * 18`` bytes of work arrays; nothing grid-sized. Measured: chunk 128
-        ~0.2 GB, chunk 256 ~0.6 GB above the baseline (halo 22); 256 is ~20 % faster.
-    sigma, truncate
-        Gaussian smoothing as in :func:`smooth` (metres; 0 = none).
-    out_raw
-        Optional float32 [nx, ny, nz] destination for the unsmoothed (clamped) field.
-    threads
-        CPU threads each task uses for the EDT and the Gaussian (None: ``OMP_NUM_THREADS`` if set, else
-        the available cores).
-    progress
-        Show a tqdm bar on stderr (chunks done, rate, ETA).
-    client
-        A Dask distributed client to run on; None = this process.
-    local_workers
-        Without `client`: chunks computed at once in this process (threads; each chunk still uses
-        `threads` threads), 1 = one at a time.
+    - `occupied`: bool [nx, ny, nz], anything sliceable that returns a bool array (zarr, numpy,
+      memmap). On a cluster a zarr array on shared storage is read in place; a numpy array is sent
+      once to each worker.
+    - `out`, `out_raw`: float32 [nx, ny, nz] destinations of the field (smoothed when ``sigma > 0``)
+      and of the unsmoothed one (optional). Zarr arrays (on a cluster: on shared storage) whose chunk
+      shape divides `chunk`, so each zarr chunk is written once, whole; numpy arrays without `client`.
+    - `voxel_size`, `max_dist`, `sigma` (0 = no smoothing): metres; `truncate` as in :func:`smooth`.
+    - `threads`: CPU threads per task (None: ``OMP_NUM_THREADS`` if set, else the available cores).
+    - `client`: a Dask distributed client to run on (see :func:`mapkit._dask.dask_client`); None runs
+      the graph in this process, `local_workers` chunks at once (1: Dask's synchronous scheduler).
+    - `progress`: a tqdm bar on stderr.
 
-    Returns
-    -------
-    ChunkedSummary (shape, chunk count, halo, n_prevented, seconds, workers, peak memory).
+    Returns a :class:`ChunkedSummary` (shape, chunk count, halo, n_prevented, seconds, workers, peak memory).
     """
     vs = _checks.positive("voxel_size", voxel_size)
     md = _checks.positive("max_dist", max_dist)

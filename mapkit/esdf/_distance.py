@@ -22,45 +22,27 @@ def signed_distance(
     backend: Backend = "edt",
     threads: int | None = None,
 ) -> np.ndarray:
-    """Exact signed Euclidean distance in metres of every voxel to the obstacle surface.
+    """Exact signed Euclidean distance in metres of every voxel to the obstacle surface: float32
+    [nx, ny, nz], positive in free space, negative inside obstacles.
 
-    Parameters
-    ----------
-    occupied
-        bool [nx, ny, nz], True where a voxel is an obstacle. Indexed [x, y, z] like every mapkit grid.
-    voxel_size
-        Edge length of a voxel in metres.
-    max_dist
-        If given (metres), distances are clamped to [-max_dist, +max_dist]. Without it every free
-        voxel carries its true distance however far it is (no plateau, so gradients never vanish).
-    backend
-        ``"edt"``: the exact linear-time multi-label EDT of the ``edt`` package (one pass labels both
-        sides). ``"scipy"``: ``scipy.ndimage.distance_transform_edt`` on each side (exact too;
-        slower, float64 intermediates). Both give the same field to float32 rounding.
-    threads
-        CPU threads for the ``edt`` backend (None: ``OMP_NUM_THREADS`` if set, else the available cores).
+    - `occupied`: bool [nx, ny, nz], True where a voxel is an obstacle (indexed [x, y, z]).
+    - `voxel_size`: voxel edge in metres.
+    - `max_dist`: clamp distances to [-max_dist, +max_dist] (metres). Without it every free voxel
+      carries its true distance however far it is (no plateau, so gradients never vanish).
+    - `backend`: ``"edt"``, the linear-time multi-label EDT of the ``edt`` package (one pass labels
+      both sides), or ``"scipy"``, ``scipy.ndimage.distance_transform_edt`` on each side; both exact,
+      equal to float32 rounding.
+    - `threads`: CPU threads of the ``edt`` backend (None: ``OMP_NUM_THREADS`` if set, else the cores).
 
-    Returns
-    -------
-    float32 [nx, ny, nz], metres: positive in free space, negative inside obstacles.
+    Half-voxel convention: the surface lies half-way between an occupied voxel centre and a free one.
+    A free voxel gets ``(D_occ - 0.5) * voxel_size``, with ``D_occ`` the distance (voxels) from its
+    centre to the nearest occupied centre; an occupied voxel ``-(D_free - 0.5) * voxel_size``. The
+    error against a true surface is then unbiased (within +-0.5 voxel for axis-aligned surfaces), the
+    sign changes exactly between the two voxel layers that straddle the surface, and
+    ``|d| >= voxel_size / 2`` everywhere. Voxels beyond the grid's border are unknown, not obstacles.
 
-    Half-voxel convention
-    ---------------------
-    The obstacle surface is taken to lie half-way between an occupied voxel centre and a free one.
-    A free voxel gets ``(D_occ - 0.5) * voxel_size`` where ``D_occ`` is the Euclidean distance (in
-    voxels) from its centre to the nearest occupied centre; an occupied voxel gets
-    ``-(D_free - 0.5) * voxel_size``. Measuring centre-to-centre instead would overstate every
-    distance by half a voxel on average (the true surface lies somewhere inside the boundary voxel);
-    the half-voxel shift makes the error against a true surface unbiased, within +-0.5 voxel for
-    axis-aligned surfaces, and makes the field change sign exactly between the two voxel layers
-    that straddle the surface, so ``|d| >= voxel_size / 2`` everywhere. Voxels beyond the grid's
-    border are unknown, not obstacles: the border does not count as a surface.
-
-    Degenerate grids
-    ----------------
-    A grid with no occupied voxel has no surface, so no finite distance exists (the EDT gives +inf);
-    likewise a grid with no free voxel. With `max_dist` the result is then the constant +max_dist
-    (resp. -max_dist), which is what clamping would give; without it an :class:`EsdfError` is raised.
+    A grid with no occupied (or no free) voxel has no surface: with `max_dist` the result is the
+    constant +max_dist (-max_dist), what clamping would give; without it an :class:`EsdfError`.
     """
     occ = _checks.bool_grid("occupied", occupied)
     vs = _checks.positive("voxel_size", voxel_size)
@@ -123,27 +105,16 @@ def smooth(
 ) -> tuple[np.ndarray, int]:
     """Gaussian-smooth a signed distance field without flipping the sign away from the surface.
 
-    Parameters
-    ----------
-    esdf_raw
-        float [nx, ny, nz] signed distance in metres (e.g. from :func:`signed_distance`).
-    voxel_size
-        Voxel edge in metres.
-    sigma
-        Standard deviation of the Gaussian in metres; 0 returns a copy.
-    truncate
-        Kernel half-width in standard deviations (radius = ``int(truncate * sigma/voxel_size + 0.5)``
-        voxels, as in scipy). Borders repeat the edge voxel (scipy ``mode="nearest"``).
-    threads
-        CPU threads (None: ``OMP_NUM_THREADS`` if set, else the available cores).
+    - `esdf_raw`: float [nx, ny, nz] signed distance in metres (e.g. from :func:`signed_distance`).
+    - `voxel_size`, `sigma` (the Gaussian's standard deviation; 0 returns a copy): metres.
+    - `truncate`: kernel half-width in standard deviations (radius ``int(truncate * sigma/voxel_size
+      + 0.5)`` voxels, as in scipy); borders repeat the edge voxel (scipy ``mode="nearest"``).
+    - `threads`: CPU threads (None: ``OMP_NUM_THREADS`` if set, else the available cores).
 
-    Returns
-    -------
-    (esdf, n_prevented): float32 [nx, ny, nz] smoothed field, and the number of voxels where smoothing
-    would have flipped the sign of a voxel more than one voxel from the surface
-    (``|esdf_raw| > voxel_size``); those voxels keep their raw value, so thin obstacles and narrow
-    gaps are never blurred away. Voxels within one voxel of the surface may still change sign (that
-    is the surface moving by under a voxel).
+    Returns (esdf, n_prevented): the float32 smoothed field, and the number of voxels more than one
+    voxel from the surface (``|esdf_raw| > voxel_size``) whose sign smoothing would have flipped; they
+    keep their raw value, so thin obstacles and narrow gaps are never blurred away. Voxels within one
+    voxel of the surface may still change sign (the surface moving by under a voxel).
     """
     vs = _checks.positive("voxel_size", voxel_size)
     sg = _checks.non_negative("sigma", sigma)

@@ -2,10 +2,9 @@
 
 Filtering a C-ordered [nx, ny, nz] array along one axis is the product of a banded (2r+1 wide)
 n-by-n matrix with the array seen as a stack of matrices. Splitting the band into row blocks keeps the
-flops within a small factor of the direct convolution while BLAS (cache-blocked, vectorised) does the
-arithmetic; on the 2-core reference machine this is 5-10x faster than
-``scipy.ndimage.gaussian_filter`` in float32 and agrees with it to float32 rounding. The boundary
-rule is scipy's ``mode="nearest"`` (the border voxel is repeated), folded into the matrix rows.
+flops within a small factor of the direct convolution while BLAS does the arithmetic; it agrees with
+``scipy.ndimage.gaussian_filter`` to float32 rounding. The boundary rule is scipy's ``mode="nearest"``
+(the border voxel is repeated), folded into the matrix rows.
 
 Work is split over our own threads (numpy releases the GIL in matmul) with single-threaded BLAS in
 each: thousands of small products with OpenBLAS's own threads stall badly whenever another process

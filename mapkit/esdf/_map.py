@@ -142,26 +142,11 @@ class EsdfMap:
         hi = self.origin + self.voxel_size * (np.asarray(self.shape, dtype=np.float64) - 1)
         return np.stack([lo, hi])
 
-    @property
-    def parameters(self) -> dict[str, Any]:
-        """The parameters that made the map (from the store's attrs; empty for in-memory maps)."""
-        return dict(self.attrs.get("parameters", {}))
-
     def coords(self, axis: str) -> np.ndarray:
         """float64 [n]: voxel-centre coordinates along "x", "y" or "z"."""
         a = _axis_index(axis)
         centres: np.ndarray = self.origin[a] + self.voxel_size * np.arange(self.shape[a], dtype=np.float64)
         return centres
-
-    def voxel_centre(self, index: Any) -> np.ndarray:
-        """World position(s) (..., 3) of voxel centre(s) with integer index (..., 3)."""
-        centres: np.ndarray = self.origin + self.voxel_size * np.asarray(index, dtype=np.float64)
-        return centres
-
-    def world_to_voxel(self, points: Any) -> np.ndarray:
-        """Continuous voxel coordinates (..., 3) of world points (..., 3); integers at voxel centres."""
-        ijk: np.ndarray = (np.asarray(points, dtype=np.float64) - self.origin) / self.voxel_size
-        return ijk
 
     # ------------------------------------------------------------------ data
     def load(self) -> EsdfMap:
@@ -201,30 +186,12 @@ class EsdfMap:
             raise EsdfError(f"cannot read {name!r} of map {str(self.path)!r} ({describe(found)}: the store is "
                             f"damaged); {_FIX}")
 
-    def distance_at_voxel(self, i: int, j: int, k: int, *, raw: bool = False) -> float:
-        """Stored signed distance (metres) of voxel [i, j, k] (reads one chunk if not loaded)."""
-        for v, n, ax in zip((i, j, k), self.shape, "xyz", strict=True):
-            if not 0 <= int(v) < n:
-                raise EsdfError(f"voxel index {ax}={v} is outside 0..{n - 1}")
-        return float(self.read("esdf_raw" if raw else "esdf", (int(i), int(j), int(k))))
-
     # ------------------------------------------------------------------ queries
     def query(self, points: Any, *, raw: bool = False, outside: Outside = "nan") -> tuple[np.ndarray, np.ndarray]:
-        """Trilinearly interpolated signed distance and its gradient at world points.
-
-        Parameters
-        ----------
-        points
-            float (N, 3) (or any (..., 3)) world positions in metres.
-        raw
-            Interpolate ``esdf_raw`` instead of the smoothed ``esdf``.
-        outside
-            ``"nan"`` or ``"clamp"``; see the class docstring.
-
-        Returns
-        -------
-        distance float64 (N,), gradient float64 (N, 3) in metres per metre: the exact gradient of the
-        trilinear interpolant (piecewise; on a cell face the cell on the upper side is used).
+        """Trilinearly interpolated signed distance and its gradient at world points (N, 3) (or any
+        (..., 3)), metres: distance float64 (N,) and gradient float64 (N, 3), the exact gradient of the
+        trilinear interpolant (on a cell face, the cell on the upper side). ``raw`` interpolates
+        ``esdf_raw`` instead of ``esdf``; ``outside`` is "nan" or "clamp" (see the class docstring).
 
         Example: the field of a wall at x = 1 m is linear, so interpolation gives it exactly; a point
         outside the grid gets NaN:
@@ -281,21 +248,12 @@ class EsdfMap:
         return value.reshape(lead), grad.reshape((*lead, 3))
 
     def query_torch(self, points: torch.Tensor, *, raw: bool = False, outside: Outside = "nan") -> torch.Tensor:
-        """Differentiable trilinear signed distance at world points, as a torch tensor.
+        """Differentiable trilinear signed distance at world points, as a torch tensor (...) of the
+        points' dtype and device.
 
-        Parameters
-        ----------
-        points
-            float32 or float64 tensor (..., 3), metres, on any device. Gradients flow to `points`
-            (autograd through the trilinear weights; the grid itself is a constant).
-        raw, outside
-            As in :meth:`query`. With ``outside="nan"`` points outside get NaN (and a zero gradient,
-            the NaN being a constant); with ``"clamp"`` the clamped function and its gradient.
-
-        Returns
-        -------
-        Tensor (...) of the points' dtype and device. The grid is copied to the device/dtype once and
-        cached (:meth:`clear_cache` frees it).
+        ``points``: float32 or float64 tensor (..., 3), metres, on any device; gradients flow to them
+        (the grid is a constant, copied to the device and dtype once and cached). ``raw`` and ``outside``
+        as in :meth:`query`; with "nan", points outside get NaN (and a zero gradient).
         """
         import torch
 
@@ -340,10 +298,6 @@ class EsdfMap:
             out = ((u < -_TOL) | (u > hi + _TOL)).any(dim=-1)
             value = torch.where(out, torch.full_like(value, float("nan")), value)
         return value.reshape(lead)
-
-    def clear_cache(self) -> None:
-        """Drop the torch copies of the grids made by :meth:`query_torch`."""
-        self._torch.clear()
 
     def __repr__(self) -> str:
         src = f" from {str(self.path)!r}" if self.path else ""

@@ -51,7 +51,7 @@ class EsdfConfig:
     max_dist: float | None = None
     """Clamp |distance| to this (metres); required for chunked computation of large maps."""
     backend: Backend = "edt"
-    """Exact EDT implementation for --no-subvoxel: 'edt' (fastest measured) or 'scipy'."""
+    """Exact EDT implementation without sub-voxel distances: 'edt' or 'scipy'."""
     subvoxel: bool = True
     """Measure distances to the fused surface points tied to each boundary voxel (sub-voxel zero
     crossing) instead of the fixed half-voxel convention of the plain EDT."""
@@ -104,8 +104,8 @@ def _dask_runner(scheduler: str | None, workers: int | None) -> Iterator[_Runner
     from mapkit._dask import available_cpus, dask_client
 
     if scheduler is None and (workers or 1) == 1:
-        # one chunk per core at once, one thread each: measured 1.1x the one-chunk-at-a-time loop
-        # with every core inside the chunk (its EDT and Gaussian threads wait on each other)
+        # one chunk per core at once, one thread each: a chunk's EDT and Gaussian threads would wait
+        # on each other
         yield _Runner(None, 1, available_cpus())
         return
     with dask_client(scheduler, workers=workers) as (client, info):

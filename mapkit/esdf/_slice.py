@@ -13,6 +13,8 @@ from mapkit.esdf._errors import EsdfError
 from mapkit.esdf._map import EsdfMap, _axis_index
 
 _PLANE_AXES = {"x": ("y", "z"), "y": ("x", "z"), "z": ("x", "y")}
+_CMAP = "RdBu"  # diverging: obstacles red, free space blue
+_COLUMNS = 3  # panels per row
 
 
 class Slice(NamedTuple):
@@ -78,59 +80,42 @@ def render_slices(
     x: Sequence[float] = (),
     y: Sequence[float] = (),
     raw: bool = False,
-    cmap: str = "RdBu",
-    vmin: float | None = None,
-    vmax: float | None = None,
-    columns: int = 3,
-    dpi: int = 120,
-    title: str | None = None,
 ) -> Path:
     """Write a PNG with one panel per requested slice (z first, then x, then y); returns its path.
 
     Each panel shows the signed distance on metric axes (metres, equal aspect) with the surface
     (zero level) drawn black, unobserved voxels hatched grey, and the panel title giving the plane.
-    One shared colour bar labelled "signed distance [m]". With a diverging `cmap` (RdBu, coolwarm, ...)
-    the colours are centred at 0 (obstacles red, free space blue; each side scaled to its own range);
-    with a sequential one ("viridis") the range is [vmin, vmax]. Default range: the slices' own.
+    One shared colour bar labelled "signed distance [m]", centred at 0 (obstacles red, free space
+    blue; each side scaled to the slices' own range).
     """
-    fig = _slice_figure(map, z=z, x=x, y=y, raw=raw, cmap=cmap, vmin=vmin, vmax=vmax, columns=columns, title=title)
+    fig = _slice_figure(map, z=z, x=x, y=y, raw=raw)
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=dpi)
+    fig.savefig(out, dpi=120)
     return out
 
 
-def _slice_figure(
-    map: EsdfMap,
-    *,
-    z: Sequence[float],
-    x: Sequence[float],
-    y: Sequence[float],
-    raw: bool,
-    cmap: str,
-    vmin: float | None,
-    vmax: float | None,
-    columns: int,
-    title: str | None,
-) -> Any:
+def _slice_figure(map: EsdfMap, *, z: Sequence[float], x: Sequence[float], y: Sequence[float], raw: bool) -> Any:
     """The matplotlib Figure behind :func:`render_slices`."""
     # A bare Figure renders with Agg and leaves pyplot's global state (and backend) alone.
     from matplotlib.colors import ListedColormap
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
 
-    requests = _slice_requests(z=z, x=x, y=y, cmap=cmap, columns=columns)
+    requests = [("z", v) for v in z] + [("x", v) for v in x] + [("y", v) for v in y]
+    if not requests:
+        raise EsdfError("no slice requested; pass z=(heights in m,), x=(...) or y=(...)")
     slices = [(ax, slice_plane(map, axis=ax, position=v, raw=raw)) for ax, v in requests]
     for (ax, v), (_, s) in zip(requests, slices, strict=True):
         if np.isnan(s.values).any():  # mapkit stores no NaN distance: a chunk of the store may be missing
             map.check_stored("esdf_raw" if raw else "esdf", _plane_index(map, ax, v))
-    norm = _colour_norm([s for _, s in slices], cmap=cmap, vmin=vmin, vmax=vmax, voxel_size=map.voxel_size)
-    cols = min(columns, len(slices))
+    norm = _colour_norm([s for _, s in slices], voxel_size=map.voxel_size)
+    cols = min(_COLUMNS, len(slices))
     rows = math.ceil(len(slices) / cols)
     fig = Figure(figsize=(4.6 * cols + 1.2, 4.2 * rows + 0.6), layout="constrained")
     axes = fig.subplots(rows, cols, squeeze=False)
     grey = ListedColormap([(0.5, 0.5, 0.5, 0.6)])
-    images = [_draw_slice(panel, axis, s, cmap=cmap, norm=norm, unobserved_cmap=grey, voxel_size=map.voxel_size)
+    images = [_draw_slice(panel, axis, s, norm=norm, unobserved_cmap=grey, voxel_size=map.voxel_size)
               for panel, (axis, s) in zip(axes.flat, slices, strict=False)]  # the last row may have spare panels
     for panel in list(axes.flat)[len(slices):]:
         panel.set_visible(False)
@@ -140,51 +125,26 @@ def _slice_figure(
                Patch(facecolor="white", edgecolor="k", label="surface (d = 0)")]
     fig.legend(handles=handles, loc="outside lower center", ncols=2, frameon=False)
     kind = "raw ESDF" if raw else f"ESDF (Gaussian sigma = {map.sigma:g} m)"
-    fig.suptitle(title or f"{kind}, voxel {map.voxel_size:g} m, frame {map.frame_id}")
+    fig.suptitle(f"{kind}, voxel {map.voxel_size:g} m, frame {map.frame_id}")
     return fig
 
 
-def _slice_requests(*, z: Sequence[float], x: Sequence[float], y: Sequence[float], cmap: str,
-                    columns: int) -> list[tuple[str, float]]:
-    """The (axis, position) of every panel, z first; raises for no slice, an unknown cmap or bad columns."""
-    from matplotlib import colormaps
-
-    requests = [("z", v) for v in z] + [("x", v) for v in x] + [("y", v) for v in y]
-    if not requests:
-        raise EsdfError("no slice requested; pass z=(heights in m,), x=(...) or y=(...)")
-    if cmap not in colormaps:
-        raise EsdfError(f"cmap={cmap!r} is not a matplotlib colormap; try 'RdBu' or 'viridis'")
-    if isinstance(columns, bool) or not isinstance(columns, int) or columns < 1:
-        raise EsdfError(f"columns={columns!r} must be a positive integer")
-    return requests
-
-
-def _colour_norm(slices: list[Slice], *, cmap: str, vmin: float | None, vmax: float | None, voxel_size: float) -> Any:
-    """Colour scale of all panels: centred at 0 for a diverging cmap, else [vmin, vmax] (default the data's)."""
-    from matplotlib.colors import Normalize, TwoSlopeNorm
+def _colour_norm(slices: list[Slice], *, voxel_size: float) -> Any:
+    """Colour scale of all panels, centred at 0; each side of 0 spans its own range, so shallow obstacle
+    interiors still show saturated."""
+    from matplotlib.colors import TwoSlopeNorm
 
     finite = np.concatenate([s.values[np.isfinite(s.values)].ravel() for s in slices])
     if finite.size == 0:
         raise EsdfError("the requested slices hold no finite distance (unwritten map?)")
-    diverging = cmap.lower().removesuffix("_r") in {
-        "rdbu", "rdylbu", "coolwarm", "bwr", "seismic", "puor", "brbg", "prgn", "piyg", "rdgy", "spectral", "rdylgn",
-    }
-    lo = float(finite.min()) if vmin is None else float(vmin)
-    hi = float(finite.max()) if vmax is None else float(vmax)
-    if diverging:
-        # each side of 0 spans its own range, so shallow obstacle interiors still show saturated
-        lo, hi = min(lo, -0.5 * voxel_size), max(hi, 0.5 * voxel_size)
-        return TwoSlopeNorm(vcenter=0.0, vmin=lo, vmax=hi)
-    if not hi > lo:
-        hi = lo + 1e-6
-    return Normalize(vmin=lo, vmax=hi)
+    lo, hi = min(float(finite.min()), -0.5 * voxel_size), max(float(finite.max()), 0.5 * voxel_size)
+    return TwoSlopeNorm(vcenter=0.0, vmin=lo, vmax=hi)
 
 
-def _draw_slice(panel: Any, axis: str, s: Slice, *, cmap: str, norm: Any, unobserved_cmap: Any,
-                voxel_size: float) -> Any:
+def _draw_slice(panel: Any, axis: str, s: Slice, *, norm: Any, unobserved_cmap: Any, voxel_size: float) -> Any:
     """One panel: the distance image, unobserved voxels hatched, the zero level in black; returns the image."""
     u_name, v_name = _PLANE_AXES[axis]
-    image = panel.imshow(s.values.T, origin="lower", extent=s.extent, cmap=cmap, norm=norm, interpolation="nearest")
+    image = panel.imshow(s.values.T, origin="lower", extent=s.extent, cmap=_CMAP, norm=norm, interpolation="nearest")
     unobs = ~s.observed
     if unobs.any():
         panel.imshow(np.ma.masked_where(~unobs.T, np.ones(unobs.T.shape)), origin="lower", extent=s.extent,

@@ -7,7 +7,7 @@ Layout (zarr v3 group, consolidated metadata so ``xarray.open_zarr`` opens it qu
 - ``x``, ``y``, ``z`` float64 voxel-centre coordinates with ``dimension_names`` ["x"], ["y"], ["z"];
 - attrs: ``kind`` = "mapkit.map", ``mapkit_version``, ``voxel_size``, ``origin`` (centre of voxel
   [0,0,0]), ``shape``, ``frame_id``, ``sigma``, ``unknown_policy``, ``units`` = "m",
-  ``distance_convention``, ``parameters`` (whatever made the map) and any extra attrs of `finalize`;
+  ``distance_convention``, ``parameters`` (whatever made the map);
 - ``ome``: OME-Zarr (NGFF 0.5) multiscale metadata over ``esdf`` and its 2× / 4× coarser means in the
   ``ngff`` subgroup (:mod:`mapkit.esdf._ngff`), so NGFF viewers place the map in metres.
 
@@ -51,9 +51,8 @@ _WRITE_SLAB = 64  # x-planes per write in write_map (bounded extra memory)
 def _compressor() -> Any:
     from zarr.codecs import BloscCodec
 
-    # Measured on a 256^3 forest-like ESDF (esdf + esdf_raw + observed, 151 MB): zstd-3 + byte shuffle
-    # 29 MB, ~350 MB/s to write, fast to read; lz4-1 43 MB at ~2x the write speed; bit shuffle worse
-    # for smooth float fields. Maps are written once and read many times, so size wins.
+    # Maps are written once and read many times, so size wins: zstd-3 + byte shuffle is about 2/3 of
+    # lz4's size on smooth float fields.
     return BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")
 
 
@@ -132,16 +131,14 @@ class MapWriter(AbstractContextManager["MapWriter"]):
         self.esdf_raw = arrays["esdf_raw"]
         self.observed = arrays["observed"]
 
-    def finalize(self, extra_attrs: dict[str, Any] | None = None) -> Path | str:
-        """Add `extra_attrs`, consolidate metadata and publish the store (rename, or root metadata last
-        at a URL); returns its path (or URL)."""
+    def finalize(self) -> Path | str:
+        """Consolidate metadata and publish the store (rename, or root metadata last at a URL); returns
+        its path (or URL)."""
         import zarr
 
         if self._done:
             raise EsdfError(f"map {str(self.path)!r} was already finalized or aborted; create a new writer")
         try:
-            if extra_attrs:
-                self._root.attrs.update(_json_attrs("extra_attrs", extra_attrs))
             levels = write_levels(self._root, self.esdf, _compressor(), CHUNK)
             self._root.attrs["ome"] = multiscales(self._voxel_size, self._origin, levels)
             with warnings.catch_warnings():
@@ -233,7 +230,6 @@ def write_map(
     sigma: float,
     unknown_policy: str,
     parameters: dict[str, Any] | None = None,
-    extra_attrs: dict[str, Any] | None = None,
     overwrite: bool = False,
 ) -> Path | str:
     """Write a complete map.zarr atomically from in-memory arrays; returns `path` (a URL stays a string).
@@ -261,4 +257,4 @@ def write_map(
             w.esdf[sl] = np.asarray(arrays["esdf"][sl], dtype=np.float32)
             w.esdf_raw[sl] = np.asarray(arrays["esdf_raw"][sl], dtype=np.float32)
             w.observed[sl] = np.asarray(obs[sl], dtype=np.uint8)
-        return w.finalize(extra_attrs)
+        return w.finalize()

@@ -17,6 +17,7 @@ from mapkit.ingest import FramesStore
 log = logging.getLogger(__name__)
 
 _BLOCKS_PER_BATCH = 2048  # TSDF blocks read at a time: bounds memory on large maps
+_MIN_WEIGHT = 1.0  # integration weight a TSDF sample needs to count
 
 
 @dataclass
@@ -38,9 +39,6 @@ class Grid:
     @property
     def size(self) -> int:
         return int(np.prod(self.shape))
-
-    def coordinates(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        return tuple(self.origin[a] + self.voxel_size * np.arange(self.shape[a]) for a in range(3))
 
 
 @dataclass(frozen=True)
@@ -81,12 +79,12 @@ def _tsdf_samples(vbg: Any, batch: int = _BLOCKS_PER_BATCH):
 
 
 def occupancy_from_tsdf(
-    tsdf_path: Path, grid: Grid, *, tsdf_voxel: float, trunc_voxels: float, min_weight: float = 1.0
+    tsdf_path: Path, grid: Grid, *, tsdf_voxel: float, trunc_voxels: float
 ) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
     """(occupied, tsdf) on `grid` from the TSDF sample nearest each voxel centre.
 
     tsdf: signed distance in metres at the centre (Open3D stores it divided by the truncation
-    distance), NaN where no sample has weight >= min_weight; occupied: tsdf < 0. Sampling the centre
+    distance), NaN where no sample has weight >= 1; occupied: tsdf < 0. Sampling the centre
     (not "any fine voxel in the cell") keeps obstacle boundaries unbiased; structures thinner than
     about one ESDF voxel can fall between centres.
     """
@@ -98,11 +96,11 @@ def occupancy_from_tsdf(
         vbg = o3d.t.geometry.VoxelBlockGrid.load(str(tsdf_path))
     except Exception as exc:  # noqa: BLE001 - Open3D raises RuntimeError or others for a bad file: one message
         raise FusionError(f"{tsdf_path} is not a readable TSDF ({exc}); re-run `mapkit fuse --overwrite`") from None
-    tsdf_m = sample_tsdf(vbg, grid, tsdf_voxel=tsdf_voxel, trunc_voxels=trunc_voxels, min_weight=min_weight)
+    tsdf_m = sample_tsdf(vbg, grid, tsdf_voxel=tsdf_voxel, trunc_voxels=trunc_voxels)
     return tsdf_m < 0, tsdf_m
 
 
-def sample_tsdf(vbg: Any, grid: Grid, *, tsdf_voxel: float, trunc_voxels: float, min_weight: float = 1.0,
+def sample_tsdf(vbg: Any, grid: Grid, *, tsdf_voxel: float, trunc_voxels: float,
                 window: Window | None = None) -> NDArray[np.float32]:
     """The TSDF (metres, NaN = no sample) at the centres of `window`'s voxels of `grid` (default: all).
 
@@ -115,7 +113,7 @@ def sample_tsdf(vbg: Any, grid: Grid, *, tsdf_voxel: float, trunc_voxels: float,
     lo, hi = np.asarray(window.lo), np.asarray(window.hi)
     trunc_m = trunc_voxels * tsdf_voxel
     for pos, tsdf, weight in _tsdf_samples(vbg):
-        keep = weight >= min_weight
+        keep = weight >= _MIN_WEIGHT
         pos, tsdf = pos[keep], tsdf[keep]
         rel = (pos - grid.origin) / grid.voxel_size
         idx = np.rint(rel).astype(np.int64)

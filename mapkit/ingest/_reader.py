@@ -133,16 +133,10 @@ class Roles:
 
 
 @dataclass(frozen=True)
-class SourcePlan:
+class SourcePlan(Roles):
     """What will be read from one recording and why: the roles plus the intrinsics and frames they
-    resolve to, built in one place (:func:`plan_source`)."""
+    resolve to (:func:`plan_source`)."""
 
-    summary: BagSummary
-    depth: DepthChoice
-    depth_encoding: str
-    camera_info: RoleChoice
-    pose: RoleChoice
-    tf_topics: list[str]
     K: NDArray[np.float64]
     """(3, 3) intrinsics: ``--intrinsics`` or the camera info's."""
     width: int
@@ -155,20 +149,6 @@ class SourcePlan:
     """The frame the pose topic's poses are in ("" without a pose topic)."""
     needs_dynamic_tf: bool
     """True when /tf must be read while streaming (no pose topic, or another moving frame on the chain)."""
-
-
-@dataclass(frozen=True)
-class _Resolved:
-    """Intrinsics and frames of one recording, as :func:`_resolve` finds them."""
-
-    K: NDArray[np.float64]
-    width: int
-    height: int
-    world_frame: str
-    body_frame: str
-    camera_frame: str
-    pose_parent: str
-    needs_dynamic_tf: bool
 
 
 def _find(summary: BagSummary, name: str, option: str) -> str:
@@ -195,14 +175,7 @@ def _first_message(source: Source, topic: str) -> Any:
 
 def plan_source(source: Source, config: IngestConfig) -> SourcePlan:
     """The whole reading plan of one recording: its roles, then the intrinsics and frames they resolve to."""
-    roles = choose_roles(source, config)
-    r = _resolve(source, roles, config)
-    return SourcePlan(
-        summary=roles.summary, depth=roles.depth, depth_encoding=roles.depth_encoding,
-        camera_info=roles.camera_info, pose=roles.pose, tf_topics=roles.tf_topics, K=r.K, width=r.width,
-        height=r.height, world_frame=r.world_frame, body_frame=r.body_frame, camera_frame=r.camera_frame,
-        pose_parent=r.pose_parent, needs_dynamic_tf=r.needs_dynamic_tf,
-    )
+    return _resolve(source, choose_roles(source, config), config)
 
 
 def choose_roles(source: Source, config: IngestConfig) -> Roles:
@@ -324,11 +297,6 @@ class _PoseFeed:
         self.dropped_poses = 0
 
     @classmethod
-    def for_planning(cls, roles: Roles, config: IngestConfig) -> _PoseFeed:
-        """A feed that learns the frames: every tf topic, the pose topic's frames not known yet."""
-        return cls(roles.pose.topic, roles.tf_topics, config)
-
-    @classmethod
     def for_plan(cls, plan: SourcePlan, config: IngestConfig) -> _PoseFeed:
         """A feed for streaming a planned recording: the pose topic pinned to world → body, the
         ``extrinsic`` pinned to body → camera, /tf only when the plan needs it."""
@@ -376,7 +344,7 @@ class _PoseFeed:
         self.pose_series.add(stamp, t, q)
 
 
-def _resolve(source: Source, roles: Roles, config: IngestConfig) -> _Resolved:
+def _resolve(source: Source, roles: Roles, config: IngestConfig) -> SourcePlan:
     """Resolve intrinsics and the world / body / camera frames from the first seconds of a recording."""
     first = _first_message(source, roles.depth.topic)
     camera = frame_name(config.camera_frame or first.header.frame_id)
@@ -409,12 +377,13 @@ def _resolve(source: Source, roles: Roles, config: IngestConfig) -> _Resolved:
     # chain (e.g. a gimbal); skipping it halves the pose messages a bag like ours needs.
     moving = tree.dynamic_edges(world, camera)
     needs_dynamic_tf = pose_series is None or any(e is not pose_series for e in moving)
-    return _Resolved(K, width, height, world, body, camera, pose_parent, needs_dynamic_tf)
+    return SourcePlan(roles.summary, roles.depth, roles.depth_encoding, roles.camera_info, roles.pose, roles.tf_topics,
+                      K, width, height, world, body, camera, pose_parent, needs_dynamic_tf)
 
 
 def _read_until_planned(source: Source, roles: Roles, config: IngestConfig, camera: str) -> tuple[_PoseFeed, Any]:
     """Read pose, tf and camera-info messages until the plan can be made → (feed, first camera info or None)."""
-    feed = _PoseFeed.for_planning(roles, config)
+    feed = _PoseFeed(roles.pose.topic, roles.tf_topics, config)  # learns the frames: every tf topic
     info_msg = None
     static_topics = [t for t in roles.tf_topics if "static" in t]
     static_seen = False

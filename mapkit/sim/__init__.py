@@ -15,11 +15,6 @@ Public API:
 - :class:`BagRecorder`, :func:`output_path`: re-exported from :mod:`mapkit.bags`, which writes the
   bags (the simulator is one of its users).
 - :class:`SimError`: every user-facing problem, in one line.
-
-Names: the flight type is :class:`Flight`, not ``Trajectory``, so that it does not collide with
-:class:`mapkit.trajopt.Trajectory` (a min-snap polynomial). There is no ``Trajectory`` alias: users get
-a flight from :func:`plan_flight` and never construct one, so the old name only ever appeared in
-annotations.
 """
 
 from mapkit.bags import BagRecorder, output_path

@@ -16,15 +16,6 @@ import numpy as np
 from mapkit.sim._errors import SimError
 from mapkit.sim._world import World, ray_entry
 
-__all__ = [
-    "CameraModel",
-    "R_LINK_OPTICAL",
-    "camera_extrinsics",
-    "render_depth",
-    "apply_realsense_noise",
-    "NOISE_MODELS",
-]
-
 NOISE_MODELS: tuple[str, ...] = ("none", "realsense")
 
 # Optical axes expressed in the FLU camera_link: z_opt = x_link, x_opt = -y_link, y_opt = -z_link.
@@ -152,11 +143,11 @@ def render_depth(world: World, T_world_camera: np.ndarray, camera: CameraModel, 
     return np.where(valid, depth, np.nan).astype(np.float32)
 
 
-def apply_realsense_noise(depth: np.ndarray, camera: CameraModel, rng: np.random.Generator, *,
-                          sigma_z2: float = 0.0015, blobs_per_frame: float = 6.0,
-                          edge_dropout: float = 0.5) -> np.ndarray:
-    """Structured-light-like noise: Gaussian with σ = sigma_z2·z² (metres), a few random holes
-    (elliptic blobs), and dropouts at depth discontinuities. Returns a new float32 image."""
+def apply_realsense_noise(depth: np.ndarray, camera: CameraModel, rng: np.random.Generator) -> np.ndarray:
+    """Structured-light-like noise: Gaussian with σ = 0.0015·z² (metres), a few random holes (elliptic
+    blobs, 6 a frame on average), and dropouts of half the pixels at depth discontinuities. Returns a
+    new float32 image."""
+    sigma_z2, blobs_per_frame, edge_dropout = 0.0015, 6.0, 0.5
     out = depth.astype(np.float64).copy()
     H, W = out.shape
     valid = np.isfinite(out)

@@ -31,8 +31,6 @@ from mapkit.sim._errors import SimError
 from mapkit.sim._search import FreeSpaceGraph, _NoFreeSpace, _shortcut
 from mapkit.sim._world import World
 
-__all__ = ["Flight", "plan_flight", "MIN_SPEED", "MAX_SPEED"]
-
 MIN_SPEED = 1.0
 MAX_SPEED = 3.0
 _LONG_ACCEL = 1.5  # m/s², speeding up / slowing down
@@ -68,10 +66,6 @@ class Flight:
     @property
     def duration(self) -> float:
         return float(self.t_k[-1])
-
-    @property
-    def length(self) -> float:
-        return float(self.s_k[-1])
 
     def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(position (N,3), world velocity (N,3), yaw (N,), yaw rate (N,)) at times t (N,) s."""
@@ -208,8 +202,8 @@ class _Router:
                     return poly
                 want *= 1.2
             goal = self.pick_goal(goals)
-            leg = self.leg_to(goals[-1], goal)
-            if leg is None:
+            leg = None if goal == goals[-1] else self.space.cell_path(goals[-1], goal)
+            if leg is None:  # the same cell, or unreachable
                 continue
             legs.append(leg)
             goals.append(goal)
@@ -237,12 +231,6 @@ class _Router:
         n = max(2, int(math.ceil(np.linalg.norm(b - a) / (0.5 * self.space.resolution))) + 1)
         pts = a[None, :] + np.linspace(0.0, 1.0, n)[:, None] * (b - a)[None, :]
         return bool(self.grid.interp_sdf(pts).min() >= self.need)
-
-    def leg_to(self, start: int, goal: int) -> list[int] | None:
-        """Cells of the cheapest leg from ``start`` to ``goal``; None when unreachable or the same cell."""
-        if goal == start:
-            return None
-        return self.space.cell_path(start, goal)
 
     def u_turn(self, prev: np.ndarray, g: np.ndarray, nxt: np.ndarray) -> list[np.ndarray]:
         """Half-circle control points replacing a reversal at goal g (empty if no room)."""

@@ -19,8 +19,6 @@ import numpy as np
 from mapkit.sim._errors import SimError
 from mapkit.sim._world import Box, Capsule, Cylinder, HalfSpace, Primitive, World
 
-__all__ = ["WORLD_KINDS", "DEFAULT_SIZES", "DEFAULT_DENSITIES", "MIN_SIZES", "make_world"]
-
 WORLD_KINDS: tuple[str, ...] = ("forest", "office", "garage")
 DEFAULT_SIZES: dict[str, tuple[float, float, float]] = {
     "forest": (40.0, 40.0, 10.0),
@@ -103,26 +101,20 @@ def _office(rng: np.random.Generator, X: float, Y: float, Z: float, density: flo
     t = 0.15  # inner wall thickness
     door_h = min(2.2, Z - 0.3)
 
-    def wall_x(y: float, x0: float, x1: float, doors: list[float], width: float) -> None:
-        """Wall along x at y from x0 to x1 with doorways centred at ``doors``."""
-        edges = [x0]
-        for xd in sorted(doors):
-            edges += [xd - 0.5 * width, xd + 0.5 * width]
-            prims.append(Box((xd, y, 0.5 * (door_h + Z)), (0.5 * width + 0.01, 0.5 * t, 0.5 * (Z - door_h) + 0.05)))
-        edges.append(x1)
-        for s0, s1 in zip(edges[0::2], edges[1::2], strict=False):
-            if s1 - s0 > 1e-3:
-                prims.append(Box((0.5 * (s0 + s1), y, 0.5 * Z), (0.5 * (s1 - s0), 0.5 * t, 0.5 * Z + 0.05)))
+    def wall(axis: int, at: float, s0: float, s1: float, doors: list[float], width: float) -> None:
+        """Wall along x (axis 0) or y (axis 1) at ``at``, from s0 to s1, with doorways centred at ``doors``."""
 
-    def wall_y(x: float, y0: float, y1: float, doors: list[float], width: float) -> None:
-        edges = [y0]
-        for yd in sorted(doors):
-            edges += [yd - 0.5 * width, yd + 0.5 * width]
-            prims.append(Box((x, yd, 0.5 * (door_h + Z)), (0.5 * t, 0.5 * width + 0.01, 0.5 * (Z - door_h) + 0.05)))
-        edges.append(y1)
-        for s0, s1 in zip(edges[0::2], edges[1::2], strict=False):
-            if s1 - s0 > 1e-3:
-                prims.append(Box((x, 0.5 * (s0 + s1), 0.5 * Z), (0.5 * t, 0.5 * (s1 - s0), 0.5 * Z + 0.05)))
+        def box(c: float, half: float, zc: float, hz: float) -> Box:
+            return Box((c, at, zc), (half, 0.5 * t, hz)) if axis == 0 else Box((at, c, zc), (0.5 * t, half, hz))
+
+        edges = [s0]
+        for d in sorted(doors):
+            edges += [d - 0.5 * width, d + 0.5 * width]
+            prims.append(box(d, 0.5 * width + 0.01, 0.5 * (door_h + Z), 0.5 * (Z - door_h) + 0.05))
+        edges.append(s1)
+        for e0, e1 in zip(edges[0::2], edges[1::2], strict=False):
+            if e1 - e0 > 1e-3:
+                prims.append(box(0.5 * (e0 + e1), 0.5 * (e1 - e0), 0.5 * Z, 0.5 * Z + 0.05))
 
     def door_positions(length: float, n: int, width: float) -> list[float]:
         slots = np.linspace(0.0, length, n + 2)[1:-1]
@@ -132,19 +124,26 @@ def _office(rng: np.random.Generator, X: float, Y: float, Z: float, density: flo
     # A corridor wall along x splits the floor; cross walls make rooms on both sides.
     y_split = float(rng.uniform(0.4, 0.6) * Y)
     width = float(rng.uniform(1.5, 1.9))
-    wall_x(y_split, 0.0, X, door_positions(X, max(2, int(X // 7)), width), width)
+    wall(0, y_split, 0.0, X, door_positions(X, max(2, int(X // 7)), width), width)
     n_cross = max(1, int(X // 8))
     xs = np.linspace(0.0, X, n_cross + 2)[1:-1] + rng.uniform(-1.0, 1.0, size=n_cross)
     for x in xs:
         if rng.random() < 0.8:
             w = float(rng.uniform(1.5, 1.9))
-            wall_y(float(x), 0.0, y_split - 0.5 * t, [float(rng.uniform(w, y_split - w))], w)
+            wall(1, float(x), 0.0, y_split - 0.5 * t, [float(rng.uniform(w, y_split - w))], w)
         if rng.random() < 0.8:
             w = float(rng.uniform(1.5, 1.9))
-            wall_y(float(x), y_split + 0.5 * t, Y, [y_split + float(rng.uniform(w, Y - y_split - w))], w)
+            wall(1, float(x), y_split + 0.5 * t, Y, [y_split + float(rng.uniform(w, Y - y_split - w))], w)
 
+    return prims + _furniture(rng, X, Y, Z, density, prims), (0.6, Z - 0.6)
+
+
+def _furniture(rng: np.random.Generator, X: float, Y: float, Z: float, density: float,
+               structure: list[Primitive]) -> list[Primitive]:
+    """Pillars, desks and shelves placed among the office's walls (``structure``: floor, ceiling, the
+    four outer walls, then the inner ones). Pillars stand in the open; desks keep ~1 m of floor around
+    them for flying; shelves lean on outer walls but keep clear of inner walls so doorways stay open."""
     bounds = np.array([[0.0, 0.0, 0.0], [X, Y, Z]])
-    structure = list(prims)
     outer_and_inner, inner = structure[2:], structure[6:]
     placed: list[Primitive] = []
 
@@ -161,8 +160,6 @@ def _office(rng: np.random.Generator, X: float, Y: float, Z: float, density: flo
                 placed.append(prim)
                 return
 
-    # Pillars stand in the open; desks keep ~1 m of floor around them for flying; shelves lean
-    # on outer walls but keep clear of inner walls so doorways stay open.
     for _ in range(max(1, int(round(X * Y / 80.0)))):
         r = float(rng.uniform(0.2, 0.3))
         try_place(functools.partial(_pillar, rng, X, Y, Z, r), 1.6, outer_and_inner)
@@ -171,7 +168,7 @@ def _office(rng: np.random.Generator, X: float, Y: float, Z: float, density: flo
             try_place(lambda: _shelf(rng, X, Y), 1.2, inner)
         else:
             try_place(lambda: _desk(rng, X, Y), 1.1, outer_and_inner)
-    return structure + placed, (0.6, Z - 0.6)
+    return placed
 
 
 def _pillar(rng: np.random.Generator, X: float, Y: float, Z: float, r: float) -> Cylinder:

@@ -19,8 +19,6 @@ from scipy.sparse.csgraph import dijkstra
 from mapkit.sim._errors import SimError
 from mapkit.sim._world import World
 
-__all__ = ["FreeSpaceGraph"]
-
 
 class _NoFreeSpace(SimError):
     """No cell of the flight volume has the clearance asked for (callers may say it their way)."""
@@ -104,7 +102,6 @@ class FreeSpaceGraph:
         world: the world.
         clearance: metres every cell centre (and every shortcut) keeps from obstacles.
         resolution: grid spacing, metres (default 0.25 indoors, up to 0.4 in large worlds).
-        inset: metres kept from the world's x/y bounds (default 0 for walled worlds, 1 otherwise).
         cost_margin: signed distance (metres) below which an edge's cost stops growing (default
             ``clearance``); :func:`~mapkit.sim.plan_flight` keeps its free cells a little farther out
             than this.
@@ -114,15 +111,15 @@ class FreeSpaceGraph:
     """
 
     def __init__(self, world: World, *, clearance: float, resolution: float | None = None,
-                 inset: float | None = None, cost_margin: float | None = None) -> None:
+                 cost_margin: float | None = None) -> None:
         if not clearance > 0:
             raise SimError(f"clearance must be > 0 metres, got {clearance}")
         X, Y = world.bounds[1, :2] - world.bounds[0, :2]
         self.world = world
         self.clearance = float(clearance)
         self.resolution = float(resolution or np.clip(math.sqrt(X * Y / 12000.0), 0.25, 0.4))
-        walled = world.kind in ("office", "garage")
-        self.grid = _Grid(world, self.resolution, inset=(0.0 if walled else 1.0) if inset is None else float(inset))
+        # metres kept from the world's x/y bounds: none in walled worlds
+        self.grid = _Grid(world, self.resolution, inset=0.0 if world.kind in ("office", "garage") else 1.0)
         free = self.grid.sdf >= self.clearance
         labels, n = ndimage.label(free, structure=np.ones((3, 3, 3)))
         if n == 0:
@@ -139,10 +136,6 @@ class FreeSpaceGraph:
     @property
     def num_free(self) -> int:
         return int(len(self.free_index))
-
-    def sdf_at_cells(self, cells: np.ndarray) -> np.ndarray:
-        """Exact signed distance (N,) at the centres of flat cell indices (N,)."""
-        return self.grid.sdf.ravel()[cells]
 
     def nearest_cell(self, point: np.ndarray) -> int:
         """Flat index of the free cell nearest to ``point`` (3,)."""

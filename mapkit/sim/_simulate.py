@@ -20,10 +20,6 @@ from mapkit.sim._flight import Flight, plan_flight
 from mapkit.sim._procedural import WORLD_KINDS, make_world
 from mapkit.sim._world import World
 
-__all__ = ["SimConfig", "SimResult", "RenderedFlight", "render_flight", "simulate", "ground_truth_paths",
-           "DEPTH_TOPIC", "CAMERA_INFO_TOPIC", "ODOM_TOPIC", "WORLD_FRAME", "BODY_FRAME", "CAMERA_LINK_FRAME",
-           "OPTICAL_FRAME"]
-
 DEPTH_TOPIC = "/camera/depth/image_rect_raw"
 CAMERA_INFO_TOPIC = "/camera/depth/camera_info"
 ODOM_TOPIC = "/odom"

@@ -32,8 +32,6 @@ import numpy as np
 
 from mapkit.sim._errors import SimError
 
-__all__ = ["Box", "Cylinder", "Capsule", "HalfSpace", "Primitive", "World"]
-
 _CHUNK = 16384  # points per SDF block: bounds the (points x primitives) temporaries
 
 

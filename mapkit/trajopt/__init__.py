@@ -7,11 +7,10 @@ out, with exact gradients back to both.
   snap (plus an optional cubic minimum-yaw-acceleration spline). Without inequalities the optimum
   is an exact dense solve over the free knot derivatives (float64 inside, unit-diagonal scaling);
   with a flight ``corridor`` or ``v_max``/``a_max`` limits it is a QP solved exactly per element
-  (DAQP by default: the fastest of DAQP, ProxQP, Clarabel and PIQP on these problems, see
-  ``benchmarks/bench_trajopt.py``), then re-solved in torch from the KKT system of its active set,
-  which gives the implicit gradient (no unrolling). Infeasible elements are flagged in
-  ``Trajectory.solved`` and never crash the batch.
-- :class:`Trajectory` — evaluation, sampling, costs, limits and a differential-flatness check.
+  (DAQP by default), then re-solved in torch from the KKT system of its active set, which gives the
+  implicit gradient (no unrolling). Infeasible elements are flagged in ``Trajectory.solved`` and
+  never crash the batch.
+- :class:`Trajectory` — evaluation, costs and limits.
 - :func:`allocate_times` — segment durations: ``uniform``, ``trapezoid``, ``poly5``, ``gradient``
   (Mellinger & Kumar) or ``net`` (:class:`TimeAllocationNet`).
 
@@ -36,18 +35,16 @@ from mapkit.trajopt._timealloc import (
     profile_time,
     snap_cost_of_times,
 )
-from mapkit.trajopt._trajectory import Feasibility, Trajectory, TrajectorySamples
+from mapkit.trajopt._trajectory import Trajectory
 
 __all__ = [
     "ALLOCATION_METHODS",
     "BoundaryScale",
     "DEFAULT_SOLVER",
-    "Feasibility",
     "SOLVERS",
     "TimeAllocationNet",
     "TimeAllocationNetConfig",
     "Trajectory",
-    "TrajectorySamples",
     "TrajoptError",
     "TrajoptWarning",
     "allocate_times",

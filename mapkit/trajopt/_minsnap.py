@@ -1,4 +1,19 @@
-"""Differentiable minimum-snap trajectories: :func:`min_snap`."""
+"""Differentiable minimum-snap trajectories: :func:`min_snap`.
+
+Example: from rest to rest over d metres in T seconds, the minimum-snap trajectory is the
+7th-order smoothstep d (35 s⁴ − 84 s⁵ + 70 s⁶ − 20 s⁷), s = t/T: its snap cost is 100800 d²/T⁷,
+and it is half-way at T/2 at the speed 35/16 d/T.
+
+>>> import torch
+>>> d, T = 2.0, 1.0
+>>> traj = min_snap(torch.tensor([[0.0, 0.0, 0.0], [d, 0.0, 0.0]], dtype=torch.float64),
+...                 torch.tensor([T], dtype=torch.float64))
+>>> round(traj.snap_cost().item(), 6), 100800 * d**2 / T**7
+(403200.0, 403200.0)
+>>> t = torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64) * T
+>>> traj.position(t)[:, 0].round(decimals=9).tolist(), traj.derivative(t, 1)[:, 0].round(decimals=9).tolist()
+([0.0, 1.0, 2.0], [0.0, 4.375, 0.0])
+"""
 
 from __future__ import annotations
 
@@ -436,53 +451,29 @@ def min_snap(
 
     Minimises ``sum_axes integral (d^4 p/dt^4)^2 dt`` subject to the start/end position, velocity,
     acceleration and jerk, continuity up to jerk at every knot, and either passing through every
-    interior key-point (default) or — with ``corridor`` — staying in the flight corridor around the
-    key-point path. Without inequalities the optimum is a closed-form dense solve; with any
-    inequality (``corridor``, ``v_max``, ``a_max``) a QP solved exactly per element, whose gradient
-    comes from the KKT conditions at its active set.
+    interior key-point or (``corridor``) staying in the flight corridor around the key-point path.
+    Without inequalities a closed-form dense solve; with any (``corridor``, ``v_max``, ``a_max``) a
+    QP solved exactly per element, differentiated through the KKT conditions at its active set.
 
-    Args:
-        waypoints: (B, M+1, 3) or (M+1, 3) metres: start, M-1 interior key-points, end.
-        durations: (B, M) or (M,) seconds, every one > 0.
-        start: (B, 3, 3) or (3, 3): rows velocity, acceleration, jerk at the start (default 0).
-        end: same at the end.
-        corridor: half-width in metres, a scalar, (M,) or (B, M) per segment. Interior key-points
-            become free; at ``corridor_samples`` interior points of every segment and at every
-            interior knot, each world-axis component of the deviation perpendicular to the
-            segment's straight key-point line stays within +-corridor, and the position along that
-            line stays within the segment extended by ``corridor`` at both ends.
-        corridor_samples: sample points per segment for the corridor and the limits (>= 1).
-        v_max: per-axis speed limit (m/s), scalar or (B,): ``|v_axis| <= v_max`` at the samples.
-        a_max: per-axis acceleration limit (m/s²), scalar or (B,), likewise.
-        yaw: (B, M+1) or (M+1,) yaw key-point angles (radians); adds a minimum
-            ``integral (d^2 psi/dt^2)^2`` cubic yaw spline (continuous to the 1st derivative, zero
-            yaw rate at both ends). Consecutive angles are unwrapped.
-        solver: QP backend for the inequality path, one of ``mapkit.trajopt.SOLVERS``.
-        limits_everywhere: make ``v_max``/``a_max`` hold between the samples too: the solution is
-            checked on a dense grid (256 points per segment) and, where it exceeds a limit, solved
-            again with that limit tightened by the excess (at most 4 times).
-        on_infeasible: what to do when some elements of a constrained problem cannot be solved:
-            "warn" (default; a :class:`TrajoptWarning`), "raise" (:class:`TrajoptError`) or
-            "ignore". Either way ``Trajectory.solved`` is False for them and they hold the
-            closed-form solution through the key-points without the inequalities.
+    - ``waypoints`` (B, M+1, 3) or (M+1, 3) metres: start, M-1 interior key-points, end;
+      ``durations`` (B, M) or (M,) seconds, all > 0.
+    - ``start``, ``end`` (B, 3, 3) or (3, 3): rows velocity, acceleration, jerk (default 0).
+    - ``corridor``: half-width (m), a scalar, (M,) or (B, M). Interior key-points become free; at
+      ``corridor_samples`` (>= 1) interior points of every segment and at every interior knot, each
+      world-axis component of the deviation across the segment's key-point line stays within
+      +-corridor, and the position along it within the segment extended by ``corridor``.
+    - ``v_max``, ``a_max``: per-axis speed (m/s) and acceleration (m/s²) limits, scalar or (B,), at
+      the same samples; ``limits_everywhere`` also holds them between the samples (checked on 256
+      points per segment, solved again with the limit tightened by the excess, at most 4 times).
+    - ``yaw`` (B, M+1) or (M+1,) radians: adds a minimum ``integral (d^2 psi/dt^2)^2`` cubic yaw
+      spline (zero yaw rate at both ends); consecutive angles are unwrapped.
+    - ``solver``: QP backend, one of ``mapkit.trajopt.SOLVERS``.
+    - ``on_infeasible``: "warn" (a :class:`TrajoptWarning`), "raise" (:class:`TrajoptError`) or
+      "ignore" when some elements of a constrained problem cannot be solved; either way
+      ``Trajectory.solved`` is False for them and they hold the closed form through the key-points.
 
-    Returns:
-        A :class:`Trajectory` in the dtype and on the device of ``waypoints``; unbatched inputs
-        give an unbatched trajectory.
-
-    Example: from rest to rest over d metres in T seconds, the minimum-snap trajectory is the
-    7th-order smoothstep d (35 s⁴ − 84 s⁵ + 70 s⁶ − 20 s⁷), s = t/T: its snap cost is 100800 d²/T⁷,
-    and it is half-way at T/2 at the speed 35/16 d/T.
-
-    >>> import torch
-    >>> d, T = 2.0, 1.0
-    >>> traj = min_snap(torch.tensor([[0.0, 0.0, 0.0], [d, 0.0, 0.0]], dtype=torch.float64),
-    ...                 torch.tensor([T], dtype=torch.float64))
-    >>> round(traj.snap_cost().item(), 6), 100800 * d**2 / T**7
-    (403200.0, 403200.0)
-    >>> t = torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64) * T
-    >>> traj.position(t)[:, 0].round(decimals=9).tolist(), traj.derivative(t, 1)[:, 0].round(decimals=9).tolist()
-    ([0.0, 1.0, 2.0], [0.0, 4.375, 0.0])
+    Returns a :class:`Trajectory` in the dtype and on the device of ``waypoints`` (unbatched for
+    unbatched inputs).
     """
     w, batched = _work_waypoints(waypoints)
     out_dtype = waypoints.dtype

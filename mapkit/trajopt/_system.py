@@ -48,38 +48,15 @@ def layout(M: int, r: int, free_positions: bool) -> Layout:
     return Layout(M, r, np.array(free, dtype=np.int64), np.array(fixed, dtype=np.int64))
 
 
-@cache
-def _scatter_index(M: int, r: int) -> np.ndarray:
-    """Flat indices into an (N, N) matrix of every entry of the M local (2r, 2r) blocks."""
-    N = r * (M + 1)
-    loc = np.arange(2 * r)
-    out = np.empty((M, 2 * r, 2 * r), dtype=np.int64)
-    for i in range(M):
-        g = i * r + loc
-        out[i] = g[:, None] * N + g[None, :]
-    return out.reshape(-1)
-
-
 _CONST_CACHE: dict[tuple[object, ...], torch.Tensor] = {}
 
 
 def _const(name: str, r: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """Constant ``name`` ("R", "Ainv" or "idx<M>") of order ``r``, made once per dtype and device."""
+    """Constant ``name`` ("R" or "Ainv") of order ``r``, made once per dtype and device."""
     key = (name, r, dtype, str(device))
     t = _CONST_CACHE.get(key)
     if t is None:
-        if name == "R":
-            arr = knot_cost_matrix(r)
-        elif name == "Ainv":
-            arr = boundary_inverse(r)
-        elif name.startswith("idx"):
-            M = int(name[3:])
-            with torch.inference_mode(False):  # cached for later autograd use too (see index_tensor)
-                t = torch.as_tensor(_scatter_index(M, r), device=device)
-            _CONST_CACHE[key] = t
-            return t
-        else:  # pragma: no cover - internal misuse
-            raise KeyError(name)
+        arr = knot_cost_matrix(r) if name == "R" else boundary_inverse(r)
         with torch.inference_mode(False):
             t = torch.as_tensor(arr, dtype=dtype, device=device)
         _CONST_CACHE[key] = t
@@ -108,21 +85,10 @@ def time_powers(T: torch.Tensor, r: int) -> torch.Tensor:
     return torch.cat([sv, sv], dim=-1)
 
 
-def hessian(T: torch.Tensor, r: int) -> torch.Tensor:
-    """H (B, N, N), N = r(M+1): per-axis cost ``X^T H X`` of the knot vector X."""
-    B, M = T.shape
-    R = _const("R", r, T.dtype, T.device)
-    sv = time_powers(T, r)
-    blocks = (T ** (1 - 2 * r)).unsqueeze(-1).unsqueeze(-1) * sv.unsqueeze(-1) * sv.unsqueeze(-2) * R
-    N = r * (M + 1)
-    H = torch.zeros(B, N * N, dtype=T.dtype, device=T.device)
-    H = H.index_add(1, _const(f"idx{M}", r, T.dtype, T.device), blocks.reshape(B, -1))
-    return H.reshape(B, N, N)
-
-
 @cache
 def _perm_scatter_index(M: int, r: int, free_positions: bool) -> np.ndarray:
-    """Like _scatter_index, into the knot vector reordered as [free entries, fixed entries]."""
+    """Flat indices into an (N, N) matrix of every entry of the M local (2r, 2r) blocks, in the
+    knot vector reordered as [free entries, fixed entries]."""
     lay = layout(M, r, free_positions)
     N = r * (M + 1)
     pos = np.empty(N, dtype=np.int64)
@@ -136,19 +102,14 @@ def _perm_scatter_index(M: int, r: int, free_positions: bool) -> np.ndarray:
 
 
 def partitioned_hessian(T: torch.Tensor, r: int, lay: Layout) -> tuple[torch.Tensor, torch.Tensor]:
-    """(H_ff (B, nf, nf), H_fp (B, nf, nfix)) of :func:`hessian`, assembled directly in the
-    [free, fixed] order so the blocks are slices (no gathers)."""
+    """(H_ff (B, nf, nf), H_fp (B, nf, nfix)) of the per-axis cost ``X^T H X`` of the knot vector X,
+    assembled directly in the [free, fixed] order so the blocks are slices (no gathers)."""
     B, M = T.shape
     R = _const("R", r, T.dtype, T.device)
     sv = time_powers(T, r)
     blocks = (T ** (1 - 2 * r)).unsqueeze(-1).unsqueeze(-1) * sv.unsqueeze(-1) * sv.unsqueeze(-2) * R
     N = r * (M + 1)
-    key = ("perm", M, r, lay.free.size, str(T.device))
-    idx = _CONST_CACHE.get(key)
-    if idx is None:
-        with torch.inference_mode(False):  # cached: must serve autograd later too (see index_tensor)
-            idx = torch.as_tensor(_perm_scatter_index(M, r, lay.free.size > (M - 1) * (r - 1)), device=T.device)
-        _CONST_CACHE[key] = idx
+    idx = index_tensor(_perm_scatter_index(M, r, lay.free.size > (M - 1) * (r - 1)), T.device)
     H = torch.zeros(B, N * N, dtype=T.dtype, device=T.device).index_add(1, idx, blocks.reshape(B, -1))
     H = H.reshape(B, N, N)
     nf = lay.free.size
@@ -156,7 +117,8 @@ def partitioned_hessian(T: torch.Tensor, r: int, lay: Layout) -> tuple[torch.Ten
 
 
 def solve_knots(T: torch.Tensor, X: torch.Tensor, lay: Layout) -> torch.Tensor:
-    """:func:`solve_equality` with the Hessian of durations T (faster: no gathers)."""
+    """Minimise ``sum_axes X^T H X`` (durations T) over the free entries of X; returns the full knot
+    vector (B, N, A). Exact dense solve of the reduced system, scaled to unit diagonal."""
     if lay.free.size == 0:
         return X
     Hff, Hfp = partitioned_hessian(T, lay.r, lay)
@@ -217,18 +179,3 @@ def sample_rows(T: torch.Tensor, s: np.ndarray, q: int, r: int) -> torch.Tensor:
         rows = rows / (T ** q).unsqueeze(-1).unsqueeze(-1)
     return rows
 
-
-def solve_equality(
-    H: torch.Tensor, X: torch.Tensor, lay: Layout
-) -> torch.Tensor:
-    """Minimise ``sum_axes X^T H X`` over the free entries; returns the full knot vector (B, N, A).
-
-    Exact dense solve of the reduced (Schur) system, symmetrically scaled to unit diagonal.
-    """
-    if lay.free.size == 0:
-        return X
-    dev = H.device
-    fi = index_tensor(lay.free, dev)
-    xi = index_tensor(lay.fixed, dev)
-    Hf = H.index_select(1, fi)
-    return _reduced_solve(Hf.index_select(2, fi), Hf.index_select(2, xi), X, lay)

@@ -4,8 +4,8 @@ Net module. Entry point: :func:`allocate_times`."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any, Literal, overload
+from dataclasses import dataclass
+from typing import Literal, overload
 
 import numpy as np
 import torch
@@ -170,63 +170,30 @@ def snap_cost_of_times(
 
 @dataclass
 class _SnapTimeProblem:
-    """Minimise J(T) (+ k_T·ΣT) over durations T ≥ t_min (with ΣT = total when k_T is None), float64."""
+    """Minimise J(T) over durations T ≥ t_min with ΣT = total, float64."""
 
     w: torch.Tensor
     """(B, M+1, 3) key-points."""
     start: torch.Tensor | None
     end: torch.Tensor | None
-    k_T: float | None
-    """Weight of the total time; None: the total is fixed."""
-    total: torch.Tensor | None
-    """(B,) fixed total time (k_T None)."""
+    total: torch.Tensor
+    """(B,) fixed total time."""
     t_min: torch.Tensor
     """(B, M) smallest durations."""
-    solve_options: dict[str, Any] | None
-    """Passed to :func:`min_snap` (constrained J); None or empty: the closed form."""
-
-    @property
-    def fixed_total(self) -> bool:
-        """The sum of the durations is held at :attr:`total`."""
-        return self.k_T is None
 
     @overload
     def cost(self, Tc: torch.Tensor, need_grad: Literal[True]) -> tuple[torch.Tensor, torch.Tensor]: ...
     @overload
     def cost(self, Tc: torch.Tensor, need_grad: Literal[False]) -> tuple[torch.Tensor, None]: ...
     def cost(self, Tc: torch.Tensor, need_grad: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(B,) objective and, with ``need_grad``, its gradient (B, M); a failed solve costs +inf."""
-        if self.solve_options:
-            J, g = self._constrained_snap(Tc, need_grad, self.solve_options)
-        elif need_grad:
-            J, g = snap_cost_of_times(self.w, Tc, start=self.start, end=self.end, with_grad=True)
-        else:
-            J, g = snap_cost_of_times(self.w, Tc, start=self.start, end=self.end), None
-        if self.k_T is None:
-            return J, g
-        return J + self.k_T * Tc.sum(-1), (None if g is None else g + self.k_T)
-
-    def _constrained_snap(self, Tc: torch.Tensor, need_grad: bool,
-                          solve_options: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """J(T) of the constrained optimum (:func:`min_snap` with ``solve_options``) and its autograd gradient."""
-        from mapkit.trajopt._minsnap import min_snap
-
-        Tv = Tc.clone().requires_grad_(need_grad)
-        with torch.enable_grad() if need_grad else torch.no_grad():
-            tr = min_snap(self.w, Tv, start=self.start, end=self.end, on_infeasible="ignore", **solve_options)
-            J = tr.snap_cost()
-            g: torch.Tensor | None = None
-            if need_grad:
-                (g,) = torch.autograd.grad(J.sum(), Tv)
-        return torch.where(tr.solved & torch.isfinite(J), J.detach(), torch.full_like(J, math.inf)), g
+        """(B,) objective and, with ``need_grad``, its gradient (B, M)."""
+        if need_grad:
+            return snap_cost_of_times(self.w, Tc, start=self.start, end=self.end, with_grad=True)
+        return snap_cost_of_times(self.w, Tc, start=self.start, end=self.end), None
 
     def project(self, Tc: torch.Tensor) -> torch.Tensor:
-        """The nearest feasible durations: T ≥ t_min, and ΣT = total when it is fixed."""
+        """The nearest feasible durations: T ≥ t_min and ΣT = total (sort-based simplex projection)."""
         t_min = self.t_min
-        if not self.fixed_total:
-            return torch.maximum(Tc, t_min)
-        # Euclidean projection onto {T >= t_min, sum T = total} (sort-based simplex projection).
-        assert self.total is not None  # a fixed total is always given (_gradient_allocation)
         M = Tc.shape[-1]
         y = Tc - t_min
         s = (self.total - t_min.sum(-1)).unsqueeze(-1)
@@ -269,27 +236,21 @@ def _gradient_allocation(
     w: torch.Tensor,
     T0: torch.Tensor,
     *,
-    k_T: float | None,
     total: torch.Tensor | None,
     start: torch.Tensor | None,
     end: torch.Tensor | None,
     max_iters: int,
     rel_tol: float,
-    solve_options: dict[str, Any] | None,
     min_duration: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Projected gradient descent with Armijo backtracking, batched over problems (float64)."""
     B, M = T0.shape
-    if k_T is None:
-        total = T0.sum(-1) if total is None else total
-        T = T0 * (total / T0.sum(-1)).unsqueeze(-1)
-    else:
-        T = T0.clone()
+    total = T0.sum(-1) if total is None else total
+    T = T0 * (total / T0.sum(-1)).unsqueeze(-1)
     t_min = _min_duration(T.sum(-1), M).unsqueeze(-1).expand(B, M)
     if min_duration is not None:
         t_min = torch.maximum(t_min, min_duration.reshape(-1, 1).expand(B, M))
-    problem = _SnapTimeProblem(w=w, start=start, end=end, k_T=k_T, total=total, t_min=t_min,
-                               solve_options=solve_options)
+    problem = _SnapTimeProblem(w=w, start=start, end=end, total=total, t_min=t_min)
 
     with torch.no_grad():
         if min_duration is not None:
@@ -298,7 +259,7 @@ def _gradient_allocation(
         if not bool(torch.isfinite(f).all()):
             raise TrajoptError(
                 "gradient time allocation: the initial durations give no finite cost for some "
-                "elements; start from longer durations or relax the constraints"
+                "elements; start from longer durations"
             )
         step = 0.1 * T.mean(-1, keepdim=True) / g.abs().amax(-1, keepdim=True).clamp_min(1e-300)
         active = torch.ones(B, dtype=torch.bool, device=T.device)
@@ -323,13 +284,10 @@ def allocate_times(
     v_max: float = 2.0,
     a_max: float = 2.0,
     total_time: float | torch.Tensor | None = None,
-    k_T: float | None = None,
     start: torch.Tensor | None = None,
     end: torch.Tensor | None = None,
-    initial: torch.Tensor | None = None,
     max_iters: int = 100,
     rel_tol: float = 1e-6,
-    solve_options: dict[str, Any] | None = None,
     net: TimeAllocationNet | None = None,
     min_duration: float | torch.Tensor | None = None,
 ) -> torch.Tensor:
@@ -343,13 +301,11 @@ def allocate_times(
             ``s(tau) = L (10 tau^3 - 15 tau^4 + 6 tau^5)`` whose duration is the shortest within
             ``v_max``/``a_max`` (or ``total_time``); each key-point gets the time the profile
             reaches its arc length, so segments near the ends are slower.
-        ``gradient``: Mellinger & Kumar: minimise the snap cost J(T) + ``k_T`` * sum(T) (when
-            ``k_T`` is given) or J(T) with sum(T) fixed (``total_time``, default the sum of the
-            start); projected gradient descent with Armijo backtracking from ``initial``
-            (default trapezoid), every duration kept >= 0.02 * total / M and >= ``min_duration``
-            seconds (scalar or (B,); needs a fixed total of at least M × it). ``solve_options``
-            (``corridor``, ``v_max``, ``a_max``, ...) are passed to :func:`min_snap`, making J the
-            constrained optimum; a failed solve counts as infinite cost. Not differentiable.
+        ``gradient``: Mellinger & Kumar: minimise the snap cost J(T) with sum(T) fixed
+            (``total_time``, default the trapezoid total); projected gradient descent with Armijo
+            backtracking from the trapezoid rule, every duration kept >= 0.02 * total / M and
+            >= ``min_duration`` seconds (scalar or (B,); needs a total of at least M × it). Not
+            differentiable.
         ``net``: the :class:`TimeAllocationNet` ``net`` (required) predicts the shares of
             ``total_time`` (default: its poly5 total time).
     """
@@ -372,9 +328,8 @@ def allocate_times(
     if bool((lengths.sum(-1) <= 0).any()):
         raise TrajoptError("waypoints: every path needs a positive length (start and end coincide)")
     if method == "gradient":
-        T = _gradient_times(w64, lengths, tot, v_max=v_max, a_max=a_max, k_T=k_T, start=start, end=end,
-                            initial=initial, max_iters=max_iters, rel_tol=rel_tol, solve_options=solve_options,
-                            min_duration=min_duration)
+        T = _gradient_times(w64, lengths, tot, v_max=v_max, a_max=a_max, start=start, end=end,
+                            max_iters=max_iters, rel_tol=rel_tol, min_duration=min_duration)
     else:
         T = _rule_times(method, lengths, tot, v_max, a_max)
     return (T if batched else T[0]).to(out_dtype)
@@ -412,34 +367,22 @@ def _rule_times(method: str, lengths: torch.Tensor, tot: torch.Tensor | None, v_
 
 
 def _gradient_times(w64: torch.Tensor, lengths: torch.Tensor, tot: torch.Tensor | None, *, v_max: float,
-                    a_max: float, k_T: float | None, start: torch.Tensor | None, end: torch.Tensor | None,
-                    initial: torch.Tensor | None, max_iters: int, rel_tol: float,
-                    solve_options: dict[str, Any] | None, min_duration: float | torch.Tensor | None) -> torch.Tensor:
-    """(B, M) durations of the "gradient" method: checks its options, starts from ``initial`` or
-    the trapezoid rule and runs :func:`_gradient_allocation`."""
+                    a_max: float, start: torch.Tensor | None, end: torch.Tensor | None, max_iters: int,
+                    rel_tol: float, min_duration: float | torch.Tensor | None) -> torch.Tensor:
+    """(B, M) durations of the "gradient" method: checks its options, starts from the trapezoid
+    rule and runs :func:`_gradient_allocation`."""
     B, M = lengths.shape
-    if k_T is not None and not k_T > 0:
-        raise TrajoptError(f"k_T must be > 0, got {k_T}")
-    if initial is None:
-        T0 = _trapezoid_time(lengths, v_max, a_max)
-        T0 = torch.maximum(T0, _min_duration(T0.sum(-1), M).unsqueeze(-1).clamp_min(1e-6))
-    else:
-        T0 = torch.as_tensor(initial).to(device=w64.device, dtype=_WORK)
-        T0 = torch.broadcast_to(T0 if T0.ndim == 2 else T0.unsqueeze(0), (B, M)).clone()
-        if bool((T0 <= 0).any()):
-            raise TrajoptError("initial durations must all be > 0 seconds")
+    T0 = _rule_times("trapezoid", lengths, None, v_max, a_max)
     floor = None
     if min_duration is not None:
-        if k_T is not None:
-            raise TrajoptError("min_duration needs a fixed total (total_time), not k_T")
         floor = torch.broadcast_to(torch.as_tensor(min_duration, dtype=_WORK).to(w64.device).reshape(-1), (B,))
         total_now = tot if tot is not None else T0.sum(-1)
         if bool((floor * M > total_now * (1 + 1e-9)).any()):
             raise TrajoptError(f"min_duration {min_duration} s × {M} segments exceeds the total time")
         tot = total_now
     return _gradient_allocation(
-        w64.detach(), T0.detach(), k_T=k_T, total=tot, start=start, end=end,
-        max_iters=max_iters, rel_tol=rel_tol, solve_options=solve_options, min_duration=floor,
+        w64.detach(), T0.detach(), total=tot, start=start, end=end,
+        max_iters=max_iters, rel_tol=rel_tol, min_duration=floor,
     )
 
 
@@ -465,8 +408,6 @@ class TimeAllocationNetConfig:
     slower from a start k (k²) times slower has the same minimum-snap split, and those inputs do not
     change with k, so one net serves every pace (``limits`` cannot tell a plan flown at 1.2 m/s from
     the same plan at 2 m/s). Needs the total time (:meth:`TimeAllocationNet.shares`)."""
-    extra: dict[str, Any] = field(default_factory=dict)
-    """Free-form notes stored with the config (ignored by the module)."""
 
 
 class TimeAllocationNet(nn.Module):

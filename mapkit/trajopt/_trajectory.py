@@ -2,62 +2,12 @@
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
 from typing import Any
 
 import torch
 
 from mapkit.trajopt._basis import cost_matrix
 from mapkit.trajopt._errors import TrajoptError
-
-_GRAVITY = 9.81
-
-
-@dataclass(frozen=True)
-class TrajectorySamples:
-    """A trajectory sampled on a uniform clock (see :meth:`Trajectory.sample`).
-
-    Shapes are batched, ``(B, K, ...)``, or unbatched, ``(K, ...)``, like the trajectory.
-    Past a trajectory's own end (batch elements of different total time) the samples hold the
-    final state and ``valid`` is False.
-    """
-
-    t: torch.Tensor
-    """(B, K) seconds from the start of the trajectory."""
-    position: torch.Tensor
-    """(B, K, 3) metres, world frame."""
-    velocity: torch.Tensor
-    """(B, K, 3) m/s."""
-    acceleration: torch.Tensor
-    """(B, K, 3) m/s²."""
-    jerk: torch.Tensor
-    """(B, K, 3) m/s³."""
-    yaw: torch.Tensor | None
-    """(B, K) radians, or None when the trajectory has no yaw."""
-    valid: torch.Tensor
-    """(B, K) bool: the sample lies within this element's duration."""
-
-
-@dataclass(frozen=True)
-class Feasibility:
-    """Differential-flatness check of a quadrotor following the trajectory
-    (see :meth:`Trajectory.feasibility`). Every field is (B,) (or a scalar tensor unbatched)."""
-
-    ok: torch.Tensor
-    """bool: every check passed at every sample."""
-    thrust_ok: torch.Tensor
-    """bool: thrust_min <= collective thrust <= thrust_max everywhere."""
-    body_rate_ok: torch.Tensor
-    """bool: the body-rate norm stays <= body_rate_max everywhere."""
-    thrust_min: torch.Tensor
-    """Smallest collective thrust along the trajectory, newtons."""
-    thrust_max: torch.Tensor
-    """Largest collective thrust along the trajectory, newtons."""
-    body_rate_max: torch.Tensor
-    """Largest body-rate norm |omega| along the trajectory, rad/s."""
-    tilt_max: torch.Tensor
-    """Largest angle between body z and world z, radians."""
 
 
 def _falling_row(n: int, q: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -142,11 +92,6 @@ class Trajectory:
         return self._out(self._durations)
 
     @property
-    def yaw_coeffs(self) -> torch.Tensor | None:
-        """(B, M, 4) yaw coefficients or None (unbatched: (M, 4))."""
-        return None if self._yaw_coeffs is None else self._out(self._yaw_coeffs)
-
-    @property
     def solved(self) -> torch.Tensor:
         """(B,) bool (unbatched: a 0-d bool tensor)."""
         return self._out(self._solved)
@@ -227,28 +172,6 @@ class Trajectory:
             raise TrajoptError(f"yaw order must be in [0, 3], got {order}")
         return self._out(self._eval(self._yaw_coeffs.unsqueeze(2), self._times(t), order)[..., 0])
 
-    def sample(self, rate_hz: float) -> TrajectorySamples:
-        """Sample every element on the clock ``k / rate_hz`` up to the longest total time."""
-        if not (rate_hz > 0 and math.isfinite(rate_hz)):
-            raise TrajoptError(f"rate_hz must be a positive number, got {rate_hz}")
-        total = self._durations.sum(-1)
-        K = int(math.floor(float(total.detach().max()) * rate_hz + 1e-9)) + 1
-        t = torch.arange(K, dtype=self._durations.dtype, device=self._durations.device) / rate_hz
-        t = t.unsqueeze(0).expand(self.batch_size, K)
-        valid = t <= total.detach().unsqueeze(-1) + 1e-9
-        yaw = None
-        if self._yaw_coeffs is not None:
-            yaw = self._out(self._eval(self._yaw_coeffs.unsqueeze(2), t, 0)[..., 0])
-        return TrajectorySamples(
-            t=self._out(t),
-            position=self._out(self._eval(self._coeffs, t, 0)),
-            velocity=self._out(self._eval(self._coeffs, t, 1)),
-            acceleration=self._out(self._eval(self._coeffs, t, 2)),
-            jerk=self._out(self._eval(self._coeffs, t, 3)),
-            yaw=yaw,
-            valid=self._out(valid),
-        )
-
     def _dense(self, order: int, samples_per_segment: int) -> torch.Tensor:
         """order-th derivative at a uniform grid in every segment → (B, M, S, 3)."""
         s = torch.linspace(0.0, 1.0, samples_per_segment, dtype=self._coeffs.dtype, device=self._coeffs.device)
@@ -265,15 +188,6 @@ class Trajectory:
         per = ((c.reshape(-1, c.shape[-1]) @ Q).reshape(c.shape) * c).sum(dim=(-1, -2))
         return self._out((per * self._durations ** (-7)).sum(-1))
 
-    def yaw_cost(self) -> torch.Tensor:
-        """(B,) ``integral (d^2 psi/dt^2)^2 dt`` in rad²/s³ (zero when there is no yaw)."""
-        if self._yaw_coeffs is None:
-            return self._out(torch.zeros_like(self._durations[:, 0]))
-        Q = torch.as_tensor(cost_matrix(2), dtype=self._yaw_coeffs.dtype, device=self._yaw_coeffs.device)
-        c = self._yaw_coeffs
-        per = ((c.reshape(-1, c.shape[-1]) @ Q).reshape(c.shape) * c).sum(-1)
-        return self._out((per * self._durations ** (-3)).sum(-1))
-
     def max_velocity(self, *, per_axis: bool = False, samples_per_segment: int = 64) -> torch.Tensor:
         """Largest speed (B,) — or largest |v| per axis (B, 3) — over a dense per-segment grid, m/s."""
         return self._max_of(1, per_axis, samples_per_segment)
@@ -289,79 +203,6 @@ class Trajectory:
         if per_axis:
             return self._out(v.abs().amax(dim=(1, 2)))
         return self._out(v.norm(dim=-1).amax(dim=(1, 2)))
-
-    def feasibility(
-        self,
-        *,
-        mass: float,
-        thrust_max: float,
-        thrust_min: float = 0.0,
-        body_rate_max: float,
-        gravity: float = _GRAVITY,
-        samples_per_segment: int = 32,
-    ) -> Feasibility:
-        """Check collective thrust and body rates of a quadrotor (mass in kg, thrust in N, rates
-        in rad/s) flying the trajectory, via differential flatness (Mellinger & Kumar 2011).
-
-        Thrust ``f = m |a + g e_z|``; body z axis along ``a + g e_z``; the body x axis follows the
-        yaw (zero yaw when the trajectory has none); roll/pitch rates from the jerk projected
-        perpendicular to body z, yaw rate ``psi_dot (z_w . z_b)``.
-        """
-        if mass <= 0 or thrust_max <= 0 or body_rate_max <= 0:
-            raise TrajoptError(
-                f"mass, thrust_max and body_rate_max must be positive, got {mass}, {thrust_max}, {body_rate_max}"
-            )
-        a = self._dense(2, samples_per_segment)
-        j = self._dense(3, samples_per_segment)
-        dt, dev = a.dtype, a.device
-        ez = torch.tensor([0.0, 0.0, 1.0], dtype=dt, device=dev)
-        f_vec = a + gravity * ez
-        f_norm = f_vec.norm(dim=-1).clamp_min(1e-9)  # mass-normalised thrust
-        zb = f_vec / f_norm.unsqueeze(-1)
-        if self._yaw_coeffs is not None:
-            s = torch.linspace(0.0, 1.0, samples_per_segment, dtype=dt, device=dev).reshape(1, 1, -1)
-            psi = _poly_eval(self._yaw_coeffs.unsqueeze(2), s, 0)
-            psi_dot = _poly_eval(self._yaw_coeffs.unsqueeze(2), s, 1) / self._durations.unsqueeze(-1)
-        else:
-            psi = torch.zeros_like(f_norm)
-            psi_dot = torch.zeros_like(f_norm)
-        xc = torch.stack([torch.cos(psi), torch.sin(psi), torch.zeros_like(psi)], dim=-1)
-        yb = torch.linalg.cross(zb, xc)
-        yb = yb / yb.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-        xb = torch.linalg.cross(yb, zb)
-        h = (j - (j * zb).sum(-1, keepdim=True) * zb) / f_norm.unsqueeze(-1)
-        p = -(h * yb).sum(-1)
-        q = (h * xb).sum(-1)
-        r = psi_dot * zb[..., 2]
-        rate = torch.sqrt(p * p + q * q + r * r)
-        thrust = mass * f_norm
-        t_min = thrust.amin(dim=(1, 2))
-        t_max = thrust.amax(dim=(1, 2))
-        rate_max = rate.amax(dim=(1, 2))
-        tilt = torch.arccos(zb[..., 2].clamp(-1.0, 1.0)).amax(dim=(1, 2))
-        thrust_ok = (t_min >= thrust_min) & (t_max <= thrust_max)
-        rate_ok = rate_max <= body_rate_max
-        return Feasibility(
-            ok=self._out(thrust_ok & rate_ok),
-            thrust_ok=self._out(thrust_ok),
-            body_rate_ok=self._out(rate_ok),
-            thrust_min=self._out(t_min),
-            thrust_max=self._out(t_max),
-            body_rate_max=self._out(rate_max),
-            tilt_max=self._out(tilt),
-        )
-
-    def to(self, dtype: torch.dtype) -> Trajectory:
-        """A copy with coefficients and durations cast to ``dtype``."""
-        return Trajectory(
-            self._coeffs.to(dtype),
-            self._durations.to(dtype),
-            yaw_coeffs=None if self._yaw_coeffs is None else self._yaw_coeffs.to(dtype),
-            solved=self._solved,
-            messages=self.messages,
-            batched=self.batched,
-            info=self.info,
-        )
 
     def __repr__(self) -> str:
         n_bad = int((~self._solved).sum())

@@ -41,6 +41,34 @@ class _PlyElement:
     """(name, numpy type code), the code None for a list property."""
 
 
+def _ply_header(f: Any, p: Path) -> tuple[str | None, list[_PlyElement]]:
+    """(format, elements) of the PLY header at the start of the open file ``f``; leaves ``f`` at the body."""
+    if f.readline().strip() != b"ply":
+        raise VizError(f"{str(p)!r} is not a PLY file (no 'ply' magic); {_FIX}")
+    fmt: str | None = None
+    elements: list[_PlyElement] = []
+    while True:
+        line = f.readline()
+        if not line:
+            raise VizError(f"{str(p)!r}: PLY header has no end_header; the file is truncated; {_FIX}")
+        words = line.decode("ascii", "replace").split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "end_header":
+            return fmt, elements
+        if words[0] == "format" and len(words) >= 2:
+            fmt = words[1]
+        elif words[0] == "element" and len(words) == 3:
+            elements.append(_PlyElement(words[1], int(words[2])))
+        elif words[0] == "property" and elements:
+            if words[1] == "list":
+                elements[-1].properties.append((words[-1], None))
+            elif len(words) == 3 and words[1] in _PLY_TYPES:
+                elements[-1].properties.append((words[2], _PLY_TYPES[words[1]]))
+            else:
+                raise VizError(f"{str(p)!r}: PLY property line {line.strip()!r} is not understood; {_FIX}")
+
+
 def read_ply_points(path: str | Path) -> PlyPoints:
     """Read the vertex positions (and colours) of a PLY file (binary little/big endian or ASCII), as
     Open3D writes ``cloud.ply``; other elements (faces) are ignored when they follow the vertices.
@@ -50,30 +78,7 @@ def read_ply_points(path: str | Path) -> PlyPoints:
         raise VizError(f"no point cloud at {str(p)!r}; make it with `mapkit fuse BAG -w WS`")
     try:
         with open(p, "rb") as f:
-            if f.readline().strip() != b"ply":
-                raise VizError(f"{str(p)!r} is not a PLY file (no 'ply' magic); {_FIX}")
-            fmt: str | None = None
-            elements: list[_PlyElement] = []
-            while True:
-                line = f.readline()
-                if not line:
-                    raise VizError(f"{str(p)!r}: PLY header has no end_header; the file is truncated; {_FIX}")
-                words = line.decode("ascii", "replace").split()
-                if not words or words[0] in ("comment", "obj_info"):
-                    continue
-                if words[0] == "end_header":
-                    break
-                if words[0] == "format" and len(words) >= 2:
-                    fmt = words[1]
-                elif words[0] == "element" and len(words) == 3:
-                    elements.append(_PlyElement(words[1], int(words[2])))
-                elif words[0] == "property" and elements:
-                    if words[1] == "list":
-                        elements[-1].properties.append((words[-1], None))
-                    elif len(words) == 3 and words[1] in _PLY_TYPES:
-                        elements[-1].properties.append((words[2], _PLY_TYPES[words[1]]))
-                    else:
-                        raise VizError(f"{str(p)!r}: PLY property line {line.strip()!r} is not understood; {_FIX}")
+            fmt, elements = _ply_header(f, p)
             body = f.read()
     except OSError as exc:
         raise VizError(f"cannot read {str(p)!r}: {exc}") from None

@@ -144,19 +144,14 @@ class CorridorGeometry:
 def corridor_prisms(
     waypoints: np.ndarray, half_width: float | np.ndarray, *, T_world_frame: np.ndarray | None = None
 ) -> CorridorGeometry:
-    """The corridor :func:`mapkit.trajopt.min_snap` enforces with ``corridor=half_width``: around
-    every segment a → b of `waypoints` (unit direction u), the prism a − W·u + t(b − a + 2W·u) + x,
-    t ∈ [0, 1], x in :func:`corridor_cross_section`. min_snap bounds each axis component of the
-    deviation from the line by ±W (the cross-section) and the position along the line to the
-    segment's ends extended by W (the caps); a zero-length segment bounds |p − a| per axis by W,
-    which is the cube of side 2W around a.
+    """The corridor :func:`mapkit.trajopt.min_snap` enforces with ``corridor=half_width`` (W, metres,
+    scalar or (M,)): around every segment a → b of `waypoints` (M+1, 3) (unit direction u), the prism
+    a − W·u + t(b − a + 2W·u) + x, t ∈ [0, 1], x in :func:`corridor_cross_section`; a zero-length
+    segment gets the cube of side 2W around a (min_snap bounds |p − a| per axis by W).
 
-    Args:
-        waypoints: (M+1, 3) metres in the frame the trajectory is solved in (the planner solves in
-            the body frame at planning time: start at the origin, then the key-points).
-        half_width: W in metres, scalar or (M,) per segment.
-        T_world_frame: (4, 4) solving frame → world (e.g. ``T_world_body``); identity if None.
-            The prisms follow the solving frame's axes, which is what the solver bounded.
+    `waypoints` are in the frame the trajectory is solved in (the planner's body frame at planning
+    time: start at the origin, then the key-points); `T_world_frame` (4, 4) maps it to the world
+    (identity if None), so the prisms follow the axes the solver bounded.
     """
     w = np.asarray(waypoints, dtype=np.float64)
     if w.ndim != 2 or w.shape[1] != 3 or len(w) < 2:

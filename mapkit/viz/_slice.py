@@ -250,20 +250,16 @@ def slice_texture(
     robot_radius: float = 0.3,
     softness: float = 1.0,
 ) -> SliceTexture:
-    """Colour a slice and place it in the world.
+    """Colour a slice (from :func:`mapkit.esdf.slice_plane` or :meth:`MapSlicer.slice` along `axis`,
+    "x", "y" or "z") and place it in the world.
 
-    Args:
-        sl: from :func:`mapkit.esdf.slice_plane` or :meth:`MapSlicer.slice` along `axis`.
-        axis: "x", "y" or "z".
-        mode: "distance" (signed distance, m) or "cost" (the planner's obstacle cost of it, see
-            :func:`obstacle_cost_of_distance` with `robot_radius` and `softness` in m).
-        cmap: matplotlib colormap; a diverging one (RdBu, coolwarm, ...) is centred on 0 for
-            signed distance.
-        vmin, vmax: colour range (default: :func:`auto_range` of the slice).
-        pixels_per_voxel: texture pixels per voxel side (>= 1), so a linearly filtered texture
-            keeps crisp voxel edges.
+    `mode`: "distance" (signed distance, m) or "cost" (the planner's obstacle cost of it, see
+    :func:`obstacle_cost_of_distance` with `robot_radius` and `softness` in m). `cmap`: a matplotlib
+    colormap; a diverging one is centred on 0 for signed distance. `vmin`, `vmax`: colour range
+    (default :func:`auto_range`). `pixels_per_voxel` (>= 1): so a linearly filtered texture keeps
+    crisp voxel edges.
     """
-    a = _axis_index(axis)
+    _axis_index(axis)
     if mode not in SLICE_MODES:
         raise VizError(f"mode={mode!r} must be one of {', '.join(map(repr, SLICE_MODES))}")
     if isinstance(pixels_per_voxel, bool) or int(pixels_per_voxel) != pixels_per_voxel or pixels_per_voxel < 1:
@@ -294,23 +290,30 @@ def slice_texture(
     if miss_t.any():
         tex[miss_t] = hatch(miss_t, period=max(8, 4 * p))[miss_t]
 
-    ua, va = (_axis_index(s) for s in PLANE_AXES[axis])
-    e = np.eye(3)
-    x_img, y_img = e[ua], -e[va]
-    R = np.stack([x_img, y_img, np.cross(x_img, y_img)], axis=1)
-
-    def point(u: float, v: float) -> np.ndarray:
-        q = np.zeros(3)
-        q[a], q[ua], q[va] = sl.position, u, v
-        return q
-
-    corners = np.stack([point(u0, v1), point(u1, v1), point(u1, v0), point(u0, v0)])
+    corners, R = _plane_pose(sl, axis)
     return SliceTexture(
         texture=tex, values=values, distance=dist, observed=np.asarray(sl.observed, dtype=bool), axis=axis,
         position=float(sl.position), mode=mode, cmap=cmap, norm=norm, label=label, pixels_per_voxel=p,
         corners_world=corners, R_world_image=R, centre_world=corners.mean(axis=0),
         width_m=float(u1 - u0), height_m=float(v1 - v0),
     )
+
+
+def _plane_pose(sl: Slice, axis: str) -> tuple[np.ndarray, np.ndarray]:
+    """(texture corners (4, 3) top-left, top-right, bottom-right, bottom-left; R_world_image) of a slice."""
+    a = _axis_index(axis)
+    ua, va = (_axis_index(s) for s in PLANE_AXES[axis])
+    e = np.eye(3)
+    x_img, y_img = e[ua], -e[va]
+    R = np.stack([x_img, y_img, np.cross(x_img, y_img)], axis=1)
+    u0, u1, v0, v1 = sl.extent
+
+    def point(u: float, v: float) -> np.ndarray:
+        q = np.zeros(3)
+        q[a], q[ua], q[va] = sl.position, u, v
+        return q
+
+    return np.stack([point(u0, v1), point(u1, v1), point(u1, v0), point(u0, v0)]), R
 
 
 def texture_scale(shape_uv: tuple[int, int], *, target_px: int = 512, max_factor: int = 8) -> int:
