@@ -99,3 +99,12 @@ def test_the_cli_refuses_a_bad_recipe_as_a_usage_error(tmp_path: Path, args: lis
 
     result = CliRunner().invoke(main, ["train", *args])
     assert result.exit_code == 2 and message in result.output
+
+
+def test_the_eta_scales_the_estimates_by_the_pace_of_the_finished_steps():
+    from mapkit.recipe._run import _eta
+
+    recipe = parse_recipe({"model": "m", "step": [{**DATASET, "minutes": 10}, {**TRAIN, "minutes": 5}]})
+    state = {"done": {"w": {"seconds": 1200.0}}}  # 20 min where 10 were expected: twice as slow
+    assert _eta(recipe, state, 1, 60.0).endswith("ETA 10 min")
+    assert _eta(recipe, {"done": {}}, 0, 0.0).endswith("ETA 15 min")

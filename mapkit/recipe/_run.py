@@ -178,11 +178,12 @@ def _kind(s: Step) -> str:
 
 
 def _eta(recipe: Recipe, state: dict[str, Any], index: int, elapsed: float) -> str:
-    """The time left: the remaining steps' estimates, scaled by how this run has compared with them."""
+    """The time left: the remaining steps' estimates, scaled by how the finished steps compared with
+    theirs (this machine's pace)."""
     left = sum(s.minutes for s in recipe.steps[index:] if s.name not in state["done"])
-    done_here = [s for s in recipe.steps[:index] if s.name in state["done"] and "seconds" in state["done"][s.name]]
-    estimated = sum(s.minutes for s in done_here)
-    pace = (elapsed / 60) / estimated if estimated > 0 and elapsed > 0 else 1.0
+    done = [(s.minutes, state["done"][s.name]["seconds"]) for s in recipe.steps if s.name in state["done"]]
+    estimated, taken = sum(m for m, _ in done), sum(t for _, t in done) / 60
+    pace = taken / estimated if estimated > 0 and taken > 0 else 1.0
     return f"elapsed {elapsed / 60:.0f} min, ETA {left * pace:.0f} min"
 
 
