@@ -33,6 +33,9 @@ STATUSES: tuple[Status, ...] = ("cruising", "braking", "blocked", "reached")
 BRAKE_PEAK = 1.3
 """A brake's acceleration peaks at no more than this times its ``brake_deceleration`` (3.9 m/s² for the
 default 3, within the flight stack's 4 m/s² limit)."""
+FACE_MIN_DISTANCE = 0.3
+"""Metres: a vehicle at rest this close (horizontally) to what it would face keeps its heading (a goal
+at the vehicle, "stay here", has no direction)."""
 LOOK_DONE_DEG = 15.0
 """Degrees: a hovering vehicle turns to look elsewhere again once it faces this close to its last aim."""
 
@@ -155,6 +158,15 @@ class Pilot:
         self._resync(stamp, state)
         out = self._decide(stamp, state, goal, depth, K, T_world_camera, T_world_body, T_body_camera)
         out.latency_ms = 1e3 * (time.perf_counter() - t0)
+        self._status, self._reason = out.status, out.reason
+        return out
+
+    def stop(self, stamp: float, reason: str) -> PilotStep:
+        """Brake to rest from the reference, then hold (``braking``, then ``blocked``): for an input the
+        caller lost, such as odometry. The next :meth:`step` goes on from there."""
+        if self._ref is None:
+            raise FlightError("stop() before the first step(): there is no reference to brake from")
+        out = self._brake_for(self._check_stamp(stamp), reason)
         self._status, self._reason = out.status, out.reason
         return out
 
@@ -345,7 +357,9 @@ class Pilot:
             far = np.hypot(ahead[:, 0], ahead[:, 1]) > 0.3
             heading = np.where(far, np.arctan2(ahead[:, 1], ahead[:, 0]), np.arctan2(v[:, 1], v[:, 0]))
             to = facing - p
-            return np.where(moving, heading, np.arctan2(to[:, 1], to[:, 0]) + look)
+            here = np.hypot(to[:, 0], to[:, 1]) < FACE_MIN_DISTANCE  # no direction to face: keep the heading
+            at_rest = np.where(here, yaw_now, np.arctan2(to[:, 1], to[:, 0]) + look)
+            return np.where(moving, heading, at_rest)
 
         until = max(stamp, pieces.t_end) + YAW_TAIL
         return Reference(pieces, YawFollower(target, stamp, yaw_now, rate_now, c.max_yaw_rate, c.max_yaw_accel, until))

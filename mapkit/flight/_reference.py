@@ -4,12 +4,13 @@ for position through snap, yaw and yaw rate."""
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from mapkit.flight._pieces import Pieces
+from mapkit.flight._pieces import Pieces, hold
 
 YAW_STEP = 0.02
 """Seconds between the yaw profile's samples (yaw and yaw rate are interpolated linearly between them)."""
@@ -58,11 +59,7 @@ class YawFollower:
         self._until = until
         self._omega = math.sqrt(max_accel / 0.5)  # the bandwidth at which a 0.5 rad error asks for the largest turn
         self.times, self.yaw, self.rate = np.array([t0]), np.array([float(yaw)]), np.array([float(rate)])
-
-    def cover(self, t: float) -> None:
-        """Compute the profile up to ``t`` (at most to its end), a chunk at a time."""
-        while self.times[-1] < min(t, self._until) - 1e-12:
-            self._extend(min(self.times[-1] + YAW_CHUNK, self._until))
+        self._lock = threading.Lock()  # a controller thread may sample while the pilot plans
 
     def _extend(self, end: float) -> None:
         t0 = float(self.times[-1])
@@ -80,6 +77,13 @@ class YawFollower:
         self.times = np.concatenate([self.times, times])
         self.yaw, self.rate = np.concatenate([self.yaw, yaw]), np.concatenate([self.rate, rate])
 
+    def covering(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(times, yaw, rate) computed up to ``t``, read together (another thread may extend them)."""
+        with self._lock:
+            while self.times[-1] < min(t, self._until) - 1e-12:
+                self._extend(min(self.times[-1] + YAW_CHUNK, self._until))
+            return self.times, self.yaw, self.rate
+
 
 class Reference:
     """World-frame piecewise polynomials for position (:class:`Pieces`, degree 7 for minimum-snap
@@ -90,6 +94,12 @@ class Reference:
     def __init__(self, pieces: Pieces, yaw: YawFollower) -> None:
         self.pieces = pieces
         self._yaw = yaw
+
+    @classmethod
+    def holding(cls, position: np.ndarray, yaw: float, t0: float) -> Reference:
+        """At rest at ``position`` (3,) facing ``yaw`` from ``t0`` on: where a vehicle waits for a goal."""
+        return cls(hold(np.asarray(position, dtype=np.float64), t0), YawFollower(
+            lambda t: np.full(len(t), float(yaw)), t0, yaw, 0.0, 1.0, 1.0, t0 + YAW_TAIL))
 
     @property
     def t_start(self) -> float:
@@ -105,22 +115,18 @@ class Reference:
         """(N, 3) the ``order``-th time derivative of position (0 position … 4 snap) at times ``t`` (N,)."""
         return self.pieces.derivative(np.atleast_1d(np.asarray(t, dtype=np.float64)), order)
 
-    def _profile(self, t: np.ndarray) -> YawFollower:
-        self._yaw.cover(float(t.max()))
-        return self._yaw
-
     def yaw(self, t: np.ndarray | float) -> np.ndarray:
         """(N,) yaw (radians, wrapped to (−π, π]) at times ``t``."""
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
-        f = self._profile(t)
-        wrapped: np.ndarray = np.angle(np.exp(1j * np.interp(t, f.times, f.yaw)))
+        times, yaw, _ = self._yaw.covering(float(t.max()))
+        wrapped: np.ndarray = np.angle(np.exp(1j * np.interp(t, times, yaw)))
         return wrapped
 
     def yaw_rate(self, t: np.ndarray | float) -> np.ndarray:
         """(N,) rad/s at times ``t`` (held before the profile, 0 after it)."""
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
-        f = self._profile(t)
-        return np.where(t > f.times[-1], 0.0, np.interp(t, f.times, f.rate))
+        times, _, rate = self._yaw.covering(float(t.max()))
+        return np.where(t > times[-1], 0.0, np.interp(t, times, rate))
 
     def sample(self, t: float) -> Setpoint:
         """The reference at time ``t`` (seconds, the pilot's clock)."""

@@ -1,0 +1,186 @@
+"""A DDS participant speaking ROS 2 topics, with no ROS installation (Eclipse Cyclone DDS).
+
+ROS 2 puts topic ``/a/b`` on DDS topic ``rt/a/b`` with type ``pkg::msg::dds_::Name_``; ROS 2 nodes on
+Cyclone DDS or Fast DDS (PX4's uXRCE-DDS agent) match these readers and writers over RTPS. By default
+the participant uses the loopback interface only, with multicast off and localhost as its only peer:
+nothing is sent to any other address. Another interface is used only when named.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal
+from xml.sax.saxutils import quoteattr
+
+from mapkit.fly._errors import FlyError
+from mapkit.fly._msgs import dds_type, decode, encode
+
+Tap = Callable[[str, str, bytes, int], None]
+QosName = Literal["sensor", "reliable", "latched"]
+QOS_NAMES: tuple[str, ...] = ("sensor", "reliable", "latched")
+LOOPBACK = "lo"
+
+
+@dataclass(frozen=True)
+class DdsConfig:
+    """Where the participant talks."""
+
+    domain_id: int = 0
+    """The ROS domain id (ROS_DOMAIN_ID): 0–232."""
+    interface: str = LOOPBACK
+    """Network interface to use. ``lo``: loopback only, unicast to localhost. Another name (``eth0``,
+    ``wlan0``) joins that network with ROS 2's usual multicast discovery."""
+    peers: tuple[str, ...] = ()
+    """Extra unicast discovery peers (addresses), for networks without multicast."""
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.domain_id <= 232:
+            raise FlyError(f"domain id {self.domain_id} is outside ROS 2's 0–232; pass --domain-id in that range")
+        if not self.interface or any(c in self.interface for c in "<>&\"'"):
+            raise FlyError(f"interface {self.interface!r} is not an interface name; pass e.g. --interface eth0")
+
+    def xml(self) -> str:
+        """The Cyclone DDS configuration of this participant."""
+        loopback = self.interface == LOOPBACK
+        peers = ("localhost", *self.peers) if loopback else self.peers
+        peer_xml = "".join(f"<Peer address={quoteattr(p)}/>" for p in peers)
+        return (
+            '<CycloneDDS xmlns="https://cdds.io/config"><Domain Id="any"><General>'
+            f"<Interfaces><NetworkInterface name={quoteattr(self.interface)}/></Interfaces>"
+            f"<AllowMulticast>{'false' if loopback else 'default'}</AllowMulticast></General>"
+            "<Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>60</MaxAutoParticipantIndex>"
+            f"{'<Peers>' + peer_xml + '</Peers>' if peer_xml else ''}</Discovery></Domain></CycloneDDS>"
+        )
+
+
+def dds_topic(name: str) -> str:
+    """The DDS topic of ROS 2 topic `name`: ``/camera/depth`` → ``rt/camera/depth``."""
+    if not name.startswith("/") or name.endswith("/") or "//" in name:
+        raise FlyError(f"topic {name!r} is not an absolute ROS 2 topic name; write it as /namespace/name")
+    return "rt" + name
+
+
+def _qos(name: str) -> Any:
+    from cyclonedds.qos import Policy, Qos
+
+    if name == "sensor":  # ROS 2's SensorDataQoS
+        return Qos(Policy.Reliability.BestEffort, Policy.History.KeepLast(5), Policy.Durability.Volatile)
+    if name == "reliable":
+        return Qos(Policy.Reliability.Reliable(max_blocking_time=0), Policy.History.KeepLast(10),
+                   Policy.Durability.Volatile)
+    if name == "latched":  # tf_static
+        return Qos(Policy.Reliability.Reliable(max_blocking_time=0), Policy.History.KeepLast(1),
+                   Policy.Durability.TransientLocal)
+    raise FlyError(f"QoS {name!r} is unknown; use one of {', '.join(QOS_NAMES)}")
+
+
+_DOMAINS: dict[int, tuple[str, Any]] = {}
+_DOMAINS_LOCK = threading.Lock()
+
+
+def _domain(config: DdsConfig) -> None:
+    """Creates the process's Cyclone domain with this configuration (once per domain id)."""
+    from cyclonedds.domain import Domain
+
+    xml = config.xml()
+    with _DOMAINS_LOCK:
+        if config.domain_id in _DOMAINS:
+            if _DOMAINS[config.domain_id][0] != xml:
+                raise FlyError(f"domain {config.domain_id} is already open here with another interface; "
+                               "use one DdsConfig per domain in a process")
+            return
+        try:
+            _DOMAINS[config.domain_id] = (xml, Domain(config.domain_id, xml))
+        except Exception as exc:  # Cyclone raises DDSException with a generic text for a bad config
+            raise FlyError(f"DDS cannot start on interface {config.interface!r} (domain {config.domain_id}): {exc}; "
+                           "check the interface name (`ip link`)") from exc
+
+
+class Link:
+    """One DDS participant: ROS 2 topic readers (callbacks with decoded messages) and writers."""
+
+    def __init__(self, config: DdsConfig | None = None, *, tap: Tap | None = None) -> None:
+        from cyclonedds.domain import DomainParticipant
+
+        self.config = config or DdsConfig()
+        self.tap = tap
+        """Called with (topic, msgtype, CDR bytes, time ns) for every message read or written."""
+        _domain(self.config)
+        self._participant = DomainParticipant(self.config.domain_id)
+        self._topics: dict[str, Any] = {}
+        self._entities: list[Any] = []
+
+    def _topic(self, name: str, msgtype: str) -> Any:
+        from cyclonedds.topic import Topic
+
+        key = dds_topic(name)
+        if key not in self._topics:
+            self._topics[key] = Topic(self._participant, key, dds_type(msgtype))
+        return self._topics[key]
+
+    def writer(self, topic: str, msgtype: str, qos: str = "reliable") -> Callable[[Any], None]:
+        """A function that publishes one rosbags message object of `msgtype` on ROS 2 `topic`."""
+        from cyclonedds.pub import DataWriter
+
+        w = DataWriter(self._participant, self._topic(topic, msgtype), qos=_qos(qos))
+        self._entities.append(w)
+        kind = dds_type(msgtype)
+
+        def write(msg: Any) -> None:
+            raw = encode(msg, msgtype)
+            if self.tap is not None:
+                self.tap(topic, msgtype, raw, time.time_ns())
+            w.write(kind.deserialize(raw))
+
+        return write
+
+    def reader(self, topic: str, msgtype: str, on_message: Callable[[Any, int], None], *,
+               qos: str = "sensor", on_error: Callable[[str, Exception], None] | None = None) -> None:
+        """Calls ``on_message(msg, received_ns)`` for each message on `topic` (on Cyclone's thread).
+
+        A message that does not decode, or that ``on_message`` refuses by raising, goes to
+        ``on_error(topic, exc)`` instead, never up Cyclone's thread."""
+        from cyclonedds.core import Listener
+        from cyclonedds.sub import DataReader
+
+        def report(exc: Exception) -> None:
+            if on_error is not None:
+                on_error(topic, exc)
+
+        def on_data_available(reader: Any) -> None:
+            try:
+                samples = reader.take(N=64)
+            except Exception as exc:  # noqa: BLE001 - bytes that are not this type: reported, the link goes on
+                report(exc)
+                return
+            for sample in samples:
+                received_ns = time.time_ns()
+                try:
+                    raw = sample.serialize()
+                    if self.tap is not None:
+                        self.tap(topic, msgtype, raw, received_ns)
+                    on_message(decode(raw, msgtype), received_ns)
+                except Exception as exc:  # noqa: BLE001 - a message the node cannot use: reported, never up Cyclone's thread
+                    report(exc)
+
+        r = DataReader(self._participant, self._topic(topic, msgtype), qos=_qos(qos),
+                       listener=Listener(on_data_available=on_data_available))
+        self._entities.append(r)
+
+    def matched(self, topic: str) -> int:
+        """How many remote readers or writers this participant's entities on ROS 2 `topic` match now."""
+        name = dds_topic(topic)
+        return sum(
+            len(e.get_matched_subscriptions() if hasattr(e, "write") else e.get_matched_publications())
+            for e in self._entities
+            if e.topic.name == name
+        )
+
+    def close(self) -> None:
+        """Deletes the participant and everything it made (remote ends see them leave)."""
+        self._entities.clear()
+        self._topics.clear()
+        self._participant = None
