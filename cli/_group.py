@@ -175,7 +175,7 @@ def workspace_option(help: str, *, urls: bool = False,
 
 
 PIPELINE_ORDER = ("info", "ingest", "fuse", "fuse-world", "esdf", "slice", "export", "batch", "simulate", "dataset",
-                  "train", "eval", "plan", "view", "export-foxglove", "export-rerun", "copy-store", "config", "lab")
+                  "train", "eval", "plan", "fly", "replay", "view", "export-foxglove", "export-rerun", "copy-store", "config", "lab")
 """`mapkit --help` lists the commands along the pipeline (recordings → maps → training data → a
 planner → its flights → looking at the results), not alphabetically; the tools come last."""
 

@@ -26,8 +26,8 @@ class Topics:
     """``image``: sensor_msgs/Image; ``compressed``: sensor_msgs/CompressedImage (compressedDepth)."""
     camera_info: str = "/camera/depth/camera_info"
     """The depth camera's sensor_msgs/CameraInfo (its K)."""
-    odometry: str = "/odom"
-    """The vehicle's odometry (world frame; PX4's: /fmu/out/vehicle_odometry)."""
+    odometry: str = ""
+    """The vehicle's odometry; empty: /odom (nav_msgs) or /fmu/out/vehicle_odometry (px4)."""
     odometry_type: Literal["nav_msgs", "px4"] = "nav_msgs"
     """``nav_msgs``: nav_msgs/Odometry (ENU, FLU body); ``px4``: px4_msgs/VehicleOdometry (NED, FRD)."""
     tf: str = "/tf"
@@ -48,8 +48,16 @@ class Topics:
     status: str = "/mapkit/status"
     """std_msgs/String: one JSON object per update (state, reason, goal, input ages)."""
 
+    @property
+    def odometry_topic(self) -> str:
+        return self.odometry or {"nav_msgs": "/odom", "px4": "/fmu/out/vehicle_odometry"}[self.odometry_type]
+
     def validate(self) -> None:
-        for name in ("depth", "camera_info", "odometry", "tf", "tf_static", "clock", "goal", "px4_setpoint", "px4_offboard",
+        if self.odometry_type not in ODOMETRY_TYPES or self.depth_type not in DEPTH_TYPES:
+            raise FlyError(f"topics.odometry_type {self.odometry_type!r} / depth_type {self.depth_type!r}: use one of "
+                           f"{', '.join(ODOMETRY_TYPES)} / {', '.join(DEPTH_TYPES)}")
+        dds_topic(self.odometry_topic)
+        for name in ("depth", "camera_info", "tf", "tf_static", "clock", "goal", "px4_setpoint", "px4_offboard",
                      "setpoint", "path", "status"):
             dds_topic(getattr(self, name))
         if self.sensor_qos not in QOS_NAMES:

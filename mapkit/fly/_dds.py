@@ -123,14 +123,18 @@ class Link:
 
     def writer(self, topic: str, msgtype: str, qos: str = "reliable") -> Callable[[Any], None]:
         """A function that publishes one rosbags message object of `msgtype` on ROS 2 `topic`."""
+        write = self.raw_writer(topic, msgtype, qos)
+        return lambda msg: write(encode(msg, msgtype))
+
+    def raw_writer(self, topic: str, msgtype: str, qos: str = "reliable") -> Callable[[bytes], None]:
+        """A function that publishes CDR bytes (a recorded message as it is) of `msgtype` on `topic`."""
         from cyclonedds.pub import DataWriter
 
         w = DataWriter(self._participant, self._topic(topic, msgtype), qos=_qos(qos))
         self._entities.append(w)
         kind = dds_type(msgtype)
 
-        def write(msg: Any) -> None:
-            raw = encode(msg, msgtype)
+        def write(raw: bytes) -> None:
             if self.tap is not None:
                 self.tap(topic, msgtype, raw, time.time_ns())
             w.write(kind.deserialize(raw))

@@ -66,6 +66,8 @@ class RateLimitedLog:
 class _Pending:
     msg: Any
     received_ns: int
+    received_perf: float
+    """time.perf_counter() at arrival (for latency)."""
 
 
 class FlyNode:
@@ -96,8 +98,8 @@ class FlyNode:
         self.frames_dropped = 0
         self.setpoint_times: deque[float] = deque(maxlen=100_000)
         """time.perf_counter() of each setpoint published (the stream's timing)."""
-        self.steps: deque[tuple[int, float, PilotStep]] = deque(maxlen=1000)
-        """(the frame's receive ns, the time the step returned, the step) of each call with a frame."""
+        self.steps: deque[tuple[float, float, PilotStep]] = deque(maxlen=1000)
+        """(time.perf_counter() at the frame's arrival, and when its step returned; the step) per frame flown."""
 
     # -- wiring ---------------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -107,7 +109,7 @@ class FlyNode:
         on_error = self._on_error
         self.link.reader(t.depth, DEPTH_TYPES[t.depth_type], self._on_depth, qos=sensor, on_error=on_error)
         self.link.reader(t.camera_info, "sensor_msgs/msg/CameraInfo", self._on_info, qos=sensor, on_error=on_error)
-        self.link.reader(t.odometry, ODOMETRY_TYPES[t.odometry_type], self._on_odometry, qos=sensor,
+        self.link.reader(t.odometry_topic, ODOMETRY_TYPES[t.odometry_type], self._on_odometry, qos=sensor,
                          on_error=on_error)
         self.link.reader(t.tf, "tf2_msgs/msg/TFMessage", self._on_tf, qos="reliable", on_error=on_error)
         self.link.reader(t.tf_static, "tf2_msgs/msg/TFMessage", self._on_tf_static, qos="latched", on_error=on_error)
@@ -186,7 +188,7 @@ class FlyNode:
         with self._lock:
             if self._frame is not None:
                 self.frames_dropped += 1  # the planner was busy: only the newest frame counts
-            self._frame = _Pending(msg, received_ns)
+            self._frame = _Pending(msg, received_ns, time.perf_counter())
         self._wake.set()
 
     def _on_info(self, msg: Any, received_ns: int) -> None:
@@ -295,7 +297,7 @@ class FlyNode:
         if now_ns == 0:
             return self._set_state("waiting", f"no simulator time yet on {c.topics.clock}")
         if odo is None:
-            return self._set_state("waiting", f"no odometry yet on {c.topics.odometry}")
+            return self._set_state("waiting", f"no odometry yet on {c.topics.odometry_topic}")
         now = self._seconds(now_ns)
         if self._jump:
             self._jump = False
@@ -317,7 +319,7 @@ class FlyNode:
             return self._adopt(self.pilot.step(now, state, goal), now, None)
         depth, T_world_body, T_body_camera = inputs
         step = self.pilot.step(now, state, goal, depth, K=K, T_world_body=T_world_body, T_body_camera=T_body_camera)
-        self._adopt(step, now, pending.received_ns)
+        self._adopt(step, now, pending)
 
     def _hold_here(self, odo: Odometry, now: float) -> None:
         """Before a goal: hold where the vehicle is (again, when it is moved farther than the pilot's
@@ -329,13 +331,13 @@ class FlyNode:
             if far:
                 self._reference = Reference.holding(odo.position, odo.yaw, now)
 
-    def _adopt(self, step: PilotStep, now: float, frame_received_ns: int | None) -> None:
+    def _adopt(self, step: PilotStep, now: float, frame: _Pending | None) -> None:
         with self._lock:
             changed = step.reference is not self._reference
             self._reference = step.reference
             self._state = {"state": step.status, "reason": step.reason}
-        if frame_received_ns is not None:
-            self.steps.append((frame_received_ns, time.perf_counter(), step))
+        if frame is not None:
+            self.steps.append((frame.received_perf, time.perf_counter(), step))
         if changed:
             self._publish_path(_outputs.path(step.reference, now, self.now_ns(), self.config.frames.world))
 

@@ -60,8 +60,9 @@ class _Judge:
     radius to the world is a collision, within the goal radius a success."""
 
     def __init__(self, world: Any, goal: np.ndarray, goal_radius: float, robot_radius: float,
-                 rows: list[np.ndarray]) -> None:
+                 rows: list[np.ndarray], t0: float) -> None:
         self.world, self.goal, self.goal_radius, self.robot_radius, self.rows = world, goal, goal_radius, robot_radius, rows
+        self.t0 = t0
         self.outcome: Outcome = "timeout"
         self.min_distance = math.inf
 
@@ -94,12 +95,12 @@ class SimulatedVehicle:
         self._received = 0
         self._t = 1.0  # simulator seconds: never reset (the node's clock must not go back)
         self._next_depth = self._next_odometry = self._t
-        self.depth_paused = False
-        """True: depth stops (a camera fault), odometry goes on."""
+        self.fault_after: float | None = None
+        """Seconds into a flight after which depth stops (a camera fault); odometry goes on."""
         t = config.topics
         self._pub_depth = link.writer(t.depth, "sensor_msgs/msg/Image", qos="sensor")
         self._pub_info = link.writer(t.camera_info, "sensor_msgs/msg/CameraInfo", qos="sensor")
-        self._pub_odometry = link.writer(t.odometry, "nav_msgs/msg/Odometry", qos="sensor")
+        self._pub_odometry = link.writer(t.odometry_topic, "nav_msgs/msg/Odometry", qos="sensor")
         self._pub_tf_static = link.writer(t.tf_static, "tf2_msgs/msg/TFMessage", qos="latched")
         self._pub_goal = link.writer(t.goal, "geometry_msgs/msg/PoseStamped", qos="reliable")
         self._pub_clock = link.writer(t.clock, "rosgraph_msgs/msg/Clock", qos="reliable")
@@ -128,7 +129,7 @@ class SimulatedVehicle:
         t = self.config.topics
         end = time.monotonic() + timeout
         while time.monotonic() < end:
-            if min(self.link.matched(t.odometry), self.link.matched(t.depth), self.link.matched(t.px4_setpoint),
+            if min(self.link.matched(t.odometry_topic), self.link.matched(t.depth), self.link.matched(t.px4_setpoint),
                    self.link.matched(t.goal)) > 0:
                 return True
             time.sleep(0.05)
@@ -149,7 +150,7 @@ class SimulatedVehicle:
         self._publish_goal(goal)
         t_goal = self._t
         rows: list[np.ndarray] = []
-        judge = _Judge(self.world, goal, goal_radius, robot_radius, rows)
+        judge = _Judge(self.world, goal, goal_radius, robot_radius, rows, t_goal)
         outcome, d_min = self._run(t_goal + time_limit, judge, self._flat(start, yaw, offboard=True))
         with self._lock:
             received = self._received
@@ -166,7 +167,7 @@ class SimulatedVehicle:
                 self._publish_odometry()
                 self._next_odometry += 1.0 / self.odometry_rate
             if self._t >= self._next_depth:
-                if not self.depth_paused:
+                if judge is None or self.fault_after is None or self._t - judge.t0 < self.fault_after:
                     self._publish_depth()
                 self._next_depth += 1.0 / self.depth_rate
             self._vehicle.fly(flat, self._t, self._t + dt)

@@ -1,0 +1,250 @@
+"""`mapkit fly` over real DDS (Cyclone) on the loopback interface only: multicast off, localhost the only
+peer, a domain id of its own per test process. Frames converted both ways against hand-worked values;
+messages round-tripped through the DDS types; a simulated vehicle flown by the node; faults."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapkit.flight import Setpoint
+from mapkit.fly import (
+    DdsConfig,
+    FlyConfig,
+    FlyError,
+    Link,
+    R_world_body_from_px4,
+    _inputs,
+    _outputs,
+    dds_type,
+    dds_typename,
+    decode,
+    encode,
+    enu_to_ned,
+    message,
+    ned_to_enu,
+    px4_quaternion,
+    setpoint_from_px4,
+    typestore,
+    yaw_enu_to_ned,
+    yaw_ned_to_enu,
+)
+
+LOOPBACK_XML = """<CycloneDDS xmlns="https://cdds.io/config"><Domain Id="any"><General>
+<Interfaces><NetworkInterface name="lo"/></Interfaces><AllowMulticast>false</AllowMulticast></General>
+<Discovery><ParticipantIndex>auto</ParticipantIndex><Peers><Peer address="localhost"/></Peers></Discovery>
+</Domain></CycloneDDS>"""
+
+
+@pytest.fixture(scope="session", autouse=True)
+def loopback_only(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Any participant made without mapkit's own config (a subprocess, a stray default) also stays on lo."""
+    path = tmp_path_factory.mktemp("dds") / "cyclonedds.xml"
+    path.write_text(LOOPBACK_XML)
+    os.environ["CYCLONEDDS_URI"] = path.as_uri()
+
+
+def _domain() -> int:
+    """A domain of this test process's own (pytest-xdist workers run side by side)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw9")
+    return 150 + 7 * int(worker[2:] or 0) % 80
+
+
+# -- messages and frames -----------------------------------------------------------------------------------
+def test_px4_messages_parse_from_their_own_definitions() -> None:
+    store = typestore()
+    names = [f for f, _ in store.fielddefs["px4_msgs/msg/TrajectorySetpoint"][1]]
+    assert names == ["timestamp", "position", "velocity", "acceleration", "jerk", "yaw", "yawspeed"]
+    assert dds_typename("px4_msgs/msg/VehicleOdometry") == "px4_msgs::msg::dds_::VehicleOdometry_"
+    with pytest.raises(FlyError, match="unknown"):
+        dds_type("foo_msgs/msg/Bar")
+
+
+@pytest.mark.parametrize("msgtype", ["sensor_msgs/msg/Image", "nav_msgs/msg/Path", "px4_msgs/msg/TrajectorySetpoint",
+                                     "trajectory_msgs/msg/MultiDOFJointTrajectory", "tf2_msgs/msg/TFMessage"])
+def test_dds_samples_carry_the_cdr_unchanged(msgtype: str) -> None:
+    msg = _example(msgtype)
+    raw = encode(msg, msgtype)
+    kind = dds_type(msgtype)
+    assert kind.deserialize(raw).serialize() == raw
+    assert encode(decode(raw, msgtype), msgtype) == raw
+
+
+def test_a_truncated_message_is_a_fly_error() -> None:
+    raw = encode(_example("sensor_msgs/msg/Image"), "sensor_msgs/msg/Image")
+    with pytest.raises(FlyError, match="does not decode"):
+        decode(raw[:40], "sensor_msgs/msg/Image")
+
+
+def test_enu_ned_by_hand_and_back() -> None:
+    np.testing.assert_array_equal(enu_to_ned([1.0, 2.0, 3.0]), [2.0, 1.0, -3.0])
+    np.testing.assert_array_equal(ned_to_enu(enu_to_ned([1.0, 2.0, 3.0])), [1.0, 2.0, 3.0])
+    assert yaw_enu_to_ned(0.0) == pytest.approx(math.pi / 2)  # facing east
+    assert yaw_enu_to_ned(math.pi / 2) == pytest.approx(0.0)  # facing north
+    for yaw in np.linspace(-3.1, 3.1, 13):
+        assert yaw_ned_to_enu(yaw_enu_to_ned(yaw)) == pytest.approx(yaw)
+
+
+def test_attitude_quaternion_both_ways() -> None:
+    from scipy.spatial.transform import Rotation
+
+    # level, nose north: FRD x = north = NED x, so PX4's quaternion is the identity
+    R_north = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    np.testing.assert_allclose(px4_quaternion(R_north), [1, 0, 0, 0], atol=1e-12)
+    for R in Rotation.random(20, random_state=3).as_matrix():
+        np.testing.assert_allclose(R_world_body_from_px4(px4_quaternion(R)), R, atol=1e-12)
+
+
+def test_setpoint_through_px4_and_back() -> None:
+    sp = Setpoint(0.0, np.array([1.0, -2.0, 3.0]), np.array([0.5, 0.2, -0.1]), np.array([0.1, 0.0, 0.3]),
+                  np.array([0.0, 0.2, 0.0]), np.zeros(3), 0.4, -0.3)
+    back = setpoint_from_px4(decode(encode(_outputs.px4_setpoint(sp, 10**9), "px4_msgs/msg/TrajectorySetpoint"),
+                                    "px4_msgs/msg/TrajectorySetpoint"), 0.0)
+    for name in ("position", "velocity", "acceleration", "jerk"):
+        np.testing.assert_allclose(getattr(back, name), getattr(sp, name), atol=1e-6)
+    assert (back.yaw, back.yaw_rate) == pytest.approx((sp.yaw, sp.yaw_rate), abs=1e-6)
+
+
+def test_px4_odometry_to_enu() -> None:
+    # 1 m north, 2 m east, 3 m up, nose east (NED yaw 90°), flying forward at 1 m/s in the body frame
+    q = [math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]
+    odo = _inputs.px4_odometry(message(
+        "px4_msgs/msg/VehicleOdometry", timestamp=0, timestamp_sample=0, pose_frame=1,
+        position=np.array([1.0, 2.0, -3.0], np.float32), q=np.array(q, np.float32), velocity_frame=3,
+        velocity=np.array([1.0, 0.0, 0.0], np.float32), angular_velocity=np.zeros(3, np.float32),
+        position_variance=np.zeros(3, np.float32), orientation_variance=np.zeros(3, np.float32),
+        velocity_variance=np.zeros(3, np.float32), reset_counter=0, quality=0), 7)
+    np.testing.assert_allclose(odo.position, [2.0, 1.0, 3.0], atol=1e-6)
+    np.testing.assert_allclose(odo.velocity, [1.0, 0.0, 0.0], atol=1e-6)  # east
+    assert odo.yaw == pytest.approx(0.0, abs=1e-6) and odo.stamp_ns == 7
+
+
+def test_loopback_config_and_bad_values() -> None:
+    xml = DdsConfig().xml()
+    assert '<NetworkInterface name="lo"/>' in xml and "<AllowMulticast>false" in xml
+    assert '<Peer address="localhost"/>' in xml
+    with pytest.raises(FlyError, match="domain id 300"):
+        DdsConfig(domain_id=300)
+    with pytest.raises(FlyError, match="absolute ROS 2 topic"):
+        FlyConfig(topics=_topics(depth="camera/depth")).validate()
+    with pytest.raises(FlyError, match="2 Hz"):
+        FlyConfig(rate=1.0).validate()
+
+
+# -- the link ------------------------------------------------------------------------------------------------
+def test_messages_cross_between_processes_on_loopback(tmp_path: Path) -> None:
+    domain = _domain()
+    got: list[str] = []
+    link = Link(DdsConfig(domain_id=domain))
+    link.reader("/chatter", "std_msgs/msg/String", lambda m, _: got.append(m.data), qos="reliable")
+    code = ("import time; from mapkit.fly import Link, DdsConfig, message\n"
+            f"link = Link(DdsConfig(domain_id={domain})); w = link.writer('/chatter', 'std_msgs/msg/String')\n"
+            "end = time.time() + 20\n"
+            "while link.matched('/chatter') == 0 and time.time() < end: time.sleep(0.05)\n"
+            "for i in range(3): w(message('std_msgs/msg/String', data=f'hello {i}')); time.sleep(0.05)\n"
+            "time.sleep(0.5)\n")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+    assert got == ["hello 0", "hello 1", "hello 2"]
+    link.close()
+
+
+# -- software in the loop: `mapkit fly` in its own process, the vehicle here ------------------------------------
+def _pillar_world():
+    """A hall (floor, ceiling at 3.5 m) with a pillar on the straight line from (0, 0, 1.5) to (8, 0, 1.5)."""
+    from mapkit.sim import Cylinder, HalfSpace, World
+
+    return World([HalfSpace((0.0, 0.0, 1.0), 0.0), HalfSpace((0.0, 0.0, -1.0), -3.5),
+                  Cylinder((4.0, 0.0, 0.0), (4.0, 0.0, 3.5), 0.4)], np.array([[-5.0, -8.0, 0.0], [13.0, 8.0, 3.5]]))
+
+
+def _start_node(domain: int, *extra: str) -> subprocess.Popen[str]:
+    args = [sys.executable, "-m", "mapkit.cli", "fly", "--sim-time", "--domain-id", str(domain), *extra]
+    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def _vehicle(domain: int):
+    from mapkit.flight._recorded import load_network
+    from mapkit.fly import SimulatedVehicle
+
+    _, camera = load_network("pretrained")
+    statuses: list[dict] = []
+    link = Link(DdsConfig(domain_id=domain))
+    link.reader("/mapkit/status", "std_msgs/msg/String", lambda m, _: statuses.append(json.loads(m.data)), qos="reliable")
+    vehicle = SimulatedVehicle(link, _pillar_world(), camera, FlyConfig())
+    assert vehicle.wait_for_node(60), "the node did not appear on the loopback domain"
+    return vehicle, statuses
+
+
+@pytest.mark.slow
+def test_the_node_flies_a_simulated_vehicle_around_a_pillar_and_records_it(tmp_path: Path) -> None:
+    domain = _domain() + 1
+    record = tmp_path / "flight.mcap"
+    node = _start_node(domain, "--record", str(record))
+    try:
+        vehicle, statuses = _vehicle(domain)
+        flight = vehicle.fly(np.array([0.0, 0.0, 1.5]), np.array([8.0, 0.0, 1.5]), time_limit=20.0)
+        assert flight.outcome == "success", (flight, statuses[-1:] if statuses else None)
+        assert flight.min_distance > 0.3 and flight.setpoints > 100
+        assert max(abs(flight.path[:, 3] - 1.5)) < 1.0 < max(abs(flight.path[:, 2]))  # around the pillar
+    finally:
+        node.send_signal(signal.SIGINT)
+        out, _ = node.communicate(timeout=60)
+    assert node.returncode == 130, out
+    from mapkit.ingest import inspect_recordings
+
+    (info,) = inspect_recordings([record])
+    topics = set(info.summary.topics)
+    assert {"/camera/depth/image_rect_raw", "/odom", "/fmu/in/trajectory_setpoint", "/mapkit/path"} <= topics
+
+
+@pytest.mark.slow
+def test_depth_lost_mid_flight_brakes_to_rest_and_holds() -> None:
+    domain = _domain() + 2
+    node = _start_node(domain, "--set", "pilot.frame_timeout=0.3")
+    try:
+        vehicle, statuses = _vehicle(domain)
+        vehicle.fault_after = 1.5  # seconds into the flight: the camera stops
+        flight = vehicle.fly(np.array([0.0, 0.0, 1.5]), np.array([8.0, 0.0, 1.5]), time_limit=6.0)
+    finally:
+        node.send_signal(signal.SIGINT)
+        node.communicate(timeout=60)
+    assert flight.outcome == "timeout"  # it stopped short of the pillar and the goal
+    t, x = flight.path[:, 0], flight.path[:, 1:]
+    speed = np.linalg.norm(np.diff(x, axis=0), axis=1) / np.diff(t)
+    assert speed[t[1:] < t[0] + 1.5].max() > 0.5  # it was flying
+    assert speed[t[1:] > t[-1] - 1.0].max() < 0.1  # and is at rest by the end
+    assert flight.min_distance > 0.3
+    assert any(s["state"] in ("braking", "blocked") and "no depth frame" in s["reason"] for s in statuses)
+
+
+# -- helpers -----------------------------------------------------------------------------------------------
+def _topics(**kw: str):
+    from mapkit.fly import Topics
+
+    return Topics(**kw)
+
+
+def _example(msgtype: str):
+    hdr = _outputs.header(1_500_000_123, "odom")
+    if msgtype == "sensor_msgs/msg/Image":
+        return message(msgtype, header=hdr, height=2, width=3, encoding="16UC1", is_bigendian=0, step=6,
+                       data=np.arange(12, dtype=np.uint8))
+    if msgtype == "px4_msgs/msg/TrajectorySetpoint":
+        sp = Setpoint(0.0, np.ones(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), 0.1, 0.2)
+        return _outputs.px4_setpoint(sp, 10**9)
+    if msgtype == "trajectory_msgs/msg/MultiDOFJointTrajectory":
+        sp = Setpoint(0.0, np.ones(3), np.ones(3), np.zeros(3), np.zeros(3), np.zeros(3), 0.1, 0.2)
+        return _outputs.multidof_setpoint(sp, 10**9, "odom", "base_link")
+    if msgtype == "tf2_msgs/msg/TFMessage":
+        return message(msgtype, transforms=[])
+    from mapkit.flight import Reference
+
+    return _outputs.path(Reference.holding(np.zeros(3), 0.0, 0.0), 0.0, 10**9, "odom")
