@@ -10,6 +10,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -156,6 +157,123 @@ def test_messages_cross_between_processes_on_loopback(tmp_path: Path) -> None:
     link.close()
 
 
+# -- the node in this process, a publisher beside it -----------------------------------------------------------
+@pytest.fixture(scope="module")
+def pilot():
+    from mapkit.flight import Pilot
+
+    return Pilot.load("pretrained")
+
+
+def _node(pilot, domain: int, **config):
+    from mapkit.fly import FlyNode
+
+    cfg = FlyConfig(link=DdsConfig(domain_id=domain), **config)
+    node = FlyNode(pilot, cfg, Link(cfg.link))
+    node.start()
+    return node
+
+
+def _wait(predicate, timeout: float = 20.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def _odometry(position, stamp_ns: int):
+    p = message("geometry_msgs/msg/Point", x=float(position[0]), y=float(position[1]), z=float(position[2]))
+    q = message("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=0.0, w=1.0)
+    v = message("geometry_msgs/msg/Vector3", x=0.0, y=0.0, z=0.0)
+    return message("nav_msgs/msg/Odometry", header=_outputs.header(stamp_ns, "odom"), child_frame_id="base_link",
+                   pose=message("geometry_msgs/msg/PoseWithCovariance",
+                                pose=message("geometry_msgs/msg/Pose", position=p, orientation=q), covariance=np.zeros(36)),
+                   twist=message("geometry_msgs/msg/TwistWithCovariance",
+                                 twist=message("geometry_msgs/msg/Twist", linear=v, angular=v), covariance=np.zeros(36)))
+
+
+def test_bad_messages_are_logged_once_per_kind_and_never_stop_the_node(pilot, caplog) -> None:
+    domain = _domain() + 3
+    node = _node(pilot, domain)
+    try:
+        link = Link(DdsConfig(domain_id=domain))
+        odometry = link.writer("/odom", "nav_msgs/msg/Odometry", qos="sensor")
+        depth = link.writer("/camera/depth/image_rect_raw", "sensor_msgs/msg/Image", qos="sensor")
+        goal = link.writer("/goal_pose", "geometry_msgs/msg/PoseStamped")
+        assert _wait(lambda: link.matched("/odom") and link.matched("/camera/depth/image_rect_raw"))
+        hdr = _outputs.header(time.time_ns(), "camera_optical")
+        rgb = message("sensor_msgs/msg/Image", header=hdr, height=2, width=2, encoding="rgb8", is_bigendian=0,
+                      step=6, data=np.zeros(12, np.uint8))
+        cut = message("sensor_msgs/msg/Image", header=hdr, height=4, width=4, encoding="16UC1", is_bigendian=0,
+                      step=8, data=np.zeros(10, np.uint8))
+        for i in range(30):
+            odometry(_odometry([0.0, 0.0, 1.0], time.time_ns()))
+            if i == 2:
+                goal(message("geometry_msgs/msg/PoseStamped", header=_outputs.header(time.time_ns(), "odom"),
+                             pose=message("geometry_msgs/msg/Pose",
+                                          position=message("geometry_msgs/msg/Point", x=5.0, y=0.0, z=1.0),
+                                          orientation=message("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=0.0, w=1.0))))
+            depth(rgb if i % 2 else cut)
+            time.sleep(0.02)
+        assert _wait(lambda: node.log.counts.get("depth message", 0) >= 10)
+        logged = [r for r in caplog.records if "encoding rgb8" in r.getMessage() or "corrupted" in r.getMessage()]
+        assert 1 <= len(logged) <= 2  # one line per kind per 5 s, not one per message
+        assert node.status["goal"] == [5.0, 0.0, 1.0] and all(t.is_alive() for t in node._threads)
+        assert node.last_setpoint is not None  # it still streams (a hold: no frame has been flown)
+        np.testing.assert_allclose(node.last_setpoint.position, [0.0, 0.0, 1.0], atol=1e-9)
+    finally:
+        node.close()
+
+
+def test_a_goal_outside_the_geofence_is_refused_and_reported(pilot) -> None:
+    domain = _domain() + 4
+    node = _node(pilot, domain, fence_radius=10.0)
+    try:
+        link = Link(DdsConfig(domain_id=domain))
+        odometry = link.writer("/odom", "nav_msgs/msg/Odometry", qos="sensor")
+        assert _wait(lambda: link.matched("/odom"))
+        assert _wait(lambda: (odometry(_odometry([1.0, 2.0, 1.0], time.time_ns())) or
+                              node.status["odometry_age"] is not None))
+        assert "beyond the fence radius 10.0 m" in node.set_goal(np.array([12.0, 2.0, 1.0]))
+        assert node.status["goal"] is None and node.status["refused_goal"] == [12.0, 2.0, 1.0]
+        assert node.set_goal(np.array([9.0, 2.0, 1.0])) == ""
+        assert "beyond ±5.0 m" in node.set_goal(np.array([1.0, 2.0, 7.0]))
+    finally:
+        node.close()
+
+
+def test_a_recording_plays_back_as_live_topics_with_its_clock(tmp_path: Path) -> None:
+    from mapkit.fly import Recording
+    from mapkit.fly._replay import replay
+
+    domain = _domain() + 5
+    path = tmp_path / "chatter.mcap"
+    recording = Recording(path)
+    source = Link(DdsConfig(domain_id=domain), tap=recording.write)
+    say = source.writer("/chatter", "std_msgs/msg/String")
+    for i in range(5):
+        say(message("std_msgs/msg/String", data=f"m{i}"))
+        time.sleep(0.05)
+    recording.close()
+    source.close()
+    heard: list[str] = []
+    clock: list[int] = []
+    listener = Link(DdsConfig(domain_id=domain))
+    listener.reader("/chatter", "std_msgs/msg/String", lambda m, _: heard.append(m.data), qos="reliable")
+    listener.reader("/clock", "rosgraph_msgs/msg/Clock",
+                    lambda m, _: clock.append(m.clock.sec * 10**9 + m.clock.nanosec), qos="reliable")
+    player = Link(DdsConfig(domain_id=domain))
+    out = replay(path, player, rate=2.0, clock=True)
+    assert _wait(lambda: len(heard) == 5, 5.0)
+    assert heard == [f"m{i}" for i in range(5)] and out.topics == {"/chatter": 5}
+    assert len(clock) == 5 and clock == sorted(clock) and 0.15e9 < clock[-1] - clock[0] < 0.5e9
+    assert 0.08 < out.seconds < 0.5  # 0.2 s recorded, played at twice the pace
+    with pytest.raises(FlyError, match="has no topic /nope"):
+        replay(path, player, topics=["/nope"])
+
+
 # -- software in the loop: `mapkit fly` in its own process, the vehicle here ------------------------------------
 def _pillar_world():
     """A hall (floor, ceiling at 3.5 m) with a pillar on the straight line from (0, 0, 1.5) to (8, 0, 1.5)."""
@@ -170,15 +288,15 @@ def _start_node(domain: int, *extra: str) -> subprocess.Popen[str]:
     return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
-def _vehicle(domain: int):
+def _vehicle(domain: int, odometry: str = "nav_msgs"):
     from mapkit.flight._recorded import load_network
-    from mapkit.fly import SimulatedVehicle
+    from mapkit.fly import SimulatedVehicle, Topics
 
     _, camera = load_network("pretrained")
     statuses: list[dict] = []
     link = Link(DdsConfig(domain_id=domain))
     link.reader("/mapkit/status", "std_msgs/msg/String", lambda m, _: statuses.append(json.loads(m.data)), qos="reliable")
-    vehicle = SimulatedVehicle(link, _pillar_world(), camera, FlyConfig())
+    vehicle = SimulatedVehicle(link, _pillar_world(), camera, FlyConfig(topics=Topics(odometry_type=odometry)))
     assert vehicle.wait_for_node(60), "the node did not appear on the loopback domain"
     return vehicle, statuses
 
@@ -206,12 +324,14 @@ def test_the_node_flies_a_simulated_vehicle_around_a_pillar_and_records_it(tmp_p
 
 
 @pytest.mark.slow
-def test_depth_lost_mid_flight_brakes_to_rest_and_holds() -> None:
-    domain = _domain() + 2
-    node = _start_node(domain, "--set", "pilot.frame_timeout=0.3")
+@pytest.mark.parametrize("lost", ["depth", "odometry"])
+def test_an_input_lost_mid_flight_brakes_to_rest_and_holds(lost: str) -> None:
+    """With PX4's odometry (NED in, NED setpoints out): depth or odometry stops 1.5 s into the flight."""
+    domain = _domain() + (2 if lost == "depth" else 6)
+    node = _start_node(domain, "--set", "pilot.frame_timeout=0.3", "--odometry", "px4")
     try:
-        vehicle, statuses = _vehicle(domain)
-        vehicle.fault_after = 1.5  # seconds into the flight: the camera stops
+        vehicle, statuses = _vehicle(domain, odometry="px4")
+        vehicle.fault, vehicle.fault_after = lost, 1.5
         flight = vehicle.fly(np.array([0.0, 0.0, 1.5]), np.array([8.0, 0.0, 1.5]), time_limit=6.0)
     finally:
         node.send_signal(signal.SIGINT)
@@ -222,7 +342,8 @@ def test_depth_lost_mid_flight_brakes_to_rest_and_holds() -> None:
     assert speed[t[1:] < t[0] + 1.5].max() > 0.5  # it was flying
     assert speed[t[1:] > t[-1] - 1.0].max() < 0.1  # and is at rest by the end
     assert flight.min_distance > 0.3
-    assert any(s["state"] in ("braking", "blocked") and "no depth frame" in s["reason"] for s in statuses)
+    why = "no depth frame" if lost == "depth" else "no odometry"
+    assert any(s["state"] in ("braking", "blocked") and why in s["reason"] for s in statuses)
 
 
 # -- helpers -----------------------------------------------------------------------------------------------

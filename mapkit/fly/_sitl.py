@@ -20,9 +20,9 @@ from typing import Any, Literal
 import numpy as np
 
 from mapkit.flight import RunCamera, Setpoint
-from mapkit.fly._config import FlyConfig
+from mapkit.fly._config import ODOMETRY_TYPES, FlyConfig
 from mapkit.fly._dds import Link
-from mapkit.fly._frames import ned_to_enu, yaw_ned_to_enu
+from mapkit.fly._frames import enu_to_ned, ned_to_enu, px4_quaternion, yaw_ned_to_enu
 from mapkit.fly._msgs import message
 from mapkit.fly._outputs import header
 from mapkit.geometry import quat_xyzw_from_matrix
@@ -82,6 +82,8 @@ class SimulatedVehicle:
 
     def __init__(self, link: Link, world: Any, camera: RunCamera, config: FlyConfig, *,
                  depth_rate: float = 30.0, odometry_rate: float = 100.0) -> None:
+        """`config` names the topics the node uses; its ``topics.odometry_type`` says which odometry to
+        publish (nav_msgs/Odometry in ENU/FLU, or PX4's VehicleOdometry in NED/FRD)."""
         from mapkit.evaluation._rotorpy import RotorpyVehicle
         from mapkit.sim import CameraModel
 
@@ -96,11 +98,12 @@ class SimulatedVehicle:
         self._t = 1.0  # simulator seconds: never reset (the node's clock must not go back)
         self._next_depth = self._next_odometry = self._t
         self.fault_after: float | None = None
-        """Seconds into a flight after which depth stops (a camera fault); odometry goes on."""
+        """Seconds into a flight after which the `fault` input stops publishing (the other goes on)."""
+        self.fault: Literal["depth", "odometry"] = "depth"
         t = config.topics
         self._pub_depth = link.writer(t.depth, "sensor_msgs/msg/Image", qos="sensor")
         self._pub_info = link.writer(t.camera_info, "sensor_msgs/msg/CameraInfo", qos="sensor")
-        self._pub_odometry = link.writer(t.odometry_topic, "nav_msgs/msg/Odometry", qos="sensor")
+        self._pub_odometry = link.writer(t.odometry_topic, ODOMETRY_TYPES[t.odometry_type], qos="sensor")
         self._pub_tf_static = link.writer(t.tf_static, "tf2_msgs/msg/TFMessage", qos="latched")
         self._pub_goal = link.writer(t.goal, "geometry_msgs/msg/PoseStamped", qos="reliable")
         self._pub_clock = link.writer(t.clock, "rosgraph_msgs/msg/Clock", qos="reliable")
@@ -156,6 +159,13 @@ class SimulatedVehicle:
             received = self._received
         return SitlFlight(outcome, self._t - t_goal, d_min, received, np.array(rows).reshape(-1, 4))
 
+    def hover(self, position: np.ndarray, seconds: float) -> None:
+        """Place the vehicle at `position` and let it hover on its own for `seconds` (no goal is sent)."""
+        position = np.asarray(position, dtype=np.float64)
+        self._vehicle.reset(position, 0.0)
+        self._publish_mount()
+        self._run(self._t + seconds, None, self._flat(position, 0.0, offboard=False))
+
     def _run(self, t_end: float, judge: _Judge | None, flat: Any) -> tuple[Outcome, float]:
         """Fly `flat` until `t_end` (simulator seconds; no faster than real time), publishing /clock and the
         sensors at their rates, and `judge` the flight (None: not judged, the vehicle is being placed)."""
@@ -163,11 +173,14 @@ class SimulatedVehicle:
         wall0, t0 = time.monotonic(), self._t
         while self._t < t_end - 1e-9:
             self._publish_clock()
+            lost = None if judge is None or self.fault_after is None or self._t - judge.t0 < self.fault_after \
+                else self.fault
             if self._t >= self._next_odometry:
-                self._publish_odometry()
+                if lost != "odometry":
+                    self._publish_odometry()
                 self._next_odometry += 1.0 / self.odometry_rate
             if self._t >= self._next_depth:
-                if judge is None or self.fault_after is None or self._t - judge.t0 < self.fault_after:
+                if lost != "depth":
                     self._publish_depth()
                 self._next_depth += 1.0 / self.depth_rate
             self._vehicle.fly(flat, self._t, self._t + dt)
@@ -186,10 +199,19 @@ class SimulatedVehicle:
         self._pub_clock(message("rosgraph_msgs/msg/Clock", clock=header(self._ns(), "").stamp))
 
     def _publish_odometry(self) -> None:
+        T, velocity = self._vehicle.T_world_body, self._vehicle.velocity
+        if self.config.topics.odometry_type == "px4":
+            f32 = np.float32
+            nan3 = np.full(3, np.nan, f32)
+            self._pub_odometry(message(
+                "px4_msgs/msg/VehicleOdometry", timestamp=self._ns() // 1000, timestamp_sample=self._ns() // 1000,
+                pose_frame=1, position=enu_to_ned(T[:3, 3]).astype(f32), q=px4_quaternion(T[:3, :3]).astype(f32),
+                velocity_frame=1, velocity=enu_to_ned(velocity).astype(f32), angular_velocity=nan3,
+                position_variance=nan3, orientation_variance=nan3, velocity_variance=nan3, reset_counter=0, quality=0))
+            return
         c = self.config.frames
-        T = self._vehicle.T_world_body
         q = quat_xyzw_from_matrix(T[:3, :3])
-        v_body = T[:3, :3].T @ self._vehicle.velocity  # nav_msgs/Odometry's twist is in the body frame
+        v_body = T[:3, :3].T @ velocity  # nav_msgs/Odometry's twist is in the body frame
         pose = message("geometry_msgs/msg/PoseWithCovariance", pose=message(
             "geometry_msgs/msg/Pose", position=message("geometry_msgs/msg/Point", x=T[0, 3], y=T[1, 3], z=T[2, 3]),
             orientation=message("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3])),
