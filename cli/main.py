@@ -30,8 +30,8 @@ from mapkit.cli import config as _config  # noqa: F401 - registers its commands 
 from mapkit.cli import dataset as _dataset  # noqa: F401 - registers its commands on main
 from mapkit.cli import eval as _eval  # noqa: F401 - registers its commands on main
 from mapkit.cli import exchange as _exchange  # noqa: F401 - registers its commands on main
-from mapkit.cli import fly as _fly  # noqa: F401 - registers its commands on main
 from mapkit.cli import export as _export  # noqa: F401 - registers its commands on main
+from mapkit.cli import fly as _fly  # noqa: F401 - registers its commands on main
 from mapkit.cli import ingest as _ingest  # noqa: F401 - registers its commands on main
 from mapkit.cli import mapping as _mapping  # noqa: F401 - registers its commands on main
 from mapkit.cli import plan as _plan  # noqa: F401 - registers its commands on main

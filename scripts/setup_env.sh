@@ -29,6 +29,6 @@ echo "setup: installing mapkit and its dependencies into $VENV (first run takes 
 # torch first and pinned: the machine's local CPU wheel; a resolver left alone would fetch CUDA builds.
 "$VENV/bin/pip" install -q --disable-pip-version-check torch==2.13.0 2>&1 | grep -v "is ignored" || true
 "$VENV/bin/pip" install -q --disable-pip-version-check -e ".[test]" 2>&1 | grep -v "is ignored" || true
-"$VENV/bin/python" -c "import mapkit, open3d, torch, zarr, rosbags" || { echo "setup: install failed" >&2; exit 1; }
+"$VENV/bin/python" -c "import mapkit, open3d, torch, zarr, rosbags, cyclonedds" || { echo "setup: install failed" >&2; exit 1; }
 echo "$hash" > "$stamp"
 echo "setup: done"

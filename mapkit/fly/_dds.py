@@ -109,7 +109,7 @@ class Link:
         self.tap = tap
         """Called with (topic, msgtype, CDR bytes, time ns) for every message read or written."""
         _domain(self.config)
-        self._participant = DomainParticipant(self.config.domain_id)
+        self._participant: Any = DomainParticipant(self.config.domain_id)
         self._topics: dict[str, Any] = {}
         self._entities: list[Any] = []
 

@@ -40,7 +40,9 @@ def dds_typename(msgtype: str) -> str:
 
 
 def _base_type(name: str, bound: int) -> Any:
-    from cyclonedds.idl import types
+    from cyclonedds.idl import types as idl_types
+
+    types: Any = idl_types  # its generic aliases are indexable at run time, not to mypy
 
     if name == "string":
         return types.bounded_str[bound] if bound else str
@@ -54,7 +56,9 @@ def _base_type(name: str, bound: int) -> Any:
 
 
 def _field_type(node: tuple[Any, Any]) -> Any:
-    from cyclonedds.idl import types
+    from cyclonedds.idl import types as idl_types
+
+    types: Any = idl_types
 
     kind, arg = int(node[0]), node[1]
     if kind == _BASE:
@@ -69,7 +73,7 @@ def _field_type(node: tuple[Any, Any]) -> Any:
 
 
 @cache
-def dds_type(msgtype: str) -> type:
+def dds_type(msgtype: str) -> Any:
     """The Cyclone DDS class of ROS 2 message type `msgtype`, derived from the typestore."""
     from cyclonedds.idl import make_idl_struct
 
@@ -80,8 +84,8 @@ def dds_type(msgtype: str) -> type:
     name = dds_typename(msgtype)
     kind = make_idl_struct(name.rsplit("::", 1)[1], name, {f: _field_type(node) for f, node in fields})
     # The class's fields give Cyclone the type's description (XTypes); its samples hold the CDR itself.
-    kind.serialize = _cdr_of
-    kind.deserialize = classmethod(_sample_of)
+    setattr(kind, "serialize", _cdr_of)  # noqa: B010 - replacing the generated class's (de)serialisers
+    setattr(kind, "deserialize", classmethod(_sample_of))  # noqa: B010
     return kind
 
 
@@ -91,7 +95,7 @@ def _cdr_of(sample: Any, buffer: Any = None, endianness: Any = None, use_version
 
 
 def _sample_of(kind: type, data: bytes, has_header: bool = True, use_version_2: Any = None) -> Any:
-    sample = object.__new__(kind)
+    sample: Any = object.__new__(kind)
     sample.cdr = bytes(data)
     return sample
 
