@@ -58,11 +58,9 @@ from mapkit.planner._model import (
     Plan,
     PlannerNet,
     PlannerOutput,
-    count_parameters,
-    plan,
     preprocess_depth,
 )
-from mapkit.planner._resnet import ResNet18, load_torchvision_state_dict, torchvision_resnet18_keys
+from mapkit.planner._resnet import ResNet18, load_torchvision_state_dict
 from mapkit.planner._timing import Allocation, Timing, plan_timing, total_time, turn_speed
 
 __all__ = [
@@ -89,13 +87,11 @@ __all__ = [
     "ResNet18",
     "body_to_world",
     "collision_labels",
-    "count_parameters",
     "escape_cost",
     "goal_cost",
     "load_torchvision_state_dict",
     "obstacle_cost",
     "obstacle_penalty",
-    "plan",
     "candidate_loss",
     "planner_loss",
     "planner_preset",
@@ -105,7 +101,6 @@ __all__ = [
     "time_cost",
     "time_allocation_loss",
     "time_targets",
-    "torchvision_resnet18_keys",
     "total_time",
     "turn_speed",
     "plan_timing",

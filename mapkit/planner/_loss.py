@@ -1,9 +1,7 @@
 """The self-supervised upper-level loss U = γ1 U_O + γ2 U_G + γ3 U_S + γ4 U_E + γ5 U_T and its terms.
 
-Every term is a function of tensors with a batch axis B and returns (B,) per-element values;
-:func:`planner_loss` weights them, averages over the batch and returns the scalar to back-propagate.
-Trajectories are planned in the body frame (FLU, robot at the origin); points are moved to the world
-frame with ``T_world_body`` (B, 4, 4) before every ESDF lookup.
+Every term returns (B,) values; plans are in the body frame, moved to the world frame with
+``T_world_body`` (B, 4, 4) before every ESDF lookup.
 """
 
 from __future__ import annotations
@@ -27,13 +25,10 @@ if TYPE_CHECKING:  # the ESDF stage is only needed at call time (duck-typed quer
 
 @dataclass
 class LossConfig:
-    """Weights and parameters of :func:`planner_loss`. The γ defaults are starting points that put the
-    terms on comparable scales for a fresh net, not tuned values."""
+    """Weights and parameters of :func:`planner_loss` and :func:`candidate_loss`."""
 
     gamma_obstacle: float = 20.0
-    """γ1, weight of the obstacle cost U_O (:func:`obstacle_cost`, a mean over the samples). 20, not
-    2: at 2 paths trained across a pillar stayed inside it; at 20 they cleared it and still reached
-    the goal."""
+    """γ1, weight of the obstacle cost U_O (:func:`obstacle_cost`, a mean over the samples)."""
     gamma_goal: float = 1.0
     """γ2, weight of the goal cost U_G (:func:`goal_cost`, metres)."""
     gamma_smooth: float = 0.5
@@ -44,44 +39,34 @@ class LossConfig:
     """γ5, weight of the time cost U_T (:func:`time_cost`: MSE of shares, which are ~1/K, so the raw
     term is small)."""
     gamma_score: float = 1.0
-    """Weight of the candidate score's cross-entropy against the candidate with the lowest path cost
-    (only with several candidates)."""
+    """Weight of the candidate score's cross-entropy against the cheapest candidate (several only)."""
     score_temperature: float = 0.0
-    """Metres of path cost: the score learns the soft-min distribution softmax(−cost / T) over the
-    candidates instead of the single best (0: the best only). Two free detours that cost nearly the
-    same are then both right answers instead of a coin flip between targets."""
+    """Metres of path cost: the score learns softmax(−cost / T) over the candidates instead of the
+    single best (0), so two nearly equal detours are both right answers."""
     candidate_spread: float = 0.05
     """α: every candidate's path cost enters with weight α (the winner's with 1 + α), so candidates
-    that never win still move towards sensible paths instead of dying (only with several)."""
+    that never win still learn (several only)."""
     candidate_anchor_pull: float = 0.0
     """β, 1/m²: every candidate that does not win a sample adds β × the mean squared distance (m²) of
-    its key-points from its own anchor path's, divided among the M − 1 losers (only with several).
-    ``candidate_spread`` pulls the losers toward the cheapest path, and the shipped model's eight
-    candidates ended up within a metre of each other; this pull keeps them apart instead. Off by
-    default: on its own in a fine-tune (β 0.1, no spread term) it lost office flights (docs/results.md)."""
+    its key-points from its own anchor's, divided among the M − 1 losers (several only): keeps the
+    candidates apart where ``candidate_spread`` pulls them together."""
     winner_collision_penalty: float = 0.0
-    """κ, metres of path cost added to every candidate whose path collides (the η label) when choosing
-    the winner and the score's target only (no gradient): a candidate that keeps clear wins over one
-    that reaches the goal through a wall. 0: the cheapest path cost wins."""
+    """κ, metres of path cost added to every colliding candidate when choosing the winner and the
+    score's target only (no gradient). 0: the cheapest path cost wins."""
     robot_radius: float = 0.3
-    """Metres. The obstacle cost acts on the clearance d − robot_radius, and a trajectory that comes
-    nearer than this to a surface counts as colliding (η's label, the collision rates)."""
+    """Metres. The obstacle cost acts on the clearance d − robot_radius; a trajectory nearer than this
+    to a surface collides (η's label)."""
     obstacle_softness: float = 1.0
-    """ε, metres: width of the smooth hinge in :func:`obstacle_penalty`. Larger ε gives more gradient
-    far from obstacles (it decays like ε²/(4 u²) at clearance u)."""
+    """ε, metres: width of the smooth hinge in :func:`obstacle_penalty`."""
     samples_per_second: float = 10.0
-    """Trajectory samples per second of flight for U_O, U_S and the collision label (the longest
-    trajectory of the batch sets the count N; every element is sampled at N instants evenly spread
-    over its own duration)."""
+    """Trajectory samples per second of flight for U_O and the collision label (:func:`sample_trajectory`)."""
     min_samples: int = 8
     """Lower bound on N, the samples per trajectory."""
     label_from_raw: bool = True
     """Use the map's unsmoothed ``esdf_raw`` (exact distances) for the collision label when the map
     has it; the smoothed ``esdf`` otherwise. U_O always uses the smoothed field."""
     time_target_iters: int = 10
-    """Iterations of the Mellinger & Kumar gradient allocation for the U_T target (10: ≈ 20 ms for a
-    batch of 16 on 2 CPU cores, MSE to the converged shares ≈ 4e-5 against ≈ 5e-3 for uniform
-    shares)."""
+    """Iterations of the Mellinger & Kumar gradient allocation for the U_T target."""
     time_target_tol: float = 1e-3
     """Relative cost decrease below which that allocation stops early."""
 
@@ -105,8 +90,7 @@ REMOVED_FIELDS: dict[str, Any] = {
     "detour_weight": 0.0, "detour_cap": 8.0, "eta_horizon": None, "eta_label": "map", "eta_positive_weight": 1.0,
     "collision_distance": None, "obstacle_reduction": "mean", "smoothness_on": "keypoints",
 }
-"""Fields LossConfig no longer has, each with the value that gives the behaviour the loss now always
-has: research options dropped in issue 57 that a saved run's config.json may still name."""
+"""Removed LossConfig fields a saved run's config.json may still name, with the value that trains as now."""
 
 
 def drop_removed_fields(values: dict[str, Any], error: type[Exception]) -> dict[str, Any]:
@@ -136,18 +120,14 @@ def _safe_norm(x: torch.Tensor) -> torch.Tensor:
 
 
 def sample_trajectory(trajectory: Trajectory, *, samples_per_second: float, min_samples: int = 2) -> torch.Tensor:
-    """Positions (B, N, 3) at N instants evenly spread over each element's own duration (first =
-    start, last = end). N = max(min_samples, ceil(longest total time × samples_per_second) + 1), so
-    every element has at least ``samples_per_second`` samples per second and no padding. Gradients
-    flow to the coefficients and the durations."""
+    """Positions (B, N, 3) at N instants evenly spread over each element's own duration, N =
+    max(min_samples, ceil(longest total time × samples_per_second) + 1). Differentiable."""
     if not trajectory.batched:
         raise PlannerError("sample_trajectory needs a batched trajectory (B elements)")
     total = trajectory.total_time  # (B,)
     N = max(int(min_samples), int(math.ceil(float(total.detach().max()) * samples_per_second)) + 1)
     frac = torch.linspace(0.0, 1.0, N, dtype=total.dtype, device=total.device)
-    t = total.unsqueeze(-1) * frac
-    # Keep the last instant inside the final segment (t == total exactly is clamped anyway).
-    return trajectory.position(t)
+    return trajectory.position(total.unsqueeze(-1) * frac)
 
 
 def body_to_world(points: torch.Tensor, T_world_body: torch.Tensor) -> torch.Tensor:
@@ -164,16 +144,10 @@ def body_to_world(points: torch.Tensor, T_world_body: torch.Tensor) -> torch.Ten
 
 # --------------------------------------------------------------------------------------- terms
 def obstacle_penalty(distance: torch.Tensor, *, robot_radius: float, softness: float) -> torch.Tensor:
-    """Elementwise obstacle cost of signed distances (metres): a hyperbolic smooth hinge of the
-    clearance ``u = distance − robot_radius``::
-
-        c(u) = (sqrt(u² + ε²) − u) / 2,      ε = softness
-
-    Strictly decreasing everywhere (dc/du = (u / sqrt(u² + ε²) − 1) / 2 ∈ (−1, 0)): inside an obstacle
-    or within the robot radius it grows linearly with the penetration (slope → 1 per metre), at the
-    radius it is ε/2, and in free space it decays only like ε² / (4u) with gradient ≈ −ε² / (4u²):
-    polynomial, not exponential, so it never plateaus in open space (the paper's reason for an ESDF
-    with distances everywhere). Cost is in metres."""
+    """Elementwise obstacle cost (metres) of signed distances: the smooth hinge
+    c(u) = (sqrt(u² + ε²) − u) / 2 of the clearance u = distance − robot_radius, ε = softness. Strictly
+    decreasing: linear inside obstacles, ε/2 at the radius, decaying like ε² / (4u) in free space (a
+    gradient everywhere)."""
     u = distance - robot_radius
     return 0.5 * (torch.sqrt(u * u + softness * softness) - u)
 
@@ -185,10 +159,8 @@ def obstacle_cost(
     robot_radius: float = 0.3,
     softness: float = 1.0,
 ) -> torch.Tensor:
-    """U_O: obstacle cost (B,) of world points (B, N, 3) — the mean over the N samples of
-    :func:`obstacle_penalty` of the smoothed ESDF distance there (the paper sums: a mean does not grow
-    with the trajectory's duration). Outside the map grid the distance is that of the nearest grid
-    point (``outside="clamp"``). Differentiable w.r.t. ``points``."""
+    """U_O (B,): the mean over world points (B, N, 3) of :func:`obstacle_penalty` of the smoothed ESDF
+    (the paper sums; a mean does not grow with the duration). Outside the grid: the nearest grid point."""
     if points.ndim != 3 or points.shape[-1] != 3:
         raise PlannerError(f"points must have shape (B, N, 3) in the world frame, got {tuple(points.shape)}")
     d = esdf_map.query_torch(points, outside="clamp")
@@ -203,11 +175,9 @@ def goal_cost(end: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
 
 
 def smoothness_cost(points: torch.Tensor, start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
-    """U_S (B,) metres: Σ_i | ‖p_{i+1} − p_i‖ − ‖p̂_{i+1} − p̂_i‖ | over the N trajectory samples
-    ``points`` (B, N, 3) against N equally spaced points p̂ on the straight ``start`` → ``goal`` line
-    (both (B, 3), same frame). Zero exactly when the samples advance in equal steps of the straight
-    line's step length (e.g. equally spaced points on that line); it penalises uneven speed and
-    detours. A sum, as in the paper (its scale hardly depends on N for a smooth curve)."""
+    """U_S (B,) metres: Σ_i | ‖p_{i+1} − p_i‖ − ‖p̂_{i+1} − p̂_i‖ | over the N points (B, N, 3) against
+    N equally spaced points p̂ on the straight ``start`` → ``goal`` line (both (B, 3)): penalises
+    uneven steps and detours."""
     if points.ndim != 3 or points.shape[-1] != 3 or points.shape[1] < 2:
         raise PlannerError(f"points must have shape (B, N>=2, 3), got {tuple(points.shape)}")
     B, N, _ = points.shape
@@ -230,13 +200,8 @@ def collision_labels(
 
 
 def escape_cost(eta: torch.Tensor, collided: torch.Tensor, *, logit: torch.Tensor | None = None) -> torch.Tensor:
-    """U_E (B,): BCE(η, 1) where the trajectory collided (``collided`` (B,) bool, e.g. from
-    :func:`collision_labels`), BCE(η, 0) otherwise. The label carries no gradient.
-
-    Pass ``logit`` (B,) (``PlannerOutput.eta_logit``, with η = sigmoid(logit)) whenever you have it:
-    the BCE is then computed from the logit, exact and with a gradient that never vanishes (a
-    saturated η = 1.0 in float32 still learns when its label flips to 0). From η alone, η is clamped
-    to [1e-7, 1 − 1e-7], which keeps the cost finite but gives no gradient once η saturates."""
+    """U_E (B,): BCE of η against ``collided`` (B,) bool (no gradient). Pass ``logit`` (B,) when you
+    have it: the BCE from the logit never stops learning; η alone is clamped to [1e-7, 1 − 1e-7]."""
     if eta.shape != collided.shape or eta.ndim != 1:
         raise PlannerError(f"eta and collided must both be (B,), got {tuple(eta.shape)} and {tuple(collided.shape)}")
     label = collided.detach().to(eta.dtype)
@@ -258,11 +223,9 @@ def time_targets(
     max_iters: int = 10,
     rel_tol: float = 1e-3,
 ) -> torch.Tensor:
-    """U_T target shares (B, M): the Mellinger & Kumar gradient-descent allocation
-    (``allocate_times(method="gradient")``, fixed total ``total_time`` (B,), start and end derivatives
-    ``start`` / ``end`` (B, 3, 3), every segment >= ``min_segment`` seconds) for the same waypoints
-    (B, M+1, 3), as the split of the time above the minima (what the TAN predicts, see
-    :func:`mapkit.planner.plan_timing`). Batched, float64 inside, no gradient."""
+    """U_T target shares (B, M): the gradient-descent allocation of ``total_time`` (B,) over the
+    waypoints (B, M+1, 3) from ``start`` to ``end`` (B, 3, 3), each segment >= ``min_segment`` s, as the
+    split of the time above the minima (what the TAN predicts). Float64 inside, no gradient."""
     from mapkit.planner._timing import shares_from_durations
 
     w = waypoints.detach().to(torch.float64)
@@ -283,8 +246,7 @@ def _plan_end(plan: Plan) -> torch.Tensor:
 
 
 def time_cost(shares: torch.Tensor, target_shares: torch.Tensor) -> torch.Tensor:
-    """U_T (B,): mean over the M segments of (shares − target)², both (B, M). The target carries no
-    gradient."""
+    """U_T (B,): mean over the M segments of (shares − target)², both (B, M); no gradient to the target."""
     if shares.shape != target_shares.shape or shares.ndim != 2:
         raise PlannerError(
             f"shares and target_shares must both be (B, M), got {tuple(shares.shape)} and {tuple(target_shares.shape)}"
@@ -312,10 +274,8 @@ def planner_loss(
         T_world_body: (B, 4, 4) pose of the body at planning time (float64 fine).
         esdf_map: the world's :class:`mapkit.esdf.EsdfMap`.
         eta: (B,) collision probability; default ``plan.eta``.
-        eta_logit: (B,) its logit (``PlannerOutput.eta_logit``); default ``plan.eta_logit``. Pass it:
-            U_E is then computed from the logit and never stops learning (see :func:`escape_cost`).
-        target_shares: (B, K) precomputed U_T target (e.g. from a worker thread); default computed
-            here with :func:`time_targets`.
+        eta_logit: (B,) its logit; default ``plan.eta_logit`` (see :func:`escape_cost`).
+        target_shares: (B, K) precomputed U_T target; default :func:`time_targets`.
         config: :class:`LossConfig` (defaults if None).
 
     Returns:
@@ -384,12 +344,11 @@ def candidate_loss(
     cost plus α × the mean over candidates (``candidate_spread``), γ4 × the mean escape BCE of every
     candidate's η against its own collision label, γ_score × the cross-entropy of the scores against
     the best candidate, and γ5 U_T of the best candidate's time split. With M = 1 this is exactly
-    :func:`planner_loss`. Scores and η carry no gradient into the paths.
+    :func:`planner_loss`.
 
-    Returns (total, terms): batch means of the unweighted terms of the CHOSEN candidate (the one
-    deployed: "obstacle", "goal", "smoothness", "collision_rate"), plus "escape", "time", "score"
-    (cross-entropy), "winner_collision_rate" (the best candidate's), "score_accuracy" (chosen = best)
-    and "total"; "collided_chosen" (B,) bool per sample.
+    Returns (total, terms): batch means of the unweighted terms of the chosen candidate ("obstacle",
+    "goal", "smoothness", "collision_rate"), plus "escape", "time", "score", "winner_collision_rate",
+    "score_accuracy" (chosen = best) and "total"; per sample, "collided_chosen" and "goal_chosen" (B,).
     """
     cfg = config or LossConfig()
     cand = out.candidates if out.candidates is not None else out.keypoints[:, None]
@@ -432,7 +391,7 @@ def _candidate_costs(
     cfg: LossConfig, *, start_velocity: torch.Tensor | None, end_speed: torch.Tensor | None, corridor: float | None,
 ) -> tuple[Plan, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Every candidate's trajectory (a :class:`Plan` of B·M, sample-major) and its (B, M) obstacle, goal
-    and smoothness costs and collision labels (:func:`candidate_loss`)."""
+    and smoothness costs and collision labels."""
     B, M, K, _ = cand.shape
     plan = net.trajectory(cand.reshape(B * M, K, 3),
                           start_velocity=None if start_velocity is None else _per_candidate(start_velocity, M),
@@ -451,9 +410,8 @@ def _candidate_costs(
 
 def _score_loss(scores: torch.Tensor | None, ranked: torch.Tensor, winner: torch.Tensor, *, like: torch.Tensor,
                 config: LossConfig) -> torch.Tensor:
-    """(B,) cross-entropy of the candidates' scores against the best one (softened by
-    ``score_temperature`` over the (B, M) ranking costs `ranked`); zeros shaped `like` without scores or
-    with one candidate."""
+    """(B,) cross-entropy of the scores against the best candidate (softened by ``score_temperature``
+    over the ranking costs `ranked`); zeros shaped `like` without scores or with one candidate."""
     if scores is None or ranked.shape[1] == 1:
         return torch.zeros_like(like)
     if config.score_temperature > 0:
@@ -464,8 +422,7 @@ def _score_loss(scores: torch.Tensor | None, ranked: torch.Tensor, winner: torch
 
 def _winner_time_cost(plan: Plan, rows: torch.Tensor, winner: torch.Tensor, *, M: int,
                       config: LossConfig) -> torch.Tensor:
-    """(B,) U_T of each sample's `winner` candidate's time split in `plan` (B·M plans, sample-major;
-    `rows` = 0 … B−1)."""
+    """(B,) U_T of each sample's `winner` candidate's time split in `plan` (B·M plans, sample-major)."""
     B, K = len(rows), plan.shares.shape[-1]
     wp = plan.waypoints.reshape(B, M, K + 1, 3)[rows, winner]
     shares = plan.shares.reshape(B, M, K)[rows, winner]
@@ -485,10 +442,8 @@ def time_allocation_loss(
     end_speed: torch.Tensor | None = None,
     config: LossConfig | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """γ5 U_T alone for the deployed key-points (B, K, 3): what trains the TAN when nothing else
-    learns (``mapkit train --set only=tan``). The paths' costs are not computed (they do not depend on
-    the TAN), so a step costs a forward pass and the gradient-descent targets. Returns (total,
-    terms) with "time" and "total"."""
+    """γ5 U_T alone for the deployed key-points (B, K, 3) (``mapkit train --set only=tan``: the paths'
+    costs do not depend on the TAN). Returns (total, terms) with "time" and "total"."""
     from mapkit.planner._timing import plan_timing
 
     cfg = config or LossConfig()
