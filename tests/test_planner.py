@@ -26,7 +26,6 @@ from mapkit.planner import (
     load_torchvision_state_dict,
     obstacle_cost,
     obstacle_penalty,
-    planner_loss,
     planner_preset,
     preprocess_depth,
     sample_trajectory,
@@ -176,9 +175,8 @@ def test_seeded_determinism(box_map):
         net = PlannerNet(cfg)
         depth, goal = _inputs(2, cfg, seed=5)
         out = net(net.preprocess(depth), goal)
-        p = net.trajectory(out.keypoints)
-        loss, _ = planner_loss(p, goal=goal, T_world_body=torch.eye(4, dtype=torch.float64).repeat(2, 1, 1),
-                               esdf_map=box_map, eta_logit=out.eta_logit)
+        loss, _ = candidate_loss(net, out, goal=goal, T_world_body=torch.eye(4, dtype=torch.float64).repeat(2, 1, 1),
+                                 esdf_map=box_map)
         loss.backward()
         return out.keypoints.detach(), out.eta.detach(), loss.detach(), net.encoder.conv1.weight.grad.clone()
 
@@ -199,8 +197,8 @@ def test_gradients_reach_every_parameter_group(box_map):
     T = torch.eye(4, dtype=torch.float64).repeat(B, 1, 1)
     T[:, :3, 3] = torch.tensor([-0.5, 0.2, 0.3], dtype=torch.float64)  # body 0.5 m behind the world origin
     out = net(net.preprocess(depth), goal)
-    p = net.trajectory(out.keypoints, start_velocity=torch.tensor([[1.0, 0.0, 0.0]]).expand(B, 3))
-    loss, terms = planner_loss(p, goal=goal, T_world_body=T, esdf_map=box_map, eta_logit=out.eta_logit)
+    loss, terms = candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=box_map,
+                                 start_velocity=torch.tensor([[1.0, 0.0, 0.0]]).expand(B, 3))
     assert loss.ndim == 0 and bool(torch.isfinite(loss))
     assert set(terms) >= {"obstacle", "goal", "smoothness", "escape", "time", "collision_rate", "total"}
     assert float(terms["collision_rate"]) > 0  # the first two fly straight through the pillar
@@ -526,25 +524,6 @@ def test_shifted_candidates_move_every_candidate_sideways_along_the_anchor_bump(
     torch.testing.assert_close(out.candidates, net.shifted(plain.candidates, goal, (-0.3, 0.3)))
     assert torch.equal(planned.shifted, out.chosen >= 12)
     assert torch.equal(planned.widened, out.chosen % 12 >= 6)
-
-
-@pytest.mark.slow
-def test_candidate_loss_with_one_path_is_the_paper_loss(box_map):
-    torch.manual_seed(1)
-    net = PlannerNet(planner_preset("cpu"))
-    depth, goal = _inputs(4, net.config)
-    T = torch.eye(4).expand(4, 4, 4).clone()
-    v = torch.tensor([[1.0, 0.0, 0.0]]).expand(4, 3)
-    out = net(net.preprocess(depth), goal)
-    from mapkit.planner import candidate_loss
-
-    cfg = LossConfig(obstacle_softness=0.3)
-    total, terms = candidate_loss(net, out, goal=goal, T_world_body=T, esdf_map=box_map, start_velocity=v, config=cfg)
-    p = net.trajectory(out.keypoints, start_velocity=v)
-    ref, ref_terms = planner_loss(p, goal=goal, T_world_body=T, esdf_map=box_map, eta_logit=out.eta_logit, config=cfg)
-    torch.testing.assert_close(total, ref)
-    for key in ("obstacle", "goal", "smoothness", "escape", "time", "collision_rate"):
-        torch.testing.assert_close(terms[key], ref_terms[key], msg=key)
 
 
 @pytest.mark.slow

@@ -25,7 +25,7 @@ if TYPE_CHECKING:  # the ESDF stage is only needed at call time (duck-typed quer
 
 @dataclass
 class LossConfig:
-    """Weights and parameters of :func:`planner_loss` and :func:`candidate_loss`."""
+    """Weights and parameters of :func:`candidate_loss`."""
 
     gamma_obstacle: float = 20.0
     """γ1, weight of the obstacle cost U_O (:func:`obstacle_cost`, a mean over the samples)."""
@@ -254,67 +254,6 @@ def time_cost(shares: torch.Tensor, target_shares: torch.Tensor) -> torch.Tensor
     return ((shares - target_shares.detach().to(shares.dtype)) ** 2).mean(-1)
 
 
-# -------------------------------------------------------------------------------------- total
-def planner_loss(
-    plan: Plan,
-    *,
-    goal: torch.Tensor,
-    T_world_body: torch.Tensor,
-    esdf_map: EsdfMap,
-    eta: torch.Tensor | None = None,
-    eta_logit: torch.Tensor | None = None,
-    target_shares: torch.Tensor | None = None,
-    config: LossConfig | None = None,
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """U = γ1 U_O + γ2 U_G + γ3 U_S + γ4 U_E + γ5 U_T averaged over the batch.
-
-    Args:
-        plan: from :meth:`PlannerNet.trajectory` / :meth:`PlannerNet.plan` (body frame).
-        goal: (B, 3) goal in the body frame, metres.
-        T_world_body: (B, 4, 4) pose of the body at planning time (float64 fine).
-        esdf_map: the world's :class:`mapkit.esdf.EsdfMap`.
-        eta: (B,) collision probability; default ``plan.eta``.
-        eta_logit: (B,) its logit; default ``plan.eta_logit`` (see :func:`escape_cost`).
-        target_shares: (B, K) precomputed U_T target; default :func:`time_targets`.
-        config: :class:`LossConfig` (defaults if None).
-
-    Returns:
-        (total, terms): ``total`` a scalar tensor to back-propagate; ``terms`` detached batch means
-        of the unweighted terms "obstacle", "goal", "smoothness", "escape", "time", plus
-        "collision_rate" (fraction of labels 1) and "total".
-    """
-    cfg = config or LossConfig()
-    eta = plan.eta if eta is None else eta
-    eta_logit = plan.eta_logit if eta_logit is None else eta_logit
-    if eta is None and eta_logit is not None:
-        eta = torch.sigmoid(eta_logit)
-    if eta is None:
-        raise PlannerError("planner_loss needs eta (B,): pass eta_logit=net(x, goal).eta_logit or a plan from PlannerNet.plan")
-    traj = plan.trajectory
-    B = traj.batch_size
-    goal = torch.as_tensor(goal, dtype=plan.waypoints.dtype, device=plan.waypoints.device)
-    if goal.shape != (B, 3):
-        raise PlannerError(f"goal must have shape (B={B}, 3) in the body frame, got {tuple(goal.shape)}")
-    pts_body = sample_trajectory(traj, samples_per_second=cfg.samples_per_second, min_samples=cfg.min_samples)
-    pts_world = body_to_world(pts_body, T_world_body)
-    u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius, softness=cfg.obstacle_softness)
-    u_g = goal_cost(plan.waypoints[:, -1], goal)
-    u_s = smoothness_cost(plan.waypoints, torch.zeros_like(goal), goal)
-    collided = collision_labels(pts_world, esdf_map, threshold=cfg.robot_radius, raw=cfg.label_from_raw)
-    u_e = escape_cost(eta, collided, logit=eta_logit)
-    if target_shares is None:
-        target_shares = time_targets(plan.waypoints, total_time=plan.total_time, start=plan.start, end=_plan_end(plan),
-                                     min_segment=plan.min_segment, max_iters=cfg.time_target_iters,
-                                     rel_tol=cfg.time_target_tol)
-    u_t = time_cost(plan.shares, target_shares)
-    total = (cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s + cfg.gamma_escape * u_e
-             + cfg.gamma_time * u_t).mean()
-    f = functools.partial(_batch_mean, dtype=total.dtype)
-    terms = {"obstacle": f(u_o), "goal": f(u_g), "smoothness": f(u_s), "escape": f(u_e), "time": f(u_t),
-             "collision_rate": f(collided), "total": total.detach()}
-    return total, terms
-
-
 # ------------------------------------------------------------------------------ several candidates
 def _per_candidate(t: torch.Tensor, M: int) -> torch.Tensor:
     """``t`` (B, ...) once per candidate: (B·M, ...), sample-major."""
@@ -343,8 +282,8 @@ def candidate_loss(
     Each candidate's path cost is γ1 U_O + γ2 U_G + γ3 U_S; a sample's loss is its best candidate's
     cost plus α × the mean over candidates (``candidate_spread``), γ4 × the mean escape BCE of every
     candidate's η against its own collision label, γ_score × the cross-entropy of the scores against
-    the best candidate, and γ5 U_T of the best candidate's time split. With M = 1 this is exactly
-    :func:`planner_loss`.
+    the best candidate, and γ5 U_T of the best candidate's time split. With M = 1 this is the paper's
+    loss U = γ1 U_O + γ2 U_G + γ3 U_S + γ4 U_E + γ5 U_T.
 
     Returns (total, terms): batch means of the unweighted terms of the chosen candidate ("obstacle",
     "goal", "smoothness", "collision_rate"), plus "escape", "time", "score", "winner_collision_rate",

@@ -44,31 +44,25 @@ class TrainConfig:
     val_batches: int | None = None
     """Limit validation to this many batches (None: all)."""
     goals_together: bool = False
-    """Batches hold whole tuples (every goal of a depth image): the encoder runs once per image,
-    several times fewer encoder passes per sample (measured ~2.5x samples/s on the cpu preset)."""
+    """Batches hold whole tuples (every goal of a depth image): the encoder runs once per image."""
     grad_clip: float | None = 10.0
-    """Clip the gradient's global norm to this before each step (None: off); a few colliding
-    samples give large obstacle gradients that otherwise kill ReLU units at higher learning rates."""
+    """Clip the gradient's global norm to this before each step (None: off)."""
     corridor: float | None = None
     """Flight-corridor half-width (m) for min_snap during training; None = through the key-points."""
     init: str | None = None
-    """Start from the weights of this model (a run directory, its model.pt, or "pretrained" for the
-    planner shipped with mapkit) instead of random ones: fine-tuning on one's own flights or with a
-    changed loss. Its planner configuration must equal this run's."""
+    """Start from the weights of this model (a run directory, its model.pt, or "pretrained") instead of
+    random ones (fine-tuning); its planner configuration must equal this run's."""
     only: TrainedWeights = "all"
     """Which weights train. "tan": only the Time Allocation Net, on the key-points of the frozen
-    ``init`` model (the TAN learns from U_T alone, so this is the joint training's TAN part without
-    changing the paths); its TAN options (``tan_boundary``, ``tan_hidden``, timing rule) may differ
-    from the init model's. The best epoch is then chosen by the held-out U_T. "judge": only the
-    candidates' judge (their scores and η; the η head of a one-path net), on the frozen key-points of
-    ``init``: a judge retrained on other frames compares flight for flight, the paths unmoved."""
+    ``init`` model (its TAN options may differ from the init model's; the best epoch is chosen by the
+    held-out U_T). "judge": only the candidates' judge (scores and η; a one-path net's η head)."""
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     """The planner network's configuration (mapkit.planner)."""
     loss: LossConfig = field(default_factory=LossConfig)
     """The training loss's weights and parameters (mapkit.planner)."""
     _planner_keys: tuple[str, ...] = field(default=(), repr=False, compare=False)
     """PlannerConfig fields given by name (preset, planner settings, config.json), in order: config.json
-    lists them even at their default value, as it did when ``planner`` was a dict of them."""
+    lists them even at their default value."""
     _loss_keys: tuple[str, ...] = field(default=(), repr=False, compare=False)
     """LossConfig fields given by name, likewise."""
 
@@ -96,9 +90,8 @@ class TrainConfig:
 
     @classmethod
     def from_saved(cls, data: dict[str, Any]) -> TrainConfig:
-        """The config of a run's config.json (whose other records, workspaces and camera, are skipped).
-        Loss fields since removed load while they hold the behaviour the loss now always has; the
-        CLI and recipes go through :meth:`from_dict`, which knows only today's fields."""
+        """The config of a run's config.json (its other records skipped); removed loss fields load while
+        they hold the behaviour the loss now always has (:meth:`from_dict` knows only today's fields)."""
         options = {k: v for k, v in data.items() if k in {f.name for f in _option_fields()}}
         if isinstance(options.get("loss"), dict):
             options["loss"] = drop_removed_fields(options["loss"], TrainConfigError)
@@ -156,9 +149,7 @@ PRESETS: dict[str, TrainConfig] = {
     "paper": TrainConfig.from_dict({"preset": "paper", "epochs": 50, "batch_size": 16, "lr": 1e-4,
                                     "planner": {"input_size": [360, 640], "encoder_width": 1.0}}),
     # A model on a 2-core CPU within the hour: small input, a quarter-width encoder, eight scored
-    # candidate paths checked against the depth image (winner-takes-all, soft-min score targets), a
-    # sharper obstacle hinge (ε 0.3 m: free space no longer swamps the collision signal), LeakyReLU
-    # heads and lr 5e-4 with gradient clipping (ReLU heads died on 47 worlds).
+    # candidate paths checked against the depth image, a sharper obstacle hinge, LeakyReLU heads.
     "cpu": TrainConfig.from_dict({"preset": "cpu", "epochs": 8, "batch_size": 16, "lr": 5e-4,
                                   "planner": {"input_size": [96, 160], "encoder_width": 0.25, "num_candidates": 8,
                                               "head_activation": "leaky_relu", "depth_check": True,

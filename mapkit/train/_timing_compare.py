@@ -1,10 +1,6 @@
-"""`mapkit lab compare-timing`: a model's TAN against the gradient-descent split on the same recorded plans.
-
-Closed-loop flights cannot resolve a few per cent between two time allocations: a receding-horizon
-flight turns any small difference into another path (the same planner flown a little faster differs
-from itself by tens of per cent in executed effort per seed). On the same plans
-(the same key-points, start state, end speed and total time) the difference has no such noise: this is
-the paper's Table III comparison, plus the part of each plan a replanning flight actually flies.
+"""`mapkit lab compare-timing`: a model's TAN against the gradient-descent split on the same recorded
+plans (the paper's Table III, plus the part of each plan a replanning flight flies), free of the
+closed loop's noise.
 """
 
 from __future__ import annotations
@@ -24,8 +20,7 @@ if TYPE_CHECKING:
     from mapkit.trajopt import TimeAllocationNet, Trajectory
 
 WINDOW_SAMPLES = 201
-"""Simpson samples over the flown window (odd): snap is a cubic within a segment and continuous across
-the knots, and its square integrates to about 1e-6 relative or better."""
+"""Simpson samples over the flown window (odd)."""
 
 
 @dataclass(frozen=True)
