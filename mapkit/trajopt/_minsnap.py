@@ -312,16 +312,8 @@ def _scaled(qp: _PositionQp) -> tuple[np.ndarray, ...]:
             d.cpu().numpy())
 
 
-def _solve_position_qp(
-    w: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, *, corridor: torch.Tensor | None,
-    corridor_samples: int, v_max: torch.Tensor | None, a_max: torch.Tensor | None, solver: str,
-    qp: _PositionQp | None = None,
-) -> _Solved:
-    """Knot vectors (B, N, 3), ok mask (B,) numpy, statuses and info for the inequality path; ``qp``:
-    the problem when already set up (the others then only name it)."""
-    if qp is None:
-        qp = _position_qp(w, T, start, end, corridor=corridor, corridor_samples=corridor_samples, v_max=v_max,
-                          a_max=a_max)
+def _solve_position_qp(qp: _PositionQp, solver: str) -> _Solved:
+    """Knot vectors (B, N, 3), ok mask (B,) numpy, statuses and info of the set-up problem ``qp``."""
     Ps_np, qs_np, Cs_np, los_np, his_np, scale = _scaled(qp)
     res = _qp.solve_batch(Ps_np, qs_np, Cs_np, los_np, his_np, solver=solver)
     ok = res.ok.copy()
@@ -351,7 +343,7 @@ def _solve_position_qp(
         for b in np.nonzero(bad)[0]:
             ok[b] = False
             status[b] = "the active-set KKT solve did not reproduce a feasible solution"
-    z = torch.where(torch.as_tensor(ok, device=w.device).unsqueeze(-1), z, torch.zeros_like(z))
+    z = torch.where(torch.as_tensor(ok, device=z.device).unsqueeze(-1), z, torch.zeros_like(z))
     return _knots(qp, z), ok, status, _info(solver, res, active, qp)
 
 
@@ -392,17 +384,15 @@ def _independent(C: np.ndarray, act: np.ndarray) -> np.ndarray:
     return np.sort(act[piv[:rank]])
 
 
-def _tighten_limits(X: torch.Tensor, ok: np.ndarray, status: list[str], info: dict[str, Any], w: torch.Tensor,
-                    T: torch.Tensor, start_t: torch.Tensor, end_t: torch.Tensor, corr: torch.Tensor | None,
-                    corridor_samples: int, vm: torch.Tensor | None, am: torch.Tensor | None, solver: str,
-                    qp: _PositionQp) -> _Solved:
+def _tighten_limits(X: torch.Tensor, ok: np.ndarray, status: list[str], info: dict[str, Any], T: torch.Tensor,
+                    vm: torch.Tensor | None, am: torch.Tensor | None, solver: str, qp: _PositionQp) -> _Solved:
     """Re-solve ``qp`` (the problem solved with ``vm``/``am``) with limits scaled down by the excess
     found on a dense grid, until the solution keeps ``vm``/``am`` between the QP's samples too (a few
     rounds; the excess shrinks fast)."""
     vm0, am0 = vm, am
     for _ in range(4):
         traj = Trajectory(coefficients(X, T, 4), T)
-        scale = torch.ones(w.shape[0], dtype=_WORK, device=w.device)
+        scale = torch.ones(T.shape[0], dtype=_WORK, device=T.device)
         for limit, limit0, order in ((vm, vm0, 1), (am, am0, 2)):
             if limit is None or limit0 is None:  # both or neither
                 continue
@@ -413,8 +403,7 @@ def _tighten_limits(X: torch.Tensor, ok: np.ndarray, status: list[str], info: di
         vm = None if vm is None else vm * torch.where(scale < 1, 0.995 * scale, torch.ones_like(scale))
         am = None if am is None else am * torch.where(scale < 1, 0.995 * scale, torch.ones_like(scale))
         # only the limits' bounds change: the problem is not set up again (most of a solve's time)
-        X, ok, status, info = _solve_position_qp(w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples,
-                                                 v_max=vm, a_max=am, solver=solver, qp=qp.relimited(vm, am))
+        X, ok, status, info = _solve_position_qp(qp.relimited(vm, am), solver)
     return X, ok, status, info
 
 
@@ -598,13 +587,9 @@ def _solve_constrained(
     """The inequality path: (X, solved mask, messages, info); unsolved elements fall back to the
     closed form with a warning or an error as ``on_infeasible`` says."""
     qp = _position_qp(w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples, v_max=vm, a_max=am)
-    X, ok, status, info = _solve_position_qp(
-        w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples,
-        v_max=vm, a_max=am, solver=solver, qp=qp,
-    )
+    X, ok, status, info = _solve_position_qp(qp, solver)
     if limits_everywhere and (vm is not None or am is not None):
-        X, ok, status, info = _tighten_limits(X, ok, status, info, w, T, start_t, end_t, corr, corridor_samples,
-                                              vm, am, solver, qp)
+        X, ok, status, info = _tighten_limits(X, ok, status, info, T, vm, am, solver, qp)
     solved = torch.ones(w.shape[0], dtype=torch.bool, device=w.device)
     messages: tuple[str, ...] = ()
     if not ok.all():

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal, overload
+from typing import Literal
 
 import numpy as np
 import torch
@@ -112,21 +112,6 @@ def _min_duration(total: torch.Tensor, M: int) -> torch.Tensor:
     return 0.02 * total / M
 
 
-@overload
-def snap_cost_of_times(
-    waypoints: torch.Tensor, durations: torch.Tensor, *, start: torch.Tensor | None = ...,
-    end: torch.Tensor | None = ..., with_grad: Literal[False] = ...,
-) -> torch.Tensor: ...
-@overload
-def snap_cost_of_times(
-    waypoints: torch.Tensor, durations: torch.Tensor, *, start: torch.Tensor | None = ...,
-    end: torch.Tensor | None = ..., with_grad: Literal[True],
-) -> tuple[torch.Tensor, torch.Tensor]: ...
-@overload
-def snap_cost_of_times(
-    waypoints: torch.Tensor, durations: torch.Tensor, *, start: torch.Tensor | None = ...,
-    end: torch.Tensor | None = ..., with_grad: bool,
-) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]: ...
 def snap_cost_of_times(
     waypoints: torch.Tensor,
     durations: torch.Tensor,
@@ -141,6 +126,15 @@ def snap_cost_of_times(
     optimum only the explicit dependence on T counts), without autograd. Inputs as in
     :func:`mapkit.trajopt.min_snap`; float64 internally. Non-finite costs are returned as +inf.
     """
+    J, g, batched = _snap_cost(waypoints, durations, start, end, with_grad)
+    if g is None:
+        return J if batched else J[0]
+    return (J, g) if batched else (J[0], g[0])
+
+
+def _snap_cost(waypoints: torch.Tensor, durations: torch.Tensor, start: torch.Tensor | None,
+               end: torch.Tensor | None, with_grad: bool) -> tuple[torch.Tensor, torch.Tensor | None, bool]:
+    """:func:`snap_cost_of_times` batched: (J (B,), dJ/dT (B, M) or None, whether the input was batched)."""
     w, batched = _prep(waypoints)
     w = w.to(_WORK)
     B, M1, _ = w.shape
@@ -160,12 +154,11 @@ def snap_cost_of_times(
     J = (quad * T ** (-7)).sum(-1)
     J = torch.where(torch.isfinite(J), J, torch.full_like(J, math.inf))
     if not with_grad:
-        return J if batched else J[0]
+        return J, None, batched
     qv = torch.tensor([0, 1, 2, 3, 0, 1, 2, 3], dtype=_WORK, device=w.device)
     dds = ds * (qv.reshape(1, 1, 8, 1) / T.reshape(B, M, 1, 1))
     cross = (dds * Rds).sum(dim=(2, 3))
-    g = -7.0 * quad * T ** (-8) + 2.0 * cross * T ** (-7)
-    return (J, g) if batched else (J[0], g[0])
+    return J, -7.0 * quad * T ** (-8) + 2.0 * cross * T ** (-7), batched
 
 
 @dataclass
@@ -181,15 +174,15 @@ class _SnapTimeProblem:
     t_min: torch.Tensor
     """(B, M) smallest durations."""
 
-    @overload
-    def cost(self, Tc: torch.Tensor, need_grad: Literal[True]) -> tuple[torch.Tensor, torch.Tensor]: ...
-    @overload
-    def cost(self, Tc: torch.Tensor, need_grad: Literal[False]) -> tuple[torch.Tensor, None]: ...
-    def cost(self, Tc: torch.Tensor, need_grad: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(B,) objective and, with ``need_grad``, its gradient (B, M)."""
-        if need_grad:
-            return snap_cost_of_times(self.w, Tc, start=self.start, end=self.end, with_grad=True)
-        return snap_cost_of_times(self.w, Tc, start=self.start, end=self.end), None
+    def cost(self, Tc: torch.Tensor) -> torch.Tensor:
+        """(B,) objective."""
+        return _snap_cost(self.w, Tc, self.start, self.end, False)[0]
+
+    def cost_and_grad(self, Tc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B,) objective and its gradient (B, M)."""
+        J, g, _ = _snap_cost(self.w, Tc, self.start, self.end, True)
+        assert g is not None  # asked for
+        return J, g
 
     def project(self, Tc: torch.Tensor) -> torch.Tensor:
         """The nearest feasible durations: T ≥ t_min and ΣT = total (sort-based simplex projection)."""
@@ -220,7 +213,7 @@ def _line_search(problem: _SnapTimeProblem, T: torch.Tensor, f: torch.Tensor, g:
         if not bool(todo.any()):
             break
         cand = problem.project(T - trial * g)
-        fc, _ = problem.cost(cand, False)
+        fc = problem.cost(cand)
         dec = ((cand - T) ** 2).sum(-1)
         # A snap cost is never negative: a negative value is lost precision, not a descent.
         ok = torch.isfinite(fc) & (fc >= 0) & (fc <= f - 1e-4 / trial.squeeze(-1) * dec)
@@ -255,7 +248,7 @@ def _gradient_allocation(
     with torch.no_grad():
         if min_duration is not None:
             T = problem.project(T)  # the start must respect the floor too
-        f, g = problem.cost(T, True)
+        f, g = problem.cost_and_grad(T)
         if not bool(torch.isfinite(f).all()):
             raise TrajoptError(
                 "gradient time allocation: the initial durations give no finite cost for some "
@@ -273,7 +266,7 @@ def _gradient_allocation(
             step = torch.where(accepted.unsqueeze(-1), 2.0 * trial, trial)
             T = torch.where(accepted.unsqueeze(-1), T_new, T)
             if bool(active.any()):
-                f, g = problem.cost(T, True)
+                f, g = problem.cost_and_grad(T)
     return T
 
 
