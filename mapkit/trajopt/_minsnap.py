@@ -83,15 +83,10 @@ def _check_finite(t: torch.Tensor, name: str) -> None:
 
 # ------------------------------------------------------------------------------- constraints
 def _corridor_rows(w: torch.Tensor, T: torch.Tensor, half_width: torch.Tensor, n_samples: int) -> _Rows:
-    """Local rows (B, m, 3, 8), their segment (m,) and bounds lo/hi (B, m): the perpendicular
-    deviation of every sample from its segment's key-point line, per world axis, lies within
-    +-half_width (the corridor of Mellinger & Kumar 2011), and its position along the line lies
-    between the segment's ends extended by half_width (so the corridor is a bounded prism).
-
-    Samples: n_samples evenly spaced interior points of every segment plus both ends of every
-    segment except the trajectory's own start and end (so an interior knot lies in the corridors
-    of both of its segments).
-    """
+    """Local rows (B, m, 3, 8), their segment (m,) and bounds lo/hi (B, m): each sample's deviation across
+    its segment's key-point line within +-half_width per world axis, and its position along the line
+    within the segment's ends extended by half_width. Samples: n_samples interior points of every
+    segment plus both ends of every segment but the trajectory's own start and end."""
     B, M = T.shape
     s = np.concatenate([[0.0], np.arange(1, n_samples + 1) / (n_samples + 1), [1.0]])
     K = s.size
@@ -115,8 +110,7 @@ def _corridor_rows(w: torch.Tensor, T: torch.Tensor, half_width: torch.Tensor, n
     centre = centre.reshape(B, M * K, 3).index_select(1, keep_t).reshape(B, -1)
     hw = half_width.unsqueeze(-1).unsqueeze(-1).expand(B, M, K, 3).reshape(B, M * K, 3)
     hw = hw.index_select(1, keep_t).reshape(B, -1)
-    # Along the segment: u·p within [u·a − W, u·b + W]. Without it the free interior key-points may
-    # slide along their lines, and a sharp turn is overshot by metres.
+    # along the segment: u·p within [u·a − W, u·b + W] (else sharp turns are overshot by metres)
     along = u.unsqueeze(2).unsqueeze(-1) * L.unsqueeze(3)  # (B, M, K, 3b, 8)
     along = torch.where(degenerate.unsqueeze(-1), torch.zeros_like(along), along)
     along = along.reshape(B, M * K, 3, 8).index_select(1, keep_t)
@@ -172,36 +166,24 @@ class _PositionQp:
     minimise ½ zᵀPz + qᵀz subject to lo <= C z + c_fix <= hi (rows ``local`` of segments ``seg_np``)."""
 
     B: int
-    N: int
-    """Knot-vector length."""
-    nf: int
-    """Free knot values per axis."""
-    fi: torch.Tensor
-    """Indices of the free knot values."""
-    xi: torch.Tensor
-    """Indices of the fixed knot values."""
-    X0: torch.Tensor
-    """(B, N, 3) knot values, the free ones to be replaced."""
-    Xp: torch.Tensor
-    """(B, nfix, 3) fixed knot values."""
+    N: int  # knot-vector length
+    nf: int  # free knot values per axis
+    fi: torch.Tensor  # indices of the free knot values
+    xi: torch.Tensor  # indices of the fixed knot values
+    X0: torch.Tensor  # (B, N, 3) knot values, the free ones to be replaced
+    Xp: torch.Tensor  # (B, nfix, 3) fixed knot values
     P: torch.Tensor
     q: torch.Tensor
-    local: torch.Tensor
-    """(B, m, 3, 8) constraint rows on one segment's coefficients."""
-    seg_np: np.ndarray
-    """(m,) segment of each row."""
+    local: torch.Tensor  # (B, m, 3, 8) constraint rows on one segment's coefficients
+    seg_np: np.ndarray  # (m,) segment of each row
     lo: torch.Tensor
     hi: torch.Tensor
-    C: torch.Tensor
-    """(B, m, 3·nf) rows on the free values (no autograd)."""
-    c_fix: torch.Tensor
-    """(B, m) the fixed values' part of each row (no autograd)."""
-    limit_rows: tuple[int, int] = (0, 0)
-    """How many of the last rows are speed limits, then acceleration limits."""
+    C: torch.Tensor  # (B, m, 3·nf) rows on the free values (no autograd)
+    c_fix: torch.Tensor  # (B, m) the fixed values' part of each row (no autograd)
+    limit_rows: tuple[int, int] = (0, 0)  # how many of the last rows are speed, then acceleration limits
 
     def relimited(self, v_max: torch.Tensor | None, a_max: torch.Tensor | None) -> _PositionQp:
-        """The same problem with other speed / acceleration limits (the problem's own ones present):
-        only their bounds change, so the rows, objective and the rest are reused as they are."""
+        """The same problem with other speed / acceleration limits (only their bounds change)."""
         n_v, n_a = self.limit_rows
         keep = self.lo.shape[1] - n_v - n_a
         lo, hi = [self.lo[:, :keep]], [self.hi[:, :keep]]
@@ -214,8 +196,7 @@ class _PositionQp:
         return dataclasses.replace(self, lo=torch.cat(lo, dim=1), hi=torch.cat(hi, dim=1))
 
     def solve_active(self, active: list[np.ndarray], upper: list[np.ndarray]) -> torch.Tensor:
-        """Differentiable KKT solve holding each element's ``active`` rows at their bounds (``upper``:
-        the upper one); only the held rows are rebuilt with autograd."""
+        """Differentiable KKT solve holding each element's ``active`` rows at their bounds (``upper``: the upper)."""
         B, dev = self.B, self.P.device
         k = max([a.size for a in active] + [0])
         idx = np.zeros((B, k), dtype=np.int64)
@@ -236,8 +217,7 @@ class _PositionQp:
         return _qp.kkt_solve(self.P, self.q, Ca, bound, torch.as_tensor(msk, device=dev))
 
     def violated(self, z: torch.Tensor) -> torch.Tensor:
-        """(B,) elements whose rows are violated by more than ~1e-8 relative, in physical units (m,
-        m/s, m/s²), or whose solution is not finite."""
+        """(B,) elements whose rows are violated by more than ~1e-8 relative, or not finite."""
         lo, hi = self.lo.detach(), self.hi.detach()
         lo_p = (lo - self.c_fix)
         hi_p = (hi - self.c_fix)
@@ -330,9 +310,7 @@ def _solve_position_qp(qp: _PositionQp, solver: str) -> _Solved:
     except RuntimeError:  # a singular KKT matrix somewhere in the batch
         bad = ok.copy()
     if bad.any():
-        # The solver's active set did not reproduce its solution (an interior-point backend's
-        # inexact multipliers, or a degenerate set): correct it with a few primal-dual active-set
-        # steps on the scaled problem, keeping a linearly independent set of rows.
+        # the active set did not reproduce the solution (inexact multipliers, or degenerate): repair it
         active, upper = list(active), list(upper)
         for b in np.nonzero(bad)[0]:
             active[b], upper[b] = _correct_active_set(
@@ -359,8 +337,7 @@ def _info(solver: str, res: _qp.QPResult, active: list[np.ndarray], qp: _Positio
 
 def _correct_active_set(P: np.ndarray, q: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                         act: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Repair an inexact active set (numpy, scaled problem): re-solve with DAQP, an exact dual
-    active-set method, warm-started from the guess. Returns the guess unchanged if DAQP fails."""
+    """Repair an inexact active set (numpy, scaled problem) with DAQP warm-started from it (unchanged if it fails)."""
     act = np.asarray(act, dtype=np.int64)
     sense = np.zeros(C.shape[0], dtype=np.int32)
     sense[act] = np.where(np.asarray(up, dtype=bool), 1, 3)  # ACTIVE (| LOWER)
@@ -386,9 +363,8 @@ def _independent(C: np.ndarray, act: np.ndarray) -> np.ndarray:
 
 def _tighten_limits(X: torch.Tensor, ok: np.ndarray, status: list[str], info: dict[str, Any], T: torch.Tensor,
                     vm: torch.Tensor | None, am: torch.Tensor | None, solver: str, qp: _PositionQp) -> _Solved:
-    """Re-solve ``qp`` (the problem solved with ``vm``/``am``) with limits scaled down by the excess
-    found on a dense grid, until the solution keeps ``vm``/``am`` between the QP's samples too (a few
-    rounds; the excess shrinks fast)."""
+    """Re-solve ``qp`` with ``vm``/``am`` scaled down by the excess found on a dense grid until the solution
+    keeps them between the QP's samples too (at most 4 rounds)."""
     vm0, am0 = vm, am
     for _ in range(4):
         traj = Trajectory(coefficients(X, T, 4), T)
@@ -435,14 +411,8 @@ def min_snap(
     on_infeasible: Literal["warn", "raise", "ignore"] = "warn",
     limits_everywhere: bool = False,
 ) -> Trajectory:
-    """Minimum-snap piecewise 7th-order polynomial trajectory through key-points, differentiable
-    with respect to the key-points, the segment durations and the boundary derivatives.
-
-    Minimises ``sum_axes integral (d^4 p/dt^4)^2 dt`` subject to the start/end position, velocity,
-    acceleration and jerk, continuity up to jerk at every knot, and either passing through every
-    interior key-point or (``corridor``) staying in the flight corridor around the key-point path.
-    Without inequalities a closed-form dense solve; with any (``corridor``, ``v_max``, ``a_max``) a
-    QP solved exactly per element, differentiated through the KKT conditions at its active set.
+    """Minimum-snap piecewise 7th-order polynomial trajectory through key-points (or within a corridor
+    around them), differentiable with respect to the key-points, durations and boundary derivatives.
 
     - ``waypoints`` (B, M+1, 3) or (M+1, 3) metres: start, M-1 interior key-points, end;
       ``durations`` (B, M) or (M,) seconds, all > 0.
@@ -483,8 +453,7 @@ def _conditions(
     corridor: float | torch.Tensor | None, v_max: float | torch.Tensor | None, a_max: float | torch.Tensor | None,
     *, corridor_samples: int, solver: str, on_infeasible: str,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
-    """:func:`min_snap`'s inputs checked, and its (B, 3, 3) start and end derivatives and its inequalities
-    (corridor, v_max, a_max; None where not asked) in the work precision."""
+    """:func:`min_snap`'s inputs checked: (B, 3, 3) start and end derivatives, corridor, v_max, a_max."""
     B, M = w.shape[0], w.shape[1] - 1
     _check_finite(w, "waypoints")
     _check_positive_durations(T)
@@ -499,8 +468,7 @@ def _solve_knots(
     corridor_samples: int, vm: torch.Tensor | None, am: torch.Tensor | None, solver: str, limits_everywhere: bool,
     on_infeasible: str,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[str, ...], dict[str, Any]]:
-    """(knot values, solved (B,), messages, info) of :func:`min_snap`: the closed form without inequalities,
-    else :func:`_solve_constrained`."""
+    """(knot values, solved (B,), messages, info) of :func:`min_snap`."""
     if corr is None and vm is None and am is None:
         B, M = w.shape[0], w.shape[1] - 1
         X = solve_knots(T, knot_values(w, start_t, end_t, 4), layout(M, 4, False))
@@ -584,8 +552,7 @@ def _solve_constrained(
     corridor_samples: int, vm: torch.Tensor | None, am: torch.Tensor | None, solver: str, limits_everywhere: bool,
     on_infeasible: str,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[str, ...], dict[str, Any]]:
-    """The inequality path: (X, solved mask, messages, info); unsolved elements fall back to the
-    closed form with a warning or an error as ``on_infeasible`` says."""
+    """The inequality path: (X, solved mask, messages, info); unsolved elements fall back to the closed form."""
     qp = _position_qp(w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples, v_max=vm, a_max=am)
     X, ok, status, info = _solve_position_qp(qp, solver)
     if limits_everywhere and (vm is not None or am is not None):
@@ -605,8 +572,7 @@ def _fall_back_where_unsolved(
     X: torch.Tensor, ok: np.ndarray, status: list[str], w: torch.Tensor, T: torch.Tensor, start_t: torch.Tensor,
     end_t: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[str, ...], str]:
-    """Unsolved elements take the closed-form solution through the key-points: (X, solved mask,
-    one message per failed element, the text to warn or raise with)."""
+    """Unsolved elements take the closed form: (X, solved mask, messages, the text to warn or raise with)."""
     B, M = T.shape
     failed = np.nonzero(~ok)[0]
     messages = tuple(f"batch element {int(b)}: {status[b]}" for b in failed)
