@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike
 from mapkit.trajopt import _qp
 from mapkit.trajopt._errors import TrajoptError
 from mapkit.trajopt._system import (
+    batched_waypoints,
     coefficients,
     index_tensor,
     knot_values,
@@ -481,14 +482,8 @@ def _work_waypoints(waypoints: torch.Tensor) -> tuple[torch.Tensor, bool]:
     """(B, M+1, 3) waypoints in the work precision and whether the input was batched; checks type and shape."""
     if not isinstance(waypoints, torch.Tensor):
         raise TrajoptError(f"waypoints must be a torch tensor, got {type(waypoints).__name__}")
-    if not waypoints.is_floating_point():
-        raise TrajoptError(f"waypoints must be float32 or float64, got {waypoints.dtype}")
-    batched = waypoints.ndim == 3
-    if waypoints.ndim not in (2, 3) or waypoints.shape[-1] != 3 or waypoints.shape[-2] < 2:
-        raise TrajoptError(
-            f"waypoints must have shape (B, M+1, 3) or (M+1, 3) with M >= 1, got {tuple(waypoints.shape)}"
-        )
-    return (waypoints if batched else waypoints.unsqueeze(0)).to(_WORK), batched
+    w, batched = batched_waypoints(waypoints)
+    return w.to(_WORK), batched
 
 
 def _durations(durations: torch.Tensor | ArrayLike, out_dtype: torch.dtype, w: torch.Tensor, M: int) -> torch.Tensor:

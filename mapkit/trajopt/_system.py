@@ -15,6 +15,17 @@ import numpy as np
 import torch
 
 from mapkit.trajopt._basis import basis_row, boundary_inverse, knot_cost_matrix
+from mapkit.trajopt._errors import TrajoptError
+
+
+def batched_waypoints(waypoints: torch.Tensor) -> tuple[torch.Tensor, bool]:
+    """(B, M+1, 3) key-points and whether the input was batched; :class:`TrajoptError` for a bad dtype or shape."""
+    if not waypoints.is_floating_point():
+        raise TrajoptError(f"waypoints must be float32 or float64, got {waypoints.dtype}")
+    if waypoints.ndim not in (2, 3) or waypoints.shape[-1] != 3 or waypoints.shape[-2] < 2:
+        raise TrajoptError(f"waypoints must have shape (B, M+1, 3) or (M+1, 3) with M >= 1, got {tuple(waypoints.shape)}")
+    batched = waypoints.ndim == 3
+    return (waypoints if batched else waypoints.unsqueeze(0)), batched
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from torch import nn
 from mapkit._choices import BOUNDARY_SCALES, BoundaryScale
 from mapkit.trajopt._basis import knot_cost_matrix
 from mapkit.trajopt._errors import TrajoptError
-from mapkit.trajopt._system import knot_values, layout, solve_knots, time_powers
+from mapkit.trajopt._system import batched_waypoints, knot_values, layout, solve_knots, time_powers
 
 ALLOCATION_METHODS = ("uniform", "trapezoid", "poly5", "gradient", "net")
 """Names accepted by ``allocate_times(method=...)``."""
@@ -31,14 +31,7 @@ def _prep(waypoints: torch.Tensor | ArrayLike) -> tuple[torch.Tensor, bool]:
     """(B, M+1, 3) key-points as a tensor and whether the input was batched; checks dtype and shape."""
     if not isinstance(waypoints, torch.Tensor):
         waypoints = torch.as_tensor(np.asarray(waypoints, dtype=np.float64))
-    if not waypoints.is_floating_point():
-        raise TrajoptError(f"waypoints must be float32 or float64, got {waypoints.dtype}")
-    if waypoints.ndim not in (2, 3) or waypoints.shape[-1] != 3 or waypoints.shape[-2] < 2:
-        raise TrajoptError(
-            f"waypoints must have shape (B, M+1, 3) or (M+1, 3) with M >= 1, got {tuple(waypoints.shape)}"
-        )
-    batched = waypoints.ndim == 3
-    return (waypoints if batched else waypoints.unsqueeze(0)), batched
+    return batched_waypoints(waypoints)
 
 
 def _lengths(w: torch.Tensor) -> torch.Tensor:
