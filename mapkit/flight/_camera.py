@@ -11,6 +11,7 @@ import math
 import numpy as np
 
 from mapkit.flight._errors import FlightError
+from mapkit.flight._plan import level_pose
 from mapkit.flight._recorded import RunCamera
 from mapkit.planner import CameraInput
 
@@ -67,12 +68,7 @@ def planning_frame(position: np.ndarray, T_world_camera: np.ndarray, T_world_bod
         raise FlightError(f"the {what} points {math.degrees(math.atan2(axis[2], horizontal)):+.0f}° from level: "
                           f"the pilot plans along a heading within {LEVEL_LIMIT_DEG:.0f}° of level; check the pose's "
                           "frames (world ENU z up, body FLU, camera optical z forward)")
-    yaw = math.atan2(axis[1], axis[0])
-    c, s = math.cos(yaw), math.sin(yaw)
-    T = np.eye(4)
-    T[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
-    T[:3, 3] = position
-    return T
+    return level_pose(position, math.atan2(axis[1], axis[0]))
 
 
 def frame_camera(K: np.ndarray, width: int, height: int, T_world_plan: np.ndarray,

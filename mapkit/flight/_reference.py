@@ -87,11 +87,6 @@ class Reference:
         self._yaw = yaw
 
     @property
-    def t_start(self) -> float:
-        """Seconds: where the reference begins (the switch from the previous one)."""
-        return self.pieces.t0
-
-    @property
     def t_end(self) -> float:
         """Seconds: where the position reference comes to rest."""
         return self.pieces.t_end
@@ -130,7 +125,7 @@ class Reference:
     def peaks(self, t_from: float | None = None, step: float = 0.01) -> tuple[float, float]:
         """(peak speed m/s, peak acceleration m/s², norms) from ``t_from`` (its start) to its end, sampled
         every ``step`` seconds."""
-        a = self.t_start if t_from is None else max(t_from, self.t_start)
+        a = self.pieces.t0 if t_from is None else max(t_from, self.pieces.t0)
         t = np.linspace(a, max(a, self.t_end), int(min(5000, (max(a, self.t_end) - a) / step)) + 2)
         return (float(np.linalg.norm(self.derivative(t, 1), axis=1).max()),
                 float(np.linalg.norm(self.derivative(t, 2), axis=1).max()))

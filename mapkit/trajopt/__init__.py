@@ -24,7 +24,6 @@ from mapkit.trajopt._timealloc import (
     TimeAllocationNetConfig,
     allocate_times,
     profile_time,
-    snap_cost_of_times,
 )
 from mapkit.trajopt._trajectory import Trajectory
 
@@ -41,5 +40,4 @@ __all__ = [
     "allocate_times",
     "min_snap",
     "profile_time",
-    "snap_cost_of_times",
 ]

@@ -98,29 +98,11 @@ def _min_duration(total: torch.Tensor, M: int) -> torch.Tensor:
     return 0.02 * total / M
 
 
-def snap_cost_of_times(
-    waypoints: torch.Tensor,
-    durations: torch.Tensor,
-    *,
-    start: torch.Tensor | None = None,
-    end: torch.Tensor | None = None,
-    with_grad: bool = False,
-) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-    """Minimum snap cost J(T) (B,) through the key-points (no inequalities), m²/s⁷.
-
-    With ``with_grad`` also returns dJ/dT (B, M), computed analytically (envelope theorem: at the
-    optimum only the explicit dependence on T counts), without autograd. Inputs as in
-    :func:`mapkit.trajopt.min_snap`; float64 internally. Non-finite costs are returned as +inf.
-    """
-    J, g, batched = _snap_cost(waypoints, durations, start, end, with_grad)
-    if g is None:
-        return J if batched else J[0]
-    return (J, g) if batched else (J[0], g[0])
-
-
 def _snap_cost(waypoints: torch.Tensor, durations: torch.Tensor, start: torch.Tensor | None,
                end: torch.Tensor | None, with_grad: bool) -> tuple[torch.Tensor, torch.Tensor | None, bool]:
-    """:func:`snap_cost_of_times` batched: (J (B,), dJ/dT (B, M) or None, whether the input was batched)."""
+    """Minimum snap cost J(T) (B,) through the key-points (no inequalities), m²/s⁷, with ``with_grad`` its
+    gradient dJ/dT (B, M) (analytic: the envelope theorem; else None), and whether the input was batched.
+    Inputs as in :func:`mapkit.trajopt.min_snap`; float64 inside; non-finite costs are +inf."""
     w, batched = _prep(waypoints)
     w = w.to(_WORK)
     B, M1, _ = w.shape
