@@ -1,12 +1,7 @@
-"""One step of one recording, as a Dask task: skip it when its marker says it is up to date, else run
-the library function the single command runs, then write the marker last.
-
-A step's *key* digests what it depends on: its options, and the recording (ingest) or the product of
-the step before (later steps). Its *product* is the small file that identifies what it wrote
-(``frames.zarr/zarr.json``, ``fuse.json``, ``map.zarr/zarr.json``, ``tuples.zarr/zarr.json``; the
-stores are published whole by a rename, so this file is the complete store's). The marker
-``WS/.batch/<step>.json`` holds both; a step is skipped only when the key is the same and the product
-is still the one the marker saw.
+"""One step of one recording, as a Dask task: skipped when its marker ``WS/.batch/<step>.json`` says it
+is up to date, else run as the single command runs it, the marker written last. The marker holds the
+step's *key* (a digest of its options and its input: the recording, or the product of the step before)
+and its *product* (a digest of the small file that identifies its complete output, :data:`PRODUCTS`).
 """
 
 from __future__ import annotations

@@ -17,9 +17,9 @@ from mapkit.geometry import transform_from_pose
 from mapkit.ingest._decode import (
     ACCEPTED,
     CAMERA_INFO_TYPE,
-    DEPTH_ENCODINGS,
     IMAGE_TYPES,
     POSE_TYPES,
+    READABLE_ENCODINGS,
     TF_TYPE,
     camera_intrinsics,
     decode_depth,
@@ -78,10 +78,7 @@ class IngestConfig:
             raise IngestError(f"max_frames {self.max_frames} must be at least 1")
 
     def to_attrs(self) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for key, value in self.__dict__.items():
-            out[key] = value.tolist() if isinstance(value, np.ndarray) else value
-        return out
+        return {key: value.tolist() if isinstance(value, np.ndarray) else value for key, value in self.__dict__.items()}
 
 
 @dataclass(frozen=True)
@@ -201,7 +198,7 @@ def _choose_depth(source: Source, config: IngestConfig, by_type: dict[str, list[
         if msgtype not in IMAGE_TYPES:
             raise IngestError(f"--depth-topic {topic} carries {msgtype}; expected sensor_msgs/Image or CompressedImage")
         enc = image_encoding(_first_message(source, topic), msgtype)
-        if enc not in DEPTH_ENCODINGS + ("compressedDepth",):
+        if enc not in READABLE_ENCODINGS:
             raise IngestError(f"topic {topic} has encoding {enc}; expected {ACCEPTED}; pass --depth-topic")
         return DepthChoice(topic, msgtype, "given by --depth-topic")
     images = [t for mt in IMAGE_TYPES for t in by_type.get(mt, [])]
@@ -218,7 +215,7 @@ def _choose_depth(source: Source, config: IngestConfig, by_type: dict[str, list[
             unreadable.append(str(exc))
             continue
         seen.append(f"{topic} ({enc})")
-        if enc in DEPTH_ENCODINGS + ("compressedDepth",):
+        if enc in READABLE_ENCODINGS:
             # Prefer names that say depth, raw over compressed, then the busiest topic.
             rank = ("depth" in topic.lower(), msgtype.endswith("/Image"))
             candidates.append(((int(rank[0]) * 2 + int(rank[1]), s.topics[topic].count), topic, msgtype, enc))
@@ -377,8 +374,8 @@ def _resolve(source: Source, roles: Roles, config: IngestConfig) -> SourcePlan:
     # chain (e.g. a gimbal); skipping it halves the pose messages a bag like ours needs.
     moving = tree.dynamic_edges(world, camera)
     needs_dynamic_tf = pose_series is None or any(e is not pose_series for e in moving)
-    return SourcePlan(roles.summary, roles.depth, roles.depth_encoding, roles.camera_info, roles.pose, roles.tf_topics,
-                      K, width, height, world, body, camera, pose_parent, needs_dynamic_tf)
+    return SourcePlan(**vars(roles), K=K, width=width, height=height, world_frame=world, body_frame=body,
+                      camera_frame=camera, pose_parent=pose_parent, needs_dynamic_tf=needs_dynamic_tf)
 
 
 def _read_until_planned(source: Source, roles: Roles, config: IngestConfig, camera: str) -> tuple[_PoseFeed, Any]:
@@ -621,10 +618,8 @@ class _SourceReader:
 
     def finish(self) -> None:
         """Count the dropped pose messages and keep the stamp spans for the no-frames message."""
-        dropped = self.stream.dropped
-        dropped["pose_message_non_monotonic"] += self.feed.dropped_poses
-        if not dropped["pose_message_non_monotonic"]:
-            del dropped["pose_message_non_monotonic"]
+        if self.feed.dropped_poses:
+            self.stream.dropped["pose_message_non_monotonic"] += self.feed.dropped_poses
         edges = self.tree.dynamic_edges(self.plan.world_frame, self.plan.camera_frame)
         self.stream._spans[self.index] = ((self.first_stamp or 0, self.last_stamp or 0), [e.span for e in edges if len(e)])
 
