@@ -73,13 +73,6 @@ class BagSummary:
         return FORMAT_NAMES[self.kind]
 
 
-def _count_topic(topics: dict[str, TopicSummary], topic: str, msgtype: str, count: int) -> None:
-    """Add ``count`` messages of ``topic`` (several connections may carry one topic)."""
-    name = normalize_topic(topic)
-    prev = topics.get(name)
-    topics[name] = TopicSummary(name, msgtype, count + (prev.count if prev else 0))
-
-
 def normalize_topic(name: str) -> str:
     """Topic names compare with or without a leading slash."""
     return "/" + name.strip().lstrip("/")
@@ -205,7 +198,9 @@ class _Rosbags:
         self._reader = reader
         topics: dict[str, TopicSummary] = {}
         for conn in reader.connections:
-            _count_topic(topics, conn.topic, conn.msgtype, conn.msgcount)
+            name = normalize_topic(conn.topic)
+            prev = topics.get(name)
+            topics[name] = TopicSummary(name, conn.msgtype, conn.msgcount + (prev.count if prev else 0))
         self.summary = BagSummary(path, kind, int(reader.start_time), int(reader.end_time), topics)
 
     def close(self) -> None:
@@ -241,16 +236,7 @@ def _typestore_from_schemas(path: Path, schemas: Iterable[Any]) -> Any:
     return store
 
 
-class _Mcap:
-    """What both MCAP readers share: a typestore made from the file's schemas."""
-
-    typestore: Any
-
-    def deserialize(self, msg: RawMessage) -> Any:
-        return self.typestore.deserialize_cdr(msg.data, msg.msgtype)
-
-
-class _McapIndexed(_Mcap):
+class _McapIndexed:
     """A complete MCAP file, read through its summary section and chunk indexes."""
 
     def __init__(self, path: Path) -> None:
@@ -273,7 +259,9 @@ class _McapIndexed(_Mcap):
         counts = summary.statistics.channel_message_counts
         topics: dict[str, TopicSummary] = {}
         for cid, ch in summary.channels.items():
-            _count_topic(topics, ch.topic, self._names[ch.schema_id], counts.get(cid, 0))
+            name = normalize_topic(ch.topic)
+            prev = topics.get(name)
+            topics[name] = TopicSummary(name, self._names[ch.schema_id], counts.get(cid, 0) + (prev.count if prev else 0))
         st = summary.statistics
         self.summary = BagSummary(path, "mcap", int(st.message_start_time), int(st.message_end_time), topics)
 
@@ -306,8 +294,11 @@ class _McapIndexed(_Mcap):
                 topic, msgtype = topics[cid]
                 yield RawMessage(topic, msgtype, log_time, data)
 
+    def deserialize(self, msg: RawMessage) -> Any:
+        return self.typestore.deserialize_cdr(msg.data, msg.msgtype)
 
-class _McapStream(_Mcap):
+
+class _McapStream:
     """Reads a footer-less (truncated) MCAP record by record; keeps what precedes the cut."""
 
     def __init__(self, path: Path) -> None:
@@ -333,7 +324,10 @@ class _McapStream(_Mcap):
                 counts.setdefault(topic, [record.channel_id, 0])[1] += 1
         self.typestore = _typestore_from_schemas(path, schemas)
         self._schema_names = {sch.id: _ros2_typename(sch.name) for sch in schemas}
-        topics = {t: TopicSummary(t, self._schema_names[self._channels[cid][1]], c) for t, (cid, c) in counts.items()}
+        topics = {
+            t: TopicSummary(t, self._schema_names[self._channels[cid][1]], c)
+            for t, (cid, c) in counts.items()
+        }
         warnings = []
         if cut is not None:
             warnings.append(
@@ -366,6 +360,9 @@ class _McapStream(_Mcap):
 
     def close(self) -> None:
         pass
+
+    def deserialize(self, msg: RawMessage) -> Any:
+        return self.typestore.deserialize_cdr(msg.data, msg.msgtype)
 
     def messages(self, wanted: set[str]) -> Iterator[RawMessage]:
         for record in self._records():
