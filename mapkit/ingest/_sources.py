@@ -324,10 +324,7 @@ class _McapStream:
                 counts.setdefault(topic, [record.channel_id, 0])[1] += 1
         self.typestore = _typestore_from_schemas(path, schemas)
         self._schema_names = {sch.id: _ros2_typename(sch.name) for sch in schemas}
-        topics = {
-            t: TopicSummary(t, self._schema_names[self._channels[cid][1]], c)
-            for t, (cid, c) in counts.items()
-        }
+        topics = {t: TopicSummary(t, self._schema_names[self._channels[cid][1]], c) for t, (cid, c) in counts.items()}
         warnings = []
         if cut is not None:
             warnings.append(
