@@ -10,7 +10,6 @@ import hashlib
 import json
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -84,12 +83,10 @@ def run_step(job: StepJob, previous: StepOutcome | None = None) -> StepOutcome:
     A MapkitError is the recording's problem and comes back as a failed outcome (retrying would
     not help); anything else raises, so Dask retries it and the batch reports it as unexpected.
     """
-    if previous is not None and previous.status == "failed":
-        if job.last and isinstance(job.workspace, str):
-            _remote.drop_scratch(job.workspace)
-        return previous
     t0 = time.perf_counter()
     try:
+        if previous is not None and previous.status == "failed":
+            return previous
         key = step_key(job)
         why = stale_reason(job, key)
         if why is None:
@@ -99,7 +96,7 @@ def run_step(job: StepJob, previous: StepOutcome | None = None) -> StepOutcome:
         if isinstance(job.workspace, str):
             _run_at_url(job, job.workspace)
         else:
-            _RUNNERS[job.step](job)
+            _run_library(job)
         _write_marker(job, key)
     except MapkitError as exc:
         return StepOutcome(job.name, job.step, "failed", " ".join(str(exc).split()), time.perf_counter() - t0)
@@ -113,7 +110,7 @@ def _run_at_url(job: StepJob, url: str) -> None:
     """The step in this worker's scratch workspace, between bringing in what it reads and publishing
     what it made (:mod:`mapkit.batch._remote`)."""
     scratch = _remote.stage_in(url, job.step, PRODUCTS)
-    _RUNNERS[job.step](replace(job, workspace=scratch))
+    _run_library(replace(job, workspace=scratch))
     _remote.stage_out(url, job.step, scratch)
 
 
@@ -210,34 +207,20 @@ def _write_marker(job: StepJob, key: str) -> None:
         tmp.write_text(text)
 
 
-# The same library calls as `mapkit ingest`, `mapkit fuse -w WS` (no recordings: fuse the workspace's
-# frames), `mapkit esdf` and `mapkit export`, each with --overwrite: the key said the output is stale.
-def _ingest(job: StepJob) -> None:
+def _run_library(job: StepJob) -> None:
+    """The same library call as `mapkit ingest`, `mapkit fuse -w WS` (the workspace's frames), `mapkit esdf`
+    or `mapkit export`, with --overwrite: the key said the output is stale."""
+    from mapkit.esdf import build_esdf
+    from mapkit.export import export_tuples
+    from mapkit.fusion import fuse
     from mapkit.ingest import ingest
 
-    assert isinstance(job.options, IngestConfig)
-    ingest([job.recording], job.workspace, job.options, overwrite=True, progress=False)
-
-
-def _fuse(job: StepJob) -> None:
-    from mapkit.fusion import fuse
-
-    assert isinstance(job.options, FuseConfig)
-    fuse([], job.workspace, job.options, overwrite=True, progress=False)
-
-
-def _esdf(job: StepJob) -> None:
-    from mapkit.esdf import build_esdf
-
-    assert isinstance(job.options, EsdfConfig)
-    build_esdf(job.workspace, job.options, overwrite=True, progress=False)
-
-
-def _export(job: StepJob) -> None:
-    from mapkit.export import export_tuples
-
-    assert isinstance(job.options, ExportConfig)
-    export_tuples(job.workspace, job.options, overwrite=True, progress=False)
-
-
-_RUNNERS: dict[Step, Callable[[StepJob], None]] = {"ingest": _ingest, "fuse": _fuse, "esdf": _esdf, "export": _export}
+    options: Any = job.options
+    if job.step == "ingest":
+        ingest([job.recording], job.workspace, options, overwrite=True, progress=False)
+    elif job.step == "fuse":
+        fuse([], job.workspace, options, overwrite=True, progress=False)
+    elif job.step == "esdf":
+        build_esdf(job.workspace, options, overwrite=True, progress=False)
+    else:
+        export_tuples(job.workspace, options, overwrite=True, progress=False)
