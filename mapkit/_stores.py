@@ -62,10 +62,8 @@ class Location:
         try:
             fs, path = fsspec.core.url_to_fs(url, **(storage_options or {}))
         except (ValueError, ImportError) as exc:
-            raise StoreError(
-                f"cannot use {url!r}: {exc}; give a local path or a URL whose fsspec backend is installed "
-                "(e.g. pip install s3fs for s3://, gcsfs for gs://)"
-            ) from None
+            raise StoreError(f"cannot use {url!r}: {exc}; give a local path or a URL whose fsspec backend is installed "
+                             "(e.g. pip install s3fs for s3://, gcsfs for gs://)") from None
         from fsspec.implementations.local import LocalFileSystem
 
         if isinstance(fs, LocalFileSystem):

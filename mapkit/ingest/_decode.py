@@ -51,10 +51,8 @@ def decode_depth(msg: Any, msgtype: str, *, topic: str) -> NDArray[np.float32]:
     enc = msg.encoding
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     if height == 0 or width == 0:
-        raise IngestError(
-            f"topic {topic} has a {width}x{height} image at stamp {stamp_ns(msg.header)} ns; "
-            "a depth image needs pixels (check the camera driver)"
-        )
+        raise IngestError(f"topic {topic} has a {width}x{height} image at stamp {stamp_ns(msg.header)} ns; "
+                          "a depth image needs pixels (check the camera driver)")
     if enc in ("16UC1", "mono16"):
         bpp, kind = 2, "u2"
     elif enc == "32FC1":
@@ -63,10 +61,8 @@ def decode_depth(msg: Any, msgtype: str, *, topic: str) -> NDArray[np.float32]:
         raise IngestError(f"topic {topic} has encoding {enc}; expected {ACCEPTED}; pass --depth-topic")
     data = msg.data
     if step < width * bpp or len(data) < step * (height - 1) + width * bpp:
-        raise IngestError(
-            f"topic {topic}: image at stamp {stamp_ns(msg.header)} ns has {len(data)} bytes for "
-            f"{width}x{height} {enc} with step {step}; the message is corrupted"
-        )
+        raise IngestError(f"topic {topic}: image at stamp {stamp_ns(msg.header)} ns has {len(data)} bytes for "
+                          f"{width}x{height} {enc} with step {step}; the message is corrupted")
     dtype = np.dtype((">" if msg.is_bigendian else "<") + kind)
     # A strided view honours row padding (step > width * bpp) without copying.
     raw = np.ndarray((height, width), dtype=dtype, buffer=data, strides=(step, bpp))
@@ -122,10 +118,8 @@ def camera_intrinsics(msg: Any, *, topic: str) -> tuple[NDArray[np.float64], int
     """(K 3x3, width, height) from a CameraInfo (ROS1 field K, ROS2 field k)."""
     K = np.asarray(msg.k if hasattr(msg, "k") else msg.K, dtype=np.float64).reshape(3, 3)
     if not (K[0, 0] > 0 and K[1, 1] > 0) or not np.all(np.isfinite(K)):
-        raise IngestError(
-            f"topic {topic} has camera matrix K={K.ravel().tolist()} with no focal length; "
-            "the camera is uncalibrated: pass --intrinsics fx,fy,cx,cy"
-        )
+        raise IngestError(f"topic {topic} has camera matrix K={K.ravel().tolist()} with no focal length; "
+                          "the camera is uncalibrated: pass --intrinsics fx,fy,cx,cy")
     return K, int(msg.width), int(msg.height)
 
 
@@ -176,8 +170,6 @@ def parse_extrinsic(text: str) -> NDArray[np.float64]:
     except ValueError:
         vals = []
     if len(vals) != 7 or not np.all(np.isfinite(vals)) or np.linalg.norm(vals[3:]) < 1e-6:
-        raise IngestError(
-            f"extrinsic {text!r} is not x,y,z,qx,qy,qz,qw (T_body_camera, camera optical frame) "
-            "with a non-zero quaternion, nor 'identity'"
-        )
+        raise IngestError(f"extrinsic {text!r} is not x,y,z,qx,qy,qz,qw (T_body_camera, camera optical frame) "
+                          "with a non-zero quaternion, nor 'identity'")
     return transform_from_pose(vals[:3], vals[3:])

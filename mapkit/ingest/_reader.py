@@ -152,10 +152,8 @@ def _find(summary: BagSummary, name: str, option: str) -> str:
     """The normalised topic ``name`` given by ``option``; raises when the recording lacks it."""
     topic = normalize_topic(name)
     if topic not in summary.topics:
-        raise IngestError(
-            f"{option} {name}: no such topic in {str(summary.path)!r}; it has "
-            + ", ".join(sorted(summary.topics))
-        )
+        raise IngestError(f"{option} {name}: no such topic in {str(summary.path)!r}; it has "
+                          + ", ".join(sorted(summary.topics)))
     return topic
 
 
@@ -224,10 +222,8 @@ def _choose_depth(source: Source, config: IngestConfig, by_type: dict[str, list[
                           f"({unreadable[0]})")
     if not candidates:
         listed = ", ".join(seen) if seen else "none"
-        raise IngestError(
-            f"no depth topic in {str(s.path)!r}: image topics seen: {listed}; expected encoding "
-            f"{ACCEPTED}; pass --depth-topic"
-        )
+        raise IngestError(f"no depth topic in {str(s.path)!r}: image topics seen: {listed}; expected encoding "
+                          f"{ACCEPTED}; pass --depth-topic")
     candidates.sort(reverse=True)
     _, topic, msgtype, enc = candidates[0]
     others = [c[1] for c in candidates[1:]]
@@ -250,10 +246,8 @@ def _choose_camera_info(s: BagSummary, config: IngestConfig, by_type: dict[str, 
         infos.sort(key=lambda t: (not t.startswith(base + "/"), "depth" not in t.lower(), t))
         why = "CameraInfo in the depth topic's namespace" if infos[0].startswith(base + "/") else "only CameraInfo topic" if len(infos) == 1 else "CameraInfo whose name says depth"
         return RoleChoice(infos[0], CAMERA_INFO_TYPE, why)
-    raise IngestError(
-        f"no camera info in {str(s.path)!r} (no sensor_msgs/CameraInfo topic); "
-        "pass --intrinsics fx,fy,cx,cy"
-    )
+    raise IngestError(f"no camera info in {str(s.path)!r} (no sensor_msgs/CameraInfo topic); "
+                      "pass --intrinsics fx,fy,cx,cy")
 
 
 def _choose_pose(s: BagSummary, config: IngestConfig, by_type: dict[str, list[str]], tf_topics: list[str]) -> RoleChoice:
@@ -262,10 +256,8 @@ def _choose_pose(s: BagSummary, config: IngestConfig, by_type: dict[str, list[st
         topic = _find(s, config.pose_topic, "--pose-topic")
         msgtype = s.topics[topic].msgtype
         if msgtype not in POSE_TYPES:
-            raise IngestError(
-                f"--pose-topic {topic} carries {msgtype}; expected nav_msgs/Odometry, "
-                "geometry_msgs/PoseStamped, PoseWithCovarianceStamped or TransformStamped (or 'tf')"
-            )
+            raise IngestError(f"--pose-topic {topic} carries {msgtype}; expected nav_msgs/Odometry, "
+                              "geometry_msgs/PoseStamped, PoseWithCovarianceStamped or TransformStamped (or 'tf')")
         return RoleChoice(topic, msgtype, "given by --pose-topic")
     poses = [(mt, t) for mt in POSE_TYPES for t in by_type.get(mt, [])]
     if poses and not config.pose_topic:
@@ -276,10 +268,8 @@ def _choose_pose(s: BagSummary, config: IngestConfig, by_type: dict[str, list[st
         return RoleChoice(topic, mt, f"{mt.split('/')[-1]} topic" + (f"; preferred over {len(poses) - 1} other pose topic(s)" if len(poses) > 1 else ""))
     if any(s.topics[t].count for t in tf_topics if "static" not in t):
         return RoleChoice(None, TF_TYPE, "no pose topic; world → camera from the tf tree")
-    raise IngestError(
-        f"no pose in {str(s.path)!r}: no Odometry/PoseStamped topic and no /tf; "
-        "record one or pass --pose-topic"
-    )
+    raise IngestError(f"no pose in {str(s.path)!r}: no Odometry/PoseStamped topic and no /tf; "
+                      "record one or pass --pose-topic")
 
 
 class _PoseFeed:
@@ -329,10 +319,8 @@ class _PoseFeed:
         last = self._last_pose_stamp
         if last is not None and stamp < last:
             if not self.config.drop_nonmonotonic:
-                raise IngestError(
-                    f"pose topic {topic}: stamp goes backwards ({stamp} ns after {last} ns); fix the "
-                    "recording's clock or pass --set ingest.drop_nonmonotonic=true to drop such messages"
-                )
+                raise IngestError(f"pose topic {topic}: stamp goes backwards ({stamp} ns after {last} ns); fix the "
+                                  "recording's clock or pass --set ingest.drop_nonmonotonic=true to drop such messages")
             self.dropped_poses += 1
             return
         self._last_pose_stamp = stamp
@@ -418,9 +406,7 @@ def _intrinsics(roles: Roles, config: IngestConfig, info_msg: Any) -> tuple[NDAr
     if config.intrinsics is not None:
         return np.asarray(config.intrinsics, dtype=np.float64), 0, 0
     if info_msg is None:
-        raise IngestError(
-            f"camera info topic {roles.camera_info.topic} has no messages; pass --intrinsics fx,fy,cx,cy"
-        )
+        raise IngestError(f"camera info topic {roles.camera_info.topic} has no messages; pass --intrinsics fx,fy,cx,cy")
     return camera_intrinsics(info_msg, topic=roles.camera_info.topic or "")
 
 

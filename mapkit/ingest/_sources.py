@@ -96,10 +96,8 @@ def detect_kind(path: Path) -> str:
     by_suffix = _SUFFIX_KIND.get(path.suffix.lower())
     if by_magic is None:
         expected = "a ROS1 .bag, a ROS2 bag directory, an .mcap or a .db3 file"
-        raise IngestError(
-            f"input {str(path)!r} is not a recording mapkit reads (starts with {head[:8]!r}); "
-            f"expected {expected}"
-        )
+        raise IngestError(f"input {str(path)!r} is not a recording mapkit reads (starts with {head[:8]!r}); "
+                          f"expected {expected}")
     if by_suffix != by_magic:
         raise IngestError(
             f"input {str(path)!r} holds a {FORMAT_NAMES[by_magic]} but is named {path.suffix or 'without suffix'}; "
@@ -161,10 +159,8 @@ class Source:
             except IngestError:
                 raise
             except Exception as exc:  # noqa: BLE001 - damaged chunk/record: name the file and where
-                raise IngestError(
-                    f"{str(self.path)!r} is damaged after message {count} ({type(exc).__name__}: {exc}); "
-                    "re-export the recording or repair it (for MCAP: `mcap recover`)"
-                ) from None
+                raise IngestError(f"{str(self.path)!r} is damaged after message {count} ({type(exc).__name__}: {exc}); "
+                                  "re-export the recording or repair it (for MCAP: `mcap recover`)") from None
             count += 1
             yield msg
 
@@ -172,10 +168,8 @@ class Source:
         try:
             return self._backend.deserialize(msg)
         except Exception as exc:  # noqa: BLE001 - a deserializer raises many kinds for a malformed message
-            raise IngestError(
-                f"{str(self.path)!r}: a {msg.msgtype} message on {msg.topic} at log time "
-                f"{msg.log_time_ns} ns does not deserialise ({exc}); the recording is damaged"
-            ) from None
+            raise IngestError(f"{str(self.path)!r}: a {msg.msgtype} message on {msg.topic} at log time "
+                              f"{msg.log_time_ns} ns does not deserialise ({exc}); the recording is damaged") from None
 
 
 class _Rosbags:
@@ -226,10 +220,8 @@ def _typestore_from_schemas(path: Path, schemas: Iterable[Any]) -> Any:
     types: dict[str, Any] = {}
     for schema in schemas:
         if schema.encoding != "ros2msg":
-            raise IngestError(
-                f"{str(path)!r}: schema {schema.name!r} is encoded as {schema.encoding!r}; "
-                "mapkit reads ROS2 CDR MCAP files (ros2msg schemas)"
-            )
+            raise IngestError(f"{str(path)!r}: schema {schema.name!r} is encoded as {schema.encoding!r}; "
+                              "mapkit reads ROS2 CDR MCAP files (ros2msg schemas)")
         types.update(get_types_from_msg(schema.data.decode(), _ros2_typename(schema.name)))
     store = get_typestore(Stores.EMPTY)
     store.register(types)

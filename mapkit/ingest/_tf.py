@@ -43,10 +43,8 @@ class EdgeSeries:
     def add(self, stamp: int, translation: NDArray[np.float64], q_xyzw: NDArray[np.float64]) -> None:
         norm = float(np.linalg.norm(q_xyzw))
         if not np.isfinite(norm) or norm < 1e-6 or not np.all(np.isfinite(translation)):
-            raise IngestError(
-                f"{self.origin}: transform {self.parent} -> {self.child} at stamp {stamp} ns has "
-                f"translation {translation.tolist()} and quaternion {q_xyzw.tolist()}; not a valid pose"
-            )
+            raise IngestError(f"{self.origin}: transform {self.parent} -> {self.child} at stamp {stamp} ns has "
+                              f"translation {translation.tolist()} and quaternion {q_xyzw.tolist()}; not a valid pose")
         q = q_xyzw / norm
         n = self._n
         if n and stamp <= self._t[n - 1]:
