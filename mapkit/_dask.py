@@ -69,15 +69,14 @@ def scheduler_address(scheduler: str | None) -> str | None:
 
 
 @contextmanager
-def dask_client(scheduler: str | None = None, *, workers: int | None = None,
-                timeout_s: float = CONNECT_TIMEOUT_S) -> Iterator[tuple[Client, ClusterInfo]]:
+def dask_client(scheduler: str | None = None, *, workers: int | None = None) -> Iterator[tuple[Client, ClusterInfo]]:
     """A Dask client for the block, and what it runs on; a local cluster started here is stopped after.
 
     ``workers`` sizes a local cluster (default: one per available core); it is ignored when
     connecting to an existing scheduler, whose workers are the cluster's business.
     """
     with _quiet_distributed():
-        yield from _client(scheduler_address(scheduler), workers, timeout_s)
+        yield from _client(scheduler_address(scheduler), workers)
 
 
 @contextmanager
@@ -95,7 +94,7 @@ def _quiet_distributed() -> Iterator[None]:
         logger.setLevel(old)
 
 
-def _client(address: str | None, workers: int | None, timeout_s: float) -> Iterator[tuple[Client, ClusterInfo]]:
+def _client(address: str | None, workers: int | None) -> Iterator[tuple[Client, ClusterInfo]]:
     """The body of :func:`dask_client`."""
     import dask
     from distributed import Client, LocalCluster
@@ -115,7 +114,7 @@ def _client(address: str | None, workers: int | None, timeout_s: float) -> Itera
             yield client, _info(client, local=True)
         return
     try:
-        client = Client(address, timeout=f"{timeout_s}s")
+        client = Client(address, timeout=f"{CONNECT_TIMEOUT_S}s")
     except (OSError, TimeoutError, ValueError) as exc:
         raise SchedulerError(
             f"cannot reach the Dask scheduler at {address!r} ({type(exc).__name__}); start one with "

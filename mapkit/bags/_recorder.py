@@ -365,18 +365,14 @@ def depth_to_mm(depth_m: np.ndarray) -> np.ndarray:
     return np.where(ok, mm, 0).astype(np.uint16)
 
 
-def encode_inverse_depth(
-    depth_m: np.ndarray, *, depth_max: float = 10.0, depth_quantization: float = 100.0
-) -> tuple[np.ndarray, tuple[float, float]]:
-    """compressed_depth_image_transport's 32FC1 inverse-depth quantisation → (uint16, (A, B))."""
-    A = float(depth_quantization) * (float(depth_quantization) + 1.0)
-    B = 1.0 - A / float(depth_max)
-    # The transport works in float32; do the same so decoding with (A, B) round-trips.
-    A32, B32 = np.float32(A), np.float32(B)
+def encode_inverse_depth(depth_m: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
+    """compressed_depth_image_transport's 32FC1 inverse-depth quantisation (its defaults: q = 100,
+    depth_max = 10 m) → (uint16, (A, B)), in float32 as the transport computes, so decoding round-trips."""
+    A32, B32 = np.float32(100.0 * 101.0), np.float32(1.0 - 100.0 * 101.0 / 10.0)
     d = np.asarray(depth_m, dtype=np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):
         value = A32 / d + B32
-        ok = np.isfinite(d) & (d > 0) & (d < depth_max) & (value >= 0.5) & (value <= 65535)
+        ok = np.isfinite(d) & (d > 0) & (d < 10.0) & (value >= 0.5) & (value <= 65535)
     return np.where(ok, np.rint(value), 0).astype(np.uint16), (float(A32), float(B32))
 
 

@@ -312,9 +312,8 @@ class _PoseFeed:
             else:
                 self.tree.add_dynamic(parent, child, stamp, t, q, f"topic {topic}")
 
-    def add_pose(
-        self, topic: str, stamp: int, parent: str, child: str | None, t: NDArray[np.float64], q: NDArray[np.float64]
-    ) -> None:
+    def add_pose(self, topic: str, stamp: int, parent: str, child: str | None, t: NDArray[np.float64],
+                 q: NDArray[np.float64]) -> None:
         """One sample of the pose topic (parent → child frame)."""
         last = self._last_pose_stamp
         if last is not None and stamp < last:

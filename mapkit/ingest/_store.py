@@ -159,10 +159,8 @@ def write_frames(stream: FrameStream, store_path: Path | Location, *, progress: 
     sources = _sources_attrs(stream)
     dropped = {k: int(v) for k, v in sorted(stream.dropped.items())}
     root.attrs.update(_frames_attrs(stream, depth.width, depth.height, sources, dropped))
-    return IngestSummary(
-        loc.local if loc.local is not None else loc.url, depth.count, stream.depth_messages, dropped, int(depth.width), int(depth.height),
-        time.perf_counter() - t0, sources, list(stream.warnings),
-    )
+    return IngestSummary(loc.local if loc.local is not None else loc.url, depth.count, stream.depth_messages, dropped,
+                         int(depth.width), int(depth.height), time.perf_counter() - t0, sources, list(stream.warnings))
 
 
 def _stream_frames(stream: FrameStream, depth: _DepthWriter, *, progress: bool) -> _FramePoses:
@@ -189,20 +187,10 @@ def _stream_frames(stream: FrameStream, depth: _DepthWriter, *, progress: bool) 
 
 def _sources_attrs(stream: FrameStream) -> list[dict[str, Any]]:
     """Per input recording: its fingerprint, format and the topics read (the ``sources`` attribute)."""
-    sources = []
-    for path, plan in zip(stream.paths, stream.plans, strict=True):
-        sources.append(
-            {
-                **source_fingerprint(path),
-                "format": plan.summary.format_name,
-                "depth_topic": plan.depth.topic,
-                "depth_encoding": plan.depth_encoding,
-                "camera_info_topic": plan.camera_info.topic,
-                "pose_topic": plan.pose.topic or "tf",
-                "tf_topics": plan.tf_topics,
-            }
-        )
-    return sources
+    return [{**source_fingerprint(path), "format": plan.summary.format_name, "depth_topic": plan.depth.topic,
+             "depth_encoding": plan.depth_encoding, "camera_info_topic": plan.camera_info.topic,
+             "pose_topic": plan.pose.topic or "tf", "tf_topics": plan.tf_topics}
+            for path, plan in zip(stream.paths, stream.plans, strict=True)]
 
 
 def _frames_attrs(stream: FrameStream, width: int, height: int, sources: list[dict[str, Any]],
@@ -226,14 +214,8 @@ def _frames_attrs(stream: FrameStream, width: int, height: int, sources: list[di
     }
 
 
-def ingest(
-    paths: Sequence[str | Path],
-    workspace: str | Path,
-    config: IngestConfig | None = None,
-    *,
-    overwrite: bool = False,
-    progress: bool = True,
-) -> IngestSummary:
+def ingest(paths: Sequence[str | Path], workspace: str | Path, config: IngestConfig | None = None, *,
+           overwrite: bool = False, progress: bool = True) -> IngestSummary:
     """Read recordings into ``workspace/frames.zarr`` (published atomically; `workspace` may be an
     fsspec URL, see docs/stores.md)."""
     config = config or IngestConfig()

@@ -110,10 +110,8 @@ class TfTree:
         self.static[child] = (parent, T_parent_child)
         self.version += 1
 
-    def add_dynamic(
-        self, parent: str, child: str, stamp: int, translation: NDArray[np.float64],
-        q_xyzw: NDArray[np.float64], origin: str,
-    ) -> None:
+    def add_dynamic(self, parent: str, child: str, stamp: int, translation: NDArray[np.float64],
+                    q_xyzw: NDArray[np.float64], origin: str) -> None:
         if child in self.pinned:
             return
         series = self.dynamic.get(child)
