@@ -444,11 +444,8 @@ _MAX_PENDING = 256  # depth frames held while waiting for later poses (the poses
 @dataclass
 class FrameStream:
     """Iterates frames of several recordings; after iteration, `dropped` and `used` say what happened.
-
-    Each recording is read once, in log-time order: poses and tf feed a growing tf tree, and each
-    depth image waits (serialised) until the poses around its stamp have arrived. Only poses and a
-    short queue of images are held in memory.
-    """
+    Each recording is read once: poses feed a tf tree, and each depth image waits until the poses
+    around its stamp have arrived."""
 
     paths: list[Path]
     config: IngestConfig
@@ -637,11 +634,8 @@ def _warn_overlap(stream: FrameStream, plan: SourcePlan) -> None:
 
 
 def open_frames(paths: Sequence[str | Path], config: IngestConfig | None = None) -> FrameStream:
-    """Plan the reading of one or more recordings; iterate the result for `Frame`s.
-
-    Checks every recording's topics, intrinsics and frames up front (reading only the small pose
-    and tf topics), so mistakes surface before any depth image is decoded.
-    """
+    """Plan the reading of one or more recordings (topics, intrinsics and frames checked up front,
+    before any depth image is decoded); iterate the result for `Frame`s."""
     config = config or IngestConfig()
     config.validate()
     if not paths:

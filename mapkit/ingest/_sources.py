@@ -1,10 +1,6 @@
-"""One reader interface over every recording format users bring.
-
-rosbags' AnyReader reads ROS1 bags, ROS2 bag directories and bare ``.mcap`` / ``.db3`` files. A
-truncated MCAP (a recorder killed mid-flight) has no footer and AnyReader refuses it, so those are
-re-read record by record with the ``mcap`` package's stream reader, keeping every complete message
-before the cut.
-"""
+"""One reader interface over every recording format: rosbags' AnyReader for ROS1 bags, ROS2 bag
+directories and ``.db3`` files; the ``mcap`` package for ``.mcap``, record by record when the file was cut
+off (no footer), keeping every complete message before the cut."""
 
 from __future__ import annotations
 
@@ -375,12 +371,8 @@ def _ros2_typename(name: str) -> str:
 
 
 def _partial_chunk_records(path: Path, offset: int) -> Iterator[Any]:
-    """Complete records inside a chunk that the file cut off (the writer died mid-chunk).
-
-    The mcap package only parses whole chunks, so the chunk header is read here (MCAP spec:
-    opcode 0x06; start/end time, uncompressed size, CRC, compression, records length) and the
-    available compressed bytes are decompressed as a stream.
-    """
+    """Complete records inside a chunk that the file cut off (the writer died mid-chunk): the chunk header
+    (MCAP opcode 0x06) read here, the available compressed bytes decompressed as a stream."""
     import io
     import struct
 
@@ -421,12 +413,8 @@ def _partial_chunk_records(path: Path, offset: int) -> Iterator[Any]:
 
 
 def _decompressed_chunks(path: Path, chunks: list[Any]) -> Iterator[bytes]:
-    """The records section of each chunk, decompressed (runs in the prefetch thread).
-
-    Why not the mcap package's iterator: it parses every record in Python in the same thread
-    that decompresses, so a reader thread would hold the GIL most of the time. Here the thread
-    only reads and decompresses (both release the GIL) and the consumer parses.
-    """
+    """The records section of each chunk, decompressed in the prefetch thread (reading and decompressing
+    release the GIL; the mcap package's iterator would also parse there, holding it)."""
     import struct
 
     import lz4.frame

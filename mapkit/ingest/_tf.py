@@ -15,8 +15,7 @@ POSE_GAP = "pose_gap"
 
 class NoPose(Exception):
     """A moving edge has no pose at the asked stamp; ``reason`` is NO_POSE (outside its samples) or
-    POSE_GAP (inside a gap longer than allowed). Not an error of the recording: the frame is dropped
-    and counted by reason."""
+    POSE_GAP (inside a gap longer than allowed). The frame is dropped and counted by reason."""
 
     def __init__(self, reason: str) -> None:
         super().__init__(reason)
@@ -24,11 +23,8 @@ class NoPose(Exception):
 
 
 class EdgeSeries:
-    """T_parent_child sampled over time; interpolated linearly (translation) and by slerp.
-
-    Samples arrive while a recording streams by: arrays grow by doubling, in-order appends are
-    O(1), and a late sample (tf publishers interleave) is inserted in place.
-    """
+    """T_parent_child sampled over time; interpolated linearly (translation) and by slerp. Arrays grow by
+    doubling; a late sample (tf publishers interleave) is inserted in place."""
 
     def __init__(self, parent: str, child: str, origin: str) -> None:
         self.parent, self.child, self.origin = parent, child, origin
