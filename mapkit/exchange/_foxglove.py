@@ -50,20 +50,26 @@ class FoxgloveConfig:
 
 
 @dataclass
-class FoxgloveSummary:
-    """What was written."""
+class ExportSummary:
+    """What an export wrote."""
 
     path: Path
-    messages: dict[str, int] = field(default_factory=dict)
-    """Topic → message count."""
-    esdf_as: str = ""
-    """"VoxelGrid", "Grid slices" or "" (no map)."""
     notes: list[str] = field(default_factory=list)
     """Layers left out, each with the command that makes them."""
     plans_skipped: dict[str, int] = field(default_factory=dict)
     """With a model: why some of the ``plan_count`` frames got no plan (reason → frames)."""
     bytes: int = 0
     seconds: float = 0.0
+
+
+@dataclass
+class FoxgloveSummary(ExportSummary):
+    """What was written to the MCAP."""
+
+    messages: dict[str, int] = field(default_factory=dict)
+    """Topic → message count."""
+    esdf_as: str = ""
+    """"VoxelGrid", "Grid slices" or "" (no map)."""
 
 
 def _vector_quaternion(T: NDArray[np.float64]) -> tuple[Any, Any]:

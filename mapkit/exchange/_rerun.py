@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 from mapkit.exchange._foxglove import (
     PLAN_CORRIDOR,
     ExchangeError,
+    ExportSummary,
     FoxgloveConfig,
     _height_colours,
     _plan_results,
@@ -31,20 +32,13 @@ TIMELINE = "recording"
 
 
 @dataclass
-class RerunSummary:
-    """What was written."""
+class RerunSummary(ExportSummary):
+    """What was written to the .rrd."""
 
-    path: Path
     frames: int = 0
     plans: int = 0
-    plans_skipped: dict[str, int] = field(default_factory=dict)
-    """With a model: why some of the ``plan_count`` frames got no plan (reason → frames)."""
     eval_paths: int = 0
     entities: list[str] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
-    """Layers left out, each with the command that makes them."""
-    bytes: int = 0
-    seconds: float = 0.0
 
 
 def _transform(T: NDArray[np.float64]) -> Any:
