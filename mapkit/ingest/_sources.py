@@ -16,18 +16,9 @@ from mapkit.ingest._errors import IngestError
 
 log = logging.getLogger(__name__)
 
-_MAGIC = {
-    b"#ROSBAG V2.0": "ros1",
-    b"\x89MCAP0\r\n": "mcap",
-    b"SQLite format 3\x00": "db3",
-}
+_MAGIC = {b"#ROSBAG V2.0": "ros1", b"\x89MCAP0\r\n": "mcap", b"SQLite format 3\x00": "db3"}
 _SUFFIX_KIND = {".bag": "ros1", ".mcap": "mcap", ".db3": "db3"}
-FORMAT_NAMES = {
-    "ros1": "ROS1 bag",
-    "ros2": "ROS2 bag directory",
-    "mcap": "MCAP file",
-    "db3": "ROS2 sqlite3 file",
-}
+FORMAT_NAMES = {"ros1": "ROS1 bag", "ros2": "ROS2 bag directory", "mcap": "MCAP file", "db3": "ROS2 sqlite3 file"}
 
 
 @dataclass(frozen=True)
