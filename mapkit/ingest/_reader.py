@@ -636,10 +636,7 @@ def _warn_overlap(stream: FrameStream, plan: SourcePlan) -> None:
 def open_frames(paths: Sequence[str | Path], config: IngestConfig | None = None) -> FrameStream:
     """Plan the reading of one or more recordings (topics, intrinsics and frames checked up front,
     before any depth image is decoded); iterate the result for `Frame`s."""
-    config = config or IngestConfig()
-    config.validate()
-    if not paths:
-        raise IngestError("no input recordings given")
+    config = _checked(paths, config)
     stream = FrameStream([Path(p) for p in paths], config)
     _refuse_duplicates(stream.paths)
     for path in stream.paths:
@@ -662,3 +659,35 @@ def open_frames(paths: Sequence[str | Path], config: IngestConfig | None = None)
                 f"{str(first.summary.path)!r} uses {first.world_frame!r}; pass --set ingest.world_frame=NAME"
             )
     return stream
+
+
+def _checked(paths: Sequence[str | Path], config: IngestConfig | None) -> IngestConfig:
+    """``config`` (default: the defaults) once it and the list of ``paths`` are valid."""
+    config = config or IngestConfig()
+    config.validate()
+    if not paths:
+        raise IngestError("no input recordings given")
+    return config
+
+
+@dataclass
+class RecordingInfo:
+    """`mapkit info`: the summary of one recording plus its reading plan, or the reason there is none."""
+
+    summary: BagSummary
+    plan: SourcePlan | None
+    problem: str | None
+
+
+def inspect_recordings(paths: Sequence[str | Path], config: IngestConfig | None = None) -> list[RecordingInfo]:
+    """Summaries and role choices for each recording. Unreadable inputs raise IngestError; a readable
+    recording with no usable depth / camera info / pose gets a `problem`, so every input is listed."""
+    config = _checked(paths, config)
+    out = []
+    for path in paths:
+        with Source(path) as source:
+            try:
+                out.append(RecordingInfo(source.summary, plan_source(source, config), None))
+            except IngestError as exc:
+                out.append(RecordingInfo(source.summary, None, str(exc)))
+    return out
