@@ -35,11 +35,6 @@ def scratch_for(workspace_url: str) -> Path:
     return _root_scratch(root) / name
 
 
-def fused_complete(workspace_url: str) -> bool:
-    """The files fuse.json lists are at the URL with the sizes it gives."""
-    return _staging.file_set_complete(workspace_url, FUSE_META)
-
-
 def stage_in(workspace_url: str, step: Step, products: dict[Step, str]) -> Path:
     """The scratch workspace, holding the current product of every step ``step`` reads (``products``:
     step → the product file's relative name). A product whose file already has the URL's bytes is

@@ -177,7 +177,7 @@ def stale_reason(job: StepJob, key: str) -> str | None:
         return "output changed or missing"
     if job.step == "fuse":  # fuse.json is a file beside others: their sizes must still match
         if isinstance(job.workspace, str):
-            return None if _remote.fused_complete(job.workspace) else "output incomplete"
+            return None if _staging.file_set_complete(job.workspace, FUSE_META) else "output incomplete"
         try:
             check_fused(job.workspace)
         except MapkitError:

@@ -202,7 +202,7 @@ def _choose_depth(source: Source, config: IngestConfig, by_type: dict[str, list[
     images = [t for mt in IMAGE_TYPES for t in by_type.get(mt, [])]
     seen: list[str] = []
     unreadable: list[str] = []
-    candidates: list[tuple[tuple[int, int], str, str, str]] = []
+    candidates: list[tuple[tuple[bool, bool, int], str, str, str]] = []
     for topic in images:
         msgtype = s.topics[topic].msgtype
         try:
@@ -215,8 +215,8 @@ def _choose_depth(source: Source, config: IngestConfig, by_type: dict[str, list[
         seen.append(f"{topic} ({enc})")
         if enc in READABLE_ENCODINGS:
             # Prefer names that say depth, raw over compressed, then the busiest topic.
-            rank = ("depth" in topic.lower(), msgtype.endswith("/Image"))
-            candidates.append(((int(rank[0]) * 2 + int(rank[1]), s.topics[topic].count), topic, msgtype, enc))
+            rank = ("depth" in topic.lower(), msgtype.endswith("/Image"), s.topics[topic].count)
+            candidates.append((rank, topic, msgtype, enc))
     if not candidates and unreadable:
         raise IngestError(f"{str(s.path)!r} lists image topics but cannot give their messages, so it is damaged "
                           f"({unreadable[0]})")
@@ -530,9 +530,8 @@ class _SourceReader:
 
     def add_pose_message(self, source: Source, raw: Any, cdr: bool) -> None:
         """Feed one pose or tf message to the tf tree (Odometry in CDR parsed without deserialising)."""
-        fast = None
-        if cdr and raw.topic == self.plan.pose.topic and raw.msgtype == "nav_msgs/msg/Odometry":
-            fast = parse_odometry(raw.data)
+        odometry = cdr and raw.topic == self.plan.pose.topic and raw.msgtype == "nav_msgs/msg/Odometry"
+        fast = parse_odometry(raw.data) if odometry else None
         if fast is not None:
             stamp, parent, child, t, q = fast
             self.feed.add_pose(raw.topic, stamp, frame_name(parent), frame_name(child) or None, t, q)
