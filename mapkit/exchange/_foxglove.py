@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import time
+from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -56,7 +57,7 @@ class ExportSummary:
     path: Path
     notes: list[str] = field(default_factory=list)
     """Layers left out, each with the command that makes them."""
-    plans_skipped: dict[str, int] = field(default_factory=dict)
+    plans_skipped: Counter[str] = field(default_factory=Counter)
     """With a model: why some of the ``plan_count`` frames got no plan (reason → frames)."""
     bytes: int = 0
     seconds: float = 0.0
@@ -242,7 +243,7 @@ HOVER_DISTANCE = 0.5
 """Metres: a goal this close leaves nowhere to plan to (the vehicle hovered); such frames get no plan."""
 
 
-def _plan_results(frames: Any, config: FoxgloveConfig, skipped: dict[str, int]
+def _plan_results(frames: Any, config: FoxgloveConfig, skipped: Counter[str]
                   ) -> Iterator[tuple[int, NDArray[np.float64], Any]]:
     """(stamp, T_world_body, PlanResult) of ``config.model`` at evenly spread frames, each
     toward where the flight was ``goal_ahead`` seconds later (same recording), clipped to the
@@ -260,19 +261,19 @@ def _plan_results(frames: Any, config: FoxgloveConfig, skipped: dict[str, int]
     velocity = body_velocities(stamps, frames.T_world_body, frames.source_index)
     picks = np.unique(np.linspace(0, len(stamps) - 1, config.plan_count).round().astype(int)).tolist()
     if len(picks) < config.plan_count:  # evenly spread over fewer frames than plans: each frame once
-        _count(skipped, f"the flight has only {len(stamps)} frames", config.plan_count - len(picks))
+        skipped[f"the flight has only {len(stamps)} frames"] += config.plan_count - len(picks)
     for i in picks:
         later = np.flatnonzero((frames.source_index == frames.source_index[i]) & (stamps >= stamps[i] + int(config.goal_ahead * 1e9)))
         if not len(later):
-            _count(skipped, f"no frame {config.goal_ahead:g} s later in its recording to plan toward (the flight's "
-                            "end, see --goal-ahead)")
+            skipped[f"no frame {config.goal_ahead:g} s later in its recording to plan toward (the flight's end, "
+                    "see --goal-ahead)"] += 1
             continue
         T_wb = frames.T_world_body[i]
         goal = (invert_transform(T_wb) @ np.append(frames.T_world_body[later[0]][:3, 3], 1.0))[:3]
         distance = float(np.linalg.norm(goal))
         if distance < HOVER_DISTANCE:
-            _count(skipped, f"under {HOVER_DISTANCE:g} m flown in the next {config.goal_ahead:g} s: nowhere to plan to "
-                            "(hovering, or a short --goal-ahead)")
+            skipped[f"under {HOVER_DISTANCE:g} m flown in the next {config.goal_ahead:g} s: nowhere to plan to "
+                    "(hovering, or a short --goal-ahead)"] += 1
             continue
         result = planner.plan(np.asarray(frames.depth[i]), goal * min(1.0, LOCAL_GOAL_RANGE / distance),
                               velocity_body=velocity[i], corridor=PLAN_CORRIDOR, K=frames.K,
@@ -280,11 +281,7 @@ def _plan_results(frames: Any, config: FoxgloveConfig, skipped: dict[str, int]
         yield int(stamps[i]), T_wb, result
 
 
-def _count(skipped: dict[str, int], reason: str, frames: int = 1) -> None:
-    skipped[reason] = skipped.get(reason, 0) + frames
-
-
-def _log_plans(frames: Any, world: str, config: FoxgloveConfig, channel: Any, skipped: dict[str, int]) -> int:
+def _log_plans(frames: Any, world: str, config: FoxgloveConfig, channel: Any, skipped: Counter[str]) -> int:
     from foxglove.messages import SceneUpdate
 
     count = 0

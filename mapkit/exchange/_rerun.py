@@ -4,6 +4,7 @@ recording (.rrd) on the timeline ``recording``, with a default blueprint; entiti
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -92,7 +93,7 @@ def _log_maps(rec: Any, workspace: Path, frames: Any) -> list[str]:
     return logged
 
 
-def _log_plans(rec: Any, frames: Any, config: RerunConfig, skipped: dict[str, int]) -> int:
+def _log_plans(rec: Any, frames: Any, config: RerunConfig, skipped: Counter[str]) -> int:
     import rerun as rr
 
     count = 0
