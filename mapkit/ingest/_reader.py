@@ -355,7 +355,7 @@ def _resolve(source: Source, roles: Roles, config: IngestConfig) -> SourcePlan:
     _attach_extrinsic(config, tree, body, camera)
     known = ", ".join(sorted(tree.frames)) or "none"
     for a, b, hint in ((world, body, "pass --set ingest.world_frame=NAME"), (body, camera, "pass --set ingest.extrinsic=x,y,z,qx,qy,qz,qw (T_body_camera)")):
-        if a != b and (a not in tree.frames or b not in tree.frames or not tree.connected(a, b)):
+        if a != b and (a not in tree.frames or b not in tree.frames or tree.root(a) != tree.root(b)):
             raise IngestError(f"no transform from frame {a!r} to frame {b!r} (tf frames: {known}); {hint}")
     # With a pose topic, /tf is only read again if a moving frame other than the body's lies on the
     # chain (e.g. a gimbal); skipping it halves the pose messages a bag like ours needs.

@@ -148,9 +148,6 @@ class TfTree:
     def root(self, frame: str) -> str:
         return self.ancestors(frame)[-1]
 
-    def connected(self, a: str, b: str) -> bool:
-        return self.root(a) == self.root(b)
-
     def static_top(self, frame: str) -> str:
         """Walk up from `frame` through static edges only; the frame where motion starts."""
         while frame in self.static:
