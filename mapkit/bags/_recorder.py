@@ -299,8 +299,8 @@ class BagRecorder:
         header = struct.pack("<iff", _INV_DEPTH, float(params[0]), float(params[1]))
         CompressedImage = self._type("sensor_msgs/msg/CompressedImage")
         payload = header + png_uint16(pix)
-        msg = CompressedImage(header=self.header(stamp_ns, frame_id, topic=topic), format=f"{encoding}; compressedDepth png",
-                              data=np.frombuffer(payload, dtype=np.uint8))
+        msg = CompressedImage(header=self.header(stamp_ns, frame_id, topic=topic),
+                              format=f"{encoding}; compressedDepth png", data=np.frombuffer(payload, dtype=np.uint8))
         self.write_raw(topic, "sensor_msgs/msg/CompressedImage", msg, stamp_ns)
 
     def write_camera_info(self, topic: str, stamp_ns: int, K: np.ndarray, width: int, height: int, *,

@@ -14,4 +14,5 @@ from mapkit.ingest._sources import BagSummary, Source, TopicSummary
 from mapkit.ingest._store import FramesStore, IngestSummary, ingest, open_frames_store
 
 __all__ = ["BagSummary", "Frame", "FrameStream", "FramesStore", "IngestConfig", "IngestError", "IngestSummary",
-           "RecordingInfo", "Source", "TopicSummary", "ingest", "inspect_recordings", "open_frames", "open_frames_store"]
+           "RecordingInfo", "Source", "TopicSummary", "ingest", "inspect_recordings", "open_frames",
+           "open_frames_store"]

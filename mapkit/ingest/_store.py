@@ -283,8 +283,9 @@ def open_frames_store(workspace: str | Path | Location) -> FramesStore:
         attrs = dict(root.attrs)
         if attrs.get("kind") != "mapkit.frames":
             raise KeyError("kind")
-        stamps, T_wc, T_wb, index = (read_whole(root, n) for n in ("stamp_ns", "T_world_camera", "T_world_body", "source_index"))
-        return FramesStore(path, root["depth"], stamps, T_wc, T_wb, index, np.asarray(attrs["K"], dtype=np.float64), attrs)
+        names = ("stamp_ns", "T_world_camera", "T_world_body", "source_index")
+        stamps, T_wc, T_wb, index = (read_whole(root, name) for name in names)
+        return FramesStore(path, root["depth"], stamps, T_wc, T_wb, index, np.asarray(attrs["K"], np.float64), attrs)
     except Exception as exc:  # noqa: BLE001 - zarr raises many kinds for a damaged or foreign store
         raise IngestError(f"{str(path)!r} is not a mapkit frames store ({type(exc).__name__}: {exc}); re-run "
                           "`mapkit ingest --overwrite`") from None
