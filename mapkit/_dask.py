@@ -71,10 +71,7 @@ def scheduler_address(scheduler: str | None) -> str | None:
 @contextmanager
 def dask_client(scheduler: str | None = None, *, workers: int | None = None) -> Iterator[tuple[Client, ClusterInfo]]:
     """A Dask client for the block, and what it runs on; a local cluster started here is stopped after.
-
-    ``workers`` sizes a local cluster (default: one per available core); it is ignored when
-    connecting to an existing scheduler, whose workers are the cluster's business.
-    """
+    ``workers`` sizes a local cluster (default: one per available core); ignored with a scheduler."""
     with _quiet_distributed():
         yield from _client(scheduler_address(scheduler), workers)
 

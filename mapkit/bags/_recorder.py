@@ -35,10 +35,8 @@ class BagError(MapkitError):
 
 
 def output_path(path: str | os.PathLike[str], format: str) -> Path:
-    """The path a recording of ``format`` gets for a user-given ``path`` (suffix optional).
-
-    mcap → ``OUT.mcap`` (a single file), ros1 → ``OUT.bag``, ros2 → ``OUT/`` (a directory).
-    """
+    """The path a recording of ``format`` gets for a user-given ``path`` (suffix optional): mcap →
+    ``OUT.mcap`` (a single file), ros1 → ``OUT.bag``, ros2 → ``OUT/`` (a directory)."""
     if format not in FORMATS:
         raise BagError(f"unknown bag format {format!r}; use one of {', '.join(FORMATS)}")
     p = Path(path)
@@ -344,11 +342,8 @@ class BagRecorder:
         return TFMessage(transforms=items)
 
     def write_tf(self, stamp_ns: int, transforms: Sequence[tuple[Any, ...]], *, topic: str = _TF_TOPIC) -> None:
-        """Write tf2_msgs/TFMessage on /tf.
-
-        ``transforms``: ``(T_parent_child, parent, child, stamp_ns)`` tuples (the stamp may be
-        left out: then the message stamp is used).
-        """
+        """Write tf2_msgs/TFMessage on /tf: ``(T_parent_child, parent, child[, stamp_ns])`` tuples (without a
+        stamp, the message's)."""
         self.write_raw(topic, "tf2_msgs/msg/TFMessage", self._tf_message(transforms, stamp_ns, topic), stamp_ns)
 
     def write_tf_static(self, stamp_ns: int, transforms: Sequence[tuple[Any, ...]]) -> None:

@@ -113,11 +113,8 @@ def _check_steps(steps: Sequence[str], option: str) -> None:
 
 
 def resolve_recordings(items: Sequence[str | Path], defaults: IngestConfig | None = None) -> tuple[Recording, ...]:
-    """Recordings from paths, globs (``flights/*.mcap``, for lists past the shell's limit) and manifests.
-
-    Each gets ``defaults`` (the command line's ingest options) unless its manifest entry overrides a
-    field. Names must be unique: two recordings with the same stem are a BatchError naming both.
-    """
+    """Recordings from paths, globs (``flights/*.mcap``) and manifests, each with ``defaults`` (the command
+    line's ingest options) where its manifest entry gives no value; two with one name are a BatchError."""
     defaults = defaults or IngestConfig()
     out: list[Recording] = []
     for item in items:

@@ -78,11 +78,8 @@ class StepOutcome:
 
 
 def run_step(job: StepJob, previous: StepOutcome | None = None) -> StepOutcome:
-    """The task: skip, or run the step and write its marker. A failed ``previous`` step is passed on.
-
-    A MapkitError is the recording's problem and comes back as a failed outcome (retrying would
-    not help); anything else raises, so Dask retries it and the batch reports it as unexpected.
-    """
+    """The task: skip, or run the step and write its marker; a failed ``previous`` step is passed on. A
+    MapkitError comes back as a failed outcome; anything else raises, so Dask retries it."""
     t0 = time.perf_counter()
     try:
         if previous is not None and previous.status == "failed":
