@@ -283,13 +283,12 @@ class _McapStream:
     def __init__(self, path: Path) -> None:
         self.path = path
         self._channels: dict[int, tuple[str, str]] = {}
+        self._cut: tuple[int, str] | None = None
+        """(byte offset, why) of the first incomplete record, once the records have been read."""
         counts: dict[str, list[Any]] = {}
-        start, end, n, cut = None, None, 0, None
+        start, end, n = None, None, 0
         schemas: list[Any] = []
         for record in self._records():
-            if isinstance(record, _cut_marker):
-                cut = record
-                break
             kind = type(record).__name__
             if kind == "Schema":
                 schemas.append(record)
@@ -305,11 +304,10 @@ class _McapStream:
         self._schema_names = {sch.id: _ros2_typename(sch.name) for sch in schemas}
         topics = {t: TopicSummary(t, self._schema_names[self._channels[cid][1]], c) for t, (cid, c) in counts.items()}
         warnings = []
-        if cut is not None:
-            warnings.append(
-                f"{str(path)!r} is truncated or damaged: the record at byte {cut.offset} of "
-                f"{path.stat().st_size} is incomplete ({cut.reason}); recovered {n} complete messages before it"
-            )
+        if self._cut is not None:
+            warnings.append(f"{str(path)!r} is truncated or damaged: the record at byte {self._cut[0]} of "
+                            f"{path.stat().st_size} is incomplete ({self._cut[1]}); recovered {n} complete messages "
+                            "before it")
             log.info(warnings[-1])
         if n == 0:
             raise IngestError(f"{str(path)!r} holds no readable messages (MCAP damaged or truncated before the first message)")
@@ -329,7 +327,7 @@ class _McapStream:
                     return
                 except Exception as exc:  # noqa: BLE001 - EndOfFile, bad CRC, bad opcode: the damaged tail
                     yield from _partial_chunk_records(self.path, record_start)
-                    yield _cut_marker(record_start, f"{type(exc).__name__}: {exc}".rstrip(": "))
+                    self._cut = (record_start, f"{type(exc).__name__}: {exc}".rstrip(": "))
                     return
                 yield record
                 record_start = f.tell()
@@ -347,12 +345,6 @@ class _McapStream:
             topic, schema_id = self._channels[record.channel_id]
             if topic in wanted:
                 yield RawMessage(topic, self._schema_names[schema_id], int(record.log_time), record.data)
-
-
-@dataclass
-class _cut_marker:
-    offset: int
-    reason: str
 
 
 def _ros2_typename(name: str) -> str:
