@@ -233,7 +233,9 @@ class BagRecorder:
 
     def _rigid(self, T: np.ndarray, msgtype: str, point_type: str, point: str, rotation: str) -> Any:
         """A Pose or Transform message of a 4x4 transform."""
-        T = _check_T(T)
+        T = np.asarray(T, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise BagError(f"transform must be a 4x4 matrix, got shape {T.shape}")
         q = quat_xyzw_from_matrix(T[:3, :3])
         xyz = self._type(point_type)(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3]))
         rot = self._type("geometry_msgs/msg/Quaternion")(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
@@ -385,13 +387,6 @@ def _check_depth(depth_m: np.ndarray) -> np.ndarray:
     if depth.ndim != 2 or depth.size == 0:
         raise BagError(f"depth image must be a non-empty (H, W) array, got shape {depth.shape}")
     return depth
-
-
-def _check_T(T: np.ndarray) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4):
-        raise BagError(f"transform must be a 4x4 matrix, got shape {T.shape}")
-    return T
 
 
 def _qos_profiles(latched: bool) -> list[Any]:
