@@ -303,7 +303,7 @@ class _McapStream:
         self.typestore = _typestore_from_schemas(path, schemas)
         self._schema_names = {sch.id: _ros2_typename(sch.name) for sch in schemas}
         topics = {t: TopicSummary(t, self._schema_names[self._channels[cid][1]], c) for t, (cid, c) in counts.items()}
-        warnings = []
+        warnings: list[str] = []
         if self._cut is not None:
             warnings.append(f"{str(path)!r} is truncated or damaged: the record at byte {self._cut[0]} of "
                             f"{path.stat().st_size} is incomplete ({self._cut[1]}); recovered {n} complete messages "
