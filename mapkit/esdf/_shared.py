@@ -15,7 +15,6 @@ from numpy.typing import NDArray
 
 from mapkit._resources import available_memory
 from mapkit.esdf._chunked import ChunkedSummary, chunk_halo
-from mapkit.esdf._distance import Backend
 from mapkit.esdf._errors import EsdfError
 
 if TYPE_CHECKING:
@@ -50,8 +49,6 @@ class EsdfConfig:
     along the sensor's rays, counts as solid (object interiors, the ground under the floor)."""
     max_dist: float | None = None
     """Clamp |distance| to this (metres); required for chunked computation of large maps."""
-    backend: Backend = "edt"
-    """Exact EDT implementation without sub-voxel distances: 'edt' or 'scipy'."""
     subvoxel: bool = True
     """Measure distances to the fused surface points tied to each boundary voxel (sub-voxel zero
     crossing) instead of the fixed half-voxel convention of the plain EDT."""

@@ -1,19 +1,7 @@
-"""map.zarr: writing it (whole, or streamed chunk by chunk) and opening it (contract in DESIGN.md).
+"""map.zarr: writing it, whole or chunk by chunk (layout: docs/data_contracts.md).
 
-Layout (zarr v3 group, consolidated metadata so ``xarray.open_zarr`` opens it quietly and fast):
-
-- ``esdf`` float32 [nx, ny, nz], ``esdf_raw`` float32 [nx, ny, nz], ``observed`` uint8 [nx, ny, nz],
-  all with ``dimension_names`` ["x", "y", "z"], chunks 64^3, Blosc zstd level 3 with byte shuffle;
-- ``x``, ``y``, ``z`` float64 voxel-centre coordinates with ``dimension_names`` ["x"], ["y"], ["z"];
-- attrs: ``kind`` = "mapkit.map", ``mapkit_version``, ``voxel_size``, ``origin`` (centre of voxel
-  [0,0,0]), ``shape``, ``frame_id``, ``sigma``, ``unknown_policy``, ``units`` = "m",
-  ``distance_convention``, ``parameters`` (whatever made the map);
-- ``ome``: OME-Zarr (NGFF 0.5) multiscale metadata over ``esdf`` and its 2× / 4× coarser means in the
-  ``ngff`` subgroup (:mod:`mapkit.esdf._ngff`), so NGFF viewers place the map in metres.
-
-The store is written under a temporary sibling name and renamed into place only when complete
-(:func:`mapkit.workspace.atomic_output`), so a killed run never leaves a map that opens. At an fsspec URL
-it is published with its root ``zarr.json`` last instead (:func:`mapkit._stores.publish_store`).
+The store is written under a temporary sibling name and renamed into place when complete, or at an
+fsspec URL published with its root ``zarr.json`` last, so a killed run never leaves a map that opens.
 """
 
 from __future__ import annotations

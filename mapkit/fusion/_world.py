@@ -1,20 +1,9 @@
 """Many flights → one world map, tile by tile on Dask → world.zarr, the chunked occupancy the ESDF reads.
 
-The world grid (the ESDF's voxels) is cut into tiles of ``tile`` voxels per edge. One task per tile
-integrates, in flight and frame order, every frame that can reach the tile into a TSDF that holds
-only the tile's blocks (Open3D computes each voxel from its own position and the frames alone, so
-these are bit for bit the voxels of fusing everything at once), samples it at the tile's voxel
-centres and carves the tile's observed / behind-surface voxels from the same frames. Positions are
-placed on the whole grid before a tile is cut out, so a tile holds exactly what the single-process
-`mapkit fuse` + `mapkit esdf` compute there. Nothing world-sized is ever in one process.
-
-``world.zarr`` (zarr v3 group, chunks 64^3, dimension names x, y, z):
-
-- ``tsdf`` float32: TSDF at the voxel centre in metres, NaN where no sample has weight >= 1;
-- ``observed`` bool: a sample exists or a depth ray passed through the voxel;
-- ``behind`` bool: unobserved space up to ``solid_depth`` behind a measured surface;
-- attrs: ``kind`` = "mapkit.world", ``mapkit_version``, ``origin``, ``voxel_size``, ``shape``,
-  ``frame_id``, ``fuse`` (TSDF options), ``solid_depth``, ``tile``, ``sources`` (frames stores).
+One task per tile integrates, in flight and frame order, every frame that can reach the tile into a
+TSDF holding only the tile's blocks, samples it at the tile's voxel centres and carves its observed /
+behind-surface voxels: bit for bit what `mapkit fuse` + `mapkit esdf` compute there, with nothing
+world-sized in one process. Layout of ``world.zarr``: docs/data_contracts.md.
 """
 
 from __future__ import annotations
