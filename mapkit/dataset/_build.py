@@ -1,9 +1,5 @@
 """`mapkit dataset`: many simulated worlds, each flown, recorded and run through ingest → fuse → esdf
-→ export into a normal workspace, for training the planner at scale.
-
-Only the recording goes downstream: training sees depth, poses and the reconstructed ESDF, never the
-simulator's exact signed distance (kept beside the recording for evaluation and checks only).
-"""
+→ export into a workspace; training never sees the simulator's exact signed distance."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
-"""What the two ESDF builds share: `mapkit esdf` on a fused workspace (:mod:`mapkit.esdf._build`) and on
-a world directory of `mapkit fuse-world` (:mod:`mapkit.esdf._world`): the options, the summary, the error,
-and where the chunked computation runs."""
+"""What `mapkit esdf` on a fused workspace and on a world directory share: options, summary, error and
+where the chunked computation runs."""
 
 from __future__ import annotations
 
@@ -112,9 +111,8 @@ def _dask_runner(scheduler: str | None, workers: int | None) -> Iterator[_Runner
 
 
 def _chunks_at_once(runner: _Runner, *, chunk: int, voxel: float, max_dist: float, sigma: float) -> int:
-    """Chunks of ``chunk`` voxels a side to compute at once in this process: one per core, fewer when
-    their work arrays (about ``(chunk + 2*halo)**3 * 18`` bytes each, plus the finished core) would take
-    over a quarter of the available memory; 1 on a cluster (its workers take one task per thread)."""
+    """Chunks to compute at once in this process: one per core, fewer when their work arrays would
+    take over a quarter of the available memory; 1 on a cluster."""
     if runner.client is not None:
         return 1
     halo = chunk_halo(voxel_size=voxel, max_dist=max_dist, sigma=sigma)

@@ -62,12 +62,9 @@ def _json_attrs(name: str, value: Any) -> Any:
 
 
 class MapWriter(AbstractContextManager["MapWriter"]):
-    """A map.zarr being written. Fill :attr:`esdf`, :attr:`esdf_raw`, :attr:`observed` (zarr arrays
-    [nx, ny, nz]; chunks 64^3, so write 64-aligned blocks), then :meth:`finalize` to publish it.
-
-    As a context manager it finalizes on normal exit and discards the partial store on an exception.
-    Until :meth:`finalize` the store lives under a hidden temporary name next to `path`.
-    """
+    """A map.zarr being written: fill :attr:`esdf`, :attr:`esdf_raw`, :attr:`observed` (zarr arrays
+    [nx, ny, nz], chunks 64^3) then :meth:`finalize`; as a context manager it finalizes on normal exit
+    and discards the partial store on an exception."""
 
     def __init__(self, path: Path | Location, attrs: dict[str, Any], shape: tuple[int, int, int], overwrite: bool) -> None:
         import zarr

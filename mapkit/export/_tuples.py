@@ -266,13 +266,11 @@ def _sample_goals(
 ) -> tuple[list[NDArray[np.float64]], list[int], list[float]]:
     """Up to goals_per_frame world-frame goals for frame i in the configured mix; kinds short of
     candidates are made up with visible free-space goals."""
-    n_future, n_visible, n_hidden = _goal_counts(config)
-    picked: list[tuple[int, list[tuple[NDArray[np.float64], float]]]] = []
+    n_future, _, n_hidden = _goal_counts(config)
     future = _future_goals(i, n_future, frames_T_wb=frames_T_wb, stamps_s=stamps_s, source_index=source_index,
                            esdf=esdf, config=config, rng=rng)
     hidden = _hidden_goals(n_hidden, T_world_body=frames_T_wb[i], esdf=esdf, config=config, rng=rng)
-    n_visible = config.goals_per_frame - len(future) - len(hidden)
-    visible = _visible_goals(n_visible, T_world_camera=T_world_camera, depth=depth, K=K, esdf=esdf, config=config,
+    visible = _visible_goals(config.goals_per_frame - len(future) - len(hidden), T_world_camera=T_world_camera, depth=depth, K=K, esdf=esdf, config=config,
                              rng=rng)
     picked = [(FUTURE, future), (RANDOM, visible), (HIDDEN, hidden)]
     goals = [p for _, items in picked for p, _ in items]

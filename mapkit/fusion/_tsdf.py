@@ -141,12 +141,12 @@ def _o3d_ready(depth: NDArray[np.float32]) -> NDArray[np.float32]:
     return native
 
 
-def _o3d_depth(depth: NDArray[np.float32], device: Any, *, ready: bool = False) -> Any:
-    """Open3D image of a depth frame (see `_o3d_ready`)."""
+def _o3d_depth(depth: NDArray[np.float32], device: Any) -> Any:
+    """Open3D image of a depth frame made ready by `_o3d_ready`."""
     import open3d as o3d
     import open3d.core as o3c
 
-    return o3d.t.geometry.Image(_o3c_tensor(depth if ready else _o3d_ready(depth), o3c.float32)).to(device)
+    return o3d.t.geometry.Image(_o3c_tensor(depth, o3c.float32)).to(device)
 
 
 def _o3d_intrinsics(K: NDArray[np.float64]) -> Any:
@@ -186,7 +186,7 @@ def estimate_blocks(store: FramesStore, config: FuseConfig, *, sample: int = 24)
         depth = np.asarray(store.depth[int(i)])
         if not np.any(depth <= config.max_depth):
             continue
-        touched = _touched_blocks(probe, _o3d_depth(depth, o3c.Device("CPU:0")), K,
+        touched = _touched_blocks(probe, _o3d_depth(_o3d_ready(depth), o3c.Device("CPU:0")), K,
                                   _o3c_tensor(invert_transform(store.T_world_camera[int(i)]), o3c.float64), config)
         if touched is None:
             continue
@@ -360,7 +360,7 @@ def _integrate(vbg: Any, store: FramesStore, indices: range, config: FuseConfig,
                 skipped += 1
                 continue
             t = time.perf_counter()
-            image = _o3d_depth(depth, device, ready=True)
+            image = _o3d_depth(depth, device)
             extrinsic = _o3c_tensor(invert_transform(store.T_world_camera[i]), o3c.float64)
             coords = _touched_blocks(vbg, image, K, extrinsic, config)
             if coords is None:

@@ -121,13 +121,9 @@ class _Tile:
 def fuse_world(workspaces: Sequence[str | Path], output: str | Path, config: WorldConfig | None = None, *,
                overwrite: bool = False, progress: bool = True, scheduler: str | None = None,
                workers: int | None = None) -> WorldSummary:
-    """Fuse the frames.zarr of every workspace (flights in one world frame) into ``output/world.zarr``.
-
-    Runs one Dask task per tile: in this process for ``workers`` None or 1 without `scheduler`, on a
-    local cluster of `workers` processes, or on the cluster at `scheduler` (then `output` and the
-    workspaces must be on storage the workers share). With a single workspace the arrays equal, bit
-    for bit, what ``mapkit fuse`` + ``mapkit esdf`` compute on the same grid.
-    """
+    """Fuse the frames.zarr of every workspace (flights in one world frame) into ``output/world.zarr``,
+    one Dask task per tile: in this process (`workers` None or 1), on a local cluster of `workers`
+    processes, or on the cluster at `scheduler` (on storage the workers share)."""
     from mapkit._dask import compute_tasks
 
     config = config or WorldConfig()
@@ -294,8 +290,8 @@ def _tile_tsdf(stores: list[FramesStore], grid: Grid, tile: _Tile, fc: FuseConfi
     b_lo = np.floor(box_lo / block).astype(np.int64) - 1
     b_hi = np.floor(box_hi / block).astype(np.int64) + 1
     capacity = int(min(np.prod(b_hi - b_lo + 1), _MAX_TILE_BLOCKS))
-    vbg = _tsdf_grid(fc.voxel, block_count=capacity, device=o3c.Device("CPU:0"))
     device = o3c.Device("CPU:0")
+    vbg = _tsdf_grid(fc.voxel, block_count=capacity, device=device)
     for store, frames in zip(stores, tile.frames, strict=True):
         K = _o3d_intrinsics(store.K)
         for i in frames:
@@ -304,7 +300,7 @@ def _tile_tsdf(stores: list[FramesStore], grid: Grid, tile: _Tile, fc: FuseConfi
             raw = np.asarray(store.depth[i])
             if not np.any(raw <= fc.max_depth):  # as mapkit fuse: Open3D aborts on a frame that touches no block
                 continue
-            image = _o3d_depth(_o3d_ready(raw), device, ready=True)
+            image = _o3d_depth(_o3d_ready(raw), device)
             extrinsic = _o3c_tensor(invert_transform(store.T_world_camera[i]), o3c.float64)
             touched = _touched_blocks(vbg, image, K, extrinsic, fc)
             if touched is None:

@@ -1,20 +1,11 @@
 """Simulated UAV depth recordings with exact ground truth.
 
-Public API:
-
-- :func:`make_world`, :class:`World` (+ primitives :class:`Box`, :class:`Cylinder`,
-  :class:`Capsule`, :class:`HalfSpace`): procedural forest / office / garage worlds with an exact
-  signed distance and analytic ray casting (``_world.py`` holds the primitives and :class:`World`,
-  ``_procedural.py`` the seeded generators and their default sizes and densities).
+- :func:`make_world`, :class:`World` and its primitives: seeded forest / office / garage worlds with
+  an exact signed distance and analytic ray casting.
 - :class:`CameraModel`, :func:`render_depth`: a D435-like depth camera (pixel-centre convention).
-- :func:`plan_flight` → :class:`Flight`: a smooth, collision-checked flight through a world.
-- :class:`FreeSpaceGraph`: search-based paths through a world's exact free space (``mapkit eval``'s
-  start–goal pairs and its ``oracle`` planner).
-- :class:`SimConfig`, :func:`simulate`, :func:`render_flight`, :class:`SimResult`: the whole
-  recording (bag + ``.world.json`` / ``.world.ply`` / ``.flight.npz``).
-- :class:`BagRecorder`, :func:`output_path`: re-exported from :mod:`mapkit.bags`, which writes the
-  bags (the simulator is one of its users).
-- :class:`SimError`: every user-facing problem, in one line.
+- :func:`plan_flight` → :class:`Flight`; :class:`FreeSpaceGraph`: paths through exact free space.
+- :class:`SimConfig`, :func:`simulate`, :func:`render_flight`: the recording (bag + ``.world.json`` /
+  ``.world.ply`` / ``.flight.npz``); :class:`BagRecorder`, :func:`output_path` from :mod:`mapkit.bags`.
 """
 
 from mapkit.bags import BagRecorder, output_path

@@ -198,11 +198,8 @@ def _depth_frames(plan: _Plan, config: SimConfig, T_world_camera: np.ndarray) ->
 
 
 def render_flight(config: SimConfig) -> RenderedFlight:
-    """Plan the flight of ``config`` and return its ground truth with a lazy depth iterator.
-
-    The iterator yields the float32 (H, W) depth images :func:`simulate` writes (NaN invalid;
-    with noise if ``config.noise`` says so), one per stamp.
-    """
+    """Plan the flight of ``config``: its ground truth and a lazy iterator of the float32 (H, W) depth
+    images :func:`simulate` writes (NaN invalid), one per stamp."""
     plan = _plan(config)
     t = plan.t_odom[::ODOM_PER_FRAME]
     T_world_body = plan.trajectory.T_world_body(t)
@@ -215,7 +212,6 @@ def simulate(config: SimConfig, out: str | os.PathLike[str], *, progress: bool =
     """Simulate and write a recording plus ground truth beside it.
 
     Args:
-        config: what to simulate.
         out: output path, with or without suffix (see mapkit.bags.output_path).
         progress: show a tqdm bar over frames on stderr.
     Raises:

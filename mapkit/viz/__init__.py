@@ -1,17 +1,11 @@
 """Computations behind the viewers (``mapkit view``), usable by any front end: no viser, no click.
 
-- Slices: :class:`MapSlicer` serves :func:`mapkit.esdf.slice_plane` from an LRU cache of
-  chunk-aligned slabs; :func:`slice_texture` colours a slice (signed distance or the planner's
-  obstacle cost, unobserved voxels hatched) and gives the textured plane's world pose;
-  :func:`colorbar_image` draws its legend with units.
-- Point clouds: :func:`read_ply_points`, :func:`voxel_downsample`, :func:`downsample_to`,
-  :func:`cloud_view` (≤ max points, coloured by height or ESDF, positions relative to a local origin).
-- Geometry: :func:`frustum_segments` (camera frustums from K and T_world_camera),
-  :func:`polyline_segments`, :func:`speed_colors`, :func:`corridor_cross_section` and
-  :func:`corridor_prisms` (exactly the corridor :func:`mapkit.trajopt.min_snap` enforces),
-  :func:`pick_point` (a click ray → a goal).
-- Stores: :func:`open_workspace` (what exists, notes on what is missing), :func:`load_eval`
-  (``mapkit eval`` output), :func:`world_mesh_arrays`.
+- Slices: :class:`MapSlicer`, :func:`slice_texture`, :func:`colorbar_image`.
+- Point clouds: :func:`read_ply_points`, :func:`voxel_downsample`, :func:`downsample_to`, :func:`cloud_view`.
+- Geometry: :func:`frustum_segments`, :func:`polyline_segments`, :func:`speed_colors`,
+  :func:`corridor_cross_section` and :func:`corridor_prisms` (the corridor :func:`mapkit.trajopt.min_snap`
+  enforces), :func:`pick_point` (a click ray → a goal).
+- Stores: :func:`open_workspace`, :func:`load_eval` (``mapkit eval`` output), :func:`world_mesh_arrays`.
 
 >>> import numpy as np
 >>> from mapkit.viz import corridor_cross_section
