@@ -116,18 +116,14 @@ class EsdfMap:
                     f"map {str(p)!r}: {name!r} is {getattr(arr, 'dtype', '?')} with shape {getattr(arr, 'shape', '?')}, "
                     f"expected 3-D {np.dtype(expect[name]).name}; {_FIX}"
                 )
-        shape = tuple(arrays["esdf"].shape)
-        for name in ("esdf_raw", "observed"):
-            if tuple(arrays[name].shape) != shape:
-                raise EsdfError(f"map {str(p)!r}: {name!r} has shape {tuple(arrays[name].shape)} but 'esdf' has {shape}; {_FIX}")
-        try:
+        try:  # the constructor checks the attributes and that the grids' shapes match
             return cls(
                 esdf=arrays["esdf"], esdf_raw=arrays["esdf_raw"], observed=arrays["observed"],
                 voxel_size=attrs["voxel_size"], origin=attrs["origin"], frame_id=str(attrs["frame_id"]),
                 sigma=float(attrs["sigma"]), unknown_policy=str(attrs.get("unknown_policy", "")), attrs=attrs, path=p,
             )
         except EsdfError as exc:
-            raise EsdfError(f"map {str(p)!r} has bad attributes: {exc}; {_FIX}") from None
+            raise EsdfError(f"map {str(p)!r} is inconsistent: {exc}; {_FIX}") from None
 
     # ------------------------------------------------------------------ geometry
     @property
