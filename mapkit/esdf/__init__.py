@@ -18,12 +18,12 @@ chunk on Dask (:func:`signed_distance_chunked`).
 
 from mapkit.esdf._build import build_esdf
 from mapkit.esdf._chunked import ChunkedSummary, chunk_halo, signed_distance_chunked
-from mapkit.esdf._distance import BACKENDS, Backend, signed_distance, smooth
+from mapkit.esdf._distance import signed_distance, smooth
 from mapkit.esdf._errors import EsdfError
-from mapkit.esdf._map import OUTSIDE_POLICIES, EsdfMap
+from mapkit.esdf._map import EsdfMap
 from mapkit.esdf._shared import MAP, EsdfBuildError, EsdfConfig, EsdfSummary
 from mapkit.esdf._slice import Slice, render_slices, slice_plane
-from mapkit.esdf._store import UNKNOWN_POLICIES, MapWriter, create_map, write_map
+from mapkit.esdf._store import MapWriter, create_map, write_map
 
 __all__ = [
     "MAP",
@@ -31,10 +31,6 @@ __all__ = [
     "EsdfConfig",
     "EsdfSummary",
     "build_esdf",
-    "BACKENDS",
-    "Backend",
-    "OUTSIDE_POLICIES",
-    "UNKNOWN_POLICIES",
     "ChunkedSummary",
     "EsdfError",
     "EsdfMap",

@@ -9,19 +9,12 @@
 """
 
 from mapkit.bags import BagRecorder, output_path
-from mapkit.sim._camera import CameraModel, apply_realsense_noise, camera_extrinsics, render_depth
+from mapkit.sim._camera import CameraModel, camera_extrinsics, render_depth
 from mapkit.sim._errors import SimError
 from mapkit.sim._flight import Flight, plan_flight
 from mapkit.sim._procedural import DEFAULT_DENSITIES, DEFAULT_SIZES, MIN_SIZES, WORLD_KINDS, make_world
 from mapkit.sim._search import FreeSpaceGraph
 from mapkit.sim._simulate import (
-    BODY_FRAME,
-    CAMERA_INFO_TOPIC,
-    CAMERA_LINK_FRAME,
-    DEPTH_TOPIC,
-    ODOM_TOPIC,
-    OPTICAL_FRAME,
-    WORLD_FRAME,
     RenderedFlight,
     SimConfig,
     SimResult,
@@ -35,10 +28,8 @@ __all__ = [
     "BagRecorder", "output_path",
     "Box", "Capsule", "Cylinder", "HalfSpace", "Primitive", "World",
     "WORLD_KINDS", "DEFAULT_SIZES", "DEFAULT_DENSITIES", "MIN_SIZES", "make_world",
-    "CameraModel", "render_depth", "apply_realsense_noise", "camera_extrinsics",
+    "CameraModel", "render_depth", "camera_extrinsics",
     "Flight", "plan_flight", "FreeSpaceGraph",
     "SimConfig", "SimResult", "RenderedFlight", "simulate", "render_flight", "ground_truth_paths",
-    "DEPTH_TOPIC", "CAMERA_INFO_TOPIC", "ODOM_TOPIC", "WORLD_FRAME", "BODY_FRAME", "CAMERA_LINK_FRAME",
-    "OPTICAL_FRAME",
     "SimError",
 ]

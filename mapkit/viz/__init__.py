@@ -16,12 +16,10 @@
 """
 
 from mapkit.viz._cloud import (
-    CLOUD_COLORINGS,
     CloudView,
     PlyPoints,
     cloud_view,
     downsample_to,
-    local_origin,
     read_ply_points,
     transfer_precision,
     voxel_downsample,
@@ -33,13 +31,12 @@ from mapkit.viz._color import (
     colormap,
     depth_image,
     hatch,
-    is_diverging,
     make_norm,
     method_colors,
     speed_colors,
 )
 from mapkit.viz._errors import VizError
-from mapkit.viz._eval import EVAL_FORMAT, EpisodeRecord, EvalResults, load_eval, world_mesh_arrays
+from mapkit.viz._eval import EvalResults, load_eval, world_mesh_arrays
 from mapkit.viz._geometry import (
     CorridorGeometry,
     corridor_cross_section,
@@ -47,17 +44,12 @@ from mapkit.viz._geometry import (
     frustum_segments,
     pick_point,
     polyline_segments,
-    ray_plane,
-    ray_surface,
     transform_points,
 )
 from mapkit.viz._slice import (
-    PLANE_AXES,
-    SLICE_MODES,
     MapSlicer,
     SlabCache,
     SliceTexture,
-    auto_range,
     obstacle_cost_of_distance,
     slice_texture,
     texture_scale,
@@ -65,14 +57,9 @@ from mapkit.viz._slice import (
 from mapkit.viz._workspace import WorkspaceContents, open_workspace
 
 __all__ = [
-    "CLOUD_COLORINGS",
-    "EVAL_FORMAT",
     "HATCH_RGB",
-    "PLANE_AXES",
-    "SLICE_MODES",
     "CloudView",
     "CorridorGeometry",
-    "EpisodeRecord",
     "EvalResults",
     "MapSlicer",
     "PlyPoints",
@@ -81,7 +68,6 @@ __all__ = [
     "VizError",
     "WorkspaceContents",
     "apply_colormap",
-    "auto_range",
     "cloud_view",
     "colorbar_image",
     "colormap",
@@ -91,17 +77,13 @@ __all__ = [
     "downsample_to",
     "frustum_segments",
     "hatch",
-    "is_diverging",
     "load_eval",
-    "local_origin",
     "make_norm",
     "method_colors",
     "obstacle_cost_of_distance",
     "open_workspace",
     "pick_point",
     "polyline_segments",
-    "ray_plane",
-    "ray_surface",
     "read_ply_points",
     "slice_texture",
     "speed_colors",
