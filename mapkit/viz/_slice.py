@@ -44,11 +44,6 @@ class SlabCache:
         """Bytes held now."""
         return self._bytes
 
-    def clear(self) -> None:
-        with self._lock:
-            self._slabs.clear()
-            self._bytes = 0
-
     def slab(self, name: str, array: Any, axis: int, k: int) -> tuple[np.ndarray, int]:
         """The slab of `array` (3-D, zarr or numpy; cached under `name`) holding plane `k` along
         `axis`, and the index of the slab's first plane."""
@@ -128,10 +123,6 @@ class MapSlicer:
             voxel_size=esdf_map.voxel_size, origin=esdf_map.origin, frame_id=esdf_map.frame_id,
             sigma=esdf_map.sigma, unknown_policy=esdf_map.unknown_policy, attrs=esdf_map.attrs, path=esdf_map.path,
         )
-
-    @property
-    def voxel_size(self) -> float:
-        return self.map.voxel_size
 
     def positions(self, axis: str) -> tuple[float, float, float]:
         """(first, last, step): the voxel-centre coordinates (metres) a slice along `axis` can take."""
