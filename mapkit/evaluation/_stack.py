@@ -9,6 +9,7 @@ any other stack, and the bare name for methods no stack changes (``straight``, `
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 from mapkit._choices import FLIGHT_STACKS, FlightStack
@@ -25,9 +26,12 @@ _STACK_BY_NAME: dict[str, FlightStack] = {name: name for name in FLIGHT_STACKS}
 
 
 def parse_stacks(text: str) -> tuple[FlightStack, ...]:
-    """``--stack``'s comma list (``"full,none"``) → the stacks, in order; :class:`EvalError` names a bad
-    or repeated one and the choices."""
-    names = [part.strip() for part in text.split(",") if part.strip()]
+    """``--stack``'s comma list (``"full,none"``) → the stacks, in order (:func:`check_stacks`)."""
+    return check_stacks([part.strip() for part in text.split(",") if part.strip()])
+
+
+def check_stacks(names: Sequence[str]) -> tuple[FlightStack, ...]:
+    """The stacks ``names``; :class:`EvalError` names a bad or repeated one and the choices."""
     out: list[FlightStack] = []
     for name in names:
         stack = _STACK_BY_NAME.get(name)
