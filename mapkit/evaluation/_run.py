@@ -261,10 +261,9 @@ class _WorkerSetup:
 
 @dataclass(frozen=True)
 class _WorldBundle:
-    """A world with what flying in it needs: free-space graph, camera, its rays and the methods."""
+    """A world with what flying in it needs: the camera, its rays and the methods' pilots."""
 
     world: Any
-    graph: Any
     camera: Any
     rays: np.ndarray
     pilots: list[Pilot]
@@ -290,9 +289,8 @@ class _EpisodeRun:
 
     record: EpisodeRecord
     latencies_ms: list[float]
-    """Wall-clock planning times (latency.json)."""
+    """Wall-clock planning and time allocation latencies (latency.json)."""
     allocation_ms: list[float]
-    """Time allocation latencies (latency.json)."""
     path: np.ndarray
     """(N, 4) float32 [t, x, y, z] at PATH_RATE_HZ (trajectories.npz)."""
     plans: list[PlanInput] = field(default_factory=list)
@@ -382,7 +380,7 @@ def _world_bundle(kind: str) -> _WorldBundle:
         recorded = RunCamera(cam.width, cam.height, K, np.asarray(cam.T_body_camera), "the evaluation's camera")
         pilots = [Pilot(method, camera=recorded, config=config.loop.pilot) for method in methods]
         vehicle = RotorpyVehicle() if config.vehicle == "rotorpy" else None
-        state.worlds[kind] = _WorldBundle(world=world, graph=graph, camera=camera, rays=rays, pilots=pilots,
+        state.worlds[kind] = _WorldBundle(world=world, camera=camera, rays=rays, pilots=pilots,
                                           vehicle=vehicle)
     return state.worlds[kind]
 
@@ -527,11 +525,8 @@ def latency_summary(latencies: dict[tuple[str, str], list[float]], worlds: list[
         out[m] = {}
         for w in [*worlds, "overall"]:
             vals = [v for (wk, mk), vs in latencies.items() if mk == m and (w == "overall" or wk == w) for v in vs]
-            a = np.asarray(vals) if vals else np.zeros(0)
-            out[m][w] = {"plans": len(vals), "mean_ms": float(a.mean()) if len(a) else None,
-                         "std_ms": float(a.std()) if len(a) else None,
-                         "median_ms": float(np.median(a)) if len(a) else None,
-                         "p90_ms": float(np.percentile(a, 90)) if len(a) else None}
+            out[m][w] = {"plans": len(vals), **{f"{k}_ms": v for k, v in _stats(vals).items()},
+                         "p90_ms": float(np.percentile(vals, 90)) if vals else None}
     return out
 
 
@@ -549,7 +544,6 @@ class _ModelContext:
     """What the model (or its absence) decides about an evaluation."""
 
     camera: CameraSpec
-    """The camera rendered in the loop."""
     loop: LoopConfig
     """The loop with the model's robot radius and cruise speed."""
     trained_worlds: set[tuple[str, int]]
@@ -557,9 +551,8 @@ class _ModelContext:
     model_info: dict[str, Any] | None
     """results.json's ``model`` (None without a model)."""
     flown_horizon: float = 1.5
-    """Metres of each candidate the flown-path head reads (the model's ``flown_horizon``; judge.npz)."""
+    """The model's ``flown_horizon`` and ``flown_history`` (judge.npz)."""
     flown_history: float = 0.0
-    """Seconds of earlier frames the flown-path head reads (the model's ``flown_history``; judge.npz)."""
 
 
 def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> _ModelContext:
@@ -576,15 +569,12 @@ def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> 
     if model is None:
         return context
     run_dir = resolve_model(model)
-    planner = Planner.load(run_dir)  # a missing or foreign model.pt is a one-line error here
-    net = planner.net
+    net = Planner.load(run_dir).net  # a missing or foreign model.pt is a one-line error here
     run_cfg = _run_config(run_dir)
     cam = _training_camera(run_cfg)
     h, w = net.config.input_size
     if cam is not None:
-        # the network resizes the training camera's images here exactly as it did in training (the
-        # paper preset's 360x640 from a 160x120 dataset, too), so any input size is consistent
-        context.camera = cam
+        context.camera = cam  # the network resizes its images as in training, so any input size fits
     elif h > context.camera.height or w > context.camera.width:
         raise EvalError(
             f"model {run_dir} expects depth resized to {h}x{w}, its run records no training camera and its "
@@ -595,13 +585,9 @@ def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> 
     else:
         log.warning("the run's training workspaces are not readable; rendering %s", context.camera.source)
     loss = run_cfg.get("loss", {}) or {}
-    if "robot_radius" in loss:
-        context.loop = dataclasses.replace(context.loop, robot_radius=float(loss["robot_radius"]))
-    # The time limit is a multiple of the straight flight at the pace the planner is asked to fly: a
-    # flight slowed by execution.speed.cruise is not judged by the clock of a faster one.
-    cruise = config.execution.speed.cruise
-    pace = net.config.cruise_speed if cruise is None else cruise
-    context.loop = dataclasses.replace(context.loop, cruise_speed=float(pace))
+    cruise = config.execution.speed.cruise  # the time limit follows the pace the flights are asked for
+    context.loop = dataclasses.replace(context.loop, robot_radius=float(loss.get("robot_radius", context.loop.robot_radius)),
+                                       cruise_speed=float(net.config.cruise_speed if cruise is None else cruise))
     context.trained_worlds = _training_worlds(run_cfg)
     context.flown_horizon = net.config.flown_horizon
     context.flown_history = net.config.flown_history
@@ -632,40 +618,34 @@ def _worlds_and_pairs(config: EvalConfig) -> tuple[dict[str, Any], dict[str, lis
     return worlds, pairs
 
 
-@dataclass(frozen=True)
-class _Flown:
-    """Every pair's episodes and how many processes flew them."""
-
-    results: dict[tuple[str, int], list[_EpisodeRun]]
-    """(world, pair index) → its episodes, one per method."""
-    workers: int
-    """Processes (or Dask workers, when the client connected) that ran the pairs."""
+_Results = dict[tuple[str, int], list[_EpisodeRun]]
+"""(world, pair index) → its episodes, one per run."""
 
 
 def _fly_all(setup: _WorkerSetup, tasks: list[tuple[str, dict]], workers: int, progress: bool,
-             cluster: tuple[Client, ClusterInfo] | None = None) -> _Flown:
+             cluster: tuple[Client, ClusterInfo] | None = None) -> tuple[_Results, int]:
     """Run every (world, pair) task: on the Dask ``cluster`` when given, else in this process or in
-    ``workers`` spawned ones."""
+    ``workers`` spawned ones; with the number of processes (or Dask workers) that ran them."""
     from tqdm import tqdm
 
     bar = tqdm(total=len(tasks), unit="pair", desc="eval", dynamic_ncols=True, disable=not progress)
     try:
         if cluster is not None:
-            return _Flown(_fly_on_dask(setup, tasks, cluster, bar), cluster[1].workers)
+            return _fly_on_dask(setup, tasks, cluster, bar), cluster[1].workers
         if workers == 1:
-            return _Flown(_fly_here(setup, tasks, bar), 1)
-        return _Flown(_fly_in_pool(setup, tasks, workers, bar), workers)
+            return _fly_here(setup, tasks, bar), 1
+        return _fly_in_pool(setup, tasks, workers, bar), workers
     finally:
         bar.close()
 
 
 def _fly_here(setup: _WorkerSetup, tasks: list[tuple[str, dict]],
-              bar: tqdm) -> dict[tuple[str, int], list[_EpisodeRun]]:
+              bar: tqdm) -> _Results:
     """Every task in this process (its torch thread count restored after)."""
     import torch
 
     global _WORKER
-    results: dict[tuple[str, int], list[_EpisodeRun]] = {}
+    results: _Results = {}
     threads = torch.get_num_threads()
     try:
         _init_worker(setup)
@@ -680,9 +660,9 @@ def _fly_here(setup: _WorkerSetup, tasks: list[tuple[str, dict]],
 
 
 def _fly_in_pool(setup: _WorkerSetup, tasks: list[tuple[str, dict]], workers: int,
-                 bar: tqdm) -> dict[tuple[str, int], list[_EpisodeRun]]:
+                 bar: tqdm) -> _Results:
     """Every task in ``workers`` spawned processes, each set up once by :func:`_init_worker`."""
-    results: dict[tuple[str, int], list[_EpisodeRun]] = {}
+    results: _Results = {}
     with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
                              initializer=_init_worker, initargs=(setup,)) as pool:
         for kind, idx, runs in pool.map(_call, tasks):
@@ -701,7 +681,6 @@ def _dask_task(setup: _WorkerSetup, task: tuple[str, dict]) -> tuple[str, int, l
     """One Dask task: a (world, pair) flown on this worker process. The process is set up (model,
     one torch thread) on its first task of an evaluation and keeps the model and worlds for the next
     ones; a task of another evaluation (another setup) sets it up again."""
-    global _WORKER
     with _DASK_LOCK:
         if _WORKER is None or _WORKER.setup != setup:
             _check_worker_model(setup)
@@ -751,7 +730,7 @@ def _dask_cluster(config: EvalConfig) -> Iterator[tuple[Client, ClusterInfo] | N
 
 
 def _fly_on_dask(setup: _WorkerSetup, tasks: list[tuple[str, dict]], cluster: tuple[Client, ClusterInfo],
-                 bar: tqdm) -> dict[tuple[str, int], list[_EpisodeRun]]:
+                 bar: tqdm) -> _Results:
     """Every task as a Dask task on ``cluster``; results in completion order (the caller orders them)."""
     from distributed import as_completed
     from distributed.scheduler import KilledWorker
@@ -763,7 +742,7 @@ def _fly_on_dask(setup: _WorkerSetup, tasks: list[tuple[str, dict]], cluster: tu
     run_id = uuid.uuid4().hex[:8]
     futures = {client.submit(_dask_task, setup, task, key=f"mapkit-eval-{run_id}-{task[0]}-{task[1]['pair']:03d}",
                              retries=DASK_RETRIES): task for task in tasks}
-    results: dict[tuple[str, int], list[_EpisodeRun]] = {}
+    results: _Results = {}
     for future in as_completed(futures):
         kind, pair = futures[future][0], futures[future][1]["pair"]
         try:
@@ -785,9 +764,8 @@ class _Collected:
 
     episodes: list[EpisodeRecord] = field(default_factory=list)
     latencies: dict[tuple[str, str], list[float]] = field(default_factory=dict)
-    """(world, method) → planning latencies, ms."""
+    """(world, method) → planning (and time allocation) latencies, ms."""
     allocations: dict[tuple[str, str], list[float]] = field(default_factory=dict)
-    """(world, method) → time allocation latencies, ms."""
     paths: dict[str, np.ndarray] = field(default_factory=dict)
     """``"{world}/{pair:03d}/{method}"`` → (N, 4) float32 executed path."""
     plans: list[tuple[str, int, PlanInput]] = field(default_factory=list)
@@ -796,8 +774,7 @@ class _Collected:
     """(world, pair, labelled candidates) of every recorded plan, in results.json order."""
 
 
-def _collect(config: EvalConfig, pairs: dict[str, list[Pair]],
-             results: dict[tuple[str, int], list[_EpisodeRun]]) -> _Collected:
+def _collect(config: EvalConfig, pairs: dict[str, list[Pair]], results: _Results) -> _Collected:
     """Order the episodes by world, pair and method and split off latencies and paths."""
     out = _Collected()
     for kind in config.worlds:
@@ -864,26 +841,24 @@ def write_judgements(path: Path, judgements: list[tuple[str, int, Judgement]], h
     ``history`` (seconds of earlier frames the clearances read)."""
     from mapkit.planner import FLOWN_FEATURES
 
-    rows = [(i, w, pair, j) for i, (w, pair, j) in enumerate(judgements)]
     n = judgements[0][2].features.shape[1] if judgements else 0
     def stacked(name: str, empty: tuple[int, ...], dtype: Any) -> np.ndarray:
-        parts = [getattr(j, name) for _, _, _, j in rows]
+        parts = [getattr(j, name) for _, _, j in judgements]
         return np.concatenate(parts).astype(dtype) if parts else np.zeros(empty, dtype)
-    counts = [len(j.collides) for _, _, _, j in rows]
+    counts = [len(j.collides) for _, _, j in judgements]
     np.savez_compressed(path, features=stacked("features", (0, n, FLOWN_FEATURES), np.float32),
                         lengths=stacked("lengths", (0,), np.float32), collides=stacked("collides", (0,), bool),
-                        plan=np.repeat(np.arange(len(rows), dtype=np.int64), counts),
-                        world=np.repeat(np.array([w for _, w, _, _ in rows], dtype=str), counts),
-                        pair=np.repeat(np.array([p for _, _, p, _ in rows], np.int64), counts),
+                        plan=np.repeat(np.arange(len(judgements), dtype=np.int64), counts),
+                        world=np.repeat(np.array([w for w, _, _ in judgements], dtype=str), counts),
+                        pair=np.repeat(np.array([p for _, p, _ in judgements], np.int64), counts),
                         horizon=np.float64(horizon), robot_radius=np.float64(robot_radius),
                         history=np.float64(history))
 
 
-def _write_outputs(out_dir: Path, doc: dict[str, Any], lat: dict, alloc: dict, worlds: dict[str, Any],
-                   paths: dict[str, np.ndarray], workers: int, *, overwrite: bool,
-                   plans: list[tuple[str, int, PlanInput]] | None = None,
-                   judged: tuple[list[tuple[str, int, Judgement]], float, float, float] | None = None) -> None:
-    """Write the eval folder as one unit: worlds, results.json, latency.json, trajectories.npz, report."""
+def _write_outputs(out_dir: Path, config: EvalConfig, context: _ModelContext, doc: dict[str, Any], lat: dict,
+                   alloc: dict, worlds: dict[str, Any], collected: _Collected, workers: int, overwrite: bool) -> None:
+    """Write the eval folder as one unit: worlds, results.json, latency.json, trajectories.npz, the
+    recorded plans and judgements when asked for, and the report."""
     from mapkit.evaluation._report import write_report
 
     with atomic_output(out_dir, overwrite=overwrite) as tmp:
@@ -895,11 +870,13 @@ def _write_outputs(out_dir: Path, doc: dict[str, Any], lat: dict, alloc: dict, w
         (tmp / "latency.json").write_text(json.dumps(
             {"format": EVAL_FORMAT, "device": platform.processor() or platform.machine(), "torch_threads": 1,
              "workers": workers, "latency": lat, "allocation": alloc}, indent=1) + "\n")
-        np.savez_compressed(tmp / "trajectories.npz", **paths)  # type: ignore[arg-type]  # numpy's stub: a key might be allow_pickle
-        if plans is not None:
-            write_plans(tmp / PLANS_FILE, plans)
-        if judged is not None:
-            write_judgements(tmp / JUDGE_FILE, *judged)
+        np.savez_compressed(tmp / "trajectories.npz", **collected.paths)  # type: ignore[arg-type]  # numpy's stub: a key might be allow_pickle
+        if config.record_plans:
+            write_plans(tmp / PLANS_FILE, collected.plans)
+        if config.record_judge:
+            history = context.flown_history if config.judge_history is None else config.judge_history
+            write_judgements(tmp / JUDGE_FILE, collected.judgements, context.flown_horizon, config.loop.robot_radius,
+                             history)
         write_report(tmp, doc, lat, worlds, alloc)
 
 
@@ -922,10 +899,9 @@ def evaluate(
     progress: bool = True,
 ) -> EvalResult:
     """Fly every method of ``config`` from the same start–goal pairs in unseen simulated worlds and
-    write ``out_dir``: results.json (every outcome and number, the model hash, seeds, versions;
-    identical for the same inputs on CPU), latency.json (wall-clock planning times, which cannot be
-    identical), trajectories.npz (executed paths, ``"{world}/{pair:03d}/{method}"`` → (N, 4) [t, x, y,
-    z]), worlds/*.world.json, report.md (tables shaped like the paper's) and PNGs.
+    write ``out_dir``: results.json (every outcome and number; identical for the same inputs on CPU),
+    latency.json (wall-clock planning times), trajectories.npz (executed paths,
+    ``"{world}/{pair:03d}/{method}"`` → (N, 4) [t, x, y, z]), worlds/*.world.json, report.md and PNGs.
 
     Args:
         model: run directory with model.pt (None only when no method needs a model).
@@ -952,19 +928,15 @@ def evaluate(
                              camera=context.camera, config=config,
                              runs=tuple(plan_runs(config.methods, config.stacks, config.untrained_seeds)))
         tasks = [(k, p.to_dict()) for k in config.worlds for p in pairs[k]]
-        flown = _fly_all(setup, tasks, config.workers, progress, cluster)
-    collected = _collect(config, pairs, flown.results)
+        results, workers = _fly_all(setup, tasks, config.workers, progress, cluster)
+    collected = _collect(config, pairs, results)
 
     worlds_list, methods = list(config.worlds), run_labels(config)
     summary = summarise(collected.episodes, worlds_list, methods)
     lat = latency_summary(collected.latencies, worlds_list, methods)
     alloc = latency_summary(collected.allocations, worlds_list, methods)
     doc = _results_doc(config, context, pairs, summary, collected.episodes)
-    _write_outputs(out_dir, doc, lat, alloc, worlds, collected.paths, flown.workers, overwrite=overwrite,
-                   plans=collected.plans if config.record_plans else None,
-                   judged=(collected.judgements, context.flown_horizon, config.loop.robot_radius,
-                           context.flown_history if config.judge_history is None else config.judge_history)
-                   if config.record_judge else None)
+    _write_outputs(out_dir, config, context, doc, lat, alloc, worlds, collected, workers, overwrite)
     files = sorted(p for p in out_dir.rglob("*") if p.is_file())
     return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat, "allocation": alloc}, files=files,
                       ablation=ablation(collected.episodes, methods))
