@@ -35,16 +35,12 @@ def _pct(x: float | None) -> str:
     return "–" if x is None else f"{100 * x:.1f}"
 
 
-def _pm(s: dict, fmt: str = "{:.2f}") -> str:
-    if s.get("mean") is None:
-        return "–"
-    return f"{fmt.format(s['mean'])} ± {fmt.format(s['std'])}"
+def _pm(s: dict, mean: str = ".2f", std: str = ".2f") -> str:
+    return "–" if s.get("mean") is None else f"{s['mean']:{mean}} ± {s['std']:{std}}"
 
 
 def _effort(s: dict) -> str:
-    if s.get("mean") is None:
-        return "–"
-    return f"{s['mean']:.4g} ± {s['std']:.3g}"
+    return _pm(s, ".4g", ".3g")
 
 
 def _median(s: dict, fmt: str = "{:.4g}") -> str:
@@ -308,13 +304,9 @@ def success_by_detour(episodes: list[EpisodeRecord], reference: str = "oracle",
     (its path length / the start–goal distance; below 1 where it stopped within the goal radius). A
     planner that fails only where the way round is long explores badly; one that fails on near-straight
     routes fails locally. Empty bins are left out; [] when ``reference`` did not fly."""
-    ratio: dict[tuple[str, int], float | None] = {}
-    for e in episodes:
-        if e.method == reference:
-            r = None
-            if e.outcome == "success" and e.path_length is not None and e.distance:
-                r = e.path_length / e.distance
-            ratio[(e.world, e.pair)] = r
+    ratio = {(e.world, e.pair): e.path_length / e.distance
+             if e.outcome == "success" and e.path_length is not None and e.distance else None
+             for e in episodes if e.method == reference}
     if not ratio:
         return []
     bounds = list(zip((0.0, *edges), (*edges, math.inf), strict=True))

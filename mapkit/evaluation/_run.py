@@ -90,14 +90,12 @@ class EvalConfig:
     execution: Execution = field(default_factory=Execution)
     """How the learned allocations fly their key-points (corridor, speed and acceleration limits)."""
     workers: int = 1
-    """Processes; pairs run in parallel. Results do not depend on it (one torch thread per process).
-    With ``scheduler="local"`` the size of the local Dask cluster; with a scheduler address it must
-    stay 1 (the cluster's workers run the pairs)."""
+    """Processes running pairs in parallel (with ``scheduler="local"``: the local Dask cluster's size; with a
+    scheduler address it must stay 1). Results do not depend on it."""
     scheduler: str | None = None
-    """None: this machine, ``workers`` processes of a pool. A Dask scheduler address
-    (``tcp://HOST:8786``): every pair is a task on that cluster, whose workers must import mapkit and
-    read the model's run directory at the same path. ``"local"``: a Dask LocalCluster of ``workers``
-    processes here. Results do not depend on it."""
+    """None: ``workers`` processes here. A Dask scheduler address (``tcp://HOST:8786``): every pair is a task
+    on that cluster (its workers read the model at the same path). ``"local"``: a Dask LocalCluster of
+    ``workers`` processes here. Results do not depend on it."""
     loop: LoopConfig = field(default_factory=LoopConfig)
     """The closed loop (the pilot's options, goal radius, robot radius, time limit, tracker)."""
     vehicle: VehicleKind = "tracker"
@@ -322,8 +320,8 @@ _WORKER: _WorkerState | None = None
 
 
 def _init_worker(setup: _WorkerSetup) -> None:
-    """Per process: one torch thread (deterministic results whatever --workers is), the model
-    prepared for inference (the same frozen encoder in every process, so results stay identical)."""
+    """Per process: one torch thread and the model prepared for inference (identical results whatever
+    --workers is)."""
     import torch
 
     global _WORKER
@@ -333,7 +331,7 @@ def _init_worker(setup: _WorkerSetup) -> None:
     if setup.model is not None:
         from mapkit.flight import Planner
 
-        net = Planner.load(setup.model).net.prepare_inference()  # every process plans hundreds of frames
+        net = Planner.load(setup.model).net.prepare_inference()
         if any(run.method == "untrained" for run in setup.runs):
             untrained = {seed: untrained_copy(net, seed).prepare_inference() for seed in setup.config.untrained_seeds}
     _WORKER = _WorkerState(setup=setup, net=net, untrained=untrained)
