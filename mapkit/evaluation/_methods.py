@@ -38,12 +38,6 @@ ORACLE_ACCEL = 2.0
 """m/s², the oracle's trapezoidal speed profile."""
 
 
-def _tensors(wp: np.ndarray, start: np.ndarray, end_speed: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Batch-of-one tensors: waypoints (1, K+1, 3), start derivatives (1, 3, 3), end speed (1,)."""
-    return (torch.from_numpy(wp)[None], torch.from_numpy(np.ascontiguousarray(start[1:]))[None],
-            torch.tensor([end_speed], dtype=torch.float64))
-
-
 class StraightMethod:
     """One minimum-snap segment from the vehicle's state to the local goal, timed by the planner's
     speed profile; no camera."""
@@ -59,7 +53,8 @@ class StraightMethod:
         t0 = time.perf_counter()
         start = obs.start_body()
         wp = np.stack([start[0], obs.local_goal_body])
-        wpt, st, es = _tensors(wp, start, self.config.cruise_speed if obs.goal_clipped else 0.0)
+        wpt, st = torch.from_numpy(wp)[None], torch.from_numpy(np.ascontiguousarray(start[1:]))[None]  # batches of one
+        es = torch.tensor([self.config.cruise_speed if obs.goal_clipped else 0.0], dtype=torch.float64)
         timing = plan_timing(wpt, st, es, self.config, allocation="uniform")
         with torch.no_grad():
             traj = min_snap(wpt, timing.durations, start=st, end=timing.end)

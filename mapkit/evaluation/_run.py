@@ -459,23 +459,15 @@ def _call(args: tuple[str, dict]) -> tuple[str, int, list[_EpisodeRun]]:
 
 
 # -------------------------------------------------------------------------------- summaries
-def _flight_stats(eps: list[EpisodeRecord]) -> dict[str, dict[str, float | None]]:
-    """Over every flight: the climb above the higher of start and goal, the tracking error (per flight mean
-    and max, metres) and the references' peak speed and acceleration (norms), each with its largest
-    value."""
-    out = {}
-    for key in ("climb", "tracking_error_mean", "tracking_error_max", "reference_peak_speed",
-                "reference_peak_acceleration"):
-        values = _present([getattr(e, key) for e in eps])
-        out[key] = {**_stats(values), "max": float(max(values)) if values else None}
+def _stats(values: list[float], extreme: str | None = None) -> dict[str, float | None]:
+    """Mean, std and median of ``values`` (None when empty), and their ``"min"`` or ``"max"`` when asked."""
+    out: dict[str, float | None] = {"mean": None, "std": None, "median": None}
+    if values:
+        a = np.asarray(values, dtype=np.float64)
+        out = {"mean": float(a.mean()), "std": float(a.std()), "median": float(np.median(a))}
+    if extreme is not None:
+        out[extreme] = float(min(values) if extreme == "min" else max(values)) if values else None
     return out
-
-
-def _stats(values: list[float]) -> dict[str, float | None]:
-    if not values:
-        return {"mean": None, "std": None, "median": None}
-    a = np.asarray(values, dtype=np.float64)
-    return {"mean": float(a.mean()), "std": float(a.std()), "median": float(np.median(a))}
 
 
 def _present(values: list[float | None]) -> list[float]:
@@ -486,6 +478,9 @@ def _present(values: list[float | None]) -> list[float]:
 _SUCCESS_STATS = ("control_effort", "plan_effort", "time_s", "peak_speed", "peak_acceleration", "peak_jerk",
                   "path_length_ratio")
 """Episode fields :func:`summarise` gives statistics of over the successful flights (results.json's order)."""
+_FLIGHT_STATS = ("climb", "tracking_error_mean", "tracking_error_max", "reference_peak_speed",
+                 "reference_peak_acceleration")
+"""Episode fields :func:`summarise` gives statistics and the largest value of over every flight."""
 
 
 def summarise(episodes: list[EpisodeRecord], worlds: list[str], methods: list[str]) -> dict:
@@ -506,13 +501,13 @@ def summarise(episodes: list[EpisodeRecord], worlds: list[str], methods: list[st
                 "collision_rate": sum(e.outcome == "collision" for e in eps) / n if n else None,
                 "timeout_rate": sum(e.outcome == "timeout" for e in eps) / n if n else None,
                 **{key: _stats(_present([getattr(e, key) for e in ok])) for key in _SUCCESS_STATS},
-                "min_distance": {**_stats(dists), "min": float(min(dists)) if dists else None},
+                "min_distance": _stats(dists, "min"),
                 "hidden_goal_episodes": len(hidden),
                 "hidden_goal_success_rate": (sum(e.outcome == "success" for e in hidden) / len(hidden)
                                              if hidden else None),
                 "rejected_plan_rate": (sum(e.rejected_plans or 0 for e in eps) / max(1, sum(e.plans or 0 for e in eps))
                                        if eps else None),
-                **_flight_stats(eps),
+                **{key: _stats(_present([getattr(e, key) for e in eps]), "max") for key in _FLIGHT_STATS},
             }
     return out
 
