@@ -4,7 +4,7 @@ over the start–goal pairs with 95 % bootstrap intervals (pairs resampled withi
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -117,17 +117,19 @@ def _by_pair(episodes: list[EpisodeRecord], labels: str | Sequence[str]) -> dict
     return {k: [flights[k] for flights in each] for k in common}
 
 
-def _bootstrap_mean(values: np.ndarray, worlds: np.ndarray, resamples: int, seed: int) -> tuple[float, float]:
-    """2.5th and 97.5th percentiles of the mean of ``values`` over resamples within each world."""
+def _interval(a: str, b: str | Sequence[str], keys: list[PairKey], values: list[float], resamples: int, seed: int,
+              scale: Callable[[float], float]) -> Interval | None:
+    """The mean of ``values`` (one per pair of ``keys``) with the 2.5th and 97.5th percentiles of the mean
+    over resamples within each world, each through ``scale``; None without pairs."""
+    if not keys:
+        return None
+    v, worlds = np.array(values), np.array([k[0] for k in keys])
     rng = np.random.default_rng(seed)
     groups = [np.flatnonzero(worlds == w) for w in np.unique(worlds)]
     draws = np.concatenate([g[rng.integers(0, len(g), size=(resamples, len(g)))] for g in groups], axis=1)
-    low, high = np.percentile(values[draws].mean(axis=1), [2.5, 97.5])
-    return float(low), float(high)
-
-
-def _name(labels: str | Sequence[str]) -> str:
-    return labels if isinstance(labels, str) else split_label(labels[0]).pooled
+    low, high = np.percentile(v[draws].mean(axis=1), [2.5, 97.5])
+    name = b if isinstance(b, str) else split_label(b[0]).pooled
+    return Interval(a, name, scale(float(v.mean())), scale(float(low)), scale(float(high)), len(keys))
 
 
 def success_difference(episodes: list[EpisodeRecord], a: str, b: str | Sequence[str], *,
@@ -136,13 +138,8 @@ def success_difference(episodes: list[EpisodeRecord], a: str, b: str | Sequence[
     over the pairs all flew, with its interval; None when they share no pair."""
     ea, eb = _by_pair(episodes, a), _by_pair(episodes, b)
     keys = sorted(ea.keys() & eb.keys())
-    if not keys:
-        return None
-    diff = np.array([float(ea[k][0].outcome == "success") - np.mean([e.outcome == "success" for e in eb[k]])
-                     for k in keys])
-    worlds = np.array([k[0] for k in keys])
-    low, high = _bootstrap_mean(diff, worlds, resamples, seed)
-    return Interval(a, _name(b), 100.0 * float(diff.mean()), 100.0 * low, 100.0 * high, len(keys))
+    diff = [float(ea[k][0].outcome == "success") - np.mean([e.outcome == "success" for e in eb[k]]) for k in keys]
+    return _interval(a, b, keys, diff, resamples, seed, lambda x: 100.0 * x)
 
 
 def paired_ratio(episodes: list[EpisodeRecord], a: str, b: str | Sequence[str], quantity: Paired, *,
@@ -159,11 +156,7 @@ def paired_ratio(episodes: list[EpisodeRecord], a: str, b: str | Sequence[str], 
         if ea[k][0].outcome == "success" and x and x > 0 and ys:
             keys.append(k)
             logs.append(float(np.mean(np.log(x / np.asarray(ys)))))
-    if not keys:
-        return None
-    values, worlds = np.array(logs), np.array([k[0] for k in keys])
-    low, high = _bootstrap_mean(values, worlds, resamples, seed)
-    return Interval(a, _name(b), float(np.exp(values.mean())), float(np.exp(low)), float(np.exp(high)), len(keys))
+    return _interval(a, b, keys, logs, resamples, seed, lambda x: float(np.exp(x)))
 
 
 def ablation(episodes: list[EpisodeRecord], labels: list[str], *, resamples: int = BOOTSTRAP_RESAMPLES,
