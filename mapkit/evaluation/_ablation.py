@@ -138,7 +138,7 @@ def success_difference(episodes: list[EpisodeRecord], a: str, b: str | Sequence[
     over the pairs all flew, with its interval; None when they share no pair."""
     ea, eb = _by_pair(episodes, a), _by_pair(episodes, b)
     keys = sorted(ea.keys() & eb.keys())
-    diff = [float(ea[k][0].outcome == "success") - np.mean([e.outcome == "success" for e in eb[k]]) for k in keys]
+    diff = [float(ea[k][0].outcome == "success") - float(np.mean([e.outcome == "success" for e in eb[k]])) for k in keys]
     return _interval(a, b, keys, diff, resamples, seed, lambda x: 100.0 * x)
 
 
