@@ -8,9 +8,8 @@ along a straight flight; the goal lies 6 m ahead, the vehicle flies at 1.5 m/s. 
 against its named peer in the same run, the peer being what mapkit used before 2026-11-30:
 
 - the encoder and the nearest-depth pyramid run by ONNX Runtime in one graph
-  (``PlannerNet.prepare_inference``, since 2026-11-30) against the frozen TorchScript encoder and the
-  numpy pyramid they replaced, and the TorchScript encoder against the eager one; the network pass with
-  the frozen encoder against the eager encoder;
+  (``PlannerNet.prepare_inference``, since 2026-11-30) against the eager encoder and the numpy
+  pyramid; the network pass with the frozen encoder against the eager encoder;
 - the nearest-depth pyramid in numpy against torch's pooling (the same minima);
 - the corridor minimum snap (1 m) around the plan's key-points, beside the closed form through them
   (a reference point, not a peer it replaced); and the same corridor with speed and acceleration
@@ -89,17 +88,15 @@ def _network(net, frames, camera, repeats: int) -> None:
     goal = torch.tensor([[6.0, 0.0, 0.0]])
     velocity = torch.tensor([[1.5, 0.0, 0.0]])
     inputs = _inputs(net, frames)
-    net.prepare_inference("torchscript")
-    torchscript = net._frozen_encoder
     net.prepare_inference()
     frozen = net._frozen_encoder
-    assert frozen is not None and torchscript is not None  # both runtimes are dependencies
+    assert frozen is not None  # ONNX Runtime is a dependency
 
     def forward(x):
         return net(x, goal, camera=camera, velocity=velocity)
 
-    def encoder_and_pyramid(x):  # what a plan ran until the pyramid joined the ONNX graph
-        return torchscript.module(x)[0], nearest_depth_pyramid(x)
+    def encoder_and_pyramid(x):  # the eager encoder, then the numpy pyramid
+        return net.encoder(x), nearest_depth_pyramid(x)
 
     def forward_eager(x):
         net._frozen_encoder = None
@@ -109,9 +106,8 @@ def _network(net, frames, camera, repeats: int) -> None:
             net._frozen_encoder = frozen
 
     with torch.inference_mode():
-        _row(f"encoder + pyramid ({frozen.runtime})", _compare(frozen.module, encoder_and_pyramid, inputs, repeats),
-             "TorchScript encoder + numpy pyramid")
-        _row("frozen TorchScript encoder", _compare(torchscript.module, net.encoder, inputs, repeats), "eager encoder")
+        _row("encoder + pyramid (onnxruntime)", _compare(frozen.module, encoder_and_pyramid, inputs, repeats),
+             "eager encoder + numpy pyramid")
         _row("network pass (encoder included)", _compare(forward, forward_eager, inputs, repeats),
              "with the eager encoder")
 

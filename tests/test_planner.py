@@ -663,9 +663,8 @@ def test_nearest_depth_pyramid_cpu_path_equals_pooling_and_brute_force(shape):
     np.testing.assert_array_equal(fast[:, 0].numpy(), brute)  # window 3
 
 
-@pytest.mark.parametrize("runtime", ["onnxruntime", "torchscript"])
-def test_prepare_inference_freezes_the_encoder_without_changing_the_plan(runtime):
-    """The frozen encoder (either runtime) serves single-image plans with the eager encoder's
+def test_prepare_inference_freezes_the_encoder_without_changing_the_plan():
+    """The frozen encoder (ONNX Runtime) serves single-image plans with the eager encoder's
     features (float rounding), is not part of the state dict, and is dropped by train(); batches
     keep the eager one."""
     cfg = planner_preset("cpu")
@@ -677,10 +676,10 @@ def test_prepare_inference_freezes_the_encoder_without_changing_the_plan(runtime
         eager = net.encoder(x[:1])
         before = net(x[:1], goal[:1]).keypoints
     keys = set(net.state_dict())
-    assert net.prepare_inference(runtime) is net and not net.training
+    assert net.prepare_inference() is net and not net.training
     if net._frozen_encoder is None:
-        pytest.skip(f"{runtime} cannot freeze the encoder here")
-    assert net.frozen_runtime == runtime
+        pytest.skip("ONNX Runtime cannot freeze the encoder here")
+    assert net.frozen_runtime == "onnxruntime"
     with torch.inference_mode():
         frozen, pyramid = net._frozen_encoder.module(x[:1])
         after = net(x[:1], goal[:1]).keypoints
@@ -704,7 +703,7 @@ def test_onnx_runtime_makes_the_exact_pyramid_of_a_model_that_checks_its_paths()
 
     cfg = planner_preset("cpu-multi", depth_check=True)
     torch.manual_seed(0)
-    net = PlannerNet(cfg).prepare_inference("onnxruntime")
+    net = PlannerNet(cfg).prepare_inference()
     if net.frozen_runtime != "onnxruntime":
         pytest.skip("ONNX Runtime cannot run the encoder here")
     depth, goal = _inputs(1, cfg)

@@ -2,7 +2,7 @@
 
 - ``learned``: the trained planner as deployed (:class:`~mapkit.flight.LearnedMethod` under the flight stack);
   ``learned+uniform`` / ``+poly5`` / ``+gradient``: the same key-points with other time splits (Table III).
-- ``untrained``: ``learned``'s architecture at seeded initial weights (``EvalConfig.untrained_seeds``).
+- ``untrained``: ``learned``'s architecture at seeded initial weights (``UNTRAINED_SEEDS``).
 - ``straight-keypoints``: ``learned`` with the key-points evenly spaced on the straight line to the goal.
 - ``iplanner-style``: the network's key-points through a cubic spline timed by arc length at the cruise
   speed (no dynamics, no time allocation, no slowing for turns).

@@ -78,9 +78,6 @@ class EvalConfig:
     stacks: tuple[FlightStack, ...] = ("full",)
     """Flight stacks every learned method flies under (:func:`~mapkit.flight.under_stack`), each run
     labelled ``NAME@STACK`` under a stack other than ``full``; ``straight`` and ``oracle`` fly once."""
-    untrained_seeds: tuple[int, ...] = UNTRAINED_SEEDS
-    """Seeds of the ``untrained`` method's initial weights: each flies every pair (as ``untrained#SEED``
-    when there are several), and the ablation pools them (one seed alone is a lottery)."""
     min_distance: float = 8.0
     """Metres between start and goal, at least."""
     pair_clearance: float = 0.6
@@ -130,9 +127,6 @@ class EvalConfig:
                             "level: pass --vehicle rotorpy too, or drop gimbal=true")
         if self.pairs < 1:
             raise EvalError(f"--pairs must be >= 1, got {self.pairs}")
-        seeds = self.untrained_seeds
-        if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
-            raise EvalError(f"untrained_seeds {','.join(map(str, seeds)) or '(none)'}: give distinct seeds >= 0, e.g. 0,1,2,3")
         if self.workers < 1:
             raise EvalError(f"--workers must be >= 1, got {self.workers}")
         if self.judge_history is not None:
@@ -333,7 +327,7 @@ def _init_worker(setup: _WorkerSetup) -> None:
 
         net = Planner.load(setup.model).net.prepare_inference()
         if any(run.method == "untrained" for run in setup.runs):
-            untrained = {seed: untrained_copy(net, seed).prepare_inference() for seed in setup.config.untrained_seeds}
+            untrained = {seed: untrained_copy(net, seed).prepare_inference() for seed in UNTRAINED_SEEDS}
     _WORKER = _WorkerState(setup=setup, net=net, untrained=untrained)
 
 
@@ -388,7 +382,7 @@ def _run_method(state: _WorkerState, run: Run, world: Any, graph: Any, calibrati
     stack) record their plans and judgements when asked to."""
     config = state.setup.config
     execution = config.execution if run.stack is None else under_stack(config.execution, run.stack)
-    seed = config.untrained_seeds[0] if run.init_seed is None else run.init_seed
+    seed = UNTRAINED_SEEDS[0] if run.init_seed is None else run.init_seed
     (method,) = make_methods([run.method], state.net, world, graph, oracle_corridor=config.oracle_corridor,
                              robot_radius=config.loop.robot_radius, camera=calibration,
                              execution=dataclasses.replace(execution), untrained=state.untrained.get(seed))
@@ -806,7 +800,7 @@ def _results_doc(config: EvalConfig, context: _ModelContext, pairs: dict[str, li
 
 def run_labels(config: EvalConfig) -> list[str]:
     """results.json's ``methods``: the label of every run, in report order."""
-    return [run.label for run in plan_runs(config.methods, config.stacks, config.untrained_seeds)]
+    return [run.label for run in plan_runs(config.methods, config.stacks, UNTRAINED_SEEDS)]
 
 
 def write_plans(path: Path, plans: list[tuple[str, int, PlanInput]]) -> None:
@@ -919,7 +913,7 @@ def evaluate(
         setup = _WorkerSetup(model=_model_for_workers(model, config),
                              model_sha256=context.model_info["sha256"] if context.model_info else None,
                              camera=context.camera, config=config,
-                             runs=tuple(plan_runs(config.methods, config.stacks, config.untrained_seeds)))
+                             runs=tuple(plan_runs(config.methods, config.stacks, UNTRAINED_SEEDS)))
         tasks = [(k, p.to_dict()) for k in config.worlds for p in pairs[k]]
         results, workers = _fly_all(setup, tasks, config.workers, progress, cluster)
     collected = _collect(config, pairs, results)
@@ -964,7 +958,8 @@ def _validate_execution(ex: Execution) -> None:
                        ("speed.turn_accel", pace.turn_accel), ("speed.stop_decel", pace.stop_decel),
                        ("keep_choice", ex.keep_choice)):
         if value is not None and not (math.isfinite(value) and value > 0):
-            raise EvalError(f"execution.{key} must be a positive number (\"none\" turns it off), got {value}")
+            off = "" if key in ("corridor.unchecked_width", "speed.v_max", "speed.a_max") else ' ("none" turns it off)'
+            raise EvalError(f"execution.{key} must be a positive number{off}, got {value}")
     for name in ("blocked_within", "subgoal_time") if memory is not None else ():
         value = getattr(memory, name)
         if not (math.isfinite(value) and value > 0):
@@ -994,7 +989,7 @@ def _validate_route(route: RouteConfig) -> None:
         value = getattr(route, name)
         if not (math.isfinite(value) and (value > 0 if name in positive else value >= 0)):
             raise EvalError(f"RouteConfig.{name} must be {'> 0' if name in positive else '>= 0'} metres, got {value}")
-    if route.ground is not None and not math.isfinite(route.ground):
-        raise EvalError(f"RouteConfig.ground must be a finite world height in metres or None (no ground), got {route.ground}")
+    if not math.isfinite(route.ground):
+        raise EvalError(f"RouteConfig.ground must be a finite world height in metres, got {route.ground}")
     if not route.wary > route.inflate:
         raise EvalError(f"RouteConfig.wary ({route.wary} m) must exceed RouteConfig.inflate ({route.inflate} m)")

@@ -17,7 +17,8 @@ STACKED_METHODS = frozenset({*LEARNED_ALLOCATIONS, "untrained", "straight-keypoi
 LABEL_SEPARATOR = "@"
 INIT_SEPARATOR = "#"
 UNTRAINED_SEEDS = (0, 1, 2, 3)
-"""The initial weights ``untrained`` flies by default (``EvalConfig.untrained_seeds``)."""
+"""The initial weights ``untrained`` flies, each every pair as ``untrained#SEED``; the ablation pools
+them (one seed alone is a lottery)."""
 _STACK_BY_NAME: dict[str, FlightStack] = {name: name for name in FLIGHT_STACKS}
 
 

@@ -25,15 +25,15 @@ class Corridor:
     """With ``check`` and a :class:`Memory`: the check also counts the points of a trajectory's first
     ``Memory.blocked_within`` seconds that come closer than the robot's size to a remembered surface
     (the jamb of a doorway the camera no longer sees)."""
-    unchecked_width: float | None = 0.3
+    unchecked_width: float = 0.3
     """Widest half-width (m) of the corridor when it flies without its check (``check`` off, a method
-    without the camera, ``--stack none``): the narrower of this and ``width``. None: through the key-points."""
+    without the camera, ``--stack none``): the narrower of this and ``width``."""
 
     def widest(self, checked: bool) -> float | None:
         """The widest half-width a plan may use (None: through the key-points)."""
         if checked or self.width is None:
             return self.width
-        return None if self.unchecked_width is None else min(self.width, self.unchecked_width)
+        return min(self.width, self.unchecked_width)
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,8 @@ class Memory:
 
     seconds: float = 8.0
     """Seconds of depth images remembered (as world-frame points). A plan that comes near them is
-    replaced by a clear candidate, else a plan toward open space, else the vehicle brakes and turns."""
+    replaced by a clear candidate, else a plan toward open space, else the vehicle brakes and turns
+    toward the side with fewer remembered surfaces within 3 m (:attr:`MethodPlan.turn_side`)."""
     blocked_within: float = 2.0
     """Seconds of each candidate that must keep clear of remembered surfaces for the way ahead to count
     as open (braking from cruise speed takes about 2.7 s)."""
@@ -50,11 +51,6 @@ class Memory:
     """Seconds a blocked plan's way out is kept: when nothing leads on toward the goal, the network
     plans toward the most open direction of the depth image (:func:`open_direction`) until it gets
     within a metre of that point or this time passes."""
-    turn_toward_open: bool = True
-    """A blocked vehicle that hovers and turns to look elsewhere (:attr:`~mapkit.flight.PilotConfig.look_turn_deg` at a
-    time) turns toward the side with fewer remembered surfaces within 3 m
-    (:attr:`MethodPlan.turn_side`) instead of always counter-clockwise (which turned it into the
-    corner it stood in)."""
 
 
 TURN_MIN_SPEED = 1.0
@@ -81,11 +77,11 @@ class SpeedProfile:
     stop_decel: float | None = 0.75
     """m/s²: until a flight searches for its way, plans that end at rest (at the goal) slow down to it
     at this rate instead of the model's ``accel`` (None)."""
-    v_max: float | None = 3.0
-    """Speed limit of every plan (its norm), m/s (None: none). A plan that breaks it is flown slower, or
-    re-solved with the limits in its QP; else it is not flown."""
-    a_max: float | None = 4.0
-    """Acceleration limit of every plan (its norm), m/s² (None: none), kept the same way."""
+    v_max: float = 3.0
+    """Speed limit of every plan (its norm), m/s. A plan that breaks it is flown slower, or re-solved
+    with the limits in its QP; else it is not flown."""
+    a_max: float = 4.0
+    """Acceleration limit of every plan (its norm), m/s², kept the same way."""
 
 
 @dataclass(frozen=True)

@@ -113,10 +113,8 @@ def _bounded(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
     limits (norms); else the closest of those and ``closest``."""
     out = [closest]
     for scale, kw in itertools.product((1.0 / math.sqrt(3.0), 1.0), corridors):
-        v_max = None if limits.v_max is None else limits.v_max * scale
-        a_max = None if limits.a_max is None else limits.a_max * scale
-        traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", limits_everywhere=True, v_max=v_max,
-                        a_max=a_max, **kw)
+        traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", limits_everywhere=True,
+                        v_max=limits.v_max * scale, a_max=limits.a_max * scale, **kw)
         if not _solved(traj):
             continue
         if _within(traj, limits):
@@ -133,7 +131,7 @@ def _excess(traj: Trajectory, limits: SpeedProfile) -> float:
     """How much slower ``traj`` must fly to keep ``limits``: the largest of v / v_max and √(a / a_max)."""
     v = float(traj.max_velocity(samples_per_segment=256).max())
     a = float(traj.max_acceleration(samples_per_segment=256).max())
-    return max(1.0 if limits.v_max is None else v / limits.v_max, 1.0 if limits.a_max is None else (a / limits.a_max) ** 0.5)
+    return max(v / limits.v_max, (a / limits.a_max) ** 0.5)
 
 
 def _within(traj: Trajectory, limits: SpeedProfile) -> bool:
@@ -699,8 +697,7 @@ class LearnedMethod:
         brake = side = None
         if attempt.blocked and self._memory is not None:
             brake = self._memory.clearest(obs.T_world_body, start)
-            toward_open = self.execution.memory is not None and self.execution.memory.turn_toward_open
-            side = self._memory.open_side(obs.T_world_body) if toward_open else None
+            side = self._memory.open_side(obs.T_world_body)
         latency = 1e3 * (time.perf_counter() - t0)
         pieces = pieces_from_body(coeffs, durations, obs.T_world_body, obs.t)
         kp_world = attempt.kp @ obs.T_world_body[:3, :3].T + obs.T_world_body[:3, 3]

@@ -41,9 +41,9 @@ class RouteConfig:
     """Metres along the route within which the aim point is chosen."""
     sight: float = 0.3
     """Metres the straight line from the vehicle to the aim point must keep from seen surfaces."""
-    ground: float | None = 0.0
+    ground: float = 0.0
     """World height of the ground (z up), which counts as seen everywhere (else a route opens under a
-    wall whose foot the camera missed). None: no ground."""
+    wall whose foot the camera missed)."""
 
 
 def depth_points(depth: np.ndarray, ray: tuple[float, float, float, float], T_world_camera: np.ndarray,
@@ -148,7 +148,7 @@ class FlightMap:
         bottom, top = max(low - reach, 0), min(high + 1 + reach, self.levels)
         slab = occupied[:, :, bottom:top]
         assert self.origin is not None  # after add
-        if c.ground is not None and c.ground >= self.origin[2] and self._level(c.ground) >= bottom:
+        if c.ground >= self.origin[2] and self._level(c.ground) >= bottom:
             slab = slab.copy()  # the ground and below count as seen
             slab[:, :, :self._level(c.ground) - bottom + 1] = True
         clearance = np.zeros(occupied.shape)

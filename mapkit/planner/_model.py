@@ -8,7 +8,7 @@ import logging
 import math
 import warnings
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -164,23 +164,6 @@ class _FrozenEncoder:
     module: Any
     shape: tuple[int, ...]
     dtype: torch.dtype
-    runtime: Literal["onnxruntime", "torchscript"]
-
-
-class _TorchScriptEncoder:
-    """The encoder traced and frozen by TorchScript (torch.compile would need a C++ toolchain and tens of
-    seconds per process)."""
-
-    def __init__(self, encoder: nn.Module, example: torch.Tensor) -> None:
-        with torch.no_grad(), warnings.catch_warnings():
-            warnings.simplefilter("ignore", DeprecationWarning)
-            warnings.simplefilter("ignore", torch.jit.TracerWarning)  # the input check is a constant here
-            self.module = torch.jit.optimize_for_inference(torch.jit.trace(encoder, example))
-            for _ in range(2):
-                self.module(example)
-
-    def __call__(self, x: torch.Tensor) -> tuple[torch.Tensor, None]:
-        return self.module(x), None
 
 
 class _EncoderGraph(nn.Module):
@@ -287,39 +270,31 @@ class PlannerNet(nn.Module):
 
     # ------------------------------------------------------------------ deployment
 
-    def prepare_inference(self, runtime: Literal["auto", "onnxruntime", "torchscript"] = "auto") -> PlannerNet:
+    def prepare_inference(self) -> PlannerNet:
         """Put the net in ``eval()`` mode and keep a frozen copy of the encoder for single-image plans on
-        the CPU: run by ONNX Runtime (with the nearest-depth pyramid of a ``depth_check`` model), or where
-        that is missing or fails (or ``runtime="torchscript"``) as a frozen TorchScript graph. Features
+        the CPU, run by ONNX Runtime (with the nearest-depth pyramid of a ``depth_check`` model). Features
         differ from the eager encoder's by float rounding (~1e-6). Batches, other devices, gradients and
-        training use the eager encoder; ``train()`` or loading weights drops the copy. Where neither
-        runtime works the eager one stays in use (:attr:`frozen_runtime` None)."""
+        training use the eager encoder; ``train()`` or loading weights drops the copy. Where ONNX Runtime
+        cannot run the graph the eager one stays in use (:attr:`frozen_runtime` None)."""
         self.eval()
         self._frozen_encoder = None
         h, w = self.config.input_size
         example = torch.zeros(1, 2, h, w, dtype=next(self.encoder.parameters()).dtype)
         if example.device.type != "cpu" or example.dtype != torch.float32:
             return self
-        tries: tuple[Literal["onnxruntime", "torchscript"], ...] = (
-            ("onnxruntime", "torchscript") if runtime == "auto" else (runtime,))
-        for name in tries:
-            try:
-                pyramid = self.config.depth_check and self.config.num_candidates > 1
-                module = (_OrtEncoder(self.encoder, example, pyramid) if name == "onnxruntime"
-                          else _TorchScriptEncoder(self.encoder, example))
-                module(example)  # TorchScript's profiling runs, ONNX Runtime's first allocation: here, not in a plan
-            except Exception as exc:  # noqa: BLE001 - a runtime that is not installed or cannot run the graph
-                log.info("%s cannot run the encoder (%s)", name, exc)
-                continue
-            self._frozen_encoder = _FrozenEncoder(module, tuple(example.shape), example.dtype, name)
+        try:
+            module = _OrtEncoder(self.encoder, example, self.config.depth_check and self.config.num_candidates > 1)
+            module(example)  # ONNX Runtime's first allocation: here, not in a plan
+        except Exception as exc:  # noqa: BLE001 - a graph the runtime cannot run
+            log.warning("the encoder could not be frozen for inference (%s); planning uses the eager encoder", exc)
             return self
-        log.warning("the encoder could not be frozen for inference; planning uses the eager encoder")
+        self._frozen_encoder = _FrozenEncoder(module, tuple(example.shape), example.dtype)
         return self
 
     @property
     def frozen_runtime(self) -> str | None:
         """What runs single-image encodings after :meth:`prepare_inference` (None: the eager encoder)."""
-        return None if self._frozen_encoder is None else self._frozen_encoder.runtime
+        return None if self._frozen_encoder is None else "onnxruntime"
 
     def train(self, mode: bool = True) -> PlannerNet:
         if mode:
