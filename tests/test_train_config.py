@@ -31,7 +31,7 @@ def test_an_old_config_dict_loads_typed_and_writes_back_unchanged() -> None:
     config = TrainConfig.from_dict(OLD_CONFIG)
     assert isinstance(config.planner, PlannerConfig) and isinstance(config.loss, LossConfig)
     assert config.planner.input_size == (96, 160) and config.planner.num_candidates == 8
-    assert config.loss.obstacle_softness == 0.3 and config.loss.gamma_goal == LossConfig().gamma_goal
+    assert config.loss.obstacle_softness == 0.3 and config.loss.gamma_time == LossConfig().gamma_time
     # Fields named at their default value (num_keypoints, robot_radius) stay named, in their order.
     assert json.dumps(config.to_dict()) == json.dumps(OLD_CONFIG)
 
