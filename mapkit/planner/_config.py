@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 from mapkit.planner._errors import PlannerError
@@ -35,15 +35,8 @@ class PlannerConfig:
     eta_hidden: tuple[int, int] = (64, 32)
     """Hidden widths of the parallel three-layer η MLP (flattened features → h1 → h2 → 1)."""
     num_candidates: int = 1
-    """M, candidate key-point paths, each from its own detour anchor (``candidate_anchors``), with a
-    learned score that picks one (trained winner-takes-all). 1 = a single regressed path (the paper)."""
-    candidate_anchors: tuple[tuple[float, float], ...] = ()
-    """(lateral, vertical) peak offsets in metres of each candidate's anchor detour, at a 6 m goal
-    (scaled with the goal distance, zero at the start and at the goal); () = the default set for
-    ``num_candidates``."""
-    keypoint_init_scale: float = 0.01
-    """Scale of the key-point MLP's last layer's initial weights (bias zero): the untrained net's paths
-    lie within centimetres of their anchors."""
+    """M, candidate key-point paths, each from its own detour anchor (:meth:`anchors`), with a learned
+    score that picks one (trained winner-takes-all). 1 = a single regressed path (the paper)."""
     depth_check: bool = False
     """With several candidates: the judge also reads each candidate checked against the depth image
     (:func:`mapkit.planner.depth_margins`); every call then needs the camera's calibration (``camera=``)."""
@@ -83,8 +76,6 @@ class PlannerConfig:
     """Seconds, lower bound of the total time."""
     max_total_time: float = 15.0
     """Seconds, upper bound of the total time."""
-    extra: dict[str, Any] = field(default_factory=dict)
-    """Free-form notes stored with the config (ignored by the module)."""
 
     def __post_init__(self) -> None:
         h, w = (int(v) for v in self.input_size)
@@ -111,11 +102,6 @@ class PlannerConfig:
         if self.flown_samples < 0 or not self.flown_horizon > 0 or not self.flown_history >= 0:
             raise PlannerError(f"need flown_samples >= 0, flown_horizon > 0 metres and flown_history >= 0 seconds, got "
                                f"{self.flown_samples}, {self.flown_horizon} and {self.flown_history}")
-        self.candidate_anchors = tuple((float(a), float(b)) for a, b in self.candidate_anchors)
-        if self.candidate_anchors and len(self.candidate_anchors) != self.num_candidates:
-            raise PlannerError(
-                f"candidate_anchors has {len(self.candidate_anchors)} entries but num_candidates is {self.num_candidates}"
-            )
         if self.head_activation not in ("relu", "leaky_relu"):
             raise PlannerError(f"head_activation must be 'relu' or 'leaky_relu', got {self.head_activation!r}")
         if len(self.conv_channels) != 2 or len(self.mlp_hidden) != 2 or len(self.eta_hidden) != 2:
@@ -127,7 +113,11 @@ class PlannerConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> PlannerConfig:
-        """Build a config from :meth:`to_dict` output; unknown keys raise :class:`PlannerError`."""
+        """Build a config from :meth:`to_dict` output (a saved model's: removed fields load while they hold
+        what the net now always does); unknown keys raise :class:`PlannerError`."""
+        from mapkit.planner._loss import drop_removed_fields
+
+        data = drop_removed_fields(data, PlannerError, REMOVED_FIELDS, "planner ")
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - names)
         if unknown:
@@ -136,24 +126,24 @@ class PlannerConfig:
         return cls(**kw)
 
     def anchors(self) -> tuple[tuple[float, float], ...]:
-        """The (lateral, vertical) anchor peaks in effect, one per candidate."""
-        if self.candidate_anchors:
-            return self.candidate_anchors
-        return default_anchors(self.num_candidates)
+        """One (lateral, vertical) peak offset in metres per candidate's anchor detour, at a 6 m goal (scaled
+        with the goal distance, zero at the start and at the goal): straight first, then left/right detours
+        of growing width, one climb for M >= 6."""
+        m = self.num_candidates
+        out: list[tuple[float, float]] = [(0.0, 0.0)]
+        if m >= 6:
+            out.append((0.0, 0.8))
+        width = 1.2
+        while len(out) < m:
+            out.append((width, 0.0))
+            if len(out) < m:
+                out.append((-width, 0.0))
+            width += 1.2
+        return tuple(out[:m])
 
 
-def default_anchors(m: int) -> tuple[tuple[float, float], ...]:
-    """M anchors: straight first, then left/right detours of growing width, one climb for M >= 6."""
-    out: list[tuple[float, float]] = [(0.0, 0.0)]
-    if m >= 6:
-        out.append((0.0, 0.8))
-    width = 1.2
-    while len(out) < m:
-        out.append((width, 0.0))
-        if len(out) < m:
-            out.append((-width, 0.0))
-        width += 1.2
-    return tuple(out[:m])
+REMOVED_FIELDS: dict[str, Any] = {"candidate_anchors": (), "keypoint_init_scale": 0.01, "extra": {}}
+"""Removed PlannerConfig fields a saved model may still name, with the value that builds the net as now."""
 
 
 PLANNER_PRESETS: dict[str, dict[str, Any]] = {
