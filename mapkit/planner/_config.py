@@ -155,13 +155,8 @@ PLANNER_PRESETS: dict[str, dict[str, Any]] = {
         input_size=(96, 160), encoder_width=0.25, goal_embed_dim=16, conv_channels=(64, 32),
         pooled_size=(3, 5), mlp_hidden=(256, 128), eta_hidden=(64, 32), tan_hidden=(64, 64),
     ),
-    "cpu-multi": dict(
-        input_size=(96, 160), encoder_width=0.25, goal_embed_dim=16, conv_channels=(64, 32),
-        pooled_size=(3, 5), mlp_hidden=(256, 128), eta_hidden=(64, 32), tan_hidden=(64, 64), num_candidates=6,
-    ),
 }
-"""Named presets: "paper" (full-width ResNet-18 on 360×640 depth), "cpu" (quarter width on 96×160) and
-"cpu-multi" (the cpu one with six scored candidate paths)."""
+"""Named presets: "paper" (full-width ResNet-18 on 360×640 depth) and "cpu" (quarter width on 96×160)."""
 
 
 def planner_preset(name: str, **overrides: Any) -> PlannerConfig:
