@@ -179,7 +179,7 @@ PLANS_HELP = ("An eval folder with plans.npz (repeatable): what the model's time
 @library_call
 def tune_timing_cmd(model: Path, plans: tuple[Path, ...], val: tuple[Path, ...], output: Path, steps: int | None,
                     lr: float | None, overwrite: bool, settings: Settings) -> None:
-    """Fine-tune the Time Allocation Net alone on plans the planner made in flight (lower snap per plan)."""
+    """Fine-tune the Time Allocation Net alone on plans the planner made in flight (to imitate gradient descent's split)."""
     from mapkit.train import tune_timing
 
     with option_values():
