@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -115,8 +116,6 @@ class PlannerConfig:
     def from_dict(cls, data: dict[str, Any]) -> PlannerConfig:
         """Build a config from :meth:`to_dict` output (a saved model's: removed fields load while they hold
         what the net now always does); unknown keys raise :class:`PlannerError`."""
-        from mapkit.planner._loss import drop_removed_fields
-
         data = drop_removed_fields(data, PlannerError, REMOVED_FIELDS, "planner ")
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - names)
@@ -144,6 +143,30 @@ class PlannerConfig:
 
 REMOVED_FIELDS: dict[str, Any] = {"candidate_anchors": (), "keypoint_init_scale": 0.01, "extra": {}}
 """Removed PlannerConfig fields a saved model may still name, with the value that builds the net as now."""
+
+
+def drop_removed_fields(values: dict[str, Any], error: type[Exception], removed: dict[str, Any],
+                        prefix: str) -> dict[str, Any]:
+    """Saved fields ``values`` less those in ``removed`` (:data:`REMOVED_FIELDS`, the LossConfig and
+    TrainConfig ones) that hold the value mapkit now always behaves as with; one that holds another
+    raises ``error`` naming it (``prefix``: its table, "loss ")."""
+    for name, value in values.items():
+        if name in removed and not _same_as_removed(name, value, values, removed[name]):
+            raise error(f"{prefix}{name}={json.dumps(value)}: the field was removed in mapkit 0.1.0 (issue 57), which "
+                        f"always behaves as with {name}={json.dumps(removed[name])}; train a new run without it, "
+                        "or use a mapkit checkout from before issue 57 for this one")
+    return {k: v for k, v in values.items() if k not in removed}
+
+
+def _same_as_removed(name: str, value: Any, values: dict[str, Any], now: Any) -> bool:
+    """Whether removed field ``name`` = ``value`` (among ``values``) behaves as mapkit's fixed ``now``."""
+    if name == "detour_cap":  # only counted with a detour weight
+        return bool(values.get("detour_weight", 0.0) == 0.0)
+    if name == "collision_distance" and value is not None:  # None meant the robot radius (default 0.3 m)
+        return bool(value == values.get("robot_radius", 0.3))
+    if name == "extra":  # free-form notes the net never read
+        return True
+    return bool(value == now or (isinstance(value, list) and tuple(value) == now))
 
 
 PLANNER_PRESETS: dict[str, dict[str, Any]] = {

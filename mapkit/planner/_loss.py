@@ -7,7 +7,6 @@ Every term returns (B,) values; plans are in the body frame, moved to the world 
 from __future__ import annotations
 
 import functools
-import json
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -72,29 +71,6 @@ REMOVED_FIELDS: dict[str, Any] = {
     "min_samples": 8, "label_from_raw": True, "time_target_tol": 1e-3,
 }
 """Removed LossConfig fields a saved run's config.json may still name, with the value that trains as now."""
-
-
-def drop_removed_fields(values: dict[str, Any], error: type[Exception], removed: dict[str, Any] = REMOVED_FIELDS,
-                        prefix: str = "loss ") -> dict[str, Any]:
-    """Saved fields ``values`` less those in ``removed`` (LossConfig's by default) that hold the value
-    mapkit now always behaves as with; one that holds another raises ``error`` naming it."""
-    for name, value in values.items():
-        if name in removed and not _same_as_removed(name, value, values, removed[name]):
-            raise error(f"{prefix}{name}={json.dumps(value)}: the field was removed in mapkit 0.1.0 (issue 57), which "
-                        f"always behaves as with {name}={json.dumps(removed[name])}; train a new run without it, "
-                        "or use a mapkit checkout from before issue 57 for this one")
-    return {k: v for k, v in values.items() if k not in removed}
-
-
-def _same_as_removed(name: str, value: Any, values: dict[str, Any], now: Any) -> bool:
-    """Whether removed field ``name`` = ``value`` (among ``values``) behaves as mapkit's fixed ``now``."""
-    if name == "detour_cap":  # only counted with a detour weight
-        return values.get("detour_weight", 0.0) == 0.0
-    if name == "collision_distance" and value is not None:  # None meant the robot radius
-        return bool(value == values.get("robot_radius", LossConfig.robot_radius))
-    if name == "extra":  # free-form notes the net never read
-        return True
-    return bool(value == now or (isinstance(value, list) and tuple(value) == now))
 
 
 # ------------------------------------------------------------------------------------ helpers

@@ -11,8 +11,8 @@ from mapkit._choices import TRAINED_WEIGHTS, PresetName, TrainedWeights
 from mapkit.errors import MapkitError
 from mapkit.planner import LossConfig, PlannerConfig
 from mapkit.planner._config import REMOVED_FIELDS as REMOVED_PLANNER_FIELDS
+from mapkit.planner._config import drop_removed_fields
 from mapkit.planner._loss import REMOVED_FIELDS as REMOVED_LOSS_FIELDS
-from mapkit.planner._loss import drop_removed_fields
 
 
 class TrainConfigError(MapkitError):
