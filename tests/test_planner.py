@@ -701,7 +701,7 @@ def test_onnx_runtime_makes_the_exact_pyramid_of_a_model_that_checks_its_paths()
     from mapkit.planner import CameraInput, _model
     from mapkit.planner._depthcheck import nearest_depth_pyramid
 
-    cfg = planner_preset("cpu-multi", depth_check=True)
+    cfg = planner_preset("cpu", num_candidates=6, depth_check=True)
     torch.manual_seed(0)
     net = PlannerNet(cfg).prepare_inference()
     if net.frozen_runtime != "onnxruntime":

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 from mapkit.planner._errors import PlannerError
@@ -35,15 +36,8 @@ class PlannerConfig:
     eta_hidden: tuple[int, int] = (64, 32)
     """Hidden widths of the parallel three-layer η MLP (flattened features → h1 → h2 → 1)."""
     num_candidates: int = 1
-    """M, candidate key-point paths, each from its own detour anchor (``candidate_anchors``), with a
-    learned score that picks one (trained winner-takes-all). 1 = a single regressed path (the paper)."""
-    candidate_anchors: tuple[tuple[float, float], ...] = ()
-    """(lateral, vertical) peak offsets in metres of each candidate's anchor detour, at a 6 m goal
-    (scaled with the goal distance, zero at the start and at the goal); () = the default set for
-    ``num_candidates``."""
-    keypoint_init_scale: float = 0.01
-    """Scale of the key-point MLP's last layer's initial weights (bias zero): the untrained net's paths
-    lie within centimetres of their anchors."""
+    """M, candidate key-point paths, each from its own detour anchor (:meth:`anchors`), with a learned
+    score that picks one (trained winner-takes-all). 1 = a single regressed path (the paper)."""
     depth_check: bool = False
     """With several candidates: the judge also reads each candidate checked against the depth image
     (:func:`mapkit.planner.depth_margins`); every call then needs the camera's calibration (``camera=``)."""
@@ -83,8 +77,6 @@ class PlannerConfig:
     """Seconds, lower bound of the total time."""
     max_total_time: float = 15.0
     """Seconds, upper bound of the total time."""
-    extra: dict[str, Any] = field(default_factory=dict)
-    """Free-form notes stored with the config (ignored by the module)."""
 
     def __post_init__(self) -> None:
         h, w = (int(v) for v in self.input_size)
@@ -111,11 +103,6 @@ class PlannerConfig:
         if self.flown_samples < 0 or not self.flown_horizon > 0 or not self.flown_history >= 0:
             raise PlannerError(f"need flown_samples >= 0, flown_horizon > 0 metres and flown_history >= 0 seconds, got "
                                f"{self.flown_samples}, {self.flown_horizon} and {self.flown_history}")
-        self.candidate_anchors = tuple((float(a), float(b)) for a, b in self.candidate_anchors)
-        if self.candidate_anchors and len(self.candidate_anchors) != self.num_candidates:
-            raise PlannerError(
-                f"candidate_anchors has {len(self.candidate_anchors)} entries but num_candidates is {self.num_candidates}"
-            )
         if self.head_activation not in ("relu", "leaky_relu"):
             raise PlannerError(f"head_activation must be 'relu' or 'leaky_relu', got {self.head_activation!r}")
         if len(self.conv_channels) != 2 or len(self.mlp_hidden) != 2 or len(self.eta_hidden) != 2:
@@ -127,7 +114,9 @@ class PlannerConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> PlannerConfig:
-        """Build a config from :meth:`to_dict` output; unknown keys raise :class:`PlannerError`."""
+        """Build a config from :meth:`to_dict` output (a saved model's: removed fields load while they hold
+        what the net now always does); unknown keys raise :class:`PlannerError`."""
+        data = drop_removed_fields(data, PlannerError, REMOVED_FIELDS, "planner ")
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - names)
         if unknown:
@@ -136,24 +125,48 @@ class PlannerConfig:
         return cls(**kw)
 
     def anchors(self) -> tuple[tuple[float, float], ...]:
-        """The (lateral, vertical) anchor peaks in effect, one per candidate."""
-        if self.candidate_anchors:
-            return self.candidate_anchors
-        return default_anchors(self.num_candidates)
+        """One (lateral, vertical) peak offset in metres per candidate's anchor detour, at a 6 m goal (scaled
+        with the goal distance, zero at the start and at the goal): straight first, then left/right detours
+        of growing width, one climb for M >= 6."""
+        m = self.num_candidates
+        out: list[tuple[float, float]] = [(0.0, 0.0)]
+        if m >= 6:
+            out.append((0.0, 0.8))
+        width = 1.2
+        while len(out) < m:
+            out.append((width, 0.0))
+            if len(out) < m:
+                out.append((-width, 0.0))
+            width += 1.2
+        return tuple(out[:m])
 
 
-def default_anchors(m: int) -> tuple[tuple[float, float], ...]:
-    """M anchors: straight first, then left/right detours of growing width, one climb for M >= 6."""
-    out: list[tuple[float, float]] = [(0.0, 0.0)]
-    if m >= 6:
-        out.append((0.0, 0.8))
-    width = 1.2
-    while len(out) < m:
-        out.append((width, 0.0))
-        if len(out) < m:
-            out.append((-width, 0.0))
-        width += 1.2
-    return tuple(out[:m])
+REMOVED_FIELDS: dict[str, Any] = {"candidate_anchors": (), "keypoint_init_scale": 0.01, "extra": {}}
+"""Removed PlannerConfig fields a saved model may still name, with the value that builds the net as now."""
+
+
+def drop_removed_fields(values: dict[str, Any], error: type[Exception], removed: dict[str, Any],
+                        prefix: str) -> dict[str, Any]:
+    """Saved fields ``values`` less those in ``removed`` (:data:`REMOVED_FIELDS`, the LossConfig and
+    TrainConfig ones) that hold the value mapkit now always behaves as with; one that holds another
+    raises ``error`` naming it (``prefix``: its table, "loss ")."""
+    for name, value in values.items():
+        if name in removed and not _same_as_removed(name, value, values, removed[name]):
+            raise error(f"{prefix}{name}={json.dumps(value)}: the field was removed in mapkit 0.1.0 (issue 57), which "
+                        f"always behaves as with {name}={json.dumps(removed[name])}; train a new run without it, "
+                        "or use a mapkit checkout from before issue 57 for this one")
+    return {k: v for k, v in values.items() if k not in removed}
+
+
+def _same_as_removed(name: str, value: Any, values: dict[str, Any], now: Any) -> bool:
+    """Whether removed field ``name`` = ``value`` (among ``values``) behaves as mapkit's fixed ``now``."""
+    if name == "detour_cap":  # only counted with a detour weight
+        return bool(values.get("detour_weight", 0.0) == 0.0)
+    if name == "collision_distance" and value is not None:  # None meant the robot radius (default 0.3 m)
+        return bool(value == values.get("robot_radius", 0.3))
+    if name == "extra":  # free-form notes the net never read
+        return True
+    return bool(value == now or (isinstance(value, list) and tuple(value) == now))
 
 
 PLANNER_PRESETS: dict[str, dict[str, Any]] = {
@@ -165,13 +178,8 @@ PLANNER_PRESETS: dict[str, dict[str, Any]] = {
         input_size=(96, 160), encoder_width=0.25, goal_embed_dim=16, conv_channels=(64, 32),
         pooled_size=(3, 5), mlp_hidden=(256, 128), eta_hidden=(64, 32), tan_hidden=(64, 64),
     ),
-    "cpu-multi": dict(
-        input_size=(96, 160), encoder_width=0.25, goal_embed_dim=16, conv_channels=(64, 32),
-        pooled_size=(3, 5), mlp_hidden=(256, 128), eta_hidden=(64, 32), tan_hidden=(64, 64), num_candidates=6,
-    ),
 }
-"""Named presets: "paper" (full-width ResNet-18 on 360×640 depth), "cpu" (quarter width on 96×160) and
-"cpu-multi" (the cpu one with six scored candidate paths)."""
+"""Named presets: "paper" (full-width ResNet-18 on 360×640 depth) and "cpu" (quarter width on 96×160)."""
 
 
 def planner_preset(name: str, **overrides: Any) -> PlannerConfig:

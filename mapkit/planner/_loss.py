@@ -7,7 +7,6 @@ Every term returns (B,) values; plans are in the body frame, moved to the world 
 from __future__ import annotations
 
 import functools
-import json
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -25,21 +24,13 @@ if TYPE_CHECKING:  # the ESDF stage is only needed at call time (duck-typed quer
 
 @dataclass
 class LossConfig:
-    """Weights and parameters of :func:`candidate_loss`."""
+    """Weights and parameters of :func:`candidate_loss`. Fixed: γ1 = 20, γ2 = 1, γ3 = 0.5, γ4 = 1, the
+    score's weight 1, 10 trajectory samples per second (at least 8), and collision labels from the map's
+    unsmoothed ``esdf_raw`` where it has one."""
 
-    gamma_obstacle: float = 20.0
-    """γ1, weight of the obstacle cost U_O (:func:`obstacle_cost`, a mean over the samples)."""
-    gamma_goal: float = 1.0
-    """γ2, weight of the goal cost U_G (:func:`goal_cost`, metres)."""
-    gamma_smooth: float = 0.5
-    """γ3, weight of the smoothness cost U_S (:func:`smoothness_cost`, metres)."""
-    gamma_escape: float = 1.0
-    """γ4, weight of the escape cost U_E (:func:`escape_cost`, BCE of η)."""
     gamma_time: float = 10.0
     """γ5, weight of the time cost U_T (:func:`time_cost`: MSE of shares, which are ~1/K, so the raw
     term is small)."""
-    gamma_score: float = 1.0
-    """Weight of the candidate score's cross-entropy against the cheapest candidate (several only)."""
     score_temperature: float = 0.0
     """Metres of path cost: the score learns softmax(−cost / T) over the candidates instead of the
     single best (0), so two nearly equal detours are both right answers."""
@@ -58,29 +49,16 @@ class LossConfig:
     to a surface collides (η's label)."""
     obstacle_softness: float = 1.0
     """ε, metres: width of the smooth hinge in :func:`obstacle_penalty`."""
-    samples_per_second: float = 10.0
-    """Trajectory samples per second of flight for U_O and the collision label (:func:`sample_trajectory`)."""
-    min_samples: int = 8
-    """Lower bound on N, the samples per trajectory."""
-    label_from_raw: bool = True
-    """Use the map's unsmoothed ``esdf_raw`` (exact distances) for the collision label when the map
-    has it; the smoothed ``esdf`` otherwise. U_O always uses the smoothed field."""
     time_target_iters: int = 10
     """Iterations of the Mellinger & Kumar gradient allocation for the U_T target."""
-    time_target_tol: float = 1e-3
-    """Relative cost decrease below which that allocation stops early."""
 
     def __post_init__(self) -> None:
         if not self.robot_radius >= 0:
             raise PlannerError(f"robot_radius must be >= 0 metres, got {self.robot_radius}")
         if not self.obstacle_softness > 0:
             raise PlannerError(f"obstacle_softness must be > 0 metres, got {self.obstacle_softness}")
-        if not self.samples_per_second > 0:
-            raise PlannerError(f"samples_per_second must be > 0, got {self.samples_per_second}")
         if not (math.isfinite(self.score_temperature) and self.score_temperature >= 0):
             raise PlannerError(f"score_temperature must be >= 0 metres, got {self.score_temperature}")
-        if self.min_samples < 2:
-            raise PlannerError(f"min_samples must be >= 2, got {self.min_samples}")
         for name in ("candidate_spread", "candidate_anchor_pull", "winner_collision_penalty"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise PlannerError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -88,29 +66,11 @@ class LossConfig:
 
 REMOVED_FIELDS: dict[str, Any] = {
     "detour_weight": 0.0, "detour_cap": 8.0, "eta_horizon": None, "eta_label": "map", "eta_positive_weight": 1.0,
-    "collision_distance": None, "obstacle_reduction": "mean", "smoothness_on": "keypoints",
+    "collision_distance": None, "obstacle_reduction": "mean", "smoothness_on": "keypoints", "gamma_obstacle": 20.0,
+    "gamma_goal": 1.0, "gamma_smooth": 0.5, "gamma_escape": 1.0, "gamma_score": 1.0, "samples_per_second": 10.0,
+    "min_samples": 8, "label_from_raw": True, "time_target_tol": 1e-3,
 }
 """Removed LossConfig fields a saved run's config.json may still name, with the value that trains as now."""
-
-
-def drop_removed_fields(values: dict[str, Any], error: type[Exception]) -> dict[str, Any]:
-    """A saved run's LossConfig fields ``values`` less those in :data:`REMOVED_FIELDS` that hold the
-    behaviour the loss now always has; one that holds another raises ``error`` naming it."""
-    for name, value in values.items():
-        if name in REMOVED_FIELDS and not _same_as_removed(name, value, values):
-            raise error(f"loss {name}={json.dumps(value)}: the field was removed in mapkit 0.1.0 (issue 57), whose "
-                        f"loss always trains as with {name}={json.dumps(REMOVED_FIELDS[name])}; train a new run "
-                        "without it, or use a mapkit checkout from before issue 57 for this one")
-    return {k: v for k, v in values.items() if k not in REMOVED_FIELDS}
-
-
-def _same_as_removed(name: str, value: Any, values: dict[str, Any]) -> bool:
-    """Whether removed field ``name`` = ``value`` (among ``values``) trains as the loss now does."""
-    if name == "detour_cap":  # only counted with a detour weight
-        return values.get("detour_weight", 0.0) == 0.0
-    if name == "collision_distance" and value is not None:  # None meant the robot radius
-        return bool(value == values.get("robot_radius", LossConfig.robot_radius))
-    return bool(value == REMOVED_FIELDS[name])
 
 
 # ------------------------------------------------------------------------------------ helpers
@@ -281,7 +241,7 @@ def candidate_loss(
 
     Each candidate's path cost is γ1 U_O + γ2 U_G + γ3 U_S; a sample's loss is its best candidate's
     cost plus α × the mean over candidates (``candidate_spread``), γ4 × the mean escape BCE of every
-    candidate's η against its own collision label, γ_score × the cross-entropy of the scores against
+    candidate's η against its own collision label, the cross-entropy of the scores against
     the best candidate, and γ5 U_T of the best candidate's time split. With M = 1 this is the paper's
     loss U = γ1 U_O + γ2 U_G + γ3 U_S + γ4 U_E + γ5 U_T.
 
@@ -297,7 +257,7 @@ def candidate_loss(
     plan, u_o, u_g, u_s, collided = _candidate_costs(net, cand, goal, T_world_body, esdf_map, cfg,
                                                      start_velocity=start_velocity, end_speed=end_speed,
                                                      corridor=corridor)
-    path = cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s
+    path = 20.0 * u_o + u_g + 0.5 * u_s  # γ1 U_O + γ2 U_G + γ3 U_S
     rows = torch.arange(B, device=cand.device)
     ranked = path.detach() + cfg.winner_collision_penalty * collided.to(path.dtype)
     winner = ranked.argmin(dim=1)
@@ -311,7 +271,7 @@ def candidate_loss(
     u_e = F.binary_cross_entropy_with_logits(logits, collided.to(logits.dtype), reduction="none").mean(dim=1)
     u_score = _score_loss(out.scores, ranked, winner, like=per, config=cfg)
     u_t = _winner_time_cost(plan, rows, winner, M=M, config=cfg)
-    per = per + cfg.gamma_escape * u_e + cfg.gamma_time * u_t + cfg.gamma_score * u_score
+    per = per + u_e + cfg.gamma_time * u_t + u_score  # γ4 = 1, the score's weight 1
     total = per.mean()
     chosen = out.chosen if out.chosen is not None else torch.zeros(B, dtype=torch.long, device=cand.device)
     coll_chosen = collided[rows, chosen]
@@ -335,15 +295,14 @@ def _candidate_costs(
     plan = net.trajectory(cand.reshape(B * M, K, 3),
                           start_velocity=None if start_velocity is None else _per_candidate(start_velocity, M),
                           end_speed=None if end_speed is None else _per_candidate(end_speed, M), corridor=corridor)
-    pts_body = sample_trajectory(plan.trajectory, samples_per_second=cfg.samples_per_second, min_samples=cfg.min_samples)
+    pts_body = sample_trajectory(plan.trajectory, samples_per_second=10.0, min_samples=8)
     pts_world = body_to_world(pts_body, _per_candidate(T_world_body, M))
     goal_m = _per_candidate(goal, M)
     u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius,
                         softness=cfg.obstacle_softness).reshape(B, M)
     u_g = goal_cost(plan.waypoints[:, -1], goal_m).reshape(B, M)
     u_s = smoothness_cost(plan.waypoints, torch.zeros_like(goal_m), goal_m).reshape(B, M)
-    collided = collision_labels(pts_world, esdf_map, threshold=cfg.robot_radius,
-                                raw=cfg.label_from_raw).reshape(B, M)
+    collided = collision_labels(pts_world, esdf_map, threshold=cfg.robot_radius, raw=True).reshape(B, M)
     return plan, u_o, u_g, u_s, collided
 
 
@@ -368,8 +327,7 @@ def _winner_time_cost(plan: Plan, rows: torch.Tensor, winner: torch.Tensor, *, M
     target = time_targets(wp, total_time=plan.total_time.reshape(B, M)[rows, winner],
                           start=plan.start.reshape(B, M, 3, 3)[rows, winner],
                           end=_plan_end(plan).reshape(B, M, 3, 3)[rows, winner],
-                          min_segment=plan.min_segment, max_iters=config.time_target_iters,
-                          rel_tol=config.time_target_tol)
+                          min_segment=plan.min_segment, max_iters=config.time_target_iters)
     return time_cost(shares, target)
 
 
@@ -396,8 +354,7 @@ def time_allocation_loss(
     wp = torch.cat([torch.zeros_like(kp[:, :1]), kp], dim=1)
     timing = plan_timing(wp, start, speed, net.config, tan=net.tan)
     target = time_targets(wp, total_time=timing.total, start=start, end=timing.end,
-                          min_segment=net.config.min_segment_time, max_iters=cfg.time_target_iters,
-                          rel_tol=cfg.time_target_tol)
+                          min_segment=net.config.min_segment_time, max_iters=cfg.time_target_iters)
     u_t = time_cost(timing.shares, target)
     total = cfg.gamma_time * u_t.mean()
     return total, {"time": u_t.detach().mean(), "total": total.detach()}

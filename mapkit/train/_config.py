@@ -4,18 +4,23 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
 from mapkit._choices import TRAINED_WEIGHTS, PresetName, TrainedWeights
 from mapkit.errors import MapkitError
 from mapkit.planner import LossConfig, PlannerConfig
-from mapkit.planner._loss import drop_removed_fields
+from mapkit.planner._config import REMOVED_FIELDS as REMOVED_PLANNER_FIELDS
+from mapkit.planner._config import drop_removed_fields
+from mapkit.planner._loss import REMOVED_FIELDS as REMOVED_LOSS_FIELDS
 
 
 class TrainConfigError(MapkitError):
     """A training option or preset that cannot be used."""
+
+
+REMOVED_FIELDS: dict[str, Any] = {"weight_decay": 0.0, "grad_clip": 10.0}
+"""Removed TrainConfig options a saved run's config.json may still name, with the value that trains as now."""
 
 
 @dataclass
@@ -33,8 +38,6 @@ class TrainConfig:
     """Samples per optimiser step (per process under torchrun)."""
     lr: float = 1e-4
     """Adam learning rate."""
-    weight_decay: float = 0.0
-    """Adam weight decay."""
     seed: int = 0
     """Seeds weights, shuffling and sampling; CPU runs are reproducible."""
     device: str = "cpu"
@@ -45,8 +48,6 @@ class TrainConfig:
     """Limit validation to this many batches (None: all)."""
     goals_together: bool = False
     """Batches hold whole tuples (every goal of a depth image): the encoder runs once per image."""
-    grad_clip: float | None = 10.0
-    """Clip the gradient's global norm to this before each step (None: off)."""
     corridor: float | None = None
     """Flight-corridor half-width (m) for min_snap during training; None = through the key-points."""
     init: str | None = None
@@ -90,11 +91,13 @@ class TrainConfig:
 
     @classmethod
     def from_saved(cls, data: dict[str, Any]) -> TrainConfig:
-        """The config of a run's config.json (its other records skipped); removed loss fields load while
-        they hold the behaviour the loss now always has (:meth:`from_dict` knows only today's fields)."""
-        options = {k: v for k, v in data.items() if k in {f.name for f in _option_fields()}}
-        if isinstance(options.get("loss"), dict):
-            options["loss"] = drop_removed_fields(options["loss"], TrainConfigError)
+        """The config of a run's config.json (its other records skipped); removed fields load while they
+        hold the behaviour mapkit now always has (:meth:`from_dict` knows only today's fields)."""
+        known = {f.name for f in _option_fields()} | set(REMOVED_FIELDS)
+        options = drop_removed_fields({k: v for k, v in data.items() if k in known}, TrainConfigError, REMOVED_FIELDS, "")
+        for key, removed in (("planner", REMOVED_PLANNER_FIELDS), ("loss", REMOVED_LOSS_FIELDS)):
+            if isinstance(options.get(key), dict):
+                options[key] = drop_removed_fields(options[key], TrainConfigError, removed, f"{key} ")
         return cls.from_dict(options)
 
     def validate(self) -> None:
@@ -105,8 +108,6 @@ class TrainConfig:
             raise TrainConfigError(f"batch_size {self.batch_size} must be at least 1")
         if not self.lr > 0:
             raise TrainConfigError(f"lr {self.lr} must be positive")
-        if self.grad_clip is not None and not (math.isfinite(self.grad_clip) and self.grad_clip > 0):
-            raise TrainConfigError(f"grad_clip {self.grad_clip} must be a positive number")
         if self.corridor is not None and not self.corridor > 0:
             raise TrainConfigError(f"corridor {self.corridor} must be a positive half-width in metres")
         if self.only not in TRAINED_WEIGHTS:

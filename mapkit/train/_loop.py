@@ -481,8 +481,7 @@ def _build_model(run: _Session, state: dict[str, Any] | None) -> None:
         trained = ("tan.",) if config.only == "tan" else ("judge_mlp.", "eta_mlp.")
         for name, param in net.named_parameters():
             param.requires_grad_(name.startswith(trained))
-    run.optimizer = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=config.lr,
-                                     weight_decay=config.weight_decay)
+    run.optimizer = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=config.lr)
     if state is None and config.init:
         _load_init(net, config.init, tan_fresh=config.only == "tan")
     if state is not None:
@@ -560,8 +559,7 @@ def _train_step(run: _Session, data: _Splits, k: int, part: Any) -> dict[str, An
         raise TrainConfigError(f"loss became {float(loss)} at step {run.step}; lower the learning rate (now {config.lr}; mapkit train --set lr=...)")
     run.optimizer.zero_grad(set_to_none=True)
     loss.backward()
-    if config.grad_clip is not None:
-        nn.utils.clip_grad_norm_(net.parameters(), config.grad_clip)
+    nn.utils.clip_grad_norm_(net.parameters(), 10.0)
     run.optimizer.step()
     run.step += 1
     return terms

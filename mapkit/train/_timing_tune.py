@@ -1,8 +1,7 @@
 """`mapkit lab tune-timing`: the Time Allocation Net fine-tuned on the plans the planner makes in flight
 (``EvalConfig.record_plans``), whose inputs differ from the training tuples', in the conditions the
-planner times them in. Objectives (``TimingTuneConfig.objective``): ``snap``, each plan's snap cost;
-``imitate`` (the shipped recipe's), each segment's duration against the gradient-descent split's.
-Everything but the TAN keeps its weights.
+planner times them in, to imitate each segment's duration in the gradient-descent split. Everything but
+the TAN keeps its weights.
 """
 
 from __future__ import annotations
@@ -54,12 +53,12 @@ class TimingTuneConfig:
     ``boundary_inputs`` a new one of its width)."""
     lr_decay: bool = True
     """Cosine decay of the learning rate to 1 % of ``lr`` over ``steps`` (off: constant)."""
-    objective: TimingObjective = "snap"
-    """``snap``: the mean log ratio of each plan's snap cost to the gradient-descent split's.
-    ``imitate``: the weighted mean squared log ratio of each segment's duration to the gradient-descent
-    split's (``first_weight`` on the first segment, 1 on the others). Also what chooses the weights kept."""
+    objective: TimingObjective = "imitate"
+    """The only one left, ``imitate``: the weighted mean squared log ratio of each segment's duration to
+    the gradient-descent split's (``first_weight`` on the first segment, 1 on the others). Also what
+    chooses the weights kept."""
     first_weight: float = 4.0
-    """``imitate``: the weight of the first segment, the one a replanning flight executes."""
+    """The weight of the first segment, the one a replanning flight executes."""
 
     def validate(self) -> None:
         for name in ("steps", "batch_size", "check_every"):
@@ -204,9 +203,6 @@ class _Reference:
 def _objective(tan: TimeAllocationNet, config: PlannerConfig, plans: PlanInputs, reference: _Reference,
                tune: TimingTuneConfig) -> torch.Tensor:
     """(P,) the value of ``tune.objective`` for each plan (lower is better)."""
-    if tune.objective == "snap":
-        # the log weighs a cheap plan's waste like an expensive one's
-        return torch.log(plan_costs(tan, config, plans).clamp_min(1e-12) / reference.cost.clamp_min(1e-12))
     durations, _ = _timed(tan, config, plans)
     weights = torch.ones(durations.shape[1], dtype=durations.dtype)
     weights[0] = tune.first_weight
@@ -217,7 +213,7 @@ def _objective(tan: TimeAllocationNet, config: PlannerConfig, plans: PlanInputs,
 @dataclass(frozen=True)
 class TuneOutcome:
     """What :func:`tune_tan` did, on the validation plans (fields as :class:`TimingTuneSummary`'s;
-    ``objective``: ``snap``'s summed-cost ratio, or ``imitate``'s mean weighted squared log ratio)."""
+    ``objective``: the mean weighted squared log ratio)."""
 
     before: tuple[float, float]
     after: tuple[float, float]
@@ -235,8 +231,6 @@ def _snap_ratios(tan: TimeAllocationNet, config: PlannerConfig, plans: PlanInput
 def _score(tan: TimeAllocationNet, config: PlannerConfig, plans: PlanInputs, reference: _Reference,
            tune: TimingTuneConfig) -> float:
     """The validation score that chooses the weights kept (lower is better)."""
-    if tune.objective == "snap":
-        return _snap_ratios(tan, config, plans, reference)[1]
     with torch.no_grad():
         return float(_objective(tan, config, plans, reference, tune).mean())
 
