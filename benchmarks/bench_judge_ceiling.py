@@ -152,10 +152,8 @@ def fly(model: str, kind: str, seed: int, pairs: int, judge: Judge) -> list[str]
     config = EvalConfig(worlds=(kind,), pairs=pairs, seed=seed, methods=("learned",), stacks=("none",))
     context = run._model_context(model, config)
     _, world_pairs = run._worlds_and_pairs(config)
-    setup = run._WorkerSetup(model=run._model_for_workers(model, config), model_sha256=None, seed=seed,
-                             pair_clearance=config.pair_clearance, camera=context.camera,
-                             runs=(Run("learned", "none"),), oracle_corridor=config.oracle_corridor,
-                             execution=config.execution, loop=config.loop)
+    setup = run._WorkerSetup(model=run._model_for_workers(model, config), model_sha256=None, camera=context.camera,
+                             runs=(Run("learned", "none"),), config=config)
     run._init_worker(setup)
     bundle = run._world_bundle(kind)
     pilot = bundle.pilots[0]  # the loop flies a pilot; the judge is swapped inside its planner

@@ -226,7 +226,7 @@ def main(verbose: int) -> None:
 
 
 class _Lab(OrderedGroup):
-    order = ("tune-timing", "tune-judge", "compare-timing")
+    order = ("tune-timing", "tune-judge")
 
 
 @main.group("lab", cls=_Lab)

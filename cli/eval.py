@@ -23,7 +23,7 @@ def _defaults() -> EvalConfig:
 
 
 RESEARCH_ONLY = frozenset({
-    "untrained_seeds", "record_plans", "record_judge", "judge_history", "execution.flown_judge",
+    "record_plans", "record_judge", "judge_history", "execution.flown_judge",
 })
 """EvalConfig fields that served one experiment: not on the command line (the recipe, which records
 plans and judgements, sets them through the library)."""

@@ -1,4 +1,4 @@
-"""`mapkit train` and the research tools of `mapkit lab` (tune-timing, tune-judge, compare-timing)."""
+"""`mapkit train` and the research tools of `mapkit lab` (tune-timing, tune-judge)."""
 
 from __future__ import annotations
 
@@ -179,7 +179,7 @@ PLANS_HELP = ("An eval folder with plans.npz (repeatable): what the model's time
 @library_call
 def tune_timing_cmd(model: Path, plans: tuple[Path, ...], val: tuple[Path, ...], output: Path, steps: int | None,
                     lr: float | None, overwrite: bool, settings: Settings) -> None:
-    """Fine-tune the Time Allocation Net alone on plans the planner made in flight (lower snap per plan)."""
+    """Fine-tune the Time Allocation Net alone on plans the planner made in flight (to imitate gradient descent's split)."""
     from mapkit.train import tune_timing
 
     with option_values():
@@ -225,22 +225,3 @@ def tune_judge_cmd(model: Path, records: tuple[Path, ...], val: tuple[Path, ...]
         if score is not None:
             click.echo(f"  {label + ':':<40} {100 * score.caught:5.1f} % / {100 * score.false_alarms:4.1f} %")
     click.echo(f"wrote {output}/model.pt and config.json")
-
-
-@lab.command("compare-timing")
-@click.option("--model", "model", type=click.Path(path_type=Path), default=Path("pretrained"), show_default=True,
-              help="Run directory with model.pt, or \"pretrained\".")
-@click.option("--plans", "plans", multiple=True, required=True, type=click.Path(path_type=Path),
-              help=PLANS_HELP)
-@click.option("--window", type=POSITIVE, default=0.5, show_default=True,
-              help="Seconds of each plan a replanning flight flies (mapkit eval replans every 0.5 s).")
-@library_call
-def compare_timing_cmd(model: Path, plans: tuple[Path, ...], window: float) -> None:
-    """The model's Time Allocation Net against gradient descent on the same recorded plans (Table III)."""
-    from mapkit.train import compare_timing
-
-    c = compare_timing(model, plans, window=window)
-    click.echo(f"{c.plans} plans; snap of the TAN's split against gradient descent's on the same plans "
-               "(summed / median / geometric mean of the per-plan ratios):")
-    for label, r in (("whole plan", c.whole), (f"first {c.window:g} s (flown)", c.flown)):
-        click.echo(f"  {label + ':':<20} {r.summed:.3f}× / {r.median:.3f}× / {r.geomean:.3f}×")

@@ -19,7 +19,7 @@ GoalFrame = Literal["body", "world"]
 (``mapkit plan --goal-frame``, :func:`mapkit.flight.plan_from_frame`)."""
 GOAL_FRAMES: tuple[GoalFrame, ...] = get_args(GoalFrame)
 
-TimingObjective = Literal["snap", "imitate"]
+TimingObjective = Literal["imitate"]
 """What `mapkit lab tune-timing` fits the Time Allocation Net to (``TimingTuneConfig.objective``)."""
 TIMING_OBJECTIVES: tuple[TimingObjective, ...] = get_args(TimingObjective)
 

@@ -1,16 +1,7 @@
-"""Where Dask work runs: a local cluster sized to this machine, or an existing scheduler.
-
-Every stage that fans out over Dask (``mapkit batch``, the chunked ESDF, ``mapkit eval
---scheduler``) gets its client here, so the rules are the same everywhere:
-
-- ``scheduler`` given (``tcp://HOST:8786``): connect to it;
-- else the Dask convention ``DASK_SCHEDULER_ADDRESS`` (Dask's own ``scheduler-address`` config);
-- else a :class:`distributed.LocalCluster` of one worker process per available core (the process's
-  CPU affinity, not the machine's total; one task at a time each, native libraries get the cores
-  divided among the workers), listening on loopback only (dashboard on a free port), workers without
-  Dask's statistical profiler (the dashboard's Profile page stays empty).
-
-A scheduler that cannot be reached is a :class:`SchedulerError` naming the address and the fix.
+"""Where Dask work runs (``mapkit batch``, the chunked ESDF, ``mapkit eval --scheduler``): the given
+scheduler, else ``DASK_SCHEDULER_ADDRESS``, else a loopback-only :class:`distributed.LocalCluster` of one
+single-threaded worker process per available core, without Dask's statistical profiler. A scheduler that
+cannot be reached is a :class:`SchedulerError` naming the address and the fix.
 """
 
 from __future__ import annotations
@@ -78,21 +69,16 @@ def scheduler_address(scheduler: str | None) -> str | None:
 
 
 @contextmanager
-def dask_client(scheduler: str | None = None, *, workers: int | None = None,
-                timeout_s: float = CONNECT_TIMEOUT_S) -> Iterator[tuple[Client, ClusterInfo]]:
+def dask_client(scheduler: str | None = None, *, workers: int | None = None) -> Iterator[tuple[Client, ClusterInfo]]:
     """A Dask client for the block, and what it runs on; a local cluster started here is stopped after.
-
-    ``workers`` sizes a local cluster (default: one per available core); it is ignored when
-    connecting to an existing scheduler, whose workers are the cluster's business.
-    """
+    ``workers`` sizes a local cluster (default: one per available core); ignored with a scheduler."""
     with _quiet_distributed():
-        yield from _client(scheduler_address(scheduler), workers, timeout_s)
+        yield from _client(scheduler_address(scheduler), workers)
 
 
 @contextmanager
 def _quiet_distributed() -> Iterator[None]:
-    """distributed logs its start, stop and connection churn at INFO (a shutdown even logs a traceback)
-    through the root handler the CLI installs; show them only when the root logger wants INFO (-v)."""
+    """distributed's INFO churn (start, stop, connections) only when the root logger wants INFO (-v)."""
     import distributed  # noqa: F401 - its import sets the levels this overrides
 
     logger = logging.getLogger("distributed")
@@ -105,7 +91,7 @@ def _quiet_distributed() -> Iterator[None]:
         logger.setLevel(old)
 
 
-def _client(address: str | None, workers: int | None, timeout_s: float) -> Iterator[tuple[Client, ClusterInfo]]:
+def _client(address: str | None, workers: int | None) -> Iterator[tuple[Client, ClusterInfo]]:
     """The body of :func:`dask_client`."""
     import dask
     from distributed import Client, LocalCluster
@@ -114,13 +100,9 @@ def _client(address: str | None, workers: int | None, timeout_s: float) -> Itera
         n = workers if workers is not None else available_cpus()
         if n < 1:
             raise SchedulerError(f"workers={n} must be at least 1")
-        # One task at a time per worker process: the stages are numpy/torch code that holds the GIL in
-        # places, and processes isolate a worker that dies; native threads come from _worker_environ.
-        # The workers' statistical profiler (a stack sample of every task each 10 ms) costs CPU: local
-        # clusters go without it; a cluster of your own keeps Dask's default.
+        # Processes (the stages hold the GIL in places; a dying worker stays isolated), one task each;
+        # native threads from _worker_environ. Loopback only: the dashboard shows tasks and their code.
         environ = _worker_environ(n)
-        # Every socket of a local cluster listens on loopback: given no host, the dashboard binds every
-        # interface and shows this machine's tasks (and their code) to its network.
         with _worker_environment(environ), dask.config.set({"distributed.nanny.pre-spawn-environ": environ,
                                                            "distributed.worker.profile.enabled": False}), \
                 LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=LOOPBACK,
@@ -129,7 +111,7 @@ def _client(address: str | None, workers: int | None, timeout_s: float) -> Itera
             yield client, _info(client, local=True)
         return
     try:
-        client = Client(address, timeout=f"{timeout_s}s")
+        client = Client(address, timeout=f"{CONNECT_TIMEOUT_S}s")
     except (OSError, TimeoutError, ValueError) as exc:
         raise SchedulerError(
             f"cannot reach the Dask scheduler at {address!r} ({type(exc).__name__}); start one with "
@@ -140,14 +122,9 @@ def _client(address: str | None, workers: int | None, timeout_s: float) -> Itera
 
 
 def _worker_environ(workers: int) -> dict[str, Any]:
-    """The environment Dask's nanny gives local workers, less its ``MALLOC_TRIM_THRESHOLD_=65536``, and
-    with the native libraries' thread limits (OMP, MKL, OpenBLAS; Open3D, numpy and the EDT follow
-    them) set to this machine's cores shared among the ``workers``, where Dask sets 1.
-
-    ``MALLOC_TRIM_THRESHOLD_`` makes glibc hand freed memory back at once, and also fixes its mmap
-    threshold, so every large numpy temporary is mapped, faulted in and unmapped again (system time
-    the single commands do not spend). A single worker with one thread would leave cores idle.
-    """
+    """The environment Dask's nanny gives local workers, less its ``MALLOC_TRIM_THRESHOLD_`` (which makes
+    every large numpy temporary an mmap, faulted in and unmapped again), with the thread limits (OMP, MKL,
+    OpenBLAS) set to the cores shared among the ``workers`` instead of Dask's 1."""
     import dask
 
     environ = dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {}
@@ -159,12 +136,8 @@ def _worker_environ(workers: int) -> dict[str, Any]:
 
 @contextmanager
 def _worker_environment(environ: dict[str, Any]) -> Iterator[None]:
-    """This process's environment set to ``environ`` while a local cluster runs, and restored after.
-
-    A nanny resolves each of its variables from this process's environment before its config, and
-    copies the result into this process's environment for good. So a cluster started with Dask's
-    defaults earlier (another library's) would hand its ``MALLOC_TRIM_THRESHOLD_`` and thread limits
-    to our workers, and ours would leave ``OMP_NUM_THREADS=1`` behind in the command's own process.
+    """This process's environment set to ``environ`` while a local cluster runs, and restored after: a
+    nanny reads its variables from this environment before its config and writes them back for good.
     A ``MALLOC_TRIM_THRESHOLD_`` of the user's own (not Dask's default) reaches the workers."""
     import dask
 

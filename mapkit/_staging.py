@@ -1,15 +1,7 @@
-"""Workspaces at fsspec URLs for steps that need local files (Open3D's fusion, the ESDF): bring a
-workspace's products into a local folder, run there, and publish what was made back at the URL the way
-readers expect a finished product.
-
-- Stores (frames.zarr, map.zarr, tuples.zarr) are published with their root ``zarr.json`` last
-  (:func:`mapkit._stores.copy_store`).
-- A *file set* (fuse's cloud.ply, tsdf.npz, mesh.ply) is described by a manifest (fuse.json, whose
-  ``outputs`` give each file's size): the old manifest is deleted first, the files follow one PUT
-  each, the new manifest comes last, so a set is complete exactly when its manifest is there and the
-  sizes match.
-
-Used by ``mapkit batch`` with a URL root and by ``mapkit fuse`` / ``mapkit esdf`` with ``-w URL``.
+"""Workspaces at fsspec URLs for steps that need local files (fusion, the ESDF; ``mapkit batch`` with a
+URL root): bring products into a local folder, run there, publish back. Stores go root ``zarr.json``
+last; a *file set* (fuse's files, listed with sizes in fuse.json) goes old manifest deleted, files, new
+manifest last, so it is complete exactly when its manifest is there and the sizes match.
 """
 
 from __future__ import annotations

@@ -1,14 +1,8 @@
-"""Where stores live: a local path or an fsspec URL, and how a store is published at either.
+"""Where stores live: a local path or an fsspec URL, and how a store is published at either (docs/stores.md).
 
-A local path (or a ``file://`` URL) keeps the workspace habit: write a hidden sibling, rename it into
-place (:func:`mapkit.workspace.atomic_output`). Other filesystems (``s3://``, ``gs://``,
-``memory://``) have no atomic rename of a folder, so a store is written under a hidden temporary
-prefix, copied to its name with its root ``zarr.json`` LAST, and readers refuse a prefix that lacks
-that ``zarr.json`` (:meth:`Location.state`). The root metadata document is thus the completion
-marker: no foreign file in the store, any zarr reader sees an unfinished copy as no group, and local
-stores (published by rename, so complete by construction) need nothing new. Credentials, endpoints and
-other filesystem options come from fsspec's own configuration (``fsspec.config``, ``FSSPEC_<PROTOCOL>_*``
-environment variables, the backend's usual ones such as ``AWS_*``) or ``storage_options``.
+Locally a store is written as a hidden sibling and renamed into place. Other filesystems have no atomic
+folder rename: the store is written under a hidden prefix and copied to its name with its root
+``zarr.json`` LAST, so that document is the completion marker readers check (:meth:`Location.state`).
 """
 
 from __future__ import annotations
@@ -40,10 +34,8 @@ def is_url(where: str | Path) -> bool:
 
 @dataclass(frozen=True)
 class Location:
-    """A store or folder: a local path, or a path on an fsspec filesystem.
-
-    Build with :meth:`of`; join names with ``/``. ``str()`` gives what the user wrote (for messages).
-    """
+    """A store or folder: a local path, or a path on an fsspec filesystem; build with :meth:`of`, join
+    names with ``/``; ``str()`` gives what the user wrote."""
 
     url: str
     """The path or URL as given (children joined with "/")."""
@@ -70,10 +62,8 @@ class Location:
         try:
             fs, path = fsspec.core.url_to_fs(url, **(storage_options or {}))
         except (ValueError, ImportError) as exc:
-            raise StoreError(
-                f"cannot use {url!r}: {exc}; give a local path or a URL whose fsspec backend is installed "
-                "(e.g. pip install s3fs for s3://, gcsfs for gs://)"
-            ) from None
+            raise StoreError(f"cannot use {url!r}: {exc}; give a local path or a URL whose fsspec backend is installed "
+                             "(e.g. pip install s3fs for s3://, gcsfs for gs://)") from None
         from fsspec.implementations.local import LocalFileSystem
 
         if isinstance(fs, LocalFileSystem):
@@ -200,12 +190,8 @@ def check_store_writable(target: Location, *, overwrite: bool, option: str = "--
 
 @contextmanager
 def publish_store(target: Location, *, overwrite: bool) -> Iterator[Location]:
-    """Yield a temporary location to write a zarr group; it becomes `target` only when the block succeeds.
-
-    Local: :func:`~mapkit.workspace.atomic_output` (rename). Elsewhere: a hidden ``.NAME.partial-ID``
-    prefix, copied to `target` root ``zarr.json`` last (:func:`_publish`); on an exception it is
-    removed and `target` is untouched.
-    """
+    """Yield a temporary location to write a zarr group; it becomes `target` (by rename, or copied root
+    ``zarr.json`` last) only when the block succeeds; on an exception `target` is untouched."""
     if target.local is not None:
         with atomic_output(target.local, overwrite=overwrite) as staged:
             yield Location.of(staged)

@@ -7,11 +7,8 @@ from typing import Any
 
 
 def prefetch(iterator: Iterator[Any], depth: int = 8) -> Iterator[Any]:
-    """Run `iterator` in a background thread, `depth` items ahead.
-
-    Chunk decompression (zstd/lz4) releases the GIL, so reading overlaps the consumer's decoding
-    on a second core. Exceptions are re-raised in the consumer; stopping early stops the thread.
-    """
+    """Run `iterator` in a background thread, `depth` items ahead (decompression releases the GIL); its
+    exceptions are re-raised in the consumer, and stopping early stops the thread."""
     import queue
     import threading
 

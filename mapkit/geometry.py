@@ -5,14 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = [
-    "matrix_from_quat_xyzw",
-    "quat_xyzw_from_matrix",
-    "transform_from_pose",
-    "invert_transform",
-    "slerp_xyzw",
-    "interpolate_transform",
-]
+__all__ = ["matrix_from_quat_xyzw", "quat_xyzw_from_matrix", "transform_from_pose", "invert_transform", "slerp_xyzw",
+           "interpolate_transform"]
 
 
 def matrix_from_quat_xyzw(q_xyzw: ArrayLike) -> NDArray[np.float64]:

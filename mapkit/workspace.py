@@ -30,10 +30,8 @@ def check_writable(target: Path, *, overwrite: bool, option: str = "--overwrite"
 
 @contextmanager
 def atomic_output(target: Path, *, overwrite: bool) -> Iterator[Path]:
-    """Yield a temporary sibling path to write; it replaces `target` only when the block succeeds.
-
-    On any exception the temporary is removed and `target` is untouched.
-    """
+    """Yield a temporary sibling path to write; it replaces `target` only when the block succeeds (on an
+    exception the temporary is removed and `target` is untouched)."""
     check_writable(target, overwrite=overwrite)
     target.parent.mkdir(parents=True, exist_ok=True)
     clean_stale(target.parent)

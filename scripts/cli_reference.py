@@ -54,7 +54,7 @@ of their own either: `--help` shows the dataclass's.
   `mapkit config COMMAND`; a value of the wrong type names the key, what it takes and an example; a value
   the dataclass's `validate()` refuses is named by the dataclass's own message.
 - Fields only the shipped recipe uses are no settings (`EvalConfig.record_plans`, `record_judge`,
-  `judge_history`, `untrained_seeds`, `execution.flown_judge`; tune-timing's `objective`,
+  `judge_history`, `execution.flown_judge`; tune-timing's `objective`,
   `boundary_scale`, `first_weight`): the recipe (`mapkit train --recipe pretrained`) and the library set
   them. The research tools themselves are under `mapkit lab`.
 """

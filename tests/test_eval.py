@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import math
 import re
 from pathlib import Path
 
@@ -721,7 +722,7 @@ def test_a_follow_fraction_outside_0_1_is_refused_by_name(follow: float):
     ({"cell": 0.0}, "RouteConfig.cell must be > 0 metres, got 0.0"),
     ({"height": float("nan")}, "RouteConfig.height must be > 0 metres"),
     ({"inflate": 1.2}, "RouteConfig.wary (1.0 m) must exceed RouteConfig.inflate (1.2 m)"),
-    ({"ground": float("inf")}, "RouteConfig.ground must be a finite world height in metres or None"),
+    ({"ground": float("inf")}, "RouteConfig.ground must be a finite world height in metres"),
 ])
 def test_a_bad_flight_map_setting_is_refused_by_name(route: dict[str, float], message: str):
     from mapkit.evaluation import EvalError
@@ -915,7 +916,7 @@ def test_the_corridor_keeps_clear_of_a_remembered_door_jamb():
                       dtype=torch.float64)
     T = torch.full((1, 4), 0.6, dtype=torch.float64)
     start, end = torch.zeros(1, 3, 3, dtype=torch.float64), torch.zeros(1, 3, 3, dtype=torch.float64)
-    how = _pace(v_max=None, a_max=None)
+    how = _pace(v_max=math.inf, a_max=math.inf)
     in_view = _Checker(x, _forward_camera(w, h), 10.0, None)
     within = Memory().blocked_within
     recalled = _Checker(x, _forward_camera(w, h), 10.0, None, recall=(memory, np.eye(4), within))
@@ -941,12 +942,12 @@ def test_an_unchecked_corridor_is_at_most_its_unchecked_width():
     from mapkit.flight._learned import _execute, _limited
 
     assert Corridor().widest(True) == 1.0 and Corridor().widest(False) == 0.3
-    assert Corridor(width=0.2).widest(False) == 0.2 and Corridor(unchecked_width=None).widest(False) is None
+    assert Corridor(width=0.2).widest(False) == 0.2
     assert Corridor(width=None).widest(True) is None
     wp = torch.tensor([[[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [2.0, 2.0, 0.0], [4.0, 2.0, 0.0]]], dtype=torch.float64)
     T = torch.full((1, 3), 1.5, dtype=torch.float64)
     start, end = torch.zeros(1, 3, 3, dtype=torch.float64), torch.zeros(1, 3, 3, dtype=torch.float64)
-    how = _pace(v_max=None, a_max=None)
+    how = _pace(v_max=math.inf, a_max=math.inf)
     unchecked = _execute(wp, T, start, end, replace(how, corridor=replace(how.corridor, check=False)))
     narrow, wide = _limited(wp, T, start, end, how, 0.3), _limited(wp, T, start, end, how, 1.0)
     assert torch.allclose(unchecked.coeffs, narrow.coeffs)

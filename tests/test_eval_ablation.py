@@ -72,11 +72,6 @@ def test_untrained_flies_each_of_several_initial_weights_as_its_own_run():
         split_label("untrained#x@none")
 
 
-def test_bad_untrained_seeds_are_refused():
-    with pytest.raises(EvalError, match="distinct seeds >= 0"):
-        EvalConfig(untrained_seeds=(1, 1)).validate()
-
-
 @pytest.mark.parametrize("text, message", [("full,bogus", "unknown flight stack 'bogus'"),
                                            ("none,none", "given twice: 'none'"), (" , ", "--stack is empty")])
 def test_bad_stacks_are_refused_with_the_choices(text: str, message: str):
@@ -207,7 +202,7 @@ def test_the_ablation_compares_learned_with_its_twins_under_the_same_stack():
 
 # ------------------------------------------------------------------------------ end to end
 @pytest.mark.slow
-def test_an_ablation_run_records_the_stack_of_every_episode_and_reports_the_differences(tmp_path: Path):
+def test_an_ablation_run_records_the_stack_of_every_episode_and_reports_the_differences(tmp_path: Path, monkeypatch):
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     cfg = planner_preset("cpu", input_size=(48, 64), num_candidates=4, depth_check=True)
@@ -215,10 +210,9 @@ def test_an_ablation_run_records_the_stack_of_every_episode_and_reports_the_diff
     torch.save({"state_dict": PlannerNet(cfg).state_dict(), "planner_config": cfg.to_dict()}, run_dir / "model.pt")
     (run_dir / "config.json").write_text("{}")
     out = tmp_path / "ev"
-    # untrained_seeds is no CLI setting (the ablation's default is weights 0-3): the library sets it
+    monkeypatch.setattr("mapkit.evaluation._run.UNTRAINED_SEEDS", (0, 5))  # two of the four weights: quicker
     evaluate(run_dir, out, EvalConfig(worlds=("forest",), pairs=1, seed=3, stacks=("full", "none"),
-                                      methods=("learned", "untrained", "straight-keypoints", "oracle"),
-                                      untrained_seeds=(0, 5)), progress=False)
+                                      methods=("learned", "untrained", "straight-keypoints", "oracle")), progress=False)
     doc = json.loads((out / "results.json").read_text())
     labels = ["learned", "learned@none", "untrained#0", "untrained#5", "untrained#0@none", "untrained#5@none",
               "straight-keypoints", "straight-keypoints@none", "oracle"]
@@ -228,7 +222,6 @@ def test_an_ablation_run_records_the_stack_of_every_episode_and_reports_the_diff
     report = (out / "report.md").read_text()
     assert "## Ablation" in report and "learned@none − untrained@none" in report
     assert "untrained, 2 initial weights pooled" in report
-    assert doc["config"]["untrained_seeds"] == [0, 5]
     assert "learned − straight-keypoints" in report
 
 

@@ -109,9 +109,8 @@ def test_a_worker_refuses_a_model_file_other_than_the_one_evaluated(tiny_run: Pa
     config = small_config()
     camera = CameraSpec(width=64, height=48, K=[[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1]], T_body_camera=np.eye(4).tolist(),
                         source="test")
-    setup = _WorkerSetup(model=str(tiny_run.resolve()), model_sha256="0" * 64, seed=3, pair_clearance=0.6,
-                         camera=camera, runs=tuple(plan_runs(config.methods, config.stacks)), oracle_corridor=0.1, execution=config.execution,
-                         loop=config.loop)
+    setup = _WorkerSetup(model=str(tiny_run.resolve()), model_sha256="0" * 64, camera=camera,
+                         runs=tuple(plan_runs(config.methods, config.stacks)), config=config)
     with pytest.raises(EvalError, match=r"reads another .*model\.pt than the one evaluated.*storage every worker shares"):
         _check_worker_model(setup)
     _check_worker_model(dataclasses.replace(setup, model_sha256=hashlib.sha256((tiny_run / "model.pt").read_bytes())

@@ -295,7 +295,7 @@ def test_a_plan_too_sharp_for_the_limits_is_flown_slower_within_them():
     wp = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [2.0, -1.0, 0.0], [3.0, 1.0, 0.0]]], dtype=torch.float64)
     T = torch.full((1, 3), 0.4, dtype=torch.float64)
     start, end = torch.zeros(1, 3, 3, dtype=torch.float64), torch.zeros(1, 3, dtype=torch.float64)
-    free = Execution(speed=SpeedProfile(v_max=None, a_max=None))
+    free = Execution(speed=SpeedProfile(v_max=math.inf, a_max=math.inf))
     assert float(_limited(wp, T, start, end, free, None).max_acceleration(samples_per_segment=256)) > 20.0
     kept = _limited(wp, T, start, end, Execution(), None)
     assert float(kept.max_acceleration(samples_per_segment=256)) <= 4.0 + 1e-6

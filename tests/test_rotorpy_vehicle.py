@@ -1,5 +1,5 @@
 """rotorpy's Multirotor under its SE3Control (mapkit.evaluation._rotorpy): hover, tracking, attitude
-sign, yaw and config errors, with answers known without the simulator (a rest-to-rest polynomial).
+sign and yaw, with answers known without the simulator (a rest-to-rest polynomial).
 
 Measured (rotorpy 3.0.0, hummingbird, 100 Hz): the 5 m / 4 s move (peak 2.7 m/s) tracks with a mean
 error of 0.021 m and 0.038 m at most with the rotor drag fed forward (``drag_feedforward``, the
@@ -195,10 +195,3 @@ def test_reset_sets_pose_and_rest() -> None:
     assert len(vehicle.fly(lambda t: at_rest([1.0, 2.0, 3.0]), 5.0, 5.0).t) == 0
     with pytest.raises(ValueError, match="t1 >= t0"):
         vehicle.fly(lambda t: at_rest([1.0, 2.0, 3.0]), 5.0, 4.0)
-
-
-def test_bad_config_names_value_and_fix() -> None:
-    with pytest.raises(ValueError, match=r"rate_hz=50.*100 or more"):
-        RotorpyConfig(rate_hz=50)
-    with pytest.raises(ValueError, match=r"airframe='crazyfly'.*hummingbird"):
-        RotorpyConfig(airframe="crazyfly")

@@ -105,7 +105,7 @@ def test_no_route_under_a_wall_whose_foot_was_not_seen():
     grounded.add(seen, start)
     aim = grounded.aim(start, goal)
     assert aim is not None and aim.xy[0] > 3.3 and aim.height is None
-    underground = FlightMap(RouteConfig(ground=None))
+    underground = FlightMap(RouteConfig(ground=-10.0))  # below the map: no ground in it
     underground.add(seen, start)
     assert underground.aim(start, goal) is None
 

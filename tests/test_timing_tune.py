@@ -15,7 +15,6 @@ from mapkit.evaluation import PLANS_FILE, EvalConfig, evaluate
 from mapkit.flight import Planner
 from mapkit.planner import PlannerConfig, PlannerNet, planner_preset
 from mapkit.train import PlanInputs, TimingTuneConfig, TimingTuneError, load_plan_inputs, tune_tan, tune_timing
-from mapkit.train._timing_compare import CostRatios, allocation_costs, compare_timing, flown_snap
 from mapkit.train._timing_tune import _objective, _Reference, _timed, plan_costs
 
 CONFIG = planner_preset("cpu", input_size=(48, 64))
@@ -34,21 +33,6 @@ def synthetic_plans(n: int, seed: int) -> PlanInputs:
     start[:, 1] = rng.normal(0.0, 0.5, (n, 3))
     end_speed = np.where(rng.random(n) < 0.7, 2.0, 0.0)
     return PlanInputs(torch.from_numpy(waypoints), torch.from_numpy(start), torch.from_numpy(end_speed))
-
-
-def test_tuning_lowers_the_snap_of_an_untrained_tan_on_unseen_plans():
-    torch.manual_seed(0)
-    net = PlannerNet(CONFIG)
-    train, val = synthetic_plans(512, 1), synthetic_plans(128, 2)
-    outcome = tune_tan(net.tan, CONFIG, train, val, TimingTuneConfig(steps=200, check_every=50), progress=False)
-    assert outcome.best_step > 0
-    assert outcome.after[1] < outcome.before[1] and outcome.after[0] < outcome.before[0]
-    assert outcome.objective == (outcome.before[1], outcome.after[1])  # snap: chosen by the summed cost
-    # Cost ratios to the gradient-descent split: the kept weights are what the net now holds.
-    with torch.no_grad():
-        ref = plan_costs(None, CONFIG, val)
-        now = plan_costs(net.tan, CONFIG, val)
-    assert float(now.sum() / ref.sum()) == pytest.approx(outcome.after[1], rel=1e-9)
 
 
 def _first_segment_error(tan: torch.nn.Module, plans: PlanInputs) -> float:
@@ -74,6 +58,11 @@ def test_imitation_fits_the_gradient_descent_split_on_unseen_plans():
     with torch.no_grad():
         score = _objective(net.tan, CONFIG, val, _Reference.of(CONFIG, val), tune).mean()
     assert float(score) == pytest.approx(outcome.objective[1], rel=1e-9)
+    # snap cost ratios to the gradient-descent split: the kept weights are what the net now holds
+    with torch.no_grad():
+        ref = plan_costs(None, CONFIG, val)
+        now = plan_costs(net.tan, CONFIG, val)
+    assert float(now.sum() / ref.sum()) == pytest.approx(outcome.after[1], rel=1e-9)
 
 
 def test_bad_tuning_options_are_refused():
@@ -112,37 +101,6 @@ def test_plan_costs_use_the_planners_timing_and_the_analytic_cost():
     assert len(recorded.take(torch.tensor([0, 0]))) == 2
 
 
-def test_flown_snap_integrates_the_rest_to_rest_segment_analytically():
-    """One rest-to-rest segment of d metres in T seconds: x(t) = d·(35s⁴ − 84s⁵ + 70s⁶ − 20s⁷), s = t/T.
-    Its snap integrates to 100800·d²/T⁷ over the whole segment; over part of it, to the integral of the
-    squared cubic (exactly, with numpy's polynomials)."""
-    from mapkit.trajopt import min_snap
-
-    d, T = 3.0, 2.0
-    wp = torch.tensor([[[0.0, 0.0, 0.0], [d, 0.0, 0.0]]], dtype=torch.float64)
-    trajectory = min_snap(wp, torch.tensor([[T]], dtype=torch.float64))
-    position = np.polynomial.Polynomial([0, 0, 0, 0, 35, -84, 70, -20]) * d
-    snap = position.deriv(4) / T**4  # in s; dt = T ds
-    for window in (0.5, 1.3, T, 5.0):
-        s_end = min(window, T) / T
-        exact = float((snap**2).integ()(s_end)) * T
-        assert float(flown_snap(trajectory, window)[0]) == pytest.approx(exact, rel=1e-6)
-    assert float(flown_snap(trajectory, 5.0)[0]) == pytest.approx(100800 * d**2 / T**7, rel=1e-6)
-    assert float(trajectory.snap_cost()[0]) == pytest.approx(100800 * d**2 / T**7, rel=1e-9)
-
-
-def test_cost_ratios_of_a_split_against_itself_and_another():
-    reference = torch.tensor([1.0, 2.0, 4.0], dtype=torch.float64)
-    assert CostRatios.of(reference, reference) == CostRatios(1.0, 1.0, 1.0)
-    r = CostRatios.of(torch.tensor([2.0, 2.0, 2.0], dtype=torch.float64), reference)
-    assert (r.summed, r.median) == (pytest.approx(6 / 7), pytest.approx(1.0))
-    assert r.geomean == pytest.approx((2.0 * 1.0 * 0.5) ** (1 / 3))
-    # gradient descent against itself, on plans: exactly 1, and the flown part costs less than the whole
-    plans = synthetic_plans(16, 3)
-    whole, flown = allocation_costs(None, CONFIG, plans, 0.5)
-    assert CostRatios.of(whole, whole) == CostRatios(1.0, 1.0, 1.0) and bool((flown < whole).all())
-
-
 @pytest.mark.slow
 def test_record_plans_then_tune_timing_through_the_cli(tmp_path: Path):
     run = tmp_path / "run"
@@ -173,13 +131,6 @@ def test_record_plans_then_tune_timing_through_the_cli(tmp_path: Path):
         assert name.startswith("tan.") or torch.equal(a, b), name  # only the TAN may change
     record = json.loads((tmp_path / "tuned" / "config.json").read_text())["timing_tune"]
     assert record["train_plans"] > 0 and record["val_plans"] > 0
-    # The tuned TAN against gradient descent on the same plans: what the command prints is the library's
-    out = CliRunner().invoke(main, ["lab", "compare-timing", "--model", str(tmp_path / "tuned"), "--plans", str(tmp_path / "e4")])
-    assert out.exit_code == 0, out.output
-    compared = compare_timing(tmp_path / "tuned", [tmp_path / "e4"])
-    assert compared.plans == record["val_plans"] and f"{compared.whole.summed:.3f}×" in out.output
-    assert compared.whole.summed == pytest.approx(record["val_after"]["sum_ratio"], rel=1e-9)
-    assert f"first 0.5 s (flown): {compared.flown.summed:.3f}×" in out.output
     # A new TAN that reads the boundary conditions: the rest of the network is kept as it was.
     out = CliRunner().invoke(main, ["lab", "tune-timing", "--model", str(run), "--plans", str(tmp_path / "e3"),
                                     "--val", str(tmp_path / "e4"), "-o", str(tmp_path / "tunedB"), "--steps", "20",

@@ -323,7 +323,7 @@ def test_nested_options_are_type_checked(planner: dict, loss: dict, message: str
     with pytest.raises(TrainConfigError) as info:  # when the typed config is built from the dicts
         preset("cpu", planner=planner, loss=loss).validate()
     assert message in str(info.value)
-    preset("cpu", planner={"input_size": [48, 64], "num_candidates": 2, "candidate_anchors": [[1.0, 0], [-1, 0.5]]},
+    preset("cpu", planner={"input_size": [48, 64], "num_candidates": 2, "tan_hidden": [32, 32], "accel": 2},
            loss={"robot_radius": 0.35}).validate()  # lists stand for tuples, integers for floats
 
 

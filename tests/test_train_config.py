@@ -11,9 +11,10 @@ import pytest
 import torch
 
 from mapkit._choices import PRESET_NAMES, TRAINED_WEIGHTS
-from mapkit.planner import LossConfig, PlannerConfig, PlannerNet
-from mapkit.planner._loss import REMOVED_FIELDS
+from mapkit.planner import LossConfig, PlannerConfig, PlannerError, PlannerNet
+from mapkit.planner._loss import REMOVED_FIELDS as REMOVED_LOSS_FIELDS
 from mapkit.train import PRESETS, TrainConfig, TrainConfigError, preset
+from mapkit.train._config import REMOVED_FIELDS
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "mapkit" / "flight" / "pretrained"
 
@@ -28,12 +29,12 @@ OLD_CONFIG = {  # a config.json's options as the code before typed nested config
 
 
 def test_an_old_config_dict_loads_typed_and_writes_back_unchanged() -> None:
-    config = TrainConfig.from_dict(OLD_CONFIG)
+    config = TrainConfig.from_saved(OLD_CONFIG)
     assert isinstance(config.planner, PlannerConfig) and isinstance(config.loss, LossConfig)
     assert config.planner.input_size == (96, 160) and config.planner.num_candidates == 8
-    assert config.loss.obstacle_softness == 0.3 and config.loss.gamma_goal == LossConfig().gamma_goal
+    assert config.loss.obstacle_softness == 0.3 and config.loss.gamma_time == LossConfig().gamma_time
     # Fields named at their default value (num_keypoints, robot_radius) stay named, in their order.
-    assert json.dumps(config.to_dict()) == json.dumps(OLD_CONFIG)
+    assert json.dumps(config.to_dict()) == json.dumps({k: v for k, v in OLD_CONFIG.items() if k not in REMOVED_FIELDS})
 
 
 def test_round_trip_and_fields_changed_in_python_are_written() -> None:
@@ -65,10 +66,25 @@ def test_the_shipped_models_config_loads_and_fits_its_weights() -> None:
 
 def test_a_saved_config_with_removed_loss_fields_at_their_old_behaviour_loads() -> None:
     saved = json.loads((PRETRAINED / "config.json").read_text())
-    old = {**saved, "loss": {**saved["loss"], **REMOVED_FIELDS, "detour_cap": 3.0}}  # no weight: the cap is moot
+    old = {**saved, "loss": {**saved["loss"], **REMOVED_LOSS_FIELDS, "detour_cap": 3.0}}  # no weight: the cap is moot
     assert TrainConfig.from_saved(old) == TrainConfig.from_saved(saved)
     radius = {**saved, "loss": {**saved["loss"], "robot_radius": 0.4, "collision_distance": 0.4}}
     assert TrainConfig.from_saved(radius).loss.robot_radius == 0.4  # the label's distance was the radius
+    older = {**saved, **REMOVED_FIELDS, "planner": {**saved["planner"], "candidate_anchors": [], "extra": {"a": 1}}}
+    assert TrainConfig.from_saved(older) == TrainConfig.from_saved(saved)
+
+
+@pytest.mark.parametrize(("table", "name", "value"), [("", "grad_clip", None), ("", "weight_decay", 1e-4),
+                                                    ("planner", "candidate_anchors", [[1.0, 0.0]]),
+                                                    ("planner", "keypoint_init_scale", 0.1)])
+def test_a_saved_config_with_a_removed_option_in_use_is_refused(table: str, name: str, value: object) -> None:
+    saved = json.loads((PRETRAINED / "config.json").read_text())
+    old = {**saved, table: {**saved[table], name: value}} if table else {**saved, name: value}
+    with pytest.raises(TrainConfigError, match=rf"^{table + ' ' if table else ''}{name}=.*: the field was removed"):
+        TrainConfig.from_saved(old)
+    if table:  # a saved model's planner config likewise
+        with pytest.raises(PlannerError, match=rf"^planner {name}=.*: the field was removed"):
+            PlannerConfig.from_dict({**saved["planner_resolved"], name: value})
 
 
 @pytest.mark.parametrize(("name", "value"), [("detour_weight", 2.0), ("eta_horizon", 2.5), ("eta_label", "seen"),

@@ -744,23 +744,43 @@ class ViewerApp:
         """Plan from the selected frame to a world goal (3,) and draw key-points, the trajectory
         coloured by speed and the corridor prisms."""
         from mapkit import viz
-        from mapkit.flight import plan_from_frame
-        from mapkit.trajopt import TrajoptWarning
 
-        fr, s = self._need_frames(), self.server.scene
         panel = built(self.gui.plan)
         i = int(built(self.gui.flight).frame.value)
-        T_wb = fr.T_world_body[i]
+        T_wb = self._need_frames().T_world_body[i]
         goal_w = np.asarray(goal_world, dtype=np.float64).reshape(3)
         W = float(panel.corridor_width.value)
         corridor = W if W > 0 else None
+        planned, infeasible = self._solve_plan(i, goal_w, corridor)
+        result = planned.result
+        traj_w, kp_w, speed, norm = self._draw_plan(T_wb, result, goal_w)
+        geo = self._draw_corridor(T_wb, result, corridor)
+        self.plan = {"frame": i, "goal_world": goal_w, "goal_body": planned.goal_body, "result": result,
+                     "trajectory_world": traj_w, "keypoints_world": kp_w, "speed": speed, "corridor": geo,
+                     "corridor_width": corridor, "infeasible": infeasible}
+        panel.info.content = _plan_info(i, planned.goal_body, result, speed, geo, W, infeasible)
+        panel.speed_colorbar.image = viz.colorbar_image("turbo", norm, label="speed [m/s]", unobserved=False)
+        panel.speed_colorbar.visible = True
+        return self.plan
+
+    def _solve_plan(self, i: int, goal_w: np.ndarray, corridor: float | None) -> tuple[Any, bool]:
+        """Plan from frame ``i`` to the world goal; (planned, whether the corridor QP was infeasible)."""
+        from mapkit.flight import plan_from_frame
+        from mapkit.trajopt import TrajoptWarning
+
+        fr = self._need_frames()
         depth = self._depth(i)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", TrajoptWarning)
-            planned = plan_from_frame(self.planner, depth, T_wb, fr.T_world_camera[i], fr.K, goal_w, goal_frame="world",
-                                      velocity_body=self._velocity_body[i], corridor=corridor)
-        goal_b, result = planned.goal_body, planned.result
-        infeasible = any(issubclass(w.category, TrajoptWarning) for w in caught)
+            planned = plan_from_frame(self.planner, depth, fr.T_world_body[i], fr.T_world_camera[i], fr.K, goal_w,
+                                      goal_frame="world", velocity_body=self._velocity_body[i], corridor=corridor)
+        return planned, any(issubclass(w.category, TrajoptWarning) for w in caught)
+
+    def _draw_plan(self, T_wb: np.ndarray, result: Any, goal_w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, Any]:
+        """Draw the trajectory coloured by speed, the key-points and the goal; (trajectory, key-points, speed, norm)."""
+        from mapkit import viz
+
+        s = self.server.scene
         traj_w = viz.transform_points(T_wb, result.samples_body)
         kp_w = viz.transform_points(T_wb, result.keypoints)
         speed, colors, norm = viz.speed_colors(result.samples_t, result.samples_body)
@@ -770,40 +790,27 @@ class ViewerApp:
             "/plan/keypoints", kp_w.astype(np.float32), np.array(_COLORS["keypoint"], np.uint8), point_size=0.16,
             point_shape="circle", precision="float32")
         self.nodes["/plan/goal"] = s.add_icosphere("/plan/goal", radius=0.18, color=_COLORS["goal"], position=tuple(goal_w))
-        geo = None
+        return traj_w, kp_w, speed, norm
+
+    def _draw_corridor(self, T_wb: np.ndarray, result: Any, corridor: float | None) -> Any:
+        """Replace the corridor prisms (none without a corridor); returns their geometry or None."""
+        from mapkit import viz
+
         for name in ("/corridor/prisms", "/corridor/edges"):
             node = self.nodes.pop(name, None)
             if node is not None:
                 node.remove()
-        if corridor is not None:
-            waypoints = np.vstack([np.zeros((1, 3)), result.keypoints.astype(np.float64)])
-            geo = viz.corridor_prisms(waypoints, corridor, T_world_frame=T_wb)
-            self.nodes["/corridor/prisms"] = s.add_mesh_simple(
-                "/corridor/prisms", geo.vertices, geo.faces, color=_COLORS["corridor"], opacity=0.18, side="double",
-                cast_shadow=False, receive_shadow=False)
-            self.nodes["/corridor/edges"] = s.add_line_segments(
-                "/corridor/edges", geo.edges, _COLORS["corridor"], thickness=0.01)
-        self.plan = {"frame": i, "goal_world": goal_w, "goal_body": goal_b, "result": result, "trajectory_world": traj_w,
-                     "keypoints_world": kp_w, "speed": speed, "corridor": geo, "corridor_width": corridor,
-                     "infeasible": infeasible}
-        verdict = "execute" if result.execute else "do NOT execute (η ≥ 0.5)"
-        if result.variant:
-            verdict += f" (a {result.variant} candidate)"
-        solve = (f"min-snap in a ±{W:g} m corridor ({geo.num_segments} prisms)" if geo is not None
-                 else "min-snap through the key-points (as `mapkit plan`)")
-        if infeasible:
-            solve = f"corridor ±{W:g} m infeasible: shown through the key-points; widen it"
-        gb = goal_b
-        panel.info.content = (
-            f"frame {i}; goal in body frame ({gb[0]:.2f}, {gb[1]:.2f}, {gb[2]:.2f}) m\n\n"
-            f"**η = {result.eta:.3f}** → {verdict}; latency **{result.latency_ms:.1f} ms**\n\n"
-            f"{len(result.keypoints)} key-points; segment times {np.round(result.durations.astype(float), 2).tolist()} s "
-            f"(total {float(result.durations.sum()):.2f} s); peak speed {speed.max():.2f} m/s; "
-            f"control effort {result.control_effort:.1f} m²/s⁷\n\n{solve}"
-        )
-        panel.speed_colorbar.image = viz.colorbar_image("turbo", norm, label="speed [m/s]", unobserved=False)
-        panel.speed_colorbar.visible = True
-        return self.plan
+        if corridor is None:
+            return None
+        s = self.server.scene
+        waypoints = np.vstack([np.zeros((1, 3)), result.keypoints.astype(np.float64)])
+        geo = viz.corridor_prisms(waypoints, corridor, T_world_frame=T_wb)
+        self.nodes["/corridor/prisms"] = s.add_mesh_simple(
+            "/corridor/prisms", geo.vertices, geo.faces, color=_COLORS["corridor"], opacity=0.18, side="double",
+            cast_shadow=False, receive_shadow=False)
+        self.nodes["/corridor/edges"] = s.add_line_segments(
+            "/corridor/edges", geo.edges, _COLORS["corridor"], thickness=0.01)
+        return geo
 
     # ------------------------------------------------------------------------------------- eval
     def _build_eval(self) -> None:
@@ -925,3 +932,21 @@ def _check_port(host: str, port: int) -> None:
             if exc.errno == errno.EACCES:
                 raise ViewerError(f"port {port} on {host} needs privileges; pass a port above 1023 or --port 0") from None
             raise ViewerError(f"cannot listen on {host}:{port} ({exc.strerror}); check --host") from None
+
+
+def _plan_info(i: int, gb: np.ndarray, result: Any, speed: np.ndarray, geo: Any, W: float, infeasible: bool) -> str:
+    """The plan panel's text: goal, η and verdict, timing and how the trajectory was solved."""
+    verdict = "execute" if result.execute else "do NOT execute (η ≥ 0.5)"
+    if result.variant:
+        verdict += f" (a {result.variant} candidate)"
+    solve = (f"min-snap in a ±{W:g} m corridor ({geo.num_segments} prisms)" if geo is not None
+             else "min-snap through the key-points (as `mapkit plan`)")
+    if infeasible:
+        solve = f"corridor ±{W:g} m infeasible: shown through the key-points; widen it"
+    return (
+        f"frame {i}; goal in body frame ({gb[0]:.2f}, {gb[1]:.2f}, {gb[2]:.2f}) m\n\n"
+        f"**η = {result.eta:.3f}** → {verdict}; latency **{result.latency_ms:.1f} ms**\n\n"
+        f"{len(result.keypoints)} key-points; segment times {np.round(result.durations.astype(float), 2).tolist()} s "
+        f"(total {float(result.durations.sum()):.2f} s); peak speed {speed.max():.2f} m/s; "
+        f"control effort {result.control_effort:.1f} m²/s⁷\n\n{solve}"
+    )

@@ -10,7 +10,6 @@ reading bags is :mod:`mapkit.ingest`'s job.
 - :class:`BagError`: every user-facing problem, in one line.
 """
 
-from mapkit.bags._errors import BagError
-from mapkit.bags._recorder import DEPTH_ENCODINGS, FORMATS, BagFormat, BagRecorder, output_path
+from mapkit.bags._recorder import DEPTH_ENCODINGS, FORMATS, BagError, BagFormat, BagRecorder, output_path
 
 __all__ = ["BagError", "BagFormat", "BagRecorder", "DEPTH_ENCODINGS", "FORMATS", "output_path"]

@@ -1,20 +1,6 @@
-"""Write ROS recordings (bare MCAP, rosbag2 directory, ROS1 bag) without ROS.
-
-``BagRecorder`` turns numpy depth images and 4x4 poses into the messages a real drone publishes
-(sensor_msgs/Image, CompressedImage in compressed_depth_image_transport format, CameraInfo,
-nav_msgs/Odometry, tf2_msgs/TFMessage; any other through :meth:`BagRecorder.write_raw`) and writes
-them with rosbags' writers (ROS1 / rosbag2-sqlite3) or the ``mcap`` package (bare ``.mcap``, ROS2
-CDR, zstd chunks).
-
-Output is atomic: everything is written under a hidden temporary name in the destination directory
-and renamed into place only when the context manager exits cleanly; on an exception the partial
-output is deleted.
-
-Example::
-
-    with BagRecorder("out", "mcap") as rec:          # -> out.mcap
-        rec.write_depth("/camera/depth/image_rect_raw", stamp_ns, depth_m,
-                        frame_id="camera_depth_optical_frame")
+"""BagRecorder: numpy depth images and 4x4 poses → the ROS messages a drone publishes, in a bare MCAP
+(the ``mcap`` package, ROS2 CDR, zstd chunks), a rosbag2 directory or a ROS1 bag (rosbags' writers).
+Output is atomic: written under a hidden temporary name, renamed into place only on a clean exit.
 """
 
 from __future__ import annotations
@@ -31,7 +17,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from mapkit.bags._errors import BagError
+from mapkit.errors import MapkitError
 from mapkit.geometry import quat_xyzw_from_matrix
 
 BagFormat = Literal["mcap", "ros2", "ros1"]
@@ -44,21 +30,19 @@ _TF_TOPIC = "/tf"
 _TF_STATIC_TOPIC = "/tf_static"
 
 
-def output_path(path: str | os.PathLike[str], format: str) -> Path:
-    """The path a recording of ``format`` gets for a user-given ``path`` (suffix optional).
+class BagError(MapkitError):
+    """A bad recorder input (format, output path, depth image, transform, ...), naming the value and the fix."""
 
-    mcap → ``OUT.mcap`` (a single file), ros1 → ``OUT.bag``, ros2 → ``OUT/`` (a directory).
-    """
+
+def output_path(path: str | os.PathLike[str], format: str) -> Path:
+    """The path a recording of ``format`` gets for a user-given ``path`` (suffix optional): mcap →
+    ``OUT.mcap`` (a single file), ros1 → ``OUT.bag``, ros2 → ``OUT/`` (a directory)."""
     if format not in FORMATS:
         raise BagError(f"unknown bag format {format!r}; use one of {', '.join(FORMATS)}")
     p = Path(path)
     if p.suffix in (".mcap", ".bag", ".db3"):
         p = p.with_suffix("")
-    if format == "mcap":
-        return p.with_name(p.name + ".mcap")
-    if format == "ros1":
-        return p.with_name(p.name + ".bag")
-    return p
+    return p if format == "ros2" else p.with_name(p.name + {"mcap": ".mcap", "ros1": ".bag"}[format])
 
 
 class BagRecorder:
@@ -75,17 +59,11 @@ class BagRecorder:
     Attributes:
         path: the final output path.
         typestore: the rosbags typestore (ROS1 Noetic or ROS2 Humble) to build messages with.
-        counts: messages written per topic.
+        counts: messages written per topic (also the next ROS1 header ``seq`` and MCAP ``sequence``).
     """
 
-    def __init__(
-        self,
-        path: str | os.PathLike[str],
-        format: str = "mcap",
-        *,
-        compression: bool = True,
-        overwrite: bool = False,
-    ) -> None:
+    def __init__(self, path: str | os.PathLike[str], format: str = "mcap", *, compression: bool = True,
+                 overwrite: bool = False) -> None:
         from rosbags.typesys import Stores, get_typestore
 
         self.format = format
@@ -102,12 +80,10 @@ class BagRecorder:
             # rosbags' Noetic store lacks tf2_msgs; its definition is one line.
             from rosbags.typesys import get_types_from_msg
 
-            self.typestore.register(
-                get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage")
-            )
+            self.typestore.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms",
+                                                       "tf2_msgs/msg/TFMessage"))
         self.counts: dict[str, int] = {}
         self._connections: dict[tuple[str, str], Any] = {}
-        self._seq: dict[str, int] = {}
         self._tmpdir: Path | None = None
         self._writer: Any = None
         self._file: Any = None
@@ -132,10 +108,8 @@ class BagRecorder:
             from mcap.writer import Writer as McapWriter
 
             self._file = open(tmp_out, "wb")  # noqa: SIM115 - held open across calls, closed by close()/abort()
-            self._writer = McapWriter(
-                self._file,
-                compression=CompressionType.ZSTD if self.compression else CompressionType.NONE,
-            )
+            compression = CompressionType.ZSTD if self.compression else CompressionType.NONE
+            self._writer = McapWriter(self._file, compression=compression)
             from mapkit import __version__
 
             self._writer.start(profile="ros2", library=f"mapkit-{__version__}")
@@ -205,49 +179,35 @@ class BagRecorder:
         if self.format == "mcap":
             if msgtype not in self._schemas:
                 msgdef, _ = self.typestore.generate_msgdef(msgtype, ros_version=2)
-                self._schemas[msgtype] = self._writer.register_schema(
-                    name=msgtype, encoding="ros2msg", data=msgdef.encode()
-                )
-            conn = self._writer.register_channel(
-                topic=topic,
-                message_encoding="cdr",
-                schema_id=self._schemas[msgtype],
-                metadata={"offered_qos_profiles": _qos_yaml(latched)},
-            )
+                self._schemas[msgtype] = self._writer.register_schema(name=msgtype, encoding="ros2msg",
+                                                                      data=msgdef.encode())
+            conn = self._writer.register_channel(topic=topic, message_encoding="cdr", schema_id=self._schemas[msgtype],
+                                                 metadata={"offered_qos_profiles": _qos_yaml(latched)})
         elif self.format == "ros2":
-            conn = self._writer.add_connection(
-                topic, msgtype, typestore=self.typestore, offered_qos_profiles=_qos_profiles(latched)
-            )
+            conn = self._writer.add_connection(topic, msgtype, typestore=self.typestore,
+                                               offered_qos_profiles=_qos_profiles(latched))
         else:
-            conn = self._writer.add_connection(
-                topic, msgtype, typestore=self.typestore, callerid="/mapkit_sim", latching=1 if latched else None
-            )
+            conn = self._writer.add_connection(topic, msgtype, typestore=self.typestore, callerid="/mapkit_sim",
+                                               latching=1 if latched else None)
         self._connections[key] = conn
         return conn
 
     def write_bytes(self, topic: str, msgtype: str, data: bytes, stamp_ns: int) -> None:
-        """Write already-serialised bytes (CDR for mcap/ros2, ROS1 for ros1) as one message.
-
-        Useful to craft broken messages in tests; ``msgtype`` like ``sensor_msgs/msg/Image``.
-        """
+        """Write already-serialised bytes (CDR for mcap/ros2, ROS1 for ros1) as one message (tests craft
+        broken messages with it); ``msgtype`` like ``sensor_msgs/msg/Image``."""
         conn = self._connection(topic, msgtype)
         stamp_ns = int(stamp_ns)
         if self.format == "mcap":
-            seq = self._seq.get(topic, 0)
-            self._writer.add_message(
-                channel_id=conn, log_time=stamp_ns, publish_time=stamp_ns, data=bytes(data), sequence=seq
-            )
+            self._writer.add_message(channel_id=conn, log_time=stamp_ns, publish_time=stamp_ns, data=bytes(data),
+                                     sequence=self.counts.get(topic, 0))
         else:
             self._writer.write(conn, stamp_ns, bytes(data))
-        self._seq[topic] = self._seq.get(topic, 0) + 1
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
     def write_raw(self, topic: str, msgtype: str, msg: Any, stamp_ns: int) -> None:
         """Serialise a message object built from ``self.typestore`` and write it."""
-        if self.is_ros1:
-            data = self.typestore.serialize_ros1(msg, msgtype)
-        else:
-            data = self.typestore.serialize_cdr(msg, msgtype)
+        serialize = self.typestore.serialize_ros1 if self.is_ros1 else self.typestore.serialize_cdr
+        data = serialize(msg, msgtype)
         self.write_bytes(topic, msgtype, bytes(data), stamp_ns)
 
     # ------------------------------------------------------------------ message builders
@@ -261,7 +221,7 @@ class BagRecorder:
         stamp = Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
         Header = self._type("std_msgs/msg/Header")
         if self.is_ros1:
-            return Header(seq=self._seq.get(topic or "", 0), stamp=stamp, frame_id=frame_id)
+            return Header(seq=self.counts.get(topic or "", 0), stamp=stamp, frame_id=frame_id)
         return Header(stamp=stamp, frame_id=frame_id)
 
     def pose_message(self, T: np.ndarray) -> Any:
@@ -273,7 +233,9 @@ class BagRecorder:
 
     def _rigid(self, T: np.ndarray, msgtype: str, point_type: str, point: str, rotation: str) -> Any:
         """A Pose or Transform message of a 4x4 transform."""
-        T = _check_T(T)
+        T = np.asarray(T, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise BagError(f"transform must be a 4x4 matrix, got shape {T.shape}")
         q = quat_xyzw_from_matrix(T[:3, :3])
         xyz = self._type(point_type)(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3]))
         rot = self._type("geometry_msgs/msg/Quaternion")(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
@@ -285,17 +247,8 @@ class BagRecorder:
         return Vector3(x=float(v[0]), y=float(v[1]), z=float(v[2]))
 
     # ------------------------------------------------------------------ public writers
-    def write_depth(
-        self,
-        topic: str,
-        stamp_ns: int,
-        depth_m: np.ndarray,
-        *,
-        frame_id: str,
-        encoding: str = "16UC1",
-        row_padding: int = 0,
-        big_endian: bool = False,
-    ) -> None:
+    def write_depth(self, topic: str, stamp_ns: int, depth_m: np.ndarray, *, frame_id: str, encoding: str = "16UC1",
+                    row_padding: int = 0, big_endian: bool = False) -> None:
         """Write a depth image as sensor_msgs/Image.
 
         Args:
@@ -320,26 +273,13 @@ class BagRecorder:
         if row_padding:
             rows = np.concatenate([rows, np.zeros((height, row_padding), np.uint8)], axis=1)
         Image = self._type("sensor_msgs/msg/Image")
-        msg = Image(
-            header=self.header(stamp_ns, frame_id, topic=topic),
-            height=height,
-            width=width,
-            encoding=encoding,
-            is_bigendian=int(big_endian),
-            step=width * pix.itemsize + row_padding,
-            data=np.ascontiguousarray(rows).reshape(-1),
-        )
+        msg = Image(header=self.header(stamp_ns, frame_id, topic=topic), height=height, width=width, encoding=encoding,
+                    is_bigendian=int(big_endian), step=width * pix.itemsize + row_padding,
+                    data=np.ascontiguousarray(rows).reshape(-1))
         self.write_raw(topic, "sensor_msgs/msg/Image", msg, stamp_ns)
 
-    def write_compressed_depth(
-        self,
-        topic: str,
-        stamp_ns: int,
-        depth_m: np.ndarray,
-        *,
-        frame_id: str,
-        encoding: str = "16UC1",
-    ) -> None:
+    def write_compressed_depth(self, topic: str, stamp_ns: int, depth_m: np.ndarray, *, frame_id: str,
+                               encoding: str = "16UC1") -> None:
         """Write sensor_msgs/CompressedImage in compressed_depth_image_transport's PNG format.
 
         ``data`` = 12-byte header (int32 format = 0 INV_DEPTH, float32 depthParam[2], little
@@ -359,23 +299,12 @@ class BagRecorder:
         header = struct.pack("<iff", _INV_DEPTH, float(params[0]), float(params[1]))
         CompressedImage = self._type("sensor_msgs/msg/CompressedImage")
         payload = header + png_uint16(pix)
-        msg = CompressedImage(
-            header=self.header(stamp_ns, frame_id, topic=topic),
-            format=f"{encoding}; compressedDepth png",
-            data=np.frombuffer(payload, dtype=np.uint8),
-        )
+        msg = CompressedImage(header=self.header(stamp_ns, frame_id, topic=topic),
+                              format=f"{encoding}; compressedDepth png", data=np.frombuffer(payload, dtype=np.uint8))
         self.write_raw(topic, "sensor_msgs/msg/CompressedImage", msg, stamp_ns)
 
-    def write_camera_info(
-        self,
-        topic: str,
-        stamp_ns: int,
-        K: np.ndarray,
-        width: int,
-        height: int,
-        *,
-        frame_id: str,
-    ) -> None:
+    def write_camera_info(self, topic: str, stamp_ns: int, K: np.ndarray, width: int, height: int, *,
+                          frame_id: str) -> None:
         """Write sensor_msgs/CameraInfo: plumb_bob, distortion zeros, R = I, P = [K|0]."""
         K = np.asarray(K, dtype=np.float64).reshape(3, 3)
         D = np.zeros(5)
@@ -386,70 +315,37 @@ class BagRecorder:
         fields = {"d": D, "k": K.reshape(-1), "r": np.eye(3).reshape(-1), "p": P.reshape(-1)}
         if self.is_ros1:  # ROS1 spells the matrices in capitals
             fields = {name.upper(): value for name, value in fields.items()}
-        msg = CameraInfo(
-            header=self.header(stamp_ns, frame_id, topic=topic),
-            height=int(height),
-            width=int(width),
-            distortion_model="plumb_bob",
-            binning_x=0,
-            binning_y=0,
-            roi=RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
-            **fields,
-        )
+        roi = RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        msg = CameraInfo(header=self.header(stamp_ns, frame_id, topic=topic), height=int(height), width=int(width),
+                         distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=roi, **fields)
         self.write_raw(topic, "sensor_msgs/msg/CameraInfo", msg, stamp_ns)
 
-    def write_odometry(
-        self,
-        topic: str,
-        stamp_ns: int,
-        T_parent_child: np.ndarray,
-        *,
-        frame_id: str,
-        child_frame_id: str,
-        linear_velocity: Sequence[float] | np.ndarray | None = None,
-        angular_velocity: Sequence[float] | np.ndarray | None = None,
-    ) -> None:
+    def write_odometry(self, topic: str, stamp_ns: int, T_parent_child: np.ndarray, *, frame_id: str,
+                       child_frame_id: str, linear_velocity: Sequence[float] | np.ndarray | None = None,
+                       angular_velocity: Sequence[float] | np.ndarray | None = None) -> None:
         """Write nav_msgs/Odometry; velocities are in the child (body) frame, as REP 105 says."""
         Odometry = self._type("nav_msgs/msg/Odometry")
         PoseWithCovariance = self._type("geometry_msgs/msg/PoseWithCovariance")
         TwistWithCovariance = self._type("geometry_msgs/msg/TwistWithCovariance")
         Twist = self._type("geometry_msgs/msg/Twist")
-        msg = Odometry(
-            header=self.header(stamp_ns, frame_id, topic=topic),
-            child_frame_id=child_frame_id,
-            pose=PoseWithCovariance(pose=self.pose_message(T_parent_child), covariance=np.zeros(36)),
-            twist=TwistWithCovariance(
-                twist=Twist(linear=self._vector3(linear_velocity), angular=self._vector3(angular_velocity)),
-                covariance=np.zeros(36),
-            ),
-        )
+        twist = Twist(linear=self._vector3(linear_velocity), angular=self._vector3(angular_velocity))
+        msg = Odometry(header=self.header(stamp_ns, frame_id, topic=topic), child_frame_id=child_frame_id,
+                       pose=PoseWithCovariance(pose=self.pose_message(T_parent_child), covariance=np.zeros(36)),
+                       twist=TwistWithCovariance(twist=twist, covariance=np.zeros(36)))
         self.write_raw(topic, "nav_msgs/msg/Odometry", msg, stamp_ns)
 
     def _tf_message(self, transforms: Sequence[tuple[Any, ...]], stamp_ns: int, topic: str) -> Any:
         TransformStamped = self._type("geometry_msgs/msg/TransformStamped")
         TFMessage = self._type("tf2_msgs/msg/TFMessage")
         items = []
-        for entry in transforms:
-            if len(entry) == 3:
-                T, parent, child = entry
-                stamp = stamp_ns
-            else:
-                T, parent, child, stamp = entry
-            items.append(
-                TransformStamped(
-                    header=self.header(stamp, parent, topic=topic),
-                    child_frame_id=child,
-                    transform=self._transform(T),
-                )
-            )
+        for T, parent, child, *stamp in transforms:
+            items.append(TransformStamped(header=self.header(stamp[0] if stamp else stamp_ns, parent, topic=topic),
+                                          child_frame_id=child, transform=self._transform(T)))
         return TFMessage(transforms=items)
 
     def write_tf(self, stamp_ns: int, transforms: Sequence[tuple[Any, ...]], *, topic: str = _TF_TOPIC) -> None:
-        """Write tf2_msgs/TFMessage on /tf.
-
-        ``transforms``: ``(T_parent_child, parent, child, stamp_ns)`` tuples (the stamp may be
-        left out: then the message stamp is used).
-        """
+        """Write tf2_msgs/TFMessage on /tf: ``(T_parent_child, parent, child[, stamp_ns])`` tuples (without a
+        stamp, the message's)."""
         self.write_raw(topic, "tf2_msgs/msg/TFMessage", self._tf_message(transforms, stamp_ns, topic), stamp_ns)
 
     def write_tf_static(self, stamp_ns: int, transforms: Sequence[tuple[Any, ...]]) -> None:
@@ -466,18 +362,14 @@ def depth_to_mm(depth_m: np.ndarray) -> np.ndarray:
     return np.where(ok, mm, 0).astype(np.uint16)
 
 
-def encode_inverse_depth(
-    depth_m: np.ndarray, *, depth_max: float = 10.0, depth_quantization: float = 100.0
-) -> tuple[np.ndarray, tuple[float, float]]:
-    """compressed_depth_image_transport's 32FC1 inverse-depth quantisation → (uint16, (A, B))."""
-    A = float(depth_quantization) * (float(depth_quantization) + 1.0)
-    B = 1.0 - A / float(depth_max)
-    # The transport works in float32; do the same so decoding with (A, B) round-trips.
-    A32, B32 = np.float32(A), np.float32(B)
+def encode_inverse_depth(depth_m: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
+    """compressed_depth_image_transport's 32FC1 inverse-depth quantisation (its defaults: q = 100,
+    depth_max = 10 m) → (uint16, (A, B)), in float32 as the transport computes, so decoding round-trips."""
+    A32, B32 = np.float32(100.0 * 101.0), np.float32(1.0 - 100.0 * 101.0 / 10.0)
     d = np.asarray(depth_m, dtype=np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):
         value = A32 / d + B32
-        ok = np.isfinite(d) & (d > 0) & (d < depth_max) & (value >= 0.5) & (value <= 65535)
+        ok = np.isfinite(d) & (d > 0) & (d < 10.0) & (value >= 0.5) & (value <= 65535)
     return np.where(ok, np.rint(value), 0).astype(np.uint16), (float(A32), float(B32))
 
 
@@ -497,30 +389,14 @@ def _check_depth(depth_m: np.ndarray) -> np.ndarray:
     return depth
 
 
-def _check_T(T: np.ndarray) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4):
-        raise BagError(f"transform must be a 4x4 matrix, got shape {T.shape}")
-    return T
-
-
 def _qos_profiles(latched: bool) -> list[Any]:
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
     zero = QosTime(sec=0, nsec=0)
-    return [
-        Qos(
-            history=QosHistory.KEEP_LAST,
-            depth=1 if latched else 10,
-            reliability=QosReliability.RELIABLE,
-            durability=QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
-            deadline=zero,
-            lifespan=zero,
-            liveliness=QosLiveliness.AUTOMATIC,
-            liveliness_lease_duration=zero,
-            avoid_ros_namespace_conventions=False,
-        )
-    ]
+    durability = QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE
+    return [Qos(history=QosHistory.KEEP_LAST, depth=1 if latched else 10, reliability=QosReliability.RELIABLE,
+                durability=durability, deadline=zero, lifespan=zero, liveliness=QosLiveliness.AUTOMATIC,
+                liveliness_lease_duration=zero, avoid_ros_namespace_conventions=False)]
 
 
 def _qos_yaml(latched: bool) -> str:

@@ -71,13 +71,7 @@ class BatchConfig:
         """Raise a :class:`BatchError` (or the step's own error) naming the first bad field."""
         if not self.recordings:
             raise BatchError("no recordings given; pass paths, globs or a manifest (.toml/.json)")
-        if not self.steps:
-            raise BatchError(f"no steps given; choose from {','.join(STEPS)}")
-        unknown = [s for s in self.steps if s not in STEPS]
-        if unknown:
-            raise BatchError(f"unknown step {unknown[0]!r}; choose from {','.join(STEPS)}")
-        if len(set(self.steps)) != len(self.steps):
-            raise BatchError(f"steps {','.join(self.steps)} name a step twice")
+        _check_steps(self.steps, "steps")
         if self.retries < 0:
             raise BatchError(f"retries={self.retries} must be >= 0")
         if isinstance(self.root, str):
@@ -104,22 +98,23 @@ def parse_root(text: str | Path) -> Path | str:
 def parse_steps(text: str) -> tuple[Step, ...]:
     """``"ingest,fuse"`` → the steps in pipeline order; an unknown or repeated name is a BatchError."""
     names = [s.strip() for s in text.split(",") if s.strip()]
-    for name in names:
-        if name not in STEPS:
-            raise BatchError(f"--steps: unknown step {name!r}; choose from {','.join(STEPS)}")
-    if len(set(names)) != len(names):
-        raise BatchError(f"--steps {text!r} names a step twice")
-    if not names:
-        raise BatchError(f"--steps is empty; choose from {','.join(STEPS)}")
+    _check_steps(names, "--steps")
     return tuple(s for s in STEPS if s in names)
 
 
-def resolve_recordings(items: Sequence[str | Path], defaults: IngestConfig | None = None) -> tuple[Recording, ...]:
-    """Recordings from paths, globs (``flights/*.mcap``, for lists past the shell's limit) and manifests.
+def _check_steps(steps: Sequence[str], option: str) -> None:
+    """A BatchError naming ``option`` when ``steps`` is empty, or names an unknown step or one twice."""
+    unknown = [s for s in steps if s not in STEPS]
+    if unknown or not steps:
+        what = f"unknown step {unknown[0]!r}" if unknown else "no step given"
+        raise BatchError(f"{option}: {what}; choose from {','.join(STEPS)}")
+    if len(set(steps)) != len(steps):
+        raise BatchError(f"{option} {','.join(steps)} name a step twice")
 
-    Each gets ``defaults`` (the command line's ingest options) unless its manifest entry overrides a
-    field. Names must be unique: two recordings with the same stem are a BatchError naming both.
-    """
+
+def resolve_recordings(items: Sequence[str | Path], defaults: IngestConfig | None = None) -> tuple[Recording, ...]:
+    """Recordings from paths, globs (``flights/*.mcap``) and manifests, each with ``defaults`` (the command
+    line's ingest options) where its manifest entry gives no value; two with one name are a BatchError."""
     defaults = defaults or IngestConfig()
     out: list[Recording] = []
     for item in items:

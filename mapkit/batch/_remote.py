@@ -1,16 +1,6 @@
-"""Batch roots at fsspec URLs (``s3://bucket/flights``): each step runs in a local scratch workspace on
-its worker and publishes what it made to ``ROOT/<name>/`` at the URL.
-
-Open3D's fusion and the ESDF read and write local files, and a step may run on any worker of a
-cluster, so a task first brings the products of the steps it reads from the URL into scratch
-(``$TMPDIR/mapkit-batch/<root digest>/<name>/``; kept between steps, so a worker that ran the step
-before downloads nothing), runs the same library call as with a local root, then publishes its
-product at the URL the way readers expect a finished one (:mod:`mapkit._staging`: stores with their
-root ``zarr.json`` last; fuse's files before the fuse.json that lists them).
-
-The step's marker (``.batch/<step>.json``) is written after its product, as with a local root. A
-recording's scratch workspace is removed by its last step, and every worker removes what is left of
-the root's when the batch ends.
+"""Batch roots at fsspec URLs (``s3://bucket/flights``): a task brings the products it reads into this
+worker's scratch workspace (``$TMPDIR/mapkit-batch/<root digest>/<name>/``, kept between steps), runs the
+step there and publishes its product at ``ROOT/<name>/`` (:mod:`mapkit._staging`), before its marker.
 """
 
 from __future__ import annotations
@@ -43,11 +33,6 @@ def scratch_for(workspace_url: str) -> Path:
     """This worker's local scratch workspace for a workspace URL (``ROOT/<name>``)."""
     root, name = workspace_url.rstrip("/").rsplit("/", 1)
     return _root_scratch(root) / name
-
-
-def fused_complete(workspace_url: str) -> bool:
-    """The files fuse.json lists are at the URL with the sizes it gives."""
-    return _staging.file_set_complete(workspace_url, FUSE_META)
 
 
 def stage_in(workspace_url: str, step: Step, products: dict[Step, str]) -> Path:
@@ -86,6 +71,5 @@ def drop_scratch(workspace_url: str) -> None:
 
 
 def drop_root_scratch(root_url: str) -> None:
-    """Remove every scratch workspace of a batch root on this worker (run on each worker at the end:
-    a recording's earlier steps may have run on workers its last step did not)."""
+    """Remove every scratch workspace of a batch root on this worker (run on each worker at the end)."""
     shutil.rmtree(_root_scratch(root_url), ignore_errors=True)

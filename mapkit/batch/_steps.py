@@ -1,12 +1,7 @@
-"""One step of one recording, as a Dask task: skip it when its marker says it is up to date, else run
-the library function the single command runs, then write the marker last.
-
-A step's *key* digests what it depends on: its options, and the recording (ingest) or the product of
-the step before (later steps). Its *product* is the small file that identifies what it wrote
-(``frames.zarr/zarr.json``, ``fuse.json``, ``map.zarr/zarr.json``, ``tuples.zarr/zarr.json``; the
-stores are published whole by a rename, so this file is the complete store's). The marker
-``WS/.batch/<step>.json`` holds both; a step is skipped only when the key is the same and the product
-is still the one the marker saw.
+"""One step of one recording, as a Dask task: skipped when its marker ``WS/.batch/<step>.json`` says it
+is up to date, else run as the single command runs it, the marker written last. The marker holds the
+step's *key* (a digest of its options and its input: the recording, or the product of the step before)
+and its *product* (a digest of the small file that identifies its complete output, :data:`PRODUCTS`).
 """
 
 from __future__ import annotations
@@ -15,7 +10,6 @@ import hashlib
 import json
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -84,17 +78,12 @@ class StepOutcome:
 
 
 def run_step(job: StepJob, previous: StepOutcome | None = None) -> StepOutcome:
-    """The task: skip, or run the step and write its marker. A failed ``previous`` step is passed on.
-
-    A MapkitError is the recording's problem and comes back as a failed outcome (retrying would
-    not help); anything else raises, so Dask retries it and the batch reports it as unexpected.
-    """
-    if previous is not None and previous.status == "failed":
-        if job.last and isinstance(job.workspace, str):
-            _remote.drop_scratch(job.workspace)
-        return previous
+    """The task: skip, or run the step and write its marker; a failed ``previous`` step is passed on. A
+    MapkitError comes back as a failed outcome; anything else raises, so Dask retries it."""
     t0 = time.perf_counter()
     try:
+        if previous is not None and previous.status == "failed":
+            return previous
         key = step_key(job)
         why = stale_reason(job, key)
         if why is None:
@@ -104,7 +93,7 @@ def run_step(job: StepJob, previous: StepOutcome | None = None) -> StepOutcome:
         if isinstance(job.workspace, str):
             _run_at_url(job, job.workspace)
         else:
-            _RUNNERS[job.step](job)
+            _run_library(job)
         _write_marker(job, key)
     except MapkitError as exc:
         return StepOutcome(job.name, job.step, "failed", " ".join(str(exc).split()), time.perf_counter() - t0)
@@ -118,7 +107,7 @@ def _run_at_url(job: StepJob, url: str) -> None:
     """The step in this worker's scratch workspace, between bringing in what it reads and publishing
     what it made (:mod:`mapkit.batch._remote`)."""
     scratch = _remote.stage_in(url, job.step, PRODUCTS)
-    _RUNNERS[job.step](replace(job, workspace=scratch))
+    _run_library(replace(job, workspace=scratch))
     _remote.stage_out(url, job.step, scratch)
 
 
@@ -185,7 +174,7 @@ def stale_reason(job: StepJob, key: str) -> str | None:
         return "output changed or missing"
     if job.step == "fuse":  # fuse.json is a file beside others: their sizes must still match
         if isinstance(job.workspace, str):
-            return None if _remote.fused_complete(job.workspace) else "output incomplete"
+            return None if _staging.file_set_complete(job.workspace, FUSE_META) else "output incomplete"
         try:
             check_fused(job.workspace)
         except MapkitError:
@@ -215,34 +204,20 @@ def _write_marker(job: StepJob, key: str) -> None:
         tmp.write_text(text)
 
 
-# The same library calls as `mapkit ingest`, `mapkit fuse -w WS` (no recordings: fuse the workspace's
-# frames), `mapkit esdf` and `mapkit export`, each with --overwrite: the key said the output is stale.
-def _ingest(job: StepJob) -> None:
+def _run_library(job: StepJob) -> None:
+    """The same library call as `mapkit ingest`, `mapkit fuse -w WS` (the workspace's frames), `mapkit esdf`
+    or `mapkit export`, with --overwrite: the key said the output is stale."""
+    from mapkit.esdf import build_esdf
+    from mapkit.export import export_tuples
+    from mapkit.fusion import fuse
     from mapkit.ingest import ingest
 
-    assert isinstance(job.options, IngestConfig)
-    ingest([job.recording], job.workspace, job.options, overwrite=True, progress=False)
-
-
-def _fuse(job: StepJob) -> None:
-    from mapkit.fusion import fuse
-
-    assert isinstance(job.options, FuseConfig)
-    fuse([], job.workspace, job.options, overwrite=True, progress=False)
-
-
-def _esdf(job: StepJob) -> None:
-    from mapkit.esdf import build_esdf
-
-    assert isinstance(job.options, EsdfConfig)
-    build_esdf(job.workspace, job.options, overwrite=True, progress=False)
-
-
-def _export(job: StepJob) -> None:
-    from mapkit.export import export_tuples
-
-    assert isinstance(job.options, ExportConfig)
-    export_tuples(job.workspace, job.options, overwrite=True, progress=False)
-
-
-_RUNNERS: dict[Step, Callable[[StepJob], None]] = {"ingest": _ingest, "fuse": _fuse, "esdf": _esdf, "export": _export}
+    options: Any = job.options
+    if job.step == "ingest":
+        ingest([job.recording], job.workspace, options, overwrite=True, progress=False)
+    elif job.step == "fuse":
+        fuse([], job.workspace, options, overwrite=True, progress=False)
+    elif job.step == "esdf":
+        build_esdf(job.workspace, options, overwrite=True, progress=False)
+    else:
+        export_tuples(job.workspace, options, overwrite=True, progress=False)

@@ -12,7 +12,6 @@ from mapkit.dataset._build import (
     build_dataset,
     build_world,
     dataset_workspaces,
-    estimate,
     parse_cameras,
     split_worlds,
     world_specs,
@@ -31,7 +30,6 @@ __all__ = [
     "build_world",
     "dataset_workspaces",
     "split_worlds",
-    "estimate",
     "parse_cameras",
     "world_specs",
 ]

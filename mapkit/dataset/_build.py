@@ -1,9 +1,5 @@
 """`mapkit dataset`: many simulated worlds, each flown, recorded and run through ingest → fuse → esdf
-→ export into a normal workspace, for training the planner at scale.
-
-Only the recording goes downstream: training sees depth, poses and the reconstructed ESDF, never the
-simulator's exact signed distance (kept beside the recording for evaluation and checks only).
-"""
+→ export into a workspace; training never sees the simulator's exact signed distance."""
 
 from __future__ import annotations
 
@@ -190,12 +186,11 @@ _BYTES_PER_PIXEL = 5.0
 _BYTES_PER_MAP_VOXEL = 2.0
 
 
-def estimate(config: DatasetConfig, specs: list[WorldSpec] | None = None) -> tuple[float, float]:
-    """(bytes on disk, CPU-seconds) the dataset will take, from measured per-frame figures (``specs``:
-    :func:`world_specs` of ``config``, when already made)."""
+def _estimate(config: DatasetConfig, specs: list[WorldSpec]) -> tuple[float, float]:
+    """(bytes on disk, CPU-seconds) the dataset's worlds ``specs`` will take, from measured per-frame figures."""
     size = 0.0
     seconds = 0.0
-    for spec in world_specs(config) if specs is None else specs:
+    for spec in specs:
         frames = config.duration * config.rate
         size += frames * spec.width * spec.height * _BYTES_PER_PIXEL
         size += float(np.prod(spec.size)) / config.esdf_voxel**3 * _BYTES_PER_MAP_VOXEL
@@ -260,7 +255,7 @@ def build_dataset(root: str | Path, config: DatasetConfig, *, progress: bool = T
     if root.exists() and not root.is_dir():
         raise DatasetError(f"-o {root} is a file; pass a directory")
     specs = world_specs(config)
-    need_bytes, need_seconds = estimate(config, specs)
+    need_bytes, need_seconds = _estimate(config, specs)
     root.mkdir(parents=True, exist_ok=True)
     free = shutil.disk_usage(root).free
     todo = [s for s in specs if not _is_done(root / s.name, s, config)]

@@ -1,9 +1,8 @@
 """Signed distance fields (ESDF) of occupancy grids, map.zarr, and queries and slices of it.
 
-The ESDF stage of the pipeline: a boolean occupancy grid [nx, ny, nz] (indexed [x, y, z], voxel
-[i, j, k] centred at ``origin + voxel_size * (i, j, k)``) becomes an exact signed Euclidean distance in
-metres (positive in free space, negative inside obstacles), Gaussian-smoothed without letting the
-smoothing flip the sign away from the surface, and stored as map.zarr.
+A boolean occupancy grid [nx, ny, nz] (voxel [i, j, k] centred at ``origin + voxel_size * (i, j, k)``)
+becomes an exact signed distance in metres (positive in free space), smoothed without flipping the
+sign away from the surface.
 
 >>> import numpy as np
 >>> from mapkit.esdf import signed_distance, smooth
@@ -13,19 +12,18 @@ smoothing flip the sign away from the surface, and stored as map.zarr.
 0.35
 >>> esdf, n_prevented = smooth(raw, voxel_size=0.1, sigma=0.2)
 
-From a fused workspace: :func:`build_esdf` (``mapkit esdf``) turns tsdf.npz + frames.zarr into map.zarr.
-Large grids: :func:`signed_distance_chunked` runs a Dask graph of chunks with a halo (in this process or
-on a cluster) straight into :func:`create_map`'s arrays, bit for bit the whole-grid result up to max_dist.
+:func:`build_esdf` (``mapkit esdf``) turns a fused workspace into map.zarr; large grids run chunk by
+chunk on Dask (:func:`signed_distance_chunked`).
 """
 
 from mapkit.esdf._build import build_esdf
 from mapkit.esdf._chunked import ChunkedSummary, chunk_halo, signed_distance_chunked
-from mapkit.esdf._distance import BACKENDS, Backend, signed_distance, smooth
+from mapkit.esdf._distance import signed_distance, smooth
 from mapkit.esdf._errors import EsdfError
-from mapkit.esdf._map import OUTSIDE_POLICIES, EsdfMap
+from mapkit.esdf._map import EsdfMap
 from mapkit.esdf._shared import MAP, EsdfBuildError, EsdfConfig, EsdfSummary
 from mapkit.esdf._slice import Slice, render_slices, slice_plane
-from mapkit.esdf._store import UNKNOWN_POLICIES, MapWriter, create_map, write_map
+from mapkit.esdf._store import MapWriter, create_map, write_map
 
 __all__ = [
     "MAP",
@@ -33,10 +31,6 @@ __all__ = [
     "EsdfConfig",
     "EsdfSummary",
     "build_esdf",
-    "BACKENDS",
-    "Backend",
-    "OUTSIDE_POLICIES",
-    "UNKNOWN_POLICIES",
     "ChunkedSummary",
     "EsdfError",
     "EsdfMap",

@@ -42,17 +42,11 @@ def subvoxel_signed_distance(
 ) -> NDArray[np.float32]:
     """Signed distance measured to the fused surface points instead of to voxel centres.
 
-    Every boundary voxel (an obstacle voxel touching free space, or the reverse) is tied to the
-    nearest fused surface point within one voxel of its centre. An exact EDT with feature transform
-    gives each voxel its nearest boundary voxel o; the distance is the smallest to the surface points
-    of o and its 26 neighbours, so the zero crossing follows the surface inside the voxel, also on
-    curved obstacles (the plain half-voxel convention is off by up to half a voxel on grid-aligned
-    walls). Where no surface point is near (solid only by the unknown policy) the half-voxel
-    convention stands in. The `edt` package has no feature transform, hence scipy here.
-
-    anchor: the obstacles free-space distances are measured to (default: all of `solid`). Passing
-    only the sensed obstacles keeps solid-by-assumption space (behind surfaces, unseen pockets)
-    negative without shortening the distances measured in observed free space.
+    Boundary voxels are tied to the nearest surface point within one voxel; an exact EDT with feature
+    transform (scipy: `edt` has none) gives each voxel its nearest boundary voxel, and the distance is
+    the smallest to the points of it and its 26 neighbours. Where no point is near, the half-voxel
+    convention stands in. `anchor`: the obstacles free-space distances are measured to (default
+    `solid`), so solid-by-assumption space can stay negative without shortening free distances.
     """
     from scipy import ndimage
     from scipy.spatial import cKDTree
@@ -118,12 +112,8 @@ def _nearest_points(part: NDArray[np.int64], nearest_xyz: list[NDArray[np.int64]
 
 def drop_stray_obstacles(occupied: NDArray[np.bool_], surface: NDArray[np.float64], *, origin: NDArray[np.float64],
                          voxel_size: float) -> NDArray[np.bool_]:
-    """Sensed obstacle voxels with a fused surface point within 1.5 voxels.
-
-    The others are TSDF artefacts (negative samples beside grazing silhouettes) or lie deep inside an
-    object behind nearer ones; as anchors of free-space distance they would only shorten distances
-    (they stay solid for the sign).
-    """
+    """Sensed obstacle voxels with a fused surface point within 1.5 voxels (the others are TSDF
+    artefacts or deep inside objects: as anchors they would only shorten free-space distances)."""
     from scipy.spatial import cKDTree
 
     ijk = np.argwhere(occupied)
@@ -170,17 +160,10 @@ def build_esdf(workspace: str | Path, config: EsdfConfig | None = None, *, overw
     ``workspace/world.zarr`` for a world directory of ``mapkit fuse-world`` (always chunked).
 
     The whole grid is computed at once (sub-voxel distances) when it fits in memory. Otherwise, or
-    when `scheduler` or `workers` is given, the chunked ESDF runs as a Dask graph: with `workers`
-    local worker processes (1 = this process, synchronous scheduler; the default for a grid that
-    does not fit), or on the cluster at `scheduler` (``tcp://HOST:8786``; the workspace must be on
-    storage its workers share).
-
-    `output`: where map.zarr goes instead of ``workspace/map.zarr``, a path or an fsspec URL
-    (``s3://bucket/site/map.zarr``).
-
-    `workspace` may be an fsspec URL: its frames.zarr and fused files are copied into a local
-    temporary folder (``$TMPDIR``; on a cluster, storage its workers share) and map.zarr is written
-    at the URL (:mod:`mapkit._staging`).
+    with `scheduler` or `workers`, the chunked ESDF runs as a Dask graph on `workers` local processes
+    (1 = this process) or the cluster at `scheduler` (``tcp://HOST:8786``, on storage its workers share).
+    `output`: a path or fsspec URL for map.zarr instead of ``workspace/map.zarr``. `workspace` may be
+    an fsspec URL (its inputs are copied to ``$TMPDIR``; :mod:`mapkit._staging`).
     """
     config = config or EsdfConfig()
     config.validate()
@@ -265,12 +248,8 @@ def _map_target(workspace: Path, output: str | Path | None, *, overwrite: bool) 
 def _write_chunked(target: Path | str, solid: NDArray[np.bool_], observed: NDArray[np.bool_], grid: Grid, config: EsdfConfig,
                    parameters: dict[str, Any], frame_id: str, runner: _Runner, *, overwrite: bool,
                    progress: bool) -> ChunkedSummary:
-    """The chunked ESDF on Dask, straight into map.zarr.
-
-    Large site: exact up to max_dist (clamped beyond), one chunk plus halo per task; the half-voxel
-    convention (no sub-voxel refinement) applies, and free-space distances count assumed-solid space
-    (behind surfaces) as obstacles too.
-    """
+    """The chunked ESDF on Dask, straight into map.zarr: exact up to max_dist, half-voxel convention,
+    assumed-solid space counting as obstacles for free-space distances."""
     from mapkit.esdf._chunked import signed_distance_chunked
     from mapkit.esdf._store import create_map
 
@@ -310,7 +289,7 @@ def _write_dense(workspace: Path, target: Path | str, occupied: NDArray[np.bool_
         )
         del sensed, anchor
     else:
-        esdf_raw = signed_distance(solid, voxel_size=config.voxel, max_dist=config.max_dist, backend=config.backend)
+        esdf_raw = signed_distance(solid, voxel_size=config.voxel, max_dist=config.max_dist)
     esdf, prevented = smooth(esdf_raw, voxel_size=config.voxel, sigma=config.sigma)
     write_map(
         target, esdf=esdf, esdf_raw=esdf_raw, observed=observed.astype(np.uint8), origin=grid.origin,

@@ -65,26 +65,18 @@ def signed_distance_chunked(
 ) -> ChunkedSummary:
     """Signed distance (and optionally its smoothing) of a large grid, as a Dask graph of chunks.
 
-    One task per `chunk`³ cube: it reads the cube plus a halo of ``ceil(max_dist/voxel_size) + 1``
-    voxels (plus the Gaussian's radius) from `occupied`, computes the exact EDT and the Gaussian there
-    and writes the core straight into `out` (and `out_raw`), so the result equals
-    :func:`signed_distance` with the same `max_dist` (and :func:`smooth` of it) bit for bit: distances
-    up to `max_dist` are exact, larger ones clamped to +-max_dist. A task holds about
-    ``(chunk + 2*halo)**3 * 18`` bytes of work arrays; nothing grid-sized.
+    One task per `chunk`³ cube reads it plus a halo (:func:`chunk_halo`) from `occupied` and writes the
+    core into `out` (and `out_raw`): bit for bit :func:`signed_distance` with the same `max_dist` (and
+    :func:`smooth` of it), distances beyond `max_dist` clamped.
 
-    - `occupied`: bool [nx, ny, nz], anything sliceable that returns a bool array (zarr, numpy,
-      memmap). On a cluster a zarr array on shared storage is read in place; a numpy array is sent
-      once to each worker.
+    - `occupied`: bool [nx, ny, nz], anything sliceable (zarr, numpy, memmap); on a cluster a zarr
+      array on shared storage.
     - `out`, `out_raw`: float32 [nx, ny, nz] destinations of the field (smoothed when ``sigma > 0``)
-      and of the unsmoothed one (optional). Zarr arrays (on a cluster: on shared storage) whose chunk
-      shape divides `chunk`, so each zarr chunk is written once, whole; numpy arrays without `client`.
+      and of the unsmoothed one (optional): zarr arrays whose chunk shape divides `chunk`, or numpy
+      arrays without `client`.
     - `voxel_size`, `max_dist`, `sigma` (0 = no smoothing): metres; `truncate` as in :func:`smooth`.
     - `threads`: CPU threads per task (None: ``OMP_NUM_THREADS`` if set, else the available cores).
-    - `client`: a Dask distributed client to run on (see :func:`mapkit._dask.dask_client`); None runs
-      the graph in this process, `local_workers` chunks at once (1: Dask's synchronous scheduler).
-    - `progress`: a tqdm bar on stderr.
-
-    Returns a :class:`ChunkedSummary` (shape, chunk count, halo, n_prevented, seconds, workers, peak memory).
+    - `client`: a Dask client; None runs in this process, `local_workers` chunks at once.
     """
     vs = _checks.positive("voxel_size", voxel_size)
     md = _checks.positive("max_dist", max_dist)

@@ -29,20 +29,17 @@ def signed_distance(
     - `voxel_size`: voxel edge in metres.
     - `max_dist`: clamp distances to [-max_dist, +max_dist] (metres). Without it every free voxel
       carries its true distance however far it is (no plateau, so gradients never vanish).
-    - `backend`: ``"edt"``, the linear-time multi-label EDT of the ``edt`` package (one pass labels
-      both sides), or ``"scipy"``, ``scipy.ndimage.distance_transform_edt`` on each side; both exact,
-      equal to float32 rounding.
+    - `backend`: ``"edt"`` (the ``edt`` package, fastest) or ``"scipy"``; both exact, equal to float32
+      rounding.
     - `threads`: CPU threads of the ``edt`` backend (None: ``OMP_NUM_THREADS`` if set, else the cores).
 
-    Half-voxel convention: the surface lies half-way between an occupied voxel centre and a free one.
-    A free voxel gets ``(D_occ - 0.5) * voxel_size``, with ``D_occ`` the distance (voxels) from its
-    centre to the nearest occupied centre; an occupied voxel ``-(D_free - 0.5) * voxel_size``. The
-    error against a true surface is then unbiased (within +-0.5 voxel for axis-aligned surfaces), the
-    sign changes exactly between the two voxel layers that straddle the surface, and
-    ``|d| >= voxel_size / 2`` everywhere. Voxels beyond the grid's border are unknown, not obstacles.
+    Half-voxel convention: a free voxel gets ``(D_occ - 0.5) * voxel_size``, with ``D_occ`` the distance
+    (voxels) to the nearest occupied centre; an occupied one ``-(D_free - 0.5) * voxel_size``. So the sign
+    changes between the two layers that straddle the surface and ``|d| >= voxel_size / 2``. Voxels
+    beyond the grid's border are unknown, not obstacles.
 
-    A grid with no occupied (or no free) voxel has no surface: with `max_dist` the result is the
-    constant +max_dist (-max_dist), what clamping would give; without it an :class:`EsdfError`.
+    A grid with no occupied (or no free) voxel gives the constant +max_dist (-max_dist) with
+    `max_dist`, an :class:`EsdfError` without it.
     """
     occ = _checks.bool_grid("occupied", occupied)
     vs = _checks.positive("voxel_size", voxel_size)
@@ -112,9 +109,8 @@ def smooth(
     - `threads`: CPU threads (None: ``OMP_NUM_THREADS`` if set, else the available cores).
 
     Returns (esdf, n_prevented): the float32 smoothed field, and the number of voxels more than one
-    voxel from the surface (``|esdf_raw| > voxel_size``) whose sign smoothing would have flipped; they
-    keep their raw value, so thin obstacles and narrow gaps are never blurred away. Voxels within one
-    voxel of the surface may still change sign (the surface moving by under a voxel).
+    voxel from the surface whose sign smoothing would have flipped; they keep their raw value, so thin
+    obstacles and narrow gaps are never blurred away.
     """
     vs = _checks.positive("voxel_size", voxel_size)
     sg = _checks.non_negative("sigma", sigma)

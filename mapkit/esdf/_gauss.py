@@ -1,14 +1,8 @@
-"""Separable Gaussian filter of a 3-D float32 grid, written as banded matrix products.
+"""Separable Gaussian filter of a 3-D float32 grid as row blocks of banded matrix products (BLAS does
+the arithmetic), equal to ``scipy.ndimage.gaussian_filter(mode="nearest")`` to float32 rounding.
 
-Filtering a C-ordered [nx, ny, nz] array along one axis is the product of a banded (2r+1 wide)
-n-by-n matrix with the array seen as a stack of matrices. Splitting the band into row blocks keeps the
-flops within a small factor of the direct convolution while BLAS does the arithmetic; it agrees with
-``scipy.ndimage.gaussian_filter`` to float32 rounding. The boundary rule is scipy's ``mode="nearest"``
-(the border voxel is repeated), folded into the matrix rows.
-
-Work is split over our own threads (numpy releases the GIL in matmul) with single-threaded BLAS in
-each: thousands of small products with OpenBLAS's own threads stall badly whenever another process
-holds a core (each call waits for all its threads), independent slabs do not.
+Work is split over our own threads with single-threaded BLAS in each: OpenBLAS's own threads stall
+on thousands of small products whenever another process holds a core.
 """
 
 from __future__ import annotations
@@ -64,13 +58,8 @@ def _single_threaded_blas() -> Iterator[None]:
 
 @lru_cache(maxsize=64)
 def _band(n: int, sigma_vox: float, radius: int, phase: int) -> tuple[tuple[int, np.ndarray], ...]:
-    """Row blocks (a, G) of the n x n Gaussian matrix with nearest-border rows.
-
-    Block starts `a` sit at ``-phase + k * _BLOCK`` (so blocks fall on the same global rows whatever
-    part of a grid `src` is); G is ``_BLOCK x (_BLOCK + 2 * radius)`` over the input rows
-    ``a - radius .. a + _BLOCK + radius``; rows of G for output rows outside [0, n) are zero, as are
-    its columns for input rows outside [0, n).
-    """
+    """Row blocks (a, G) of the n x n Gaussian matrix with nearest-border rows: a at ``-phase + k *
+    _BLOCK``, G ``_BLOCK x (_BLOCK + 2 * radius)`` over input rows ``a - radius ..``, zero outside [0, n)."""
     k = np.arange(-radius, radius + 1, dtype=np.float64)
     w = np.exp(-0.5 * (k / sigma_vox) ** 2)
     w /= w.sum()
@@ -165,15 +154,10 @@ def gaussian_3d(
 ) -> np.ndarray:
     """Gaussian-filter a C-contiguous float32 [nx, ny, nz] grid; returns `out` (allocated if None).
 
-    `slab_hook(x0, x1)` is called (from a worker thread) once each x-slab ``out[x0:x1]`` is final, e.g.
-    to post-process it while it is in cache. `src` is not modified.
-
-    `offset`: the index of ``src[0, 0, 0]`` in a larger grid `src` is a block of. Every voxel is
-    computed by the same sequence of products whatever the grid's shape and the voxel's place in it:
-    band blocks start on multiples of ``_BLOCK`` of the larger grid, every band has the same shape,
-    and column counts are multiples of ``_LANES`` (BLAS rounds left-over rows and columns with other
-    kernels). So a block filtered with a halo of at least `radius` voxels gives, in its interior, bit
-    for bit the values of filtering the whole grid: the chunked ESDF relies on it.
+    `slab_hook(x0, x1)` is called (from a worker thread) once each x-slab ``out[x0:x1]`` is final.
+    `offset`: the index of ``src[0, 0, 0]`` in a larger grid: every voxel goes through the same
+    products wherever it sits, so a block with a halo of `radius` gives the whole grid's values bit
+    for bit in its interior (the chunked ESDF relies on it).
     """
     if out is None:
         out = np.empty_like(src)

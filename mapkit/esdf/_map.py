@@ -27,14 +27,10 @@ class EsdfMap:
     """A signed distance map: grids [nx, ny, nz] indexed [x, y, z], voxel [i, j, k] centred at
     ``origin + voxel_size * (i, j, k)`` (metres, frame :attr:`frame_id`).
 
-    Open a map.zarr with :meth:`open` (arrays stay lazy zarr arrays until :meth:`load` or the first
-    query), or wrap in-memory arrays with the constructor.
-
-    Interpolation: :meth:`query` / :meth:`query_torch` interpolate trilinearly between voxel centres,
-    so they are defined on :attr:`bounds` (the box of voxel centres) and return a voxel's stored value
-    exactly at its centre. Outside that box, ``outside="nan"`` (default) gives NaN distance and NaN
-    gradient; ``outside="clamp"`` evaluates at the nearest point of the box, and the gradient is that
-    of the clamped function (zero along the axes where the point lies outside).
+    :meth:`open` a map.zarr lazily, or wrap in-memory arrays with the constructor. :meth:`query` /
+    :meth:`query_torch` interpolate trilinearly between voxel centres, so they are defined on
+    :attr:`bounds`; outside it ``outside="nan"`` (default) gives NaN, ``outside="clamp"`` the value at
+    the nearest point of the box (gradient zero along the axes where the point lies outside).
     """
 
     def __init__(
@@ -120,18 +116,14 @@ class EsdfMap:
                     f"map {str(p)!r}: {name!r} is {getattr(arr, 'dtype', '?')} with shape {getattr(arr, 'shape', '?')}, "
                     f"expected 3-D {np.dtype(expect[name]).name}; {_FIX}"
                 )
-        shape = tuple(arrays["esdf"].shape)
-        for name in ("esdf_raw", "observed"):
-            if tuple(arrays[name].shape) != shape:
-                raise EsdfError(f"map {str(p)!r}: {name!r} has shape {tuple(arrays[name].shape)} but 'esdf' has {shape}; {_FIX}")
-        try:
+        try:  # the constructor checks the attributes and that the grids' shapes match
             return cls(
                 esdf=arrays["esdf"], esdf_raw=arrays["esdf_raw"], observed=arrays["observed"],
                 voxel_size=attrs["voxel_size"], origin=attrs["origin"], frame_id=str(attrs["frame_id"]),
                 sigma=float(attrs["sigma"]), unknown_policy=str(attrs.get("unknown_policy", "")), attrs=attrs, path=p,
             )
         except EsdfError as exc:
-            raise EsdfError(f"map {str(p)!r} has bad attributes: {exc}; {_FIX}") from None
+            raise EsdfError(f"map {str(p)!r} is inconsistent: {exc}; {_FIX}") from None
 
     # ------------------------------------------------------------------ geometry
     @property
@@ -248,13 +240,8 @@ class EsdfMap:
         return value.reshape(lead), grad.reshape((*lead, 3))
 
     def query_torch(self, points: torch.Tensor, *, raw: bool = False, outside: Outside = "nan") -> torch.Tensor:
-        """Differentiable trilinear signed distance at world points, as a torch tensor (...) of the
-        points' dtype and device.
-
-        ``points``: float32 or float64 tensor (..., 3), metres, on any device; gradients flow to them
-        (the grid is a constant, copied to the device and dtype once and cached). ``raw`` and ``outside``
-        as in :meth:`query`; with "nan", points outside get NaN (and a zero gradient).
-        """
+        """Differentiable trilinear signed distance (...) at float32 or float64 world points (..., 3) on any
+        device (the grid is copied there once and cached). ``raw`` and ``outside`` as in :meth:`query`."""
         import torch
 
         _check_outside(outside)

@@ -1,11 +1,7 @@
-"""OME-Zarr (NGFF 0.5) multiscale metadata for map.zarr, so general array viewers (napari,
-neuroglancer, anything reading NGFF) place the ESDF at the right position and size.
+"""OME-Zarr (NGFF 0.5) multiscale metadata for map.zarr, so NGFF viewers place the ESDF in metres.
 
-The full-resolution level is the ``esdf`` array itself; coarser levels (2×, 4× the voxel) live in
-the ``ngff`` subgroup, which xarray's ``open_zarr`` of the root ignores. Each coarse voxel is the mean
-of the finer voxels it covers (NaN where none is a number), so its centre sits at the mean of theirs.
-Written here because the NGFF writers (ome-zarr-py) take a whole array in memory; this reads and
-writes one slab of x-planes at a time, as the rest of map.zarr does.
+Level 0 is ``esdf``; the 2× and 4× NaN-aware block means live in the ``ngff`` subgroup, written one
+x-slab at a time (ome-zarr-py's writers need the whole array in memory).
 """
 
 from __future__ import annotations

@@ -2,17 +2,9 @@
 voxel reaches stay solid (:func:`mapkit.fusion._occupancy.fill_unknown`), without the whole grid in
 one process.
 
-Three Dask passes over the chunks, each one task per chunk:
-
-1. label the free voxels of the chunk (6-connected, as ``scipy.ndimage.label``), note which labels
-   hold an observed voxel, store the labels;
-2. pair the labels that touch across each chunk's upper x, y and z faces;
-3. after the client joins the pairs into components (``scipy.sparse.csgraph``; one entry per label,
-   a few per chunk), mark the free voxels of components with no observed voxel solid and store the
-   obstacles, which the chunked ESDF then reads with its halo.
-
-A component is the same set of voxels as in the whole-grid labelling, so the obstacles are equal to
-``fill_unknown(..., "free")`` bit for bit.
+Three Dask passes, one task per chunk: label each chunk's free voxels (noting which labels hold an
+observed one), pair the labels touching across chunk faces (joined into components on the client),
+then mark components with no observed voxel solid. Bit for bit ``fill_unknown(..., "free")``.
 """
 
 from __future__ import annotations

@@ -1,6 +1,5 @@
-"""What the two ESDF builds share: `mapkit esdf` on a fused workspace (:mod:`mapkit.esdf._build`) and on
-a world directory of `mapkit fuse-world` (:mod:`mapkit.esdf._world`): the options, the summary, the error,
-and where the chunked computation runs."""
+"""What `mapkit esdf` on a fused workspace and on a world directory share: options, summary, error and
+where the chunked computation runs."""
 
 from __future__ import annotations
 
@@ -15,7 +14,6 @@ from numpy.typing import NDArray
 
 from mapkit._resources import available_memory
 from mapkit.esdf._chunked import ChunkedSummary, chunk_halo
-from mapkit.esdf._distance import Backend
 from mapkit.esdf._errors import EsdfError
 
 if TYPE_CHECKING:
@@ -50,8 +48,6 @@ class EsdfConfig:
     along the sensor's rays, counts as solid (object interiors, the ground under the floor)."""
     max_dist: float | None = None
     """Clamp |distance| to this (metres); required for chunked computation of large maps."""
-    backend: Backend = "edt"
-    """Exact EDT implementation without sub-voxel distances: 'edt' or 'scipy'."""
     subvoxel: bool = True
     """Measure distances to the fused surface points tied to each boundary voxel (sub-voxel zero
     crossing) instead of the fixed half-voxel convention of the plain EDT."""
@@ -115,9 +111,8 @@ def _dask_runner(scheduler: str | None, workers: int | None) -> Iterator[_Runner
 
 
 def _chunks_at_once(runner: _Runner, *, chunk: int, voxel: float, max_dist: float, sigma: float) -> int:
-    """Chunks of ``chunk`` voxels a side to compute at once in this process: one per core, fewer when
-    their work arrays (about ``(chunk + 2*halo)**3 * 18`` bytes each, plus the finished core) would take
-    over a quarter of the available memory; 1 on a cluster (its workers take one task per thread)."""
+    """Chunks to compute at once in this process: one per core, fewer when their work arrays would
+    take over a quarter of the available memory; 1 on a cluster."""
     if runner.client is not None:
         return 1
     halo = chunk_halo(voxel_size=voxel, max_dist=max_dist, sigma=sigma)

@@ -82,12 +82,8 @@ def render_slices(
     raw: bool = False,
 ) -> Path:
     """Write a PNG with one panel per requested slice (z first, then x, then y); returns its path.
-
-    Each panel shows the signed distance on metric axes (metres, equal aspect) with the surface
-    (zero level) drawn black, unobserved voxels hatched grey, and the panel title giving the plane.
-    One shared colour bar labelled "signed distance [m]", centred at 0 (obstacles red, free space
-    blue; each side scaled to the slices' own range).
-    """
+    Panels show the signed distance on metric axes with the zero level black and unobserved voxels
+    hatched, under one colour bar centred at 0 (obstacles red, free space blue)."""
     fig = _slice_figure(map, z=z, x=x, y=y, raw=raw)
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -1,19 +1,7 @@
-"""map.zarr: writing it (whole, or streamed chunk by chunk) and opening it (contract in DESIGN.md).
+"""map.zarr: writing it, whole or chunk by chunk (layout: docs/data_contracts.md).
 
-Layout (zarr v3 group, consolidated metadata so ``xarray.open_zarr`` opens it quietly and fast):
-
-- ``esdf`` float32 [nx, ny, nz], ``esdf_raw`` float32 [nx, ny, nz], ``observed`` uint8 [nx, ny, nz],
-  all with ``dimension_names`` ["x", "y", "z"], chunks 64^3, Blosc zstd level 3 with byte shuffle;
-- ``x``, ``y``, ``z`` float64 voxel-centre coordinates with ``dimension_names`` ["x"], ["y"], ["z"];
-- attrs: ``kind`` = "mapkit.map", ``mapkit_version``, ``voxel_size``, ``origin`` (centre of voxel
-  [0,0,0]), ``shape``, ``frame_id``, ``sigma``, ``unknown_policy``, ``units`` = "m",
-  ``distance_convention``, ``parameters`` (whatever made the map);
-- ``ome``: OME-Zarr (NGFF 0.5) multiscale metadata over ``esdf`` and its 2× / 4× coarser means in the
-  ``ngff`` subgroup (:mod:`mapkit.esdf._ngff`), so NGFF viewers place the map in metres.
-
-The store is written under a temporary sibling name and renamed into place only when complete
-(:func:`mapkit.workspace.atomic_output`), so a killed run never leaves a map that opens. At an fsspec URL
-it is published with its root ``zarr.json`` last instead (:func:`mapkit._stores.publish_store`).
+The store is written under a temporary sibling name and renamed into place when complete, or at an
+fsspec URL published with its root ``zarr.json`` last, so a killed run never leaves a map that opens.
 """
 
 from __future__ import annotations
@@ -74,12 +62,9 @@ def _json_attrs(name: str, value: Any) -> Any:
 
 
 class MapWriter(AbstractContextManager["MapWriter"]):
-    """A map.zarr being written. Fill :attr:`esdf`, :attr:`esdf_raw`, :attr:`observed` (zarr arrays
-    [nx, ny, nz]; chunks 64^3, so write 64-aligned blocks), then :meth:`finalize` to publish it.
-
-    As a context manager it finalizes on normal exit and discards the partial store on an exception.
-    Until :meth:`finalize` the store lives under a hidden temporary name next to `path`.
-    """
+    """A map.zarr being written: fill :attr:`esdf`, :attr:`esdf_raw`, :attr:`observed` (zarr arrays
+    [nx, ny, nz], chunks 64^3) then :meth:`finalize`; as a context manager it finalizes on normal exit
+    and discards the partial store on an exception."""
 
     def __init__(self, path: Path | Location, attrs: dict[str, Any], shape: tuple[int, int, int], overwrite: bool) -> None:
         import zarr

@@ -1,10 +1,8 @@
 """`mapkit esdf` on a world directory: the chunked ESDF of world.zarr (`mapkit fuse-world`) → map.zarr.
 
-The world's occupancy is read chunk by chunk and nothing world-sized is in any process: with
-``--unknown occupied`` every ESDF task derives its obstacles (TSDF inside, or never observed) from its
-own block of world.zarr; ``--unknown free`` keeps unseen pockets that no observed free voxel reaches
-solid, a connected-component rule over the whole grid that :mod:`mapkit.esdf._pockets` computes in
-three chunked Dask passes into a scratch store beside the map, removed afterwards.
+Nothing world-sized is in any process: with ``unknown = occupied`` each task derives its obstacles from
+its own block of world.zarr; ``free`` first marks the unseen pockets (:mod:`mapkit.esdf._pockets`) into
+a scratch store beside the map, removed afterwards.
 """
 
 from __future__ import annotations

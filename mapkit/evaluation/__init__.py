@@ -7,19 +7,11 @@ interval, and so on until the goal, a collision (exact distance to the world) or
 >>> from mapkit.evaluation import EvalConfig, evaluate
 >>> evaluate("ws/runs/cpu", "eval_out", EvalConfig(worlds=("office",), pairs=5))  # doctest: +SKIP
 
-Every method flies through the same :class:`~mapkit.flight.Pilot` a user deploys (the flight stack
-lives in :mod:`mapkit.flight`). :func:`run_episode` flies one pair with any planner (an object with
-``name``, ``needs_depth``, ``replans`` and ``plan(Observation) -> MethodPlan``) or pilot;
-:func:`sample_pairs` draws start–goal pairs.
-
-Ablations: :func:`plan_runs` (every method under every flight stack, each a :class:`Run` labelled
-``NAME`` or ``NAME@STACK``), :func:`ablation` (every run's outcomes and learned − untrained /
-straight-key-points with bootstrap intervals over pairs).
-
-Reading results.json: :class:`EpisodeRecord` (one row of ``episodes``), :data:`Outcome`,
-:data:`EVAL_FORMAT`; :func:`compare_effort` (two methods on the pairs both reached, also at equal
-flight time: :func:`effort_at_time`); :func:`success_by_detour` (outcomes by how long the oracle's way
-round was).
+Every method flies through the same :class:`~mapkit.flight.Pilot` a user deploys. :func:`run_episode`
+flies one pair with any planner (``name``, ``needs_depth``, ``replans``, ``plan(Observation) ->
+MethodPlan``) or pilot; :func:`sample_pairs` draws start–goal pairs; :func:`plan_runs` and
+:func:`ablation` fly and compare every method under every flight stack. Reading results.json:
+:class:`EpisodeRecord`, :func:`compare_effort`, :func:`success_by_detour`.
 """
 
 from mapkit._formats import EVAL_FORMAT, OUTCOMES, EpisodeRecord, Outcome

@@ -1,14 +1,10 @@
 """What the network adds: every run (method × flight stack) side by side, and paired differences
-with bootstrap intervals over the start–goal pairs.
-
-Each comparison pairs the flights two runs made from the same start and goal. Intervals resample the
-pairs with replacement within each world (the worlds' shares stay fixed) and take the 2.5th and
-97.5th percentiles of the statistic: 95 % percentile intervals. ``untrained`` flown at several
-initial weights (``untrained#SEED``) is compared pooled: per pair, the mean over its weights."""
+over the start–goal pairs with 95 % bootstrap intervals (pairs resampled within each world).
+``untrained`` flown at several initial weights is compared pooled: per pair, the mean over them."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -19,7 +15,6 @@ from mapkit._formats import EpisodeRecord
 from mapkit.evaluation._stack import LABEL_SEPARATOR, Run, split_label
 
 BOOTSTRAP_RESAMPLES = 10_000
-"""Resamples of each interval (the percentiles move by well under a point between seeds)."""
 PairKey = tuple[str, int]
 """(world, pair index): one start–goal pair."""
 Paired = Literal["control_effort", "time_s"]
@@ -31,8 +26,7 @@ class RunSummary:
     """One run's flights: its outcomes and the medians of its successful flights."""
 
     label: str
-    """The run's name in results.json (``NAME``, ``NAME@STACK``, ``untrained#SEED@STACK``); for a pooled
-    row, the name its runs are pooled under (``untrained@STACK``)."""
+    """The run's name in results.json (``NAME@STACK``, ``untrained#SEED@STACK``), or a pool's (``untrained@STACK``)."""
     method: str
     stack: FlightStack | None
     """The flight stack it flew under (None: a method no stack changes)."""
@@ -41,13 +35,12 @@ class RunSummary:
     collisions: int
     timeouts: int
     effort_median: float | None
-    """Median executed ∫‖snap‖² dt of the successful flights, m²/s⁷."""
+    """Median executed ∫‖snap‖² dt (m²/s⁷) and flight time (s) of the successful flights."""
     time_median: float | None
-    """Median flight time to the goal of the successful flights, s."""
     success_by_world: dict[str, float]
-    """World kind → share of its flights that reached the goal (in the episodes' world order)."""
+    """World kind → share of its flights that reached the goal."""
     inits: int = 1
-    """Initial weights pooled in this row (``untrained`` flown at several seeds: their flights together)."""
+    """Initial weights pooled in this row."""
 
     @property
     def success_rate(self) -> float:
@@ -64,7 +57,6 @@ class Interval:
     low: float
     high: float
     pairs: int
-    """Pairs it was computed over."""
 
     def __str__(self) -> str:
         return f"{self.estimate:+.1f} [{self.low:+.1f}, {self.high:+.1f}]"
@@ -84,8 +76,7 @@ class Ablation:
 
 
 def pooled_labels(labels: Sequence[str]) -> dict[str, list[str]]:
-    """Each run's comparison name → the labels it pools, in order: a run's own label, or for
-    ``untrained#SEED`` runs their common label without the seed (``untrained@none``)."""
+    """Each run's comparison name → the labels it pools, in order (``untrained#SEED@none`` under ``untrained@none``)."""
     out: dict[str, list[str]] = {}
     for label in labels:
         out.setdefault(split_label(label).pooled, []).append(label)
@@ -93,8 +84,7 @@ def pooled_labels(labels: Sequence[str]) -> dict[str, list[str]]:
 
 
 def summarise_runs(episodes: list[EpisodeRecord], labels: list[str]) -> list[RunSummary]:
-    """One :class:`RunSummary` per label, in the given order, each pool of initial weights followed by
-    a row of all its flights together."""
+    """One :class:`RunSummary` per label, in order, each pool of initial weights followed by its pooled row."""
     out = []
     for name, members in pooled_labels(labels).items():
         out += [_summary(episodes, [label], label) for label in members]
@@ -127,41 +117,36 @@ def _by_pair(episodes: list[EpisodeRecord], labels: str | Sequence[str]) -> dict
     return {k: [flights[k] for flights in each] for k in common}
 
 
-def _bootstrap_mean(values: np.ndarray, worlds: np.ndarray, resamples: int, seed: int) -> tuple[float, float]:
-    """2.5th and 97.5th percentiles of the mean of ``values`` over resamples drawn with replacement
-    within each world."""
+def _interval(a: str, b: str | Sequence[str], keys: list[PairKey], values: list[float], resamples: int, seed: int,
+              scale: Callable[[float], float]) -> Interval | None:
+    """The mean of ``values`` (one per pair of ``keys``) with the 2.5th and 97.5th percentiles of the mean
+    over resamples within each world, each through ``scale``; None without pairs."""
+    if not keys:
+        return None
+    v, worlds = np.array(values), np.array([k[0] for k in keys])
     rng = np.random.default_rng(seed)
     groups = [np.flatnonzero(worlds == w) for w in np.unique(worlds)]
     draws = np.concatenate([g[rng.integers(0, len(g), size=(resamples, len(g)))] for g in groups], axis=1)
-    low, high = np.percentile(values[draws].mean(axis=1), [2.5, 97.5])
-    return float(low), float(high)
-
-
-def _name(labels: str | Sequence[str]) -> str:
-    return labels if isinstance(labels, str) else split_label(labels[0]).pooled
+    low, high = np.percentile(v[draws].mean(axis=1), [2.5, 97.5])
+    name = b if isinstance(b, str) else split_label(b[0]).pooled
+    return Interval(a, name, scale(float(v.mean())), scale(float(low)), scale(float(high)), len(keys))
 
 
 def success_difference(episodes: list[EpisodeRecord], a: str, b: str | Sequence[str], *,
                        resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> Interval | None:
-    """Success of run ``a`` minus run ``b`` (or the mean of the runs ``b``: one pool of initial weights)
-    in percentage points over the pairs all flew, with its interval (None when they share no pair)."""
+    """Success of run ``a`` minus run ``b`` (or the mean of the runs ``b``, one pool) in percentage points
+    over the pairs all flew, with its interval; None when they share no pair."""
     ea, eb = _by_pair(episodes, a), _by_pair(episodes, b)
     keys = sorted(ea.keys() & eb.keys())
-    if not keys:
-        return None
-    diff = np.array([float(ea[k][0].outcome == "success") - np.mean([e.outcome == "success" for e in eb[k]])
-                     for k in keys])
-    worlds = np.array([k[0] for k in keys])
-    low, high = _bootstrap_mean(diff, worlds, resamples, seed)
-    return Interval(a, _name(b), 100.0 * float(diff.mean()), 100.0 * low, 100.0 * high, len(keys))
+    diff = [float(ea[k][0].outcome == "success") - float(np.mean([e.outcome == "success" for e in eb[k]])) for k in keys]
+    return _interval(a, b, keys, diff, resamples, seed, lambda x: 100.0 * x)
 
 
 def paired_ratio(episodes: list[EpisodeRecord], a: str, b: str | Sequence[str], quantity: Paired, *,
                  resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> Interval | None:
-    """Geometric mean of ``quantity`` of ``a`` over that of ``b`` on the pairs both reached (where both
-    are positive), with its interval; None without such pairs. With several runs ``b`` (one pool of
-    initial weights) a pair counts where ``a`` and at least one of them reached the goal, with the
-    mean log ratio over those that did."""
+    """Geometric mean of ``quantity`` of ``a`` over that of ``b`` on the pairs both reached (both positive),
+    with its interval; None without such pairs. With a pool ``b`` a pair counts where ``a`` and one of
+    them reached the goal, with the mean log ratio over those that did."""
     ea, eb = _by_pair(episodes, a), _by_pair(episodes, b)
     keys, logs = [], []
     for k in sorted(ea.keys() & eb.keys()):
@@ -171,18 +156,13 @@ def paired_ratio(episodes: list[EpisodeRecord], a: str, b: str | Sequence[str], 
         if ea[k][0].outcome == "success" and x and x > 0 and ys:
             keys.append(k)
             logs.append(float(np.mean(np.log(x / np.asarray(ys)))))
-    if not keys:
-        return None
-    values, worlds = np.array(logs), np.array([k[0] for k in keys])
-    low, high = _bootstrap_mean(values, worlds, resamples, seed)
-    return Interval(a, _name(b), float(np.exp(values.mean())), float(np.exp(low)), float(np.exp(high)), len(keys))
+    return _interval(a, b, keys, logs, resamples, seed, lambda x: float(np.exp(x)))
 
 
 def ablation(episodes: list[EpisodeRecord], labels: list[str], *, resamples: int = BOOTSTRAP_RESAMPLES,
              seed: int = 0) -> Ablation:
-    """Every run of ``labels``, and ``learned`` under each stack against ``untrained`` (all its initial
-    weights pooled) and ``straight-keypoints`` under the same stack (the comparisons whose runs are
-    present)."""
+    """Every run of ``labels``, and ``learned`` under each stack against ``untrained`` (pooled) and
+    ``straight-keypoints`` under the same stack, where both flew."""
     runs = summarise_runs(episodes, labels)
     pools = pooled_labels(labels)
     pairs: list[tuple[str, list[str]]] = []

@@ -2,14 +2,9 @@
 (:class:`~mapkit.flight.Pilot`), fly its reference for a replan interval, repeat until the goal, a
 collision or the time limit.
 
-Vehicle model. The executed trajectory is the reference tracked by a linear 4th-order controller
-with feed-forward up to snap: per axis the tracking error e = r − x obeys
-``e⁽⁴⁾ = −(k3 e⁽³⁾ + k2 ë + k1 ė + k0 e)`` with all four poles at −ω (critically damped). A plan
-starts from the vehicle's full state (position … jerk), so a minimum-snap reference (C³ within
-itself) is flown exactly and its effort is the reference's exact ∫‖snap‖². A reference with jumps
-(a cubic spline's jerk at its knots, a start acceleration that is not the vehicle's) is smoothed by
-the tracker, and its snap is then finite and comparable. Written here because no library
-simulates this loop; the vehicle's body is level and its yaw is the reference's.
+The default vehicle tracks the reference with a linear 4th-order controller (feed-forward up to snap,
+all four poles of the per-axis error e = r − x at −ω), level body, the reference's yaw: a minimum-snap
+reference from the vehicle's state is flown exactly, and a reference with jumps is smoothed.
 """
 
 from __future__ import annotations
@@ -23,6 +18,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from mapkit._formats import Outcome
+from mapkit.evaluation._pairs import EvalError
 from mapkit.evaluation._rotorpy import RotorpyVehicle
 from mapkit.flight import Method, Pieces, Pilot, PilotConfig, PilotStep, Reference, VehicleState, hold, level_pose
 from mapkit.flight._recorded import RunCamera
@@ -34,16 +30,15 @@ _JUMP_TOL = 1e-6  # smaller reference jumps (m, m/s, m/s², m/s³) are float noi
 
 @dataclass(frozen=True)
 class Faults:
-    """Faults injected into the frames the pilot gets (``mapkit eval --faults DROP,DELAY,NOISE``),
-    drawn per flight from a generator seeded by ``seed`` and the pair (the same faults for every method)."""
+    """Faults injected into the frames the pilot gets (``mapkit eval --faults DROP,DELAY,NOISE``), drawn
+    per flight from ``seed`` and the pair (the same for every method)."""
 
     drop: float = 0.0
     """Fraction of frames lost: the pilot is called without depth (it brakes after its frame timeout)."""
     delay: float = 0.0
     """Seconds by which depth lags: the frame is rendered (and posed) where the body was this long ago."""
     pose_noise: float = 0.0
-    """Metres, the standard deviation of noise on each axis of the state's position and the frame's pose
-    (one draw per frame for both: one estimator)."""
+    """Metres, the standard deviation of noise per axis on the state's position and the frame's pose (one draw for both)."""
     seed: int = 0
     """Seed of the faults' generator."""
 
@@ -57,7 +52,7 @@ class LoopConfig:
     """How an episode is flown and judged."""
 
     pilot: PilotConfig = field(default_factory=PilotConfig)
-    """How the pilot plans (its replan interval is the loop's: depth is rendered once per interval)."""
+    """How the pilot plans (depth is rendered once per replan interval)."""
     depth_rate: float = 30.0
     """Hz of the depth camera; the replan interval must be a whole number of frames."""
     control_rate: float = 200.0
@@ -71,8 +66,7 @@ class LoopConfig:
     timeout_min: float = 20.0
     """Seconds, the smallest time limit."""
     cruise_speed: float = 2.0
-    """m/s of the planners' total-time rule; sets the time limit. ``mapkit eval`` sets it to the
-    learned model's cruise speed, or to ``execution.speed.cruise`` when set (the pace the flights are asked for)."""
+    """m/s of the time limit; ``mapkit eval`` sets it to ``execution.speed.cruise``, or the model's cruise speed."""
     tracking_bandwidth: float = 5.0
     """ω, rad/s: all four poles of the tracking error at −ω."""
     faults: Faults = field(default_factory=Faults)
@@ -104,27 +98,21 @@ class Episode:
     allocation_ms: list[float] = field(default_factory=list)
     """Time allocation latency of each plan, when the method reports it."""
     plan_effort: float | None = None
-    """Mean over executed plans of each plan's whole ∫‖snap‖² dt (the paper's per-plan effort), m²/s⁷;
-    None for references of degree < 4 (a cubic spline's snap is impulsive at its knots)."""
+    """Mean over executed plans of each plan's whole ∫‖snap‖² dt (the paper's), m²/s⁷; None below degree 4."""
     peak_speed: float = 0.0
-    """Largest speed of the flown vehicle, m/s."""
+    """Largest speed of the flown vehicle, m/s (acceleration m/s², jerk m/s³ likewise)."""
     peak_acceleration: float = 0.0
-    """Largest acceleration norm, m/s²."""
     peak_jerk: float = 0.0
-    """Largest jerk norm, m/s³."""
     samples: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     """(N, 4) rows [t, x, y, z] of the executed path at ``control_rate``."""
     climb: float = 0.0
     """Metres the flight rose above the higher of its start and goal (0 when it never did)."""
     tracking_error_mean: float = 0.0
-    """Mean distance from the vehicle to its reference over the flight, metres."""
+    """Mean distance from the vehicle to its reference over the flight, metres (and the largest)."""
     tracking_error_max: float = 0.0
-    """Largest distance from the vehicle to its reference, metres."""
     reference_peak_speed: float = 0.0
-    """Largest speed of the references the pilot handed the vehicle, m/s."""
+    """Largest speed (m/s) and acceleration (m/s²) of the references the pilot handed the vehicle."""
     reference_peak_acceleration: float = 0.0
-    """Largest acceleration norm of those references, m/s²."""
-
 
 
 class _Tracker:
@@ -172,9 +160,8 @@ class _Flight:
     min_dist: float = math.inf
     peaks: np.ndarray = field(default_factory=lambda: np.zeros(3))
     tracking: list[float] = field(default_factory=list)
-    """Position tracking error |r − x| at every control step, metres."""
+    """|r − x| at every control step, metres."""
     ref_peaks: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    """Largest speed and acceleration of the references flown (before tracking)."""
     outcome: Outcome = "timeout"
     coll_point: list[float] | None = None
     coll_time: float | None = None
@@ -188,8 +175,7 @@ class _Flight:
         """Fly ``ref`` (the pilot's reference, spliced onto the last at the switch)."""
         self.ref = ref
         self.jumps = _jumps(self.ref)
-        # e = r − x: zero for a plan from the reference's state; a plan that starts now somewhere
-        # else (a scripted reference) is a jump the tracker absorbs.
+        # e = r − x: zero for a plan from the reference's state, else a jump the tracker absorbs
         self.E = self.ref.state(self.t) - self.x
         self.E[np.abs(self.E) < _JUMP_TOL] = 0.0
 
@@ -218,31 +204,23 @@ def run_episode(
         camera: the camera ``render`` renders (its K and mount); default: the pilot's.
         vehicle: fly rotorpy's quadrotor (:class:`RotorpyVehicle`) instead of the linear tracker; its camera
             is rendered at the airframe's true attitude (tilting with it) unless ``gimbal``.
+
+    Raises:
+        EvalError: the replan interval is not a whole number of depth frames.
     """
     start = np.asarray(start, dtype=np.float64).reshape(3)
     goal = np.asarray(goal, dtype=np.float64).reshape(3)
     pilot = method if isinstance(method, Pilot) else Pilot(method, camera=camera, config=config.pilot)
     pilot.reset()
     interval = pilot.config.replan_interval
-    frames = interval * config.depth_rate
-    if abs(frames - round(frames)) > 1e-6 or frames < 1:
-        raise ValueError(f"replan_interval {interval} s is not a whole number of depth frames at {config.depth_rate} Hz")
+    check_interval(interval, config.depth_rate)
     dt = 1.0 / config.control_rate
     steps = int(round(interval / dt))
     tracker = _Tracker(config.tracking_bandwidth, dt)
     t_limit = max(config.timeout_min, config.timeout_factor * float(np.linalg.norm(goal - start)) / config.cruise_speed)
-    x = np.zeros((4, 3))
-    x[0] = start
-    ref = hold(start, 0.0)
-    f = _Flight(x=x, E=np.zeros((4, 3)), ref=ref, jumps=_jumps(ref), rows=[np.array([0.0, *start])],
-                min_dist=float(world.signed_distance(start[None])[0]),
-                yaw0=math.atan2(goal[1] - start[1], goal[0] - start[0]))
-    if f.min_dist < config.robot_radius:
-        f.outcome, f.coll_point, f.coll_time = "collision", start.tolist(), 0.0
-    mount = (camera or pilot.camera)
+    f = _take_off(world, start, goal, config, vehicle)
+    mount = camera or pilot.camera
     T_body_camera = None if mount is None else mount.T_body_camera
-    if vehicle is not None:
-        vehicle.reset(start, f.yaw0)
     faults = config.faults
     rng = np.random.default_rng([faults.seed, zlib.crc32(start.tobytes() + goal.tobytes())])
     while f.outcome == "timeout" and f.t < t_limit - 1e-9:
@@ -257,6 +235,35 @@ def run_episode(
             _fly(f, world, goal, config, tracker, steps, t_limit)
         else:
             _fly_rotorpy(f, world, goal, config, vehicle, min(f.t + interval, t_limit), t_limit)
+    return _episode(f, start, goal, t_limit)
+
+
+def check_interval(interval: float, depth_rate: float) -> None:
+    """Raise :class:`EvalError` unless ``interval`` seconds are a whole number of frames at ``depth_rate`` Hz."""
+    frames = interval * depth_rate
+    if not (math.isfinite(frames) and frames >= 1 - 1e-9 and abs(frames - round(frames)) < 1e-6):
+        raise EvalError(f"loop.pilot.replan_interval {interval} s is not a whole number of depth frames at "
+                        f"{depth_rate:g} Hz; use a multiple of {1 / depth_rate:.4g} s")
+
+
+def _take_off(world: World, start: np.ndarray, goal: np.ndarray, config: LoopConfig,
+              vehicle: RotorpyVehicle | None) -> _Flight:
+    """The flight at rest at ``start``, facing ``goal`` (a collision already when ``start`` is too close to the world)."""
+    x = np.zeros((4, 3))
+    x[0] = start
+    ref = hold(start, 0.0)
+    f = _Flight(x=x, E=np.zeros((4, 3)), ref=ref, jumps=_jumps(ref), rows=[np.array([0.0, *start])],
+                min_dist=float(world.signed_distance(start[None])[0]),
+                yaw0=math.atan2(goal[1] - start[1], goal[0] - start[0]))
+    if f.min_dist < config.robot_radius:
+        f.outcome, f.coll_point, f.coll_time = "collision", start.tolist(), 0.0
+    if vehicle is not None:
+        vehicle.reset(start, f.yaw0)
+    return f
+
+
+def _episode(f: _Flight, start: np.ndarray, goal: np.ndarray, t_limit: float) -> Episode:
+    """The :class:`Episode` a finished flight adds up to."""
     executed = f.plans - f.rejected
     return Episode(
         outcome=f.outcome, time_s=float(min(f.t, t_limit)), path_length=f.path_length, control_effort=f.effort,
@@ -285,7 +292,7 @@ def _pose(f: _Flight, vehicle: RotorpyVehicle | None, gimbal: bool) -> tuple[np.
 def _faulty_frame(f: _Flight, faults: Faults, rng: np.random.Generator, T_wb: np.ndarray, state: VehicleState,
                   vehicle: RotorpyVehicle | None, gimbal: bool) -> tuple[np.ndarray, np.ndarray] | None:
     """(where the frame is rendered, the pose the pilot is given) after the faults (``state`` gets the
-    same pose noise); None for a dropped frame."""
+    same noise); None for a dropped frame."""
     if not faults.any:
         return T_wb, T_wb
     noise = rng.normal(0.0, faults.pose_noise, 3) if faults.pose_noise else np.zeros(3)
@@ -300,8 +307,7 @@ def _faulty_frame(f: _Flight, faults: Faults, rng: np.random.Generator, T_wb: np
 
 
 def _past_pose(f: _Flight, vehicle: RotorpyVehicle | None, gimbal: bool, t: float) -> np.ndarray:
-    """The body's pose at an earlier time ``t`` (the start before the flight began), from the last
-    second of the flight's samples."""
+    """The body's pose at an earlier time ``t`` (the start before the flight), from the last second of samples."""
     rows = np.asarray(f.rows[-200:])
     position = np.array([np.interp(t, rows[:, 0], rows[:, k]) for k in (1, 2, 3)])
     if vehicle is not None and not gimbal and f.attitudes is not None:
@@ -315,8 +321,7 @@ def _past_pose(f: _Flight, vehicle: RotorpyVehicle | None, gimbal: bool, t: floa
 def _replan(f: _Flight, goal: np.ndarray, pilot: Pilot, render: Callable[[np.ndarray], np.ndarray] | None,
             T_body_camera: np.ndarray | None, K: np.ndarray | None, frame: tuple[np.ndarray, np.ndarray] | None,
             state: VehicleState) -> None:
-    """Render the frame where the body was seen, give it to the pilot (none when it was dropped), and fly
-    what it answers."""
+    """Render the frame where the body was seen, give it to the pilot (none when dropped), fly its answer."""
     depth, T_given = None, None
     if pilot.planner.needs_depth and frame is not None:
         if render is None:
@@ -351,8 +356,8 @@ def _record(f: _Flight, step: PilotStep) -> None:
 
 def _fly(f: _Flight, world: World, goal: np.ndarray, config: LoopConfig, tracker: _Tracker, steps: int,
          t_limit: float) -> None:
-    """Fly one replanning interval on the control grid: track the reference, judge collisions and
-    the goal, add up effort, path length and the peaks of speed, acceleration and jerk."""
+    """Fly one replanning interval on the control grid: track the reference, judge the samples, add up
+    effort and peaks."""
     t, dt = f.t, tracker.dt
     tg = t + dt * np.arange(1, steps + 1)
     r = np.stack([f.ref.derivative(tg, q) for q in range(5)])  # (5, N, 3)
@@ -391,8 +396,7 @@ def _fly(f: _Flight, world: World, goal: np.ndarray, config: LoopConfig, tracker
 def _fly_rotorpy(f: _Flight, world: World, goal: np.ndarray, config: LoopConfig, vehicle: RotorpyVehicle,
                  t1: float, t_limit: float) -> None:
     """Fly rotorpy's quadrotor on the pilot's reference until ``t1``. Effort is the reference's exact
-    ∫‖snap‖² dt over the flown time (what the controller was asked to fly: the airframe's own snap is
-    not observable in rotorpy's state); the peaks are the airframe's (jerk by differences)."""
+    ∫‖snap‖² dt (rotorpy's state has no snap); the peaks are the airframe's (jerk by differences)."""
     assert f.reference is not None  # a reference is given before every interval
     t0 = f.t
     trace = vehicle.fly(f.reference.sample, t0, t1)
@@ -411,9 +415,8 @@ def _fly_rotorpy(f: _Flight, world: World, goal: np.ndarray, config: LoopConfig,
 
 def _judge(f: _Flight, world: World, goal: np.ndarray, config: LoopConfig, tg: np.ndarray, pos: np.ndarray,
            t_limit: float) -> int:
-    """Judge the samples ``pos`` (N, 3) at times ``tg`` (N,): the first collision or arrival at the goal
-    ends the flight, as does the time limit. Adds the path, the clearance and the rows up to there, and
-    returns how many samples were flown."""
+    """Judge the samples ``pos`` (N, 3) at times ``tg`` (N,): the first collision, arrival or the time limit
+    ends the flight. Adds the path, clearance and rows up to there; returns how many samples were flown."""
     d = world.signed_distance(pos)
     hit = np.flatnonzero(d < config.robot_radius)
     near = np.flatnonzero(np.linalg.norm(pos - goal, axis=1) <= config.goal_radius)

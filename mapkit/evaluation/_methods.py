@@ -1,23 +1,13 @@
 """The methods `mapkit eval` compares, all flying the same closed loop through a :class:`~mapkit.flight.Pilot`.
 
-- ``learned``: the trained planner as deployed, :class:`~mapkit.flight.LearnedMethod` under the flight
-  stack (:mod:`mapkit.flight`).
-- ``learned+uniform`` / ``learned+poly5`` / ``learned+gradient``: the same key-points, total time and
-  execution, other splits (Table III of the paper; ``gradient`` is the TAN's supervision,
-  Mellinger & Kumar descent under the same boundary conditions).
-- ``untrained``: ``learned`` with the same architecture at its initial weights (seeded,
-  ``EvalConfig.untrained_seeds``): what the flight stack and the anchors do without any training.
-- ``straight-keypoints``: ``learned`` with the key-points evenly spaced on the straight line to the
-  (local or routed) goal, η = 0, timed and flown through the same corridor, memory and routing.
-- ``iplanner-style``: the same network outputs, iPlanner's way: a cubic spline through the key-points
-  timed by arc length at the learned plans' cruise speed (no dynamics, no time allocation, no slowing
-  for turns), clamped to the vehicle's velocity at the start and to the same end velocity as the
-  others.
-- ``straight``: no perception; one minimum-snap segment from the vehicle's state to the local goal,
-  timed by the same speed profile (the optimum through any points of the straight line; pinning
-  interior points at fixed times only adds snap).
-- ``oracle``: search on the exact world (Dijkstra on a clearance grid + shortcuts) and one
-  corridor-constrained minimum-snap trajectory to the goal; an upper reference, planned once.
+- ``learned``: the trained planner as deployed (:class:`~mapkit.flight.LearnedMethod` under the flight stack);
+  ``learned+uniform`` / ``+poly5`` / ``+gradient``: the same key-points with other time splits (Table III).
+- ``untrained``: ``learned``'s architecture at seeded initial weights (``UNTRAINED_SEEDS``).
+- ``straight-keypoints``: ``learned`` with the key-points evenly spaced on the straight line to the goal.
+- ``iplanner-style``: the network's key-points through a cubic spline timed by arc length at the cruise
+  speed (no dynamics, no time allocation, no slowing for turns).
+- ``straight``: no perception; one minimum-snap segment to the local goal, timed by the same profile.
+- ``oracle``: Dijkstra on the exact world + shortcuts, one corridor minimum-snap trajectory, planned once.
 """
 
 from __future__ import annotations
@@ -41,16 +31,11 @@ METHODS = ("learned", "learned+uniform", "learned+poly5", "learned+gradient", "u
            "iplanner-style", "straight", "oracle")
 """Every method name, in report order."""
 NEEDS_MODEL = frozenset({*LEARNED_ALLOCATIONS, "untrained", "straight-keypoints", "iplanner-style"})
-"""Methods that need ``--model`` (``untrained`` copies its architecture, ``straight-keypoints`` its
-configuration, time allocation and image preprocessing)."""
+"""Methods that need ``--model``."""
 _FULL_STACK = Execution()
 """The default flight stack (immutable, shared)."""
-
-
-def _tensors(wp: np.ndarray, start: np.ndarray, end_speed: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Batch-of-one tensors: waypoints (1, K+1, 3), start derivatives (1, 3, 3), end speed (1,)."""
-    return (torch.from_numpy(wp)[None], torch.from_numpy(np.ascontiguousarray(start[1:]))[None],
-            torch.tensor([end_speed], dtype=torch.float64))
+ORACLE_ACCEL = 2.0
+"""m/s², the oracle's trapezoidal speed profile."""
 
 
 class StraightMethod:
@@ -68,7 +53,8 @@ class StraightMethod:
         t0 = time.perf_counter()
         start = obs.start_body()
         wp = np.stack([start[0], obs.local_goal_body])
-        wpt, st, es = _tensors(wp, start, self.config.cruise_speed if obs.goal_clipped else 0.0)
+        wpt, st = torch.from_numpy(wp)[None], torch.from_numpy(np.ascontiguousarray(start[1:]))[None]  # batches of one
+        es = torch.tensor([self.config.cruise_speed if obs.goal_clipped else 0.0], dtype=torch.float64)
         timing = plan_timing(wpt, st, es, self.config, allocation="uniform")
         with torch.no_grad():
             traj = min_snap(wpt, timing.durations, start=st, end=timing.end)
@@ -84,12 +70,12 @@ class OracleMethod:
     needs_depth = False
     replans = False
 
-    def __init__(self, graph: FreeSpaceGraph, *, corridor: float = 0.1, v_max: float = 2.0, a_max: float = 2.0,
+    def __init__(self, graph: FreeSpaceGraph, *, corridor: float = 0.1, v_max: float = 2.0,
                  clearance: float = 0.35) -> None:
         self.graph = graph
         self.clearance = clearance
         self.corridor = corridor
-        self.v_max, self.a_max = v_max, a_max
+        self.v_max = v_max
 
     def plan(self, obs: Observation) -> MethodPlan:
         t0 = time.perf_counter()
@@ -100,7 +86,7 @@ class OracleMethod:
         for max_len in (3.0, 1.0, 0.5):
             wp_np = _split_long(poly, max_len)
             wp = torch.from_numpy(wp_np)[None]
-            T = allocate_times(wp, "trapezoid", v_max=self.v_max, a_max=self.a_max)
+            T = allocate_times(wp, "trapezoid", v_max=self.v_max, a_max=ORACLE_ACCEL)
             with torch.no_grad():
                 traj = min_snap(wp, T, corridor=self.corridor, on_infeasible="ignore")
                 t = torch.arange(0.0, float(T.sum()), 0.02, dtype=torch.float64)
@@ -113,8 +99,7 @@ class OracleMethod:
 
 
 def _split_long(poly: np.ndarray, max_len: float) -> np.ndarray:
-    """Insert points so no polyline segment is longer than ``max_len`` metres (keeps the corridor,
-    which bounds the deviation from each segment's line, tight on long straight legs)."""
+    """Insert points so no polyline segment is longer than ``max_len`` metres (keeps the corridor tight)."""
     out = [poly[0]]
     for a, b in itertools.pairwise(poly):
         n = max(1, int(np.ceil(np.linalg.norm(b - a) / max_len)))
@@ -126,8 +111,7 @@ def make_methods(names: list[str], net: PlannerNet | None, world: World, graph: 
                  oracle_corridor: float = 0.1, robot_radius: float = 0.3, camera: CameraInput | None = None,
                  execution: Execution = _FULL_STACK, untrained: PlannerNet | None = None) -> list:
     """Instantiate the named methods (``net`` needed by the learned ones, ``untrained`` by ``untrained``,
-    ``graph`` by the oracle, ``camera`` by models that check their paths against the depth image;
-    ``execution`` how the learned methods fly their key-points: the flight stack)."""
+    ``graph`` by the oracle; ``execution``: the flight stack of the learned ones)."""
     cfg = net.config if net is not None else None
     out: list[LearnedMethod | StraightMethod | OracleMethod] = []
     for name in names:

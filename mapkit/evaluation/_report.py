@@ -5,11 +5,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from mapkit._formats import EpisodeRecord
 from mapkit.evaluation._ablation import ablation, ablation_lines
+from mapkit.evaluation._paths import load_paths
 from mapkit.evaluation._stack import LABEL_SEPARATOR, split_label
 from mapkit.sim import World
 
@@ -33,16 +35,12 @@ def _pct(x: float | None) -> str:
     return "–" if x is None else f"{100 * x:.1f}"
 
 
-def _pm(s: dict, fmt: str = "{:.2f}") -> str:
-    if s.get("mean") is None:
-        return "–"
-    return f"{fmt.format(s['mean'])} ± {fmt.format(s['std'])}"
+def _pm(s: dict, mean: str = ".2f", std: str = ".2f") -> str:
+    return "–" if s.get("mean") is None else f"{s['mean']:{mean}} ± {s['std']:{std}}"
 
 
 def _effort(s: dict) -> str:
-    if s.get("mean") is None:
-        return "–"
-    return f"{s['mean']:.4g} ± {s['std']:.3g}"
+    return _pm(s, ".4g", ".3g")
 
 
 def _median(s: dict, fmt: str = "{:.4g}") -> str:
@@ -102,7 +100,7 @@ def _ablation_section(doc: dict, episodes: list[EpisodeRecord]) -> list[str]:
 def _setup_lines(doc: dict) -> list[str]:
     """The title and what was run: model, worlds and pairs, the closed loop's settings."""
     cfg, loop = doc["config"], doc["config"]["loop"]
-    pilot = loop.get("pilot", loop)  # files before the pilot kept its options in the loop
+    pilot = loop["pilot"]
     model = doc["model"]
     n_pairs = {k: len(v["pairs"]) for k, v in doc["worlds"].items()}
     L = ["# mapkit eval report", ""]
@@ -167,8 +165,7 @@ def _effort_table(doc: dict, latency: dict) -> list[str]:
 def _tracking_table(doc: dict) -> list[str]:
     """How closely the vehicle flew the pilot's references, and how hard those references asked it to fly."""
     s, methods = doc["summary"], doc["methods"]
-    vehicle = doc["config"].get("vehicle", "tracker")
-    L = [f"## Tracking — the vehicle ({vehicle}) against the pilot's reference", "",
+    L = [f"## Tracking — the vehicle ({doc['config']['vehicle']}) against the pilot's reference", "",
          "| method | tracking error m: per-flight mean (mean over flights, worst) | per-flight max (mean, worst) | "
          "reference peak speed m/s (median, worst) | reference peak acceleration m/s² (median, worst) | "
          "climb m (median, worst) |",
@@ -307,13 +304,9 @@ def success_by_detour(episodes: list[EpisodeRecord], reference: str = "oracle",
     (its path length / the start–goal distance; below 1 where it stopped within the goal radius). A
     planner that fails only where the way round is long explores badly; one that fails on near-straight
     routes fails locally. Empty bins are left out; [] when ``reference`` did not fly."""
-    ratio: dict[tuple[str, int], float | None] = {}
-    for e in episodes:
-        if e.method == reference:
-            r = None
-            if e.outcome == "success" and e.path_length is not None and e.distance:
-                r = e.path_length / e.distance
-            ratio[(e.world, e.pair)] = r
+    ratio = {(e.world, e.pair): e.path_length / e.distance
+             if e.outcome == "success" and e.path_length is not None and e.distance else None
+             for e in episodes if e.method == reference}
     if not ratio:
         return []
     bounds = list(zip((0.0, *edges), (*edges, math.inf), strict=True))
@@ -373,6 +366,22 @@ def _effort_comparison(doc: dict, episodes: list[EpisodeRecord], a: str, b: str,
     return text + f" ({paper})."
 
 
+def _pyplot() -> Any:
+    """matplotlib.pyplot on the Agg backend (no display)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(plt: Any, fig: Any, path: Path) -> Path:
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def _occupancy_views(world: World, z: float, res: float) -> tuple[np.ndarray, np.ndarray, tuple, tuple]:
     """Top view: obstacles at height z; side view: fraction of each x–z column (over y) inside."""
     lo, hi = world.bounds
@@ -390,19 +399,13 @@ def _occupancy_views(world: World, z: float, res: float) -> tuple[np.ndarray, np
 
 def _paths_figure(path: Path, doc: dict, episodes: list[EpisodeRecord], kind: str, world: World) -> Path:
     """Top and side views of ``kind`` with every method's executed paths coloured by outcome."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     methods = doc["methods"]
     eps = [e for e in episodes if e.world == kind]
     starts = np.array([p["start"] for p in doc["worlds"][kind]["pairs"]])
     z = float(np.median(starts[:, 2])) if len(starts) else float(np.mean(world.flight_z))
     res = float(np.clip(max(world.bounds[1] - world.bounds[0]) / 200.0, 0.05, 0.25))
     top, side, ext_top, ext_side = _occupancy_views(world, z, res)
-    from mapkit.evaluation._paths import load_paths  # lazily: the npz is written beside the figure
-
     paths = load_paths(path.parent)
     n = len(methods)
     aspect_top = (ext_top[3] - ext_top[2]) / (ext_top[1] - ext_top[0])
@@ -445,20 +448,12 @@ def _paths_figure(path: Path, doc: dict, episodes: list[EpisodeRecord], kind: st
     fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8, frameon=False)
     fig.suptitle(f"{kind} (seed {doc['seed']}): executed trajectories", fontsize=11)
     fig.tight_layout(rect=(0, 0.04, 1, 0.96))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 def _speed_figure(path: Path, doc: dict, episodes: list[EpisodeRecord], flights: int = 3) -> Path:
     """Speed over time of the first few pairs every method reached (from the 20 Hz paths)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from mapkit.evaluation._paths import load_paths
-
+    plt = _pyplot()
     paths = load_paths(path.parent)
     methods = doc["methods"]
     reached: dict[tuple[str, int], set[str]] = {}
@@ -481,18 +476,12 @@ def _speed_figure(path: Path, doc: dict, episodes: list[EpisodeRecord], flights:
     if axes[0, 0].lines:
         axes[0, 0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 def _bars_figure(path: Path, doc: dict, latency: dict) -> Path:
     """Bars of success rate, effort and latency per method and world."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     methods = doc["methods"]
     groups = [*doc["worlds"], "overall"]
     s = doc["summary"]
@@ -518,6 +507,4 @@ def _bars_figure(path: Path, doc: dict, latency: dict) -> Path:
         ax.set_xticks(x, groups)
     axes[0].legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)

@@ -1,28 +1,12 @@
 """A third-party quadrotor for closed-loop evaluation: rotorpy's :class:`Multirotor` (rigid body, first-order
-rotor dynamics, parasitic and rotor drag, translational lift) flown by rotorpy's geometric
-:class:`SE3Control`, behind a small typed wrapper (`mapkit eval --vehicle rotorpy`).
+rotor dynamics, parasitic and rotor drag) flown by rotorpy's geometric :class:`SE3Control`, behind a small
+typed wrapper (`mapkit eval --vehicle rotorpy`).
 
-rotorpy's conventions, read from its source (``rotorpy.vehicles.multirotor``) and checked by
-tests/test_rotorpy_vehicle.py, are mapkit's own, so nothing is converted:
-
-- world frame z up (gravity is ``(0, 0, -m g)``), x/y free: used here as ENU;
-- body frame FLU (right-handed): rotors in the body x-y plane, thrust along body +z; SE3Control puts
-  body x along the commanded yaw, so body x is the nose;
-- ``state['q']`` is a unit quaternion in scalar-last order ``[i, j, k, w]`` = ``xyzw`` (scipy's
-  ``Rotation.from_quat``), the body → world rotation ``R_world_body`` (rotorpy maps the body-frame
-  thrust to the world with ``R @ F_body``);
-- ``state['w']`` is the body rate in the body frame (rad/s), ``state['rotor_speeds']`` rad/s.
-
-Cost: every step is one ``scipy.integrate.solve_ivp`` (adaptive RK45) call. Measured on a shared 2-core
-machine: ``Multirotor.step`` 0.9–2.9 ms (more RK45 sub-steps while the 5 ms rotor dynamics are commanded
-to change), ``SE3Control.update`` 0.18 ms, the acceleration (``statedot``) 0.09 ms; in all 1.2–1.5 ms a
-step, so at 100 Hz a flight second takes 0.12–0.15 s of one core.
-Importing rotorpy imports torch (its batched models are tried at import), ~1.2 s once.
-
-Known rotorpy behaviours: ``Multirotor.step`` draws motor noise from numpy's *global* RNG on every step
-even when its standard deviation is 0 (hummingbird's), so it advances ``np.random``'s state (mapkit
-uses its own generators); SE3Control does not compensate drag, so at speed the vehicle lags the
-reference along the track (rotor drag, ~0.6 N at 2.7 m/s for the 0.5 kg hummingbird).
+rotorpy's conventions (``rotorpy.vehicles.multirotor``, checked by tests/test_rotorpy_vehicle.py) are
+mapkit's own, so nothing is converted: world z up (ENU); body FLU with thrust along body +z and body x
+the nose; ``state['q']`` the body → world rotation as ``xyzw``; ``state['w']`` the body rate (rad/s).
+A flight second costs about 0.15 s of one core (one ``solve_ivp`` per step). ``Multirotor.step`` draws
+from numpy's *global* RNG on every step (mapkit uses its own generators).
 """
 
 from __future__ import annotations
@@ -38,45 +22,21 @@ from numpy.typing import NDArray
 from mapkit.flight import Setpoint
 from mapkit.geometry import matrix_from_quat_xyzw, transform_from_pose
 
-__all__ = ["AIRFRAMES", "RotorpyConfig", "RotorpyVehicle", "VehicleTrace"]
+__all__ = ["RATE_HZ", "RotorpyConfig", "RotorpyVehicle", "VehicleTrace"]
 
-AIRFRAMES: dict[str, str] = {
-    # A ~0.5 kg research quadrotor, thrust-to-weight ~10: room for 2 m/s flight with 4 m/s² manoeuvres
-    # (rotorpy's crazyflie, 30 g, saturates its rotors well before that).
-    "hummingbird": "rotorpy.vehicles.hummingbird_params",
-}
-"""rotorpy parameter sets by name: the module whose ``quad_params`` dict describes the airframe."""
-
-_MIN_RATE_HZ = 100.0
+RATE_HZ = 100.0
+"""Control and integration rate: SE3Control's command is held for each step, and slower than 100 Hz its
+attitude loop (gain 544) goes unstable."""
 
 
 @dataclass(frozen=True)
 class RotorpyConfig:
-    """How the rotorpy vehicle is simulated."""
+    """How the rotorpy vehicle (rotorpy's 0.5 kg hummingbird) is simulated."""
 
-    rate_hz: float = 100.0
-    """Control and integration rate (Hz), at least 100: SE3Control is evaluated once per step and its
-    command held for the step (zero-order hold), so a slower rate lets the attitude loop (gain 544)
-    go unstable. One step is one ``solve_ivp`` call, so time per flight second grows with the rate."""
-    airframe: str = "hummingbird"
-    """rotorpy's parameter set (a key of :data:`AIRFRAMES`)."""
     drag_feedforward: bool = True
-    """Add the drag the airframe meets at the reference's velocity (rotorpy's own rotor-drag and
-    parasitic-drag model, rotors at hover speed, body level) to the acceleration fed forward. rotorpy's
-    SE3Control compensates no drag, so the vehicle otherwise lags its reference along the track by
-    drag / position gain (hummingbird: 0.45 m/s² per m/s of rotor drag)."""
-
-    def __post_init__(self) -> None:
-        if not (np.isfinite(self.rate_hz) and self.rate_hz >= _MIN_RATE_HZ):
-            raise ValueError(
-                f"RotorpyConfig.rate_hz={self.rate_hz!r}: the SE3 controller's attitude loop needs at least "
-                f"{_MIN_RATE_HZ:g} Hz; set rate_hz to {_MIN_RATE_HZ:g} or more"
-            )
-        if self.airframe not in AIRFRAMES:
-            raise ValueError(
-                f"RotorpyConfig.airframe={self.airframe!r} is not a known rotorpy parameter set; "
-                f"choose one of {sorted(AIRFRAMES)}"
-            )
+    """Add the rotor drag the airframe meets at the reference's velocity (rotorpy's own model, rotors at
+    hover speed) to the acceleration fed forward: SE3Control compensates no drag, so the vehicle
+    otherwise lags its reference along the track."""
 
 
 def _as_rotorpy(setpoint: Setpoint, drag: np.ndarray | None) -> dict[str, Any]:
@@ -107,14 +67,6 @@ class VehicleTrace:
     """(N, 3) metres, the reference position at ``t`` (tracking error: ``position - reference``)."""
 
 
-def _load_params(airframe: str) -> dict[str, Any]:
-    """rotorpy's ``quad_params`` for ``airframe`` (a copy: rotorpy's dict is module state)."""
-    import importlib
-
-    params: dict[str, Any] = importlib.import_module(AIRFRAMES[airframe]).quad_params
-    return dict(params)
-
-
 class RotorpyVehicle:
     """rotorpy's Multirotor under rotorpy's SE3Control, zero wind; see the module docstring for frames.
 
@@ -124,13 +76,13 @@ class RotorpyVehicle:
     """
 
     def __init__(self, config: RotorpyConfig = RotorpyConfig()) -> None:
-        # rotorpy is imported here, not at module level: `mapkit.evaluation` stays importable (and fast
-        # to import) for the default tracker.
+        # imported here: `mapkit.evaluation` stays fast to import for the default tracker
         from rotorpy.controllers.quadrotor_control import SE3Control
+        from rotorpy.vehicles.hummingbird_params import quad_params
         from rotorpy.vehicles.multirotor import Multirotor
 
         self.config = config
-        self._params = _load_params(config.airframe)
+        self._params = dict(quad_params)  # a copy: rotorpy's dict is module state
         self._g = 9.81  # rotorpy's value (Multirotor.g)
         # Each rotor carries a 1/num_rotors share of the weight: k_eta ω² = m g / n.
         p = self._params
@@ -162,21 +114,12 @@ class RotorpyVehicle:
         self._acceleration = np.zeros(3)
 
     def fly(self, flat: Callable[[float], Setpoint], t0: float, t1: float) -> VehicleTrace:
-        """Fly the reference ``flat`` from time ``t0`` (the vehicle's present state) to ``t1`` seconds.
-
-        The span is cut into ``ceil((t1 - t0) * rate_hz)`` equal steps (each at most ``1 / rate_hz``, so
-        ``t1`` is sampled exactly). Each step evaluates ``SE3Control.update(t, state, flat(t))`` and holds
-        its motor-speed command through ``Multirotor.step(state, control, dt)``.
-
-        Returns
-        -------
-        VehicleTrace
-            N = number of steps samples at the step ends (``t0`` excluded, ``t1`` included); empty when
-            ``t1 == t0``.
-        """
+        """Fly the reference ``flat`` from time ``t0`` (the vehicle's present state) to ``t1`` seconds, in
+        ``ceil((t1 - t0) * RATE_HZ)`` equal steps, each holding ``SE3Control``'s motor-speed command; the
+        trace samples the step ends (``t0`` excluded, ``t1`` included; empty when ``t1 == t0``)."""
         if not (np.isfinite(t0) and np.isfinite(t1)) or t1 < t0:
             raise ValueError(f"fly needs finite times with t1 >= t0, got t0={t0!r}, t1={t1!r}")
-        n = ceil((t1 - t0) * self.config.rate_hz - 1e-9)  # the epsilon: 1.0 s at 100 Hz is 100 steps, not 101
+        n = ceil((t1 - t0) * RATE_HZ - 1e-9)  # the epsilon: 1.0 s at 100 Hz is 100 steps, not 101
         times = t0 + (t1 - t0) * np.arange(1, n + 1) / max(n, 1)
         dt = (t1 - t0) / max(n, 1)
         rows = np.zeros((n, 3 + 3 + 3 + 4 + 3))

@@ -23,21 +23,20 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mapkit._choices import FLIGHT_STACKS, VEHICLES, FlightStack, VehicleKind
+from mapkit._choices import VEHICLES, FlightStack, VehicleKind
 from mapkit._formats import EVAL_FORMAT, JUDGE_FILE, PLANS_FILE, EpisodeRecord
 from mapkit._version import __version__
 from mapkit.evaluation._ablation import Ablation, ablation
-from mapkit.evaluation._loop import LoopConfig, run_episode
+from mapkit.evaluation._loop import Episode, LoopConfig, check_interval, run_episode
 from mapkit.evaluation._methods import METHODS, NEEDS_MODEL, make_methods
 from mapkit.evaluation._pairs import EvalError, Pair, sample_pairs
 from mapkit.evaluation._rotorpy import RotorpyVehicle
-from mapkit.evaluation._stack import UNTRAINED_SEEDS, Run, plan_runs, split_label
+from mapkit.evaluation._stack import UNTRAINED_SEEDS, Run, check_stacks, plan_runs, split_label
 from mapkit.flight import (
     Execution,
     FlightError,
     JudgeInput,
     LearnedMethod,
-    Memory,
     Pilot,
     PlanInput,
     RouteConfig,
@@ -60,8 +59,7 @@ PATH_RATE_HZ = 20.0
 LOCAL_SCHEDULER = "local"
 """``EvalConfig.scheduler`` value that starts a Dask LocalCluster of ``workers`` processes here."""
 DASK_RETRIES = 1
-"""Dask re-runs a pair that raised once more (a model file briefly unreadable on shared storage); a
-worker that dies is the scheduler's business (``distributed.scheduler.allowed-failures``)."""
+"""Dask re-runs a pair that raised once more (a model file briefly unreadable on shared storage)."""
 _ADDRESS = re.compile(r"^([a-z][a-z0-9+]*://\S+|[^\s:/]+:\d+)$")
 
 
@@ -78,14 +76,8 @@ class EvalConfig:
     methods: tuple[str, ...] = METHODS
     """Methods to compare (see :data:`mapkit.evaluation.METHODS`)."""
     stacks: tuple[FlightStack, ...] = ("full",)
-    """Flight stacks every learned method flies under (:func:`~mapkit.flight.under_stack`): one
-    run per method and stack, labelled ``NAME@STACK`` under a stack other than ``full``; ``straight``
-    and ``oracle`` fly once."""
-    untrained_seeds: tuple[int, ...] = UNTRAINED_SEEDS
-    """Seeds of the ``untrained`` method's initial weights (the model's architecture): each flies every
-    pair, as a run ``untrained#SEED`` when there are several, and the ablation compares learned with
-    them pooled. One set of weights is a lottery: the judge's random weights prefer free or blocked
-    candidates by chance, so single seeds range from near zero to well above the pooled figure."""
+    """Flight stacks every learned method flies under (:func:`~mapkit.flight.under_stack`), each run
+    labelled ``NAME@STACK`` under a stack other than ``full``; ``straight`` and ``oracle`` fly once."""
     min_distance: float = 8.0
     """Metres between start and goal, at least."""
     pair_clearance: float = 0.6
@@ -95,14 +87,12 @@ class EvalConfig:
     execution: Execution = field(default_factory=Execution)
     """How the learned allocations fly their key-points (corridor, speed and acceleration limits)."""
     workers: int = 1
-    """Processes; pairs run in parallel. Results do not depend on it (one torch thread per process).
-    With ``scheduler="local"`` the size of the local Dask cluster; with a scheduler address it must
-    stay 1 (the cluster's workers run the pairs)."""
+    """Processes running pairs in parallel (with ``scheduler="local"``: the local Dask cluster's size; with a
+    scheduler address it must stay 1). Results do not depend on it."""
     scheduler: str | None = None
-    """None: this machine, ``workers`` processes of a pool. A Dask scheduler address
-    (``tcp://HOST:8786``): every pair is a task on that cluster, whose workers must import mapkit and
-    read the model's run directory at the same path. ``"local"``: a Dask LocalCluster of ``workers``
-    processes here. Results do not depend on it."""
+    """None: ``workers`` processes here. A Dask scheduler address (``tcp://HOST:8786``): every pair is a task
+    on that cluster (its workers read the model at the same path). ``"local"``: a Dask LocalCluster of
+    ``workers`` processes here. Results do not depend on it."""
     loop: LoopConfig = field(default_factory=LoopConfig)
     """The closed loop (the pilot's options, goal radius, robot radius, time limit, tracker)."""
     vehicle: VehicleKind = "tracker"
@@ -111,18 +101,17 @@ class EvalConfig:
     gimbal: bool = False
     """With ``vehicle="rotorpy"``: render the camera level (on a gimbal) instead of at the airframe's attitude."""
     record_plans: bool = False
-    """Also write plans.npz: what the ``learned`` method's time allocation was given at every plan
-    (:class:`~mapkit.flight.PlanInput`), for ``mapkit lab tune-timing``. Results do not depend on it."""
+    """Also write plans.npz (:func:`write_plans`): the ``learned`` method's time allocation inputs, for
+    ``mapkit lab tune-timing``. Results do not depend on it."""
     record_judge: bool = False
-    """Also write judge.npz: what a flown-path head reads about every candidate of the ``learned``
-    method's plans, each labelled by whether its judged stretch comes within the robot's radius of the
-    world (:func:`write_judgements`), for ``mapkit lab tune-judge``. Results do not depend on it."""
+    """Also write judge.npz (:func:`write_judgements`): the ``learned`` method's candidates as a flown-path
+    head reads them, labelled by collision, for ``mapkit lab tune-judge``. Results do not depend on it."""
     judge_history: float | None = None
-    """With ``record_judge``: seconds of each flight's earlier frames whose points the recorded
-    clearances also read (a head fitted to them gets this ``flown_history``); None: the model's
+    """With ``record_judge``: seconds of earlier frames the recorded clearances read; None: the model's
     ``flown_history``. Results do not depend on it."""
 
     def validate(self) -> None:
+        """Raise :class:`EvalError` naming the first setting out of range."""
         unknown = [w for w in self.worlds if w not in WORLD_ORDER]
         if unknown or not self.worlds:
             raise EvalError(f"unknown world {unknown[0] if unknown else '(none)'!r}; "
@@ -130,28 +119,14 @@ class EvalConfig:
         bad = [m for m in self.methods if m not in METHODS]
         if bad or not self.methods:
             raise EvalError(f"unknown method {bad[0] if bad else '(none)'!r}; use some of {', '.join(METHODS)}")
-        stacks = [s for s in self.stacks if s not in FLIGHT_STACKS]
-        if stacks or not self.stacks or len(set(self.stacks)) != len(self.stacks):
-            what = f"unknown flight stack {stacks[0]!r}" if stacks else f"flight stacks {list(self.stacks)}"
-            raise EvalError(f"{what}; --stack takes a comma list of distinct {', '.join(FLIGHT_STACKS)}")
+        check_stacks(self.stacks)
         if self.vehicle not in VEHICLES:
             raise EvalError(f"--vehicle {self.vehicle!r}: use one of {', '.join(VEHICLES)}")
         if self.gimbal and self.vehicle != "rotorpy":
             raise EvalError("gimbal levels the camera of the rotorpy quadrotor; the tracker's camera is always "
                             "level: pass --vehicle rotorpy too, or drop gimbal=true")
-        faults, interval = self.loop.faults, self.loop.pilot.replan_interval
-        for name, value, ok, where in (("fault drop", faults.drop, 0.0 <= faults.drop < 1.0, "[0, 1)"),
-                                       ("fault delay", faults.delay, 0.0 <= faults.delay < interval,
-                                        f"[0, replan interval {interval} s)"),
-                                       ("fault pose_noise", faults.pose_noise, 0.0 <= faults.pose_noise <= 1.0,
-                                        "[0, 1] metres")):
-            if not ok:
-                raise EvalError(f"{name} {value:g} must be in {where}")
         if self.pairs < 1:
             raise EvalError(f"--pairs must be >= 1, got {self.pairs}")
-        seeds = self.untrained_seeds
-        if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
-            raise EvalError(f"untrained_seeds {','.join(map(str, seeds)) or '(none)'}: give distinct seeds >= 0, e.g. 0,1,2,3")
         if self.workers < 1:
             raise EvalError(f"--workers must be >= 1, got {self.workers}")
         if self.judge_history is not None:
@@ -162,26 +137,10 @@ class EvalConfig:
         self._validate_scheduler()
         if not (math.isfinite(self.min_distance) and self.min_distance > 0):
             raise EvalError(f"min_distance must be > 0 metres, got {self.min_distance}")
-        ex, loop = self.execution, self.loop
-        pilot = loop.pilot
-        if not (math.isfinite(pilot.horizon) and pilot.horizon > 0):
-            raise EvalError(f"loop.pilot.horizon must be > 0 metres (the local goal's distance), got {pilot.horizon}")
-        frames = pilot.replan_interval * loop.depth_rate
-        if not (math.isfinite(frames) and frames >= 1 - 1e-9 and abs(frames - round(frames)) < 1e-6):
-            raise EvalError(f"loop.pilot.replan_interval {pilot.replan_interval} s is not a whole number of depth frames at "
-                            f"{loop.depth_rate:g} Hz; use a multiple of {1 / loop.depth_rate:.4g} s")
-        _validate_execution(ex)
-        if not (math.isfinite(pilot.plan_latency) and 0 <= pilot.plan_latency < pilot.replan_interval):
-            raise EvalError(f"loop.pilot.plan_latency must be in [0, replan interval {pilot.replan_interval} s), got {pilot.plan_latency}")
-        if not (math.isfinite(pilot.look_ahead) and pilot.look_ahead >= 0):
-            raise EvalError(f"loop.pilot.look_ahead must be >= 0 seconds (0: head along the velocity), got {pilot.look_ahead}")
-        try:
-            pilot.validate()
-        except FlightError as exc:
-            raise EvalError(str(exc)) from None
-        lc = self.loop
-        if not self.pair_clearance > lc.robot_radius:
-            raise EvalError(f"pair clearance {self.pair_clearance} m must exceed the robot radius {lc.robot_radius} m")
+        _validate_loop(self.loop)
+        _validate_execution(self.execution)
+        if not self.pair_clearance > self.loop.robot_radius:
+            raise EvalError(f"pair clearance {self.pair_clearance} m must exceed the robot radius {self.loop.robot_radius} m")
 
     def _validate_scheduler(self) -> None:
         if self.scheduler is None or self.scheduler == LOCAL_SCHEDULER:
@@ -219,11 +178,8 @@ class EvalResult:
 
 # ------------------------------------------------------------------------------------ set-up
 def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def _run_config(run_dir: Path) -> dict:
@@ -262,10 +218,8 @@ def _training_worlds(run_cfg: dict) -> set[tuple[str, int]]:
     from mapkit.train import simulated_worlds
 
     out: set[tuple[str, int]] = {(str(k), int(s)) for k, s in run_cfg.get("training_worlds", [])}
-    # An unreadable workspace is logged, not fatal: a moved or deleted workspace (the shipped model's
-    # always are) must not make a model unevaluable. When the run recorded its training worlds the
-    # check loses nothing (a debug line); an older run without that record may then miss a training
-    # world, which the user should hear about (a warning).
+    # A moved or deleted workspace (the shipped model's) is logged, not fatal; it can hide a training
+    # world only from an older run that did not record them (a warning then).
     level = logging.DEBUG if "training_worlds" in run_cfg else logging.WARNING
     return out | simulated_worlds([*run_cfg.get("workspaces", []), *run_cfg.get("val_workspaces", [])],
                                   unreadable_level=level)
@@ -290,28 +244,18 @@ class _WorkerSetup:
     no method needs one."""
     model_sha256: str | None
     """model.pt's hash where the evaluation started: a Dask worker refuses another file at that path."""
-    seed: int
-    pair_clearance: float
     camera: CameraSpec
     runs: tuple[Run, ...]
     """Every method under every stack (:func:`~mapkit.evaluation.plan_runs`)."""
-    oracle_corridor: float
-    execution: Execution
-    loop: LoopConfig
-    record_plans: bool = False
-    vehicle: VehicleKind = "tracker"
-    gimbal: bool = False
-    untrained_seeds: tuple[int, ...] = (0,)
-    record_judge: bool = False
-    judge_history: float | None = None
+    config: EvalConfig
+    """The evaluation, its loop with the model's robot radius and cruise speed."""
 
 
 @dataclass(frozen=True)
 class _WorldBundle:
-    """A world with what flying in it needs: free-space graph, camera, its rays and the methods."""
+    """A world with what flying in it needs: the camera, its rays and the methods' pilots."""
 
     world: Any
-    graph: Any
     camera: Any
     rays: np.ndarray
     pilots: list[Pilot]
@@ -337,9 +281,8 @@ class _EpisodeRun:
 
     record: EpisodeRecord
     latencies_ms: list[float]
-    """Wall-clock planning times (latency.json)."""
+    """Wall-clock planning and time allocation latencies (latency.json)."""
     allocation_ms: list[float]
-    """Time allocation latencies (latency.json)."""
     path: np.ndarray
     """(N, 4) float32 [t, x, y, z] at PATH_RATE_HZ (trajectories.npz)."""
     plans: list[PlanInput] = field(default_factory=list)
@@ -371,8 +314,8 @@ _WORKER: _WorkerState | None = None
 
 
 def _init_worker(setup: _WorkerSetup) -> None:
-    """Per process: one torch thread (deterministic results whatever --workers is), the model
-    prepared for inference (the same frozen encoder in every process, so results stay identical)."""
+    """Per process: one torch thread and the model prepared for inference (identical results whatever
+    --workers is)."""
     import torch
 
     global _WORKER
@@ -382,9 +325,9 @@ def _init_worker(setup: _WorkerSetup) -> None:
     if setup.model is not None:
         from mapkit.flight import Planner
 
-        net = Planner.load(setup.model).net.prepare_inference()  # every process plans hundreds of frames
+        net = Planner.load(setup.model).net.prepare_inference()
         if any(run.method == "untrained" for run in setup.runs):
-            untrained = {seed: untrained_copy(net, seed).prepare_inference() for seed in setup.untrained_seeds}
+            untrained = {seed: untrained_copy(net, seed).prepare_inference() for seed in UNTRAINED_SEEDS}
     _WORKER = _WorkerState(setup=setup, net=net, untrained=untrained)
 
 
@@ -409,13 +352,14 @@ def _worker() -> _WorkerState:
 
 def _world_bundle(kind: str) -> _WorldBundle:
     """The world ``kind`` of this process, built on first use."""
+    from mapkit.planner import CameraInput
     from mapkit.sim import CameraModel, FreeSpaceGraph, make_world
 
     state = _worker()
-    setup = state.setup
+    setup, config = state.setup, state.setup.config
     if kind not in state.worlds:
-        world = make_world(kind, seed=setup.seed)
-        graph = FreeSpaceGraph(world, clearance=setup.pair_clearance)
+        world = make_world(kind, seed=config.seed)
+        graph = FreeSpaceGraph(world, clearance=config.pair_clearance)
         cam = setup.camera
         K = np.asarray(cam.K)
         camera = CameraModel(width=cam.width, height=cam.height, fx=float(K[0, 0]), fy=float(K[1, 1]))
@@ -423,31 +367,31 @@ def _world_bundle(kind: str) -> _WorldBundle:
         v = (np.arange(camera.height) - K[1, 2]) / K[1, 1]
         uu, vv = np.meshgrid(u, v, indexing="xy")
         rays = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], axis=1)
-        from mapkit.planner import CameraInput
-
         calibration = CameraInput.from_calibration(K, cam.width, cam.height, np.asarray(cam.T_body_camera))
-        methods = []
-        for run in setup.runs:
-            execution = setup.execution if run.stack is None else under_stack(setup.execution, run.stack)
-            (method,) = make_methods([run.method], state.net, world, graph, oracle_corridor=setup.oracle_corridor,
-                                     robot_radius=setup.loop.robot_radius, camera=calibration,
-                                     execution=dataclasses.replace(execution),
-                                     untrained=state.untrained.get(setup.untrained_seeds[0] if run.init_seed is None
-                                                                   else run.init_seed))
-            method.name = run.label
-            methods.append(method)
-        for method in methods:
-            # the trained network's runs, under any stack (not untrained or straight-keypoints)
-            if isinstance(method, LearnedMethod) and split_label(method.name).method == "learned":
-                method.plan_log = [] if setup.record_plans else None
-                method.judge_log = [] if setup.record_judge else None
-                method.record_history = setup.judge_history
+        methods = [_run_method(state, run, world, graph, calibration) for run in setup.runs]
         recorded = RunCamera(cam.width, cam.height, K, np.asarray(cam.T_body_camera), "the evaluation's camera")
-        pilots = [Pilot(method, camera=recorded, config=setup.loop.pilot) for method in methods]
-        vehicle = RotorpyVehicle() if setup.vehicle == "rotorpy" else None
-        state.worlds[kind] = _WorldBundle(world=world, graph=graph, camera=camera, rays=rays, pilots=pilots,
+        pilots = [Pilot(method, camera=recorded, config=config.loop.pilot) for method in methods]
+        vehicle = RotorpyVehicle() if config.vehicle == "rotorpy" else None
+        state.worlds[kind] = _WorldBundle(world=world, camera=camera, rays=rays, pilots=pilots,
                                           vehicle=vehicle)
     return state.worlds[kind]
+
+
+def _run_method(state: _WorkerState, run: Run, world: Any, graph: Any, calibration: Any) -> Any:
+    """The method ``run`` flies in ``world``, named by its label; the trained network's runs (under any
+    stack) record their plans and judgements when asked to."""
+    config = state.setup.config
+    execution = config.execution if run.stack is None else under_stack(config.execution, run.stack)
+    seed = UNTRAINED_SEEDS[0] if run.init_seed is None else run.init_seed
+    (method,) = make_methods([run.method], state.net, world, graph, oracle_corridor=config.oracle_corridor,
+                             robot_radius=config.loop.robot_radius, camera=calibration,
+                             execution=dataclasses.replace(execution), untrained=state.untrained.get(seed))
+    method.name = run.label
+    if isinstance(method, LearnedMethod) and run.method == "learned":
+        method.plan_log = [] if config.record_plans else None
+        method.judge_log = [] if config.record_judge else None
+        method.record_history = config.judge_history
+    return method
 
 
 def _path_at_rate(samples: np.ndarray, control_rate: float) -> np.ndarray:
@@ -467,7 +411,7 @@ def _run_pair(kind: str, pair: dict) -> list[_EpisodeRun]:
     setup = _worker().setup
     world, camera, rays = b.world, b.camera, b.rays
     T_bc = np.asarray(setup.camera.T_body_camera)
-    loop = dataclasses.replace(setup.loop)
+    loop = dataclasses.replace(setup.config.loop)
 
     def render(T_world_body: np.ndarray) -> np.ndarray:
         return render_depth(world, T_world_body @ T_bc, camera, rays=rays)
@@ -476,22 +420,8 @@ def _run_pair(kind: str, pair: dict) -> list[_EpisodeRun]:
     out = []
     for pilot in b.pilots:
         method = pilot.planner
-        ep = run_episode(world, start, goal, pilot, loop, render=render, vehicle=b.vehicle, gimbal=setup.gimbal)
-        straight = pair["distance"]
-        record = EpisodeRecord(
-            world=kind, pair=pair["pair"], method=method.name, outcome=ep.outcome,
-            start=pair["start"], goal=pair["goal"], distance=straight,
-            line_of_sight=pair["line_of_sight"], time_s=ep.time_s, path_length=ep.path_length,
-            path_length_ratio=ep.path_length / straight, control_effort=ep.control_effort,
-            # inf in a world without obstacles: JSON has no infinity, so "none in reach"
-            min_distance=ep.min_distance if math.isfinite(ep.min_distance) else None,
-            collision_point=ep.collision_point,
-            collision_time=ep.collision_time, plans=ep.plans, rejected_plans=ep.rejected_plans,
-            plan_effort=ep.plan_effort, peak_speed=ep.peak_speed, peak_acceleration=ep.peak_acceleration,
-            peak_jerk=ep.peak_jerk, climb=ep.climb, tracking_error_mean=ep.tracking_error_mean,
-            tracking_error_max=ep.tracking_error_max, reference_peak_speed=ep.reference_peak_speed,
-            reference_peak_acceleration=ep.reference_peak_acceleration, stack=split_label(method.name).stack,
-        )
+        ep = run_episode(world, start, goal, pilot, loop, render=render, vehicle=b.vehicle, gimbal=setup.config.gimbal)
+        record = _record(kind, pair, method.name, ep)
         plans = getattr(method, "plan_log", None) or []
         judged = getattr(method, "judge_log", None) or []
         out.append(_EpisodeRun(record=record, latencies_ms=ep.latencies_ms, allocation_ms=ep.allocation_ms,
@@ -502,6 +432,20 @@ def _run_pair(kind: str, pair: dict) -> list[_EpisodeRun]:
     return out
 
 
+_EPISODE_FIELDS = [f.name for f in dataclasses.fields(Episode) if f.name in EpisodeRecord.__dataclass_fields__]
+"""The fields an :class:`Episode` hands its results.json row as they are."""
+
+
+def _record(kind: str, pair: dict, label: str, ep: Episode) -> EpisodeRecord:
+    """The results.json row of run ``label``'s flight ``ep`` from ``pair``."""
+    fields: dict[str, Any] = {name: getattr(ep, name) for name in _EPISODE_FIELDS}
+    # inf in a world without obstacles: JSON has no infinity, so "none in reach"
+    fields["min_distance"] = ep.min_distance if math.isfinite(ep.min_distance) else None
+    return EpisodeRecord(world=kind, pair=pair["pair"], method=label, start=pair["start"], goal=pair["goal"],
+                         distance=pair["distance"], line_of_sight=pair["line_of_sight"],
+                         path_length_ratio=ep.path_length / pair["distance"], stack=split_label(label).stack, **fields)
+
+
 def _call(args: tuple[str, dict]) -> tuple[str, int, list[_EpisodeRun]]:
     """One pool task: (world kind, pair index, its episodes)."""
     kind, pair = args
@@ -509,28 +453,28 @@ def _call(args: tuple[str, dict]) -> tuple[str, int, list[_EpisodeRun]]:
 
 
 # -------------------------------------------------------------------------------- summaries
-def _flight_stats(eps: list[EpisodeRecord]) -> dict[str, dict[str, float | None]]:
-    """Over every flight: the climb above the higher of start and goal, the tracking error (per flight mean
-    and max, metres) and the references' peak speed and acceleration (norms), each with its largest
-    value."""
-    out = {}
-    for key in ("climb", "tracking_error_mean", "tracking_error_max", "reference_peak_speed",
-                "reference_peak_acceleration"):
-        values = _present([getattr(e, key) for e in eps])
-        out[key] = {**_stats(values), "max": float(max(values)) if values else None}
+def _stats(values: list[float], extreme: str | None = None) -> dict[str, float | None]:
+    """Mean, std and median of ``values`` (None when empty), and their ``"min"`` or ``"max"`` when asked."""
+    out: dict[str, float | None] = {"mean": None, "std": None, "median": None}
+    if values:
+        a = np.asarray(values, dtype=np.float64)
+        out = {"mean": float(a.mean()), "std": float(a.std()), "median": float(np.median(a))}
+    if extreme is not None:
+        out[extreme] = float(min(values) if extreme == "min" else max(values)) if values else None
     return out
-
-
-def _stats(values: list[float]) -> dict[str, float | None]:
-    if not values:
-        return {"mean": None, "std": None, "median": None}
-    a = np.asarray(values, dtype=np.float64)
-    return {"mean": float(a.mean()), "std": float(a.std()), "median": float(np.median(a))}
 
 
 def _present(values: list[float | None]) -> list[float]:
     """The values a file recorded (None: a field older results lack)."""
     return [v for v in values if v is not None]
+
+
+_SUCCESS_STATS = ("control_effort", "plan_effort", "time_s", "peak_speed", "peak_acceleration", "peak_jerk",
+                  "path_length_ratio")
+"""Episode fields :func:`summarise` gives statistics of over the successful flights (results.json's order)."""
+_FLIGHT_STATS = ("climb", "tracking_error_mean", "tracking_error_max", "reference_peak_speed",
+                 "reference_peak_acceleration")
+"""Episode fields :func:`summarise` gives statistics and the largest value of over every flight."""
 
 
 def summarise(episodes: list[EpisodeRecord], worlds: list[str], methods: list[str]) -> dict:
@@ -550,20 +494,14 @@ def summarise(episodes: list[EpisodeRecord], worlds: list[str], methods: list[st
                 "success_rate": len(ok) / n if n else None,
                 "collision_rate": sum(e.outcome == "collision" for e in eps) / n if n else None,
                 "timeout_rate": sum(e.outcome == "timeout" for e in eps) / n if n else None,
-                "control_effort": _stats(_present([e.control_effort for e in ok])),
-                "plan_effort": _stats(_present([e.plan_effort for e in ok])),
-                "time_s": _stats(_present([e.time_s for e in ok])),
-                "peak_speed": _stats(_present([e.peak_speed for e in ok])),
-                "peak_acceleration": _stats(_present([e.peak_acceleration for e in ok])),
-                "peak_jerk": _stats(_present([e.peak_jerk for e in ok])),
-                "path_length_ratio": _stats(_present([e.path_length_ratio for e in ok])),
-                "min_distance": {**_stats(dists), "min": float(min(dists)) if dists else None},
+                **{key: _stats(_present([getattr(e, key) for e in ok])) for key in _SUCCESS_STATS},
+                "min_distance": _stats(dists, "min"),
                 "hidden_goal_episodes": len(hidden),
                 "hidden_goal_success_rate": (sum(e.outcome == "success" for e in hidden) / len(hidden)
                                              if hidden else None),
                 "rejected_plan_rate": (sum(e.rejected_plans or 0 for e in eps) / max(1, sum(e.plans or 0 for e in eps))
                                        if eps else None),
-                **_flight_stats(eps),
+                **{key: _stats(_present([getattr(e, key) for e in eps]), "max") for key in _FLIGHT_STATS},
             }
     return out
 
@@ -574,11 +512,8 @@ def latency_summary(latencies: dict[tuple[str, str], list[float]], worlds: list[
         out[m] = {}
         for w in [*worlds, "overall"]:
             vals = [v for (wk, mk), vs in latencies.items() if mk == m and (w == "overall" or wk == w) for v in vs]
-            a = np.asarray(vals) if vals else np.zeros(0)
-            out[m][w] = {"plans": len(vals), "mean_ms": float(a.mean()) if len(a) else None,
-                         "std_ms": float(a.std()) if len(a) else None,
-                         "median_ms": float(np.median(a)) if len(a) else None,
-                         "p90_ms": float(np.percentile(a, 90)) if len(a) else None}
+            out[m][w] = {"plans": len(vals), **{f"{k}_ms": v for k, v in _stats(vals).items()},
+                         "p90_ms": float(np.percentile(vals, 90)) if vals else None}
     return out
 
 
@@ -596,7 +531,6 @@ class _ModelContext:
     """What the model (or its absence) decides about an evaluation."""
 
     camera: CameraSpec
-    """The camera rendered in the loop."""
     loop: LoopConfig
     """The loop with the model's robot radius and cruise speed."""
     trained_worlds: set[tuple[str, int]]
@@ -604,9 +538,8 @@ class _ModelContext:
     model_info: dict[str, Any] | None
     """results.json's ``model`` (None without a model)."""
     flown_horizon: float = 1.5
-    """Metres of each candidate the flown-path head reads (the model's ``flown_horizon``; judge.npz)."""
+    """The model's ``flown_horizon`` and ``flown_history`` (judge.npz)."""
     flown_history: float = 0.0
-    """Seconds of earlier frames the flown-path head reads (the model's ``flown_history``; judge.npz)."""
 
 
 def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> _ModelContext:
@@ -623,15 +556,12 @@ def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> 
     if model is None:
         return context
     run_dir = resolve_model(model)
-    planner = Planner.load(run_dir)  # a missing or foreign model.pt is a one-line error here
-    net = planner.net
+    net = Planner.load(run_dir).net  # a missing or foreign model.pt is a one-line error here
     run_cfg = _run_config(run_dir)
     cam = _training_camera(run_cfg)
     h, w = net.config.input_size
     if cam is not None:
-        # the network resizes the training camera's images here exactly as it did in training (the
-        # paper preset's 360x640 from a 160x120 dataset, too), so any input size is consistent
-        context.camera = cam
+        context.camera = cam  # the network resizes its images as in training, so any input size fits
     elif h > context.camera.height or w > context.camera.width:
         raise EvalError(
             f"model {run_dir} expects depth resized to {h}x{w}, its run records no training camera and its "
@@ -642,13 +572,9 @@ def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> 
     else:
         log.warning("the run's training workspaces are not readable; rendering %s", context.camera.source)
     loss = run_cfg.get("loss", {}) or {}
-    if "robot_radius" in loss:
-        context.loop = dataclasses.replace(context.loop, robot_radius=float(loss["robot_radius"]))
-    # The time limit is a multiple of the straight flight at the pace the planner is asked to fly: a
-    # flight slowed by execution.speed.cruise is not judged by the clock of a faster one.
-    cruise = config.execution.speed.cruise
-    pace = net.config.cruise_speed if cruise is None else cruise
-    context.loop = dataclasses.replace(context.loop, cruise_speed=float(pace))
+    cruise = config.execution.speed.cruise  # the time limit follows the pace the flights are asked for
+    context.loop = dataclasses.replace(context.loop, robot_radius=float(loss.get("robot_radius", context.loop.robot_radius)),
+                                       cruise_speed=float(net.config.cruise_speed if cruise is None else cruise))
     context.trained_worlds = _training_worlds(run_cfg)
     context.flown_horizon = net.config.flown_horizon
     context.flown_history = net.config.flown_history
@@ -679,40 +605,34 @@ def _worlds_and_pairs(config: EvalConfig) -> tuple[dict[str, Any], dict[str, lis
     return worlds, pairs
 
 
-@dataclass(frozen=True)
-class _Flown:
-    """Every pair's episodes and how many processes flew them."""
-
-    results: dict[tuple[str, int], list[_EpisodeRun]]
-    """(world, pair index) → its episodes, one per method."""
-    workers: int
-    """Processes (or Dask workers, when the client connected) that ran the pairs."""
+_Results = dict[tuple[str, int], list[_EpisodeRun]]
+"""(world, pair index) → its episodes, one per run."""
 
 
 def _fly_all(setup: _WorkerSetup, tasks: list[tuple[str, dict]], workers: int, progress: bool,
-             cluster: tuple[Client, ClusterInfo] | None = None) -> _Flown:
+             cluster: tuple[Client, ClusterInfo] | None = None) -> tuple[_Results, int]:
     """Run every (world, pair) task: on the Dask ``cluster`` when given, else in this process or in
-    ``workers`` spawned ones."""
+    ``workers`` spawned ones; with the number of processes (or Dask workers) that ran them."""
     from tqdm import tqdm
 
     bar = tqdm(total=len(tasks), unit="pair", desc="eval", dynamic_ncols=True, disable=not progress)
     try:
         if cluster is not None:
-            return _Flown(_fly_on_dask(setup, tasks, cluster, bar), cluster[1].workers)
+            return _fly_on_dask(setup, tasks, cluster, bar), cluster[1].workers
         if workers == 1:
-            return _Flown(_fly_here(setup, tasks, bar), 1)
-        return _Flown(_fly_in_pool(setup, tasks, workers, bar), workers)
+            return _fly_here(setup, tasks, bar), 1
+        return _fly_in_pool(setup, tasks, workers, bar), workers
     finally:
         bar.close()
 
 
 def _fly_here(setup: _WorkerSetup, tasks: list[tuple[str, dict]],
-              bar: tqdm) -> dict[tuple[str, int], list[_EpisodeRun]]:
+              bar: tqdm) -> _Results:
     """Every task in this process (its torch thread count restored after)."""
     import torch
 
     global _WORKER
-    results: dict[tuple[str, int], list[_EpisodeRun]] = {}
+    results: _Results = {}
     threads = torch.get_num_threads()
     try:
         _init_worker(setup)
@@ -727,9 +647,9 @@ def _fly_here(setup: _WorkerSetup, tasks: list[tuple[str, dict]],
 
 
 def _fly_in_pool(setup: _WorkerSetup, tasks: list[tuple[str, dict]], workers: int,
-                 bar: tqdm) -> dict[tuple[str, int], list[_EpisodeRun]]:
+                 bar: tqdm) -> _Results:
     """Every task in ``workers`` spawned processes, each set up once by :func:`_init_worker`."""
-    results: dict[tuple[str, int], list[_EpisodeRun]] = {}
+    results: _Results = {}
     with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
                              initializer=_init_worker, initargs=(setup,)) as pool:
         for kind, idx, runs in pool.map(_call, tasks):
@@ -748,7 +668,6 @@ def _dask_task(setup: _WorkerSetup, task: tuple[str, dict]) -> tuple[str, int, l
     """One Dask task: a (world, pair) flown on this worker process. The process is set up (model,
     one torch thread) on its first task of an evaluation and keeps the model and worlds for the next
     ones; a task of another evaluation (another setup) sets it up again."""
-    global _WORKER
     with _DASK_LOCK:
         if _WORKER is None or _WORKER.setup != setup:
             _check_worker_model(setup)
@@ -798,7 +717,7 @@ def _dask_cluster(config: EvalConfig) -> Iterator[tuple[Client, ClusterInfo] | N
 
 
 def _fly_on_dask(setup: _WorkerSetup, tasks: list[tuple[str, dict]], cluster: tuple[Client, ClusterInfo],
-                 bar: tqdm) -> dict[tuple[str, int], list[_EpisodeRun]]:
+                 bar: tqdm) -> _Results:
     """Every task as a Dask task on ``cluster``; results in completion order (the caller orders them)."""
     from distributed import as_completed
     from distributed.scheduler import KilledWorker
@@ -810,7 +729,7 @@ def _fly_on_dask(setup: _WorkerSetup, tasks: list[tuple[str, dict]], cluster: tu
     run_id = uuid.uuid4().hex[:8]
     futures = {client.submit(_dask_task, setup, task, key=f"mapkit-eval-{run_id}-{task[0]}-{task[1]['pair']:03d}",
                              retries=DASK_RETRIES): task for task in tasks}
-    results: dict[tuple[str, int], list[_EpisodeRun]] = {}
+    results: _Results = {}
     for future in as_completed(futures):
         kind, pair = futures[future][0], futures[future][1]["pair"]
         try:
@@ -832,9 +751,8 @@ class _Collected:
 
     episodes: list[EpisodeRecord] = field(default_factory=list)
     latencies: dict[tuple[str, str], list[float]] = field(default_factory=dict)
-    """(world, method) → planning latencies, ms."""
+    """(world, method) → planning (and time allocation) latencies, ms."""
     allocations: dict[tuple[str, str], list[float]] = field(default_factory=dict)
-    """(world, method) → time allocation latencies, ms."""
     paths: dict[str, np.ndarray] = field(default_factory=dict)
     """``"{world}/{pair:03d}/{method}"`` → (N, 4) float32 executed path."""
     plans: list[tuple[str, int, PlanInput]] = field(default_factory=list)
@@ -843,8 +761,7 @@ class _Collected:
     """(world, pair, labelled candidates) of every recorded plan, in results.json order."""
 
 
-def _collect(config: EvalConfig, pairs: dict[str, list[Pair]],
-             results: dict[tuple[str, int], list[_EpisodeRun]]) -> _Collected:
+def _collect(config: EvalConfig, pairs: dict[str, list[Pair]], results: _Results) -> _Collected:
     """Order the episodes by world, pair and method and split off latencies and paths."""
     out = _Collected()
     for kind in config.worlds:
@@ -876,17 +793,14 @@ def _results_doc(config: EvalConfig, context: _ModelContext, pairs: dict[str, li
         "summary": summary,
         "episodes": [e.to_dict() for e in episodes],
     }
-    del doc["config"]["workers"]  # neither changes any result
-    del doc["config"]["scheduler"]
-    del doc["config"]["record_plans"]
-    del doc["config"]["record_judge"]
-    del doc["config"]["judge_history"]
+    for key in ("workers", "scheduler", "record_plans", "record_judge", "judge_history"):  # no result depends on them
+        del doc["config"][key]
     return doc
 
 
 def run_labels(config: EvalConfig) -> list[str]:
     """results.json's ``methods``: the label of every run, in report order."""
-    return [run.label for run in plan_runs(config.methods, config.stacks, config.untrained_seeds)]
+    return [run.label for run in plan_runs(config.methods, config.stacks, UNTRAINED_SEEDS)]
 
 
 def write_plans(path: Path, plans: list[tuple[str, int, PlanInput]]) -> None:
@@ -914,26 +828,24 @@ def write_judgements(path: Path, judgements: list[tuple[str, int, Judgement]], h
     ``history`` (seconds of earlier frames the clearances read)."""
     from mapkit.planner import FLOWN_FEATURES
 
-    rows = [(i, w, pair, j) for i, (w, pair, j) in enumerate(judgements)]
     n = judgements[0][2].features.shape[1] if judgements else 0
     def stacked(name: str, empty: tuple[int, ...], dtype: Any) -> np.ndarray:
-        parts = [getattr(j, name) for _, _, _, j in rows]
+        parts = [getattr(j, name) for _, _, j in judgements]
         return np.concatenate(parts).astype(dtype) if parts else np.zeros(empty, dtype)
-    counts = [len(j.collides) for _, _, _, j in rows]
+    counts = [len(j.collides) for _, _, j in judgements]
     np.savez_compressed(path, features=stacked("features", (0, n, FLOWN_FEATURES), np.float32),
                         lengths=stacked("lengths", (0,), np.float32), collides=stacked("collides", (0,), bool),
-                        plan=np.repeat(np.arange(len(rows), dtype=np.int64), counts),
-                        world=np.repeat(np.array([w for _, w, _, _ in rows], dtype=str), counts),
-                        pair=np.repeat(np.array([p for _, _, p, _ in rows], np.int64), counts),
+                        plan=np.repeat(np.arange(len(judgements), dtype=np.int64), counts),
+                        world=np.repeat(np.array([w for w, _, _ in judgements], dtype=str), counts),
+                        pair=np.repeat(np.array([p for _, p, _ in judgements], np.int64), counts),
                         horizon=np.float64(horizon), robot_radius=np.float64(robot_radius),
                         history=np.float64(history))
 
 
-def _write_outputs(out_dir: Path, doc: dict[str, Any], lat: dict, alloc: dict, worlds: dict[str, Any],
-                   paths: dict[str, np.ndarray], workers: int, *, overwrite: bool,
-                   plans: list[tuple[str, int, PlanInput]] | None = None,
-                   judged: tuple[list[tuple[str, int, Judgement]], float, float, float] | None = None) -> None:
-    """Write the eval folder as one unit: worlds, results.json, latency.json, trajectories.npz, report."""
+def _write_outputs(out_dir: Path, config: EvalConfig, context: _ModelContext, doc: dict[str, Any], lat: dict,
+                   alloc: dict, worlds: dict[str, Any], collected: _Collected, workers: int, overwrite: bool) -> None:
+    """Write the eval folder as one unit: worlds, results.json, latency.json, trajectories.npz, the
+    recorded plans and judgements when asked for, and the report."""
     from mapkit.evaluation._report import write_report
 
     with atomic_output(out_dir, overwrite=overwrite) as tmp:
@@ -945,11 +857,13 @@ def _write_outputs(out_dir: Path, doc: dict[str, Any], lat: dict, alloc: dict, w
         (tmp / "latency.json").write_text(json.dumps(
             {"format": EVAL_FORMAT, "device": platform.processor() or platform.machine(), "torch_threads": 1,
              "workers": workers, "latency": lat, "allocation": alloc}, indent=1) + "\n")
-        np.savez_compressed(tmp / "trajectories.npz", **paths)  # type: ignore[arg-type]  # numpy's stub: a key might be allow_pickle
-        if plans is not None:
-            write_plans(tmp / PLANS_FILE, plans)
-        if judged is not None:
-            write_judgements(tmp / JUDGE_FILE, *judged)
+        np.savez_compressed(tmp / "trajectories.npz", **collected.paths)  # type: ignore[arg-type]  # numpy's stub: a key might be allow_pickle
+        if config.record_plans:
+            write_plans(tmp / PLANS_FILE, collected.plans)
+        if config.record_judge:
+            history = context.flown_history if config.judge_history is None else config.judge_history
+            write_judgements(tmp / JUDGE_FILE, collected.judgements, context.flown_horizon, config.loop.robot_radius,
+                             history)
         write_report(tmp, doc, lat, worlds, alloc)
 
 
@@ -972,10 +886,9 @@ def evaluate(
     progress: bool = True,
 ) -> EvalResult:
     """Fly every method of ``config`` from the same start–goal pairs in unseen simulated worlds and
-    write ``out_dir``: results.json (every outcome and number, the model hash, seeds, versions;
-    identical for the same inputs on CPU), latency.json (wall-clock planning times, which cannot be
-    identical), trajectories.npz (executed paths, ``"{world}/{pair:03d}/{method}"`` → (N, 4) [t, x, y,
-    z]), worlds/*.world.json, report.md (tables shaped like the paper's) and PNGs.
+    write ``out_dir``: results.json (every outcome and number; identical for the same inputs on CPU),
+    latency.json (wall-clock planning times), trajectories.npz (executed paths,
+    ``"{world}/{pair:03d}/{method}"`` → (N, 4) [t, x, y, z]), worlds/*.world.json, report.md and PNGs.
 
     Args:
         model: run directory with model.pt (None only when no method needs a model).
@@ -999,45 +912,60 @@ def evaluate(
 
         setup = _WorkerSetup(model=_model_for_workers(model, config),
                              model_sha256=context.model_info["sha256"] if context.model_info else None,
-                             seed=config.seed, pair_clearance=config.pair_clearance, camera=context.camera,
-                             runs=tuple(plan_runs(config.methods, config.stacks, config.untrained_seeds)),
-                             oracle_corridor=config.oracle_corridor,
-                             execution=config.execution, loop=config.loop, record_plans=config.record_plans,
-                             untrained_seeds=config.untrained_seeds, record_judge=config.record_judge,
-                             judge_history=config.judge_history, vehicle=config.vehicle, gimbal=config.gimbal)
+                             camera=context.camera, config=config,
+                             runs=tuple(plan_runs(config.methods, config.stacks, UNTRAINED_SEEDS)))
         tasks = [(k, p.to_dict()) for k in config.worlds for p in pairs[k]]
-        flown = _fly_all(setup, tasks, config.workers, progress, cluster)
-    collected = _collect(config, pairs, flown.results)
+        results, workers = _fly_all(setup, tasks, config.workers, progress, cluster)
+    collected = _collect(config, pairs, results)
 
     worlds_list, methods = list(config.worlds), run_labels(config)
     summary = summarise(collected.episodes, worlds_list, methods)
     lat = latency_summary(collected.latencies, worlds_list, methods)
     alloc = latency_summary(collected.allocations, worlds_list, methods)
     doc = _results_doc(config, context, pairs, summary, collected.episodes)
-    _write_outputs(out_dir, doc, lat, alloc, worlds, collected.paths, flown.workers, overwrite=overwrite,
-                   plans=collected.plans if config.record_plans else None,
-                   judged=(collected.judgements, context.flown_horizon, config.loop.robot_radius,
-                           context.flown_history if config.judge_history is None else config.judge_history)
-                   if config.record_judge else None)
+    _write_outputs(out_dir, config, context, doc, lat, alloc, worlds, collected, workers, overwrite)
     files = sorted(p for p in out_dir.rglob("*") if p.is_file())
     return EvalResult(out_dir=out_dir, summary={"success": summary, "latency": lat, "allocation": alloc}, files=files,
                       ablation=ablation(collected.episodes, methods))
 
 
+def _validate_loop(loop: LoopConfig) -> None:
+    """One line naming the loop's first bad setting (its key under ``loop``)."""
+    pilot = loop.pilot
+    if not (math.isfinite(pilot.horizon) and pilot.horizon > 0):
+        raise EvalError(f"loop.pilot.horizon must be > 0 metres (the local goal's distance), got {pilot.horizon}")
+    check_interval(pilot.replan_interval, loop.depth_rate)
+    try:
+        pilot.validate()
+    except FlightError as exc:
+        raise EvalError(str(exc).replace("PilotConfig.", "loop.pilot.")) from None
+    faults, interval = loop.faults, pilot.replan_interval
+    for name, value, ok, where in (("fault drop", faults.drop, 0.0 <= faults.drop < 1.0, "[0, 1)"),
+                                   ("fault delay", faults.delay, 0.0 <= faults.delay < interval,
+                                    f"[0, replan interval {interval} s)"),
+                                   ("fault pose_noise", faults.pose_noise, 0.0 <= faults.pose_noise <= 1.0,
+                                    "[0, 1] metres")):
+        if not ok:
+            raise EvalError(f"{name} {value:g} must be in {where}")
+
+
 def _validate_execution(ex: Execution) -> None:
     """One line naming the flight stack's first bad setting (its key under ``execution``)."""
-    pace, memory = ex.speed, ex.memory
+    pace, memory, route = ex.speed, ex.memory, ex.route
     for key, value in (("corridor.width", ex.corridor.width), ("corridor.unchecked_width", ex.corridor.unchecked_width),
                        ("speed.v_max", pace.v_max), ("speed.a_max", pace.a_max),
                        ("memory.seconds", None if memory is None else memory.seconds),
                        ("speed.turn_accel", pace.turn_accel), ("speed.stop_decel", pace.stop_decel),
                        ("keep_choice", ex.keep_choice)):
         if value is not None and not (math.isfinite(value) and value > 0):
-            raise EvalError(f"execution.{key} must be a positive number (\"none\" turns it off), got {value}")
-    if memory is not None:
-        _validate_memory(memory)
-    if ex.route is not None:
-        _validate_route(ex.route)
+            off = "" if key in ("corridor.unchecked_width", "speed.v_max", "speed.a_max") else ' ("none" turns it off)'
+            raise EvalError(f"execution.{key} must be a positive number{off}, got {value}")
+    for name in ("blocked_within", "subgoal_time") if memory is not None else ():
+        value = getattr(memory, name)
+        if not (math.isfinite(value) and value > 0):
+            raise EvalError(f"execution.memory.{name} must be a positive number of seconds, got {value}")
+    if route is not None:
+        _validate_route(route)
     if pace.cruise is not None and not (math.isfinite(pace.cruise) and pace.cruise > 0):
         raise EvalError(f"execution.speed.cruise must be a positive speed in m/s (or \"none\": the model's cruise "
                         f"speed), got {pace.cruise}")
@@ -1051,13 +979,6 @@ def _validate_execution(ex: Execution) -> None:
         raise EvalError(f"execution.follow must be in [0, 1] (the fraction of the way toward the reference), got {ex.follow}")
 
 
-def _validate_memory(memory: Memory) -> None:
-    """One line naming the memory layer's first bad setting."""
-    for name, value in (("blocked_within", memory.blocked_within), ("subgoal_time", memory.subgoal_time)):
-        if not (math.isfinite(value) and value > 0):
-            raise EvalError(f"Memory.{name} must be a positive number of seconds, got {value}")
-
-
 def _validate_route(route: RouteConfig) -> None:
     """One line naming the flight map's first bad setting."""
     if not (math.isfinite(route.after) and route.after > 0):
@@ -1068,7 +989,7 @@ def _validate_route(route: RouteConfig) -> None:
         value = getattr(route, name)
         if not (math.isfinite(value) and (value > 0 if name in positive else value >= 0)):
             raise EvalError(f"RouteConfig.{name} must be {'> 0' if name in positive else '>= 0'} metres, got {value}")
-    if route.ground is not None and not math.isfinite(route.ground):
-        raise EvalError(f"RouteConfig.ground must be a finite world height in metres or None (no ground), got {route.ground}")
+    if not math.isfinite(route.ground):
+        raise EvalError(f"RouteConfig.ground must be a finite world height in metres, got {route.ground}")
     if not route.wary > route.inflate:
         raise EvalError(f"RouteConfig.wary ({route.wary} m) must exceed RouteConfig.inflate ({route.inflate} m)")

@@ -1,14 +1,11 @@
 """The runs an ablation flies: every method under every flight stack asked for
-(:func:`mapkit.flight.under_stack`).
-
-A *run* is one method under one stack. Its label names it in results.json (``methods``, each
-episode's ``method``, the summary's keys): the method's name under ``full``, ``NAME@STACK`` under
-any other stack, and the bare name for methods no stack changes (``straight``, ``oracle``). When
-``untrained`` flies several initial weights, each is a run of its own, ``untrained#SEED`` (and
-``untrained#SEED@STACK``); the ablation pools them under the plain label."""
+(:func:`mapkit.flight.under_stack`), labelled in results.json ``NAME`` under ``full`` (and for methods
+no stack changes), ``NAME@STACK`` otherwise, and ``untrained#SEED[@STACK]`` per initial weights when
+``untrained`` flies several."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 from mapkit._choices import FLIGHT_STACKS, FlightStack
@@ -20,14 +17,18 @@ STACKED_METHODS = frozenset({*LEARNED_ALLOCATIONS, "untrained", "straight-keypoi
 LABEL_SEPARATOR = "@"
 INIT_SEPARATOR = "#"
 UNTRAINED_SEEDS = (0, 1, 2, 3)
-"""The initial weights ``untrained`` flies by default (``EvalConfig.untrained_seeds``)."""
+"""The initial weights ``untrained`` flies, each every pair as ``untrained#SEED``; the ablation pools
+them (one seed alone is a lottery)."""
 _STACK_BY_NAME: dict[str, FlightStack] = {name: name for name in FLIGHT_STACKS}
 
 
 def parse_stacks(text: str) -> tuple[FlightStack, ...]:
-    """``--stack``'s comma list (``"full,none"``) → the stacks, in order; :class:`EvalError` names a bad
-    or repeated one and the choices."""
-    names = [part.strip() for part in text.split(",") if part.strip()]
+    """``--stack``'s comma list (``"full,none"``) → the stacks, in order (:func:`check_stacks`)."""
+    return check_stacks([part.strip() for part in text.split(",") if part.strip()])
+
+
+def check_stacks(names: Sequence[str]) -> tuple[FlightStack, ...]:
+    """The stacks ``names``; :class:`EvalError` names a bad or repeated one and the choices."""
     out: list[FlightStack] = []
     for name in names:
         stack = _STACK_BY_NAME.get(name)
@@ -49,8 +50,7 @@ class Run:
     stack: FlightStack | None
     """The stack it flies under; None for methods no stack changes."""
     init_seed: int | None = None
-    """The seed of ``untrained``'s initial weights when an evaluation flies several; None otherwise
-    (one seed, or another method)."""
+    """The seed of ``untrained``'s initial weights when an evaluation flies several; None otherwise."""
 
     @property
     def label(self) -> str:
@@ -68,9 +68,8 @@ class Run:
 
 
 def plan_runs(methods: tuple[str, ...], stacks: tuple[FlightStack, ...], untrained_seeds: tuple[int, ...] = (0,)) -> list[Run]:
-    """Every method under every stack (stacks inner; ``untrained`` once per seed of
-    ``untrained_seeds`` under each stack, seeds inner, when there are several), methods no stack
-    changes once."""
+    """Every method under every stack (stacks inner, then ``untrained``'s seeds when there are several),
+    methods no stack changes once."""
     out: list[Run] = []
     for method in methods:
         if method not in STACKED_METHODS:

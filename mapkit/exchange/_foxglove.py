@@ -1,21 +1,10 @@
-"""`mapkit export-foxglove`: one MCAP file that Foxglove opens with no configuration.
-
-Written with the ``foxglove-sdk`` package (its message schemas and MCAP writer), every message
-stamped with the recording's own time (int64 ns):
-
-- ``/tf`` ``FrameTransforms``: world → body → camera at every frame;
-- ``/camera/depth`` ``RawImage`` (32FC1 metres, NaN invalid) and ``/camera/calibration``;
-- ``/map/cloud`` ``PointCloud`` of the fused cloud, coloured by height;
-- ``/map/esdf`` ``VoxelGrid`` (fields ``distance`` float32 and ``observed`` uint8), or ``Grid``
-  slices at chosen heights on ``/map/esdf_slices`` when the grid has more than ``voxel_limit`` voxels;
-- ``/planner/plans`` ``SceneUpdate`` (with a model): the trajectory, its key-points and corridor boxes
-  at chosen frames, toward where the flight was ``goal_ahead`` seconds later;
-- ``/eval/<method>`` ``SceneUpdate`` (with an eval folder): every flown path, in frame ``eval/<world>``.
-"""
+"""`mapkit export-foxglove`: one MCAP file that Foxglove opens with no configuration, written with the
+``foxglove-sdk`` package at the recording's own stamps; the topics are listed in docs/exchange.md."""
 
 from __future__ import annotations
 
 import time
+from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -62,28 +51,42 @@ class FoxgloveConfig:
 
 
 @dataclass
-class FoxgloveSummary:
-    """What was written."""
+class ExportSummary:
+    """What an export wrote."""
 
     path: Path
-    messages: dict[str, int] = field(default_factory=dict)
-    """Topic → message count."""
-    esdf_as: str = ""
-    """"VoxelGrid", "Grid slices" or "" (no map)."""
     notes: list[str] = field(default_factory=list)
     """Layers left out, each with the command that makes them."""
-    plans_skipped: dict[str, int] = field(default_factory=dict)
+    plans_skipped: Counter[str] = field(default_factory=Counter)
     """With a model: why some of the ``plan_count`` frames got no plan (reason → frames)."""
     bytes: int = 0
     seconds: float = 0.0
 
 
-def _pose(T: NDArray[np.float64]) -> Any:
-    from foxglove.messages import Pose, Quaternion, Vector3
+@dataclass
+class FoxgloveSummary(ExportSummary):
+    """What was written to the MCAP."""
+
+    messages: dict[str, int] = field(default_factory=dict)
+    """Topic → message count."""
+    esdf_as: str = ""
+    """"VoxelGrid", "Grid slices" or "" (no map)."""
+
+
+def _vector_quaternion(T: NDArray[np.float64]) -> tuple[Any, Any]:
+    """The translation and rotation of a 4x4 transform as Foxglove's Vector3 and Quaternion."""
+    from foxglove.messages import Quaternion, Vector3
 
     q = quat_xyzw_from_matrix(T[:3, :3])
-    return Pose(position=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-                orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+    return (Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+            Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+
+
+def _pose(T: NDArray[np.float64]) -> Any:
+    from foxglove.messages import Pose
+
+    position, orientation = _vector_quaternion(T)
+    return Pose(position=position, orientation=orientation)
 
 
 def _stamp(ns: int) -> Any:
@@ -93,12 +96,11 @@ def _stamp(ns: int) -> Any:
 
 
 def _transform(ns: int, parent: str, child: str, T: NDArray[np.float64]) -> Any:
-    from foxglove.messages import FrameTransform, Quaternion, Vector3
+    from foxglove.messages import FrameTransform
 
-    q = quat_xyzw_from_matrix(T[:3, :3])
-    return FrameTransform(timestamp=_stamp(ns), parent_frame_id=parent, child_frame_id=child,
-                          translation=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-                          rotation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+    translation, rotation = _vector_quaternion(T)
+    return FrameTransform(timestamp=_stamp(ns), parent_frame_id=parent, child_frame_id=child, translation=translation,
+                          rotation=rotation)
 
 
 def _fields(*spec: tuple[str, int, str]) -> list[Any]:
@@ -210,7 +212,7 @@ def _line(points_world: NDArray[np.float64], colour: Any, thickness: float = 0.0
                          color=colour)
 
 
-def _plan_entity(result: Any, T_wb: NDArray[np.float64], ns: int, world: str, corridor: float, index: int) -> Any:
+def _plan_entity(result: Any, T_wb: NDArray[np.float64], ns: int, world: str, index: int) -> Any:
     """Trajectory, key-points and one corridor box per key-point segment (body axes) of one plan."""
     from foxglove.messages import CubePrimitive, SceneEntity, SpherePrimitive, Vector3
 
@@ -222,7 +224,7 @@ def _plan_entity(result: Any, T_wb: NDArray[np.float64], ns: int, world: str, co
         T = np.eye(4)
         T[:3, 3] = R @ kp + p
         spheres.append(SpherePrimitive(pose=_pose(T), size=Vector3(x=0.15, y=0.15, z=0.15), color=_colour(1.0, 0.6, 0.0)))
-        lo, hi = np.minimum(ends[k], ends[k + 1]) - corridor, np.maximum(ends[k], ends[k + 1]) + corridor
+        lo, hi = np.minimum(ends[k], ends[k + 1]) - PLAN_CORRIDOR, np.maximum(ends[k], ends[k + 1]) + PLAN_CORRIDOR
         box = np.eye(4)
         box[:3, :3], box[:3, 3] = R, R @ (0.5 * (lo + hi)) + p
         size = hi - lo
@@ -230,8 +232,7 @@ def _plan_entity(result: Any, T_wb: NDArray[np.float64], ns: int, world: str, co
                                    color=_colour(0.2, 0.6, 1.0, 0.12)))
     colour = _colour(0.1, 0.8, 0.2) if result.execute else _colour(0.9, 0.1, 0.1)
     return SceneEntity(timestamp=_stamp(ns), frame_id=world, id=f"plan_{index:06d}", lines=[_line(samples, colour)],
-                       spheres=spheres, cubes=cubes,
-                       metadata=[])
+                       spheres=spheres, cubes=cubes, metadata=[])
 
 
 PLAN_CORRIDOR = 1.0
@@ -242,9 +243,9 @@ HOVER_DISTANCE = 0.5
 """Metres: a goal this close leaves nowhere to plan to (the vehicle hovered); such frames get no plan."""
 
 
-def _plan_results(frames: Any, config: FoxgloveConfig, skipped: dict[str, int]
-                  ) -> Iterator[tuple[int, NDArray[np.float64], Any, float]]:
-    """(stamp, T_world_body, PlanResult, corridor) of ``config.model`` at evenly spread frames, each
+def _plan_results(frames: Any, config: FoxgloveConfig, skipped: Counter[str]
+                  ) -> Iterator[tuple[int, NDArray[np.float64], Any]]:
+    """(stamp, T_world_body, PlanResult) of ``config.model`` at evenly spread frames, each
     toward where the flight was ``goal_ahead`` seconds later (same recording), clipped to the
     planner's range; the ``plan_count`` frames that get none are counted in ``skipped`` by reason,
     for the summary to say why fewer plans were written."""
@@ -260,36 +261,32 @@ def _plan_results(frames: Any, config: FoxgloveConfig, skipped: dict[str, int]
     velocity = body_velocities(stamps, frames.T_world_body, frames.source_index)
     picks = np.unique(np.linspace(0, len(stamps) - 1, config.plan_count).round().astype(int)).tolist()
     if len(picks) < config.plan_count:  # evenly spread over fewer frames than plans: each frame once
-        _count(skipped, f"the flight has only {len(stamps)} frames", config.plan_count - len(picks))
+        skipped[f"the flight has only {len(stamps)} frames"] += config.plan_count - len(picks)
     for i in picks:
         later = np.flatnonzero((frames.source_index == frames.source_index[i]) & (stamps >= stamps[i] + int(config.goal_ahead * 1e9)))
         if not len(later):
-            _count(skipped, f"no frame {config.goal_ahead:g} s later in its recording to plan toward (the flight's "
-                            "end, see --goal-ahead)")
+            skipped[f"no frame {config.goal_ahead:g} s later in its recording to plan toward (the flight's end, "
+                    "see --goal-ahead)"] += 1
             continue
         T_wb = frames.T_world_body[i]
         goal = (invert_transform(T_wb) @ np.append(frames.T_world_body[later[0]][:3, 3], 1.0))[:3]
         distance = float(np.linalg.norm(goal))
         if distance < HOVER_DISTANCE:
-            _count(skipped, f"under {HOVER_DISTANCE:g} m flown in the next {config.goal_ahead:g} s: nowhere to plan to "
-                            "(hovering, or a short --goal-ahead)")
+            skipped[f"under {HOVER_DISTANCE:g} m flown in the next {config.goal_ahead:g} s: nowhere to plan to "
+                    "(hovering, or a short --goal-ahead)"] += 1
             continue
         result = planner.plan(np.asarray(frames.depth[i]), goal * min(1.0, LOCAL_GOAL_RANGE / distance),
                               velocity_body=velocity[i], corridor=PLAN_CORRIDOR, K=frames.K,
                               T_body_camera=invert_transform(T_wb) @ frames.T_world_camera[i])
-        yield int(stamps[i]), T_wb, result, PLAN_CORRIDOR
+        yield int(stamps[i]), T_wb, result
 
 
-def _count(skipped: dict[str, int], reason: str, frames: int = 1) -> None:
-    skipped[reason] = skipped.get(reason, 0) + frames
-
-
-def _log_plans(frames: Any, world: str, config: FoxgloveConfig, channel: Any, skipped: dict[str, int]) -> int:
+def _log_plans(frames: Any, world: str, config: FoxgloveConfig, channel: Any, skipped: Counter[str]) -> int:
     from foxglove.messages import SceneUpdate
 
     count = 0
-    for ns, T_wb, result, corridor in _plan_results(frames, config, skipped):
-        channel.log(SceneUpdate(entities=[_plan_entity(result, T_wb, ns, world, corridor, count)]), log_time=ns)
+    for ns, T_wb, result in _plan_results(frames, config, skipped):
+        channel.log(SceneUpdate(entities=[_plan_entity(result, T_wb, ns, world, count)]), log_time=ns)
         count += 1
     return count
 
@@ -297,9 +294,8 @@ def _log_plans(frames: Any, world: str, config: FoxgloveConfig, channel: Any, sk
 _OUTCOME_COLOURS = {"success": (0.1, 0.7, 0.2), "collision": (0.9, 0.1, 0.1), "timeout": (1.0, 0.6, 0.0)}
 
 
-def read_eval_paths(eval_dir: Path) -> tuple[dict[tuple[str, int, str], Outcome], Any]:
-    """The outcome of every (world, pair, method) of a `mapkit eval` folder, and its executed paths
-    (trajectories.npz, keys ``world/pair/method``)."""
+def read_eval_paths(eval_dir: Path) -> list[tuple[str, str, NDArray[np.float64], tuple[float, float, float]]]:
+    """(world, method, flown xyz points, RGB colour of its outcome) of every path of a `mapkit eval` folder."""
     import json
 
     try:
@@ -309,7 +305,13 @@ def read_eval_paths(eval_dir: Path) -> tuple[dict[tuple[str, int, str], Outcome]
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ExchangeError(f"--eval {eval_dir}: not a readable `mapkit eval` folder ({type(exc).__name__}: {exc}); "
                             f"run `mapkit eval -o {eval_dir}` first") from None
-    return {(r.world, int(r.pair), r.method): r.outcome for r in records}, paths
+    outcome: dict[tuple[str, int, str], Outcome] = {(r.world, int(r.pair), r.method): r.outcome for r in records}
+    out = []
+    for key in paths.files:
+        world, pair, method = key.split("/")
+        colour = _OUTCOME_COLOURS.get(outcome.get((world, int(pair), method), ""), (0.5, 0.5, 0.5))
+        out.append((world, method, paths[key][:, 1:4], colour))
+    return out
 
 
 def _log_eval(eval_dir: Path, ns: int, channels: dict[str, Any], context: Any) -> int:
@@ -318,12 +320,9 @@ def _log_eval(eval_dir: Path, ns: int, channels: dict[str, Any], context: Any) -
     from foxglove.channels import SceneUpdateChannel
     from foxglove.messages import SceneEntity, SceneUpdate
 
-    outcome, paths = read_eval_paths(eval_dir)
     lines: dict[str, dict[str, list[Any]]] = {}
-    for key in paths.files:
-        world, pair, method = key.split("/")
-        colour = _OUTCOME_COLOURS.get(outcome.get((world, int(pair), method), ""), (0.5, 0.5, 0.5))
-        lines.setdefault(method, {}).setdefault(world, []).append(_line(paths[key][:, 1:4], _colour(*colour), 0.03))
+    for world, method, points, colour in read_eval_paths(eval_dir):
+        lines.setdefault(method, {}).setdefault(world, []).append(_line(points, _colour(*colour), 0.03))
     for method, worlds in sorted(lines.items()):
         topic = f"/eval/{method}"
         channels[topic] = SceneUpdateChannel(topic, context=context)
@@ -359,15 +358,10 @@ def export_foxglove(workspace: str | Path, output: str | Path, config: FoxgloveC
     first = int(frames.stamp_ns[0])
     summary = FoxgloveSummary(output)
     context = foxglove.Context()
-    channels: dict[str, Any] = {
-        "/tf": FrameTransformsChannel("/tf", context=context),
-        "/camera/depth": RawImageChannel("/camera/depth", context=context),
-        "/camera/calibration": CameraCalibrationChannel("/camera/calibration", context=context),
-        "/map/cloud": PointCloudChannel("/map/cloud", context=context),
-        "/map/esdf": VoxelGridChannel("/map/esdf", context=context),
-        "/map/esdf_slices": GridChannel("/map/esdf_slices", context=context),
-        "/planner/plans": SceneUpdateChannel("/planner/plans", context=context),
-    }
+    kinds = {"/tf": FrameTransformsChannel, "/camera/depth": RawImageChannel,
+             "/camera/calibration": CameraCalibrationChannel, "/map/cloud": PointCloudChannel,
+             "/map/esdf": VoxelGridChannel, "/map/esdf_slices": GridChannel, "/planner/plans": SceneUpdateChannel}
+    channels: dict[str, Any] = {topic: kind(topic, context=context) for topic, kind in kinds.items()}
     with atomic_output(output, overwrite=config.overwrite) as tmp:
         writer = foxglove.open_mcap(tmp, context=context)
         try:

@@ -1,22 +1,10 @@
-"""`mapkit export-rerun`: the same layers as the Foxglove export, as a Rerun recording (.rrd).
-
-Entities (``rerun-sdk`` archetypes), on the timeline ``recording`` (the recording's own stamps):
-
-- ``/world/body`` ``Transform3D`` per frame; ``/world/body/camera`` ``Transform3D`` (body → camera)
-  and ``Pinhole``; ``/world/body/camera/depth`` ``DepthImage`` (metres);
-- ``/world/cloud`` ``Points3D`` (static, coloured by height);
-- ``/map/esdf`` ``Tensor`` (x, y, z; metres, static) and ``/world/esdf_slice`` ``Points3D`` of the
-  voxel centres of one slice at the flight's median height, coloured by distance;
-- ``/world/plans`` ``LineStrips3D`` + ``Points3D`` key-points + ``Boxes3D`` corridor boxes at the
-  frames that get a plan (with a model);
-- ``/eval/<world>/<method>`` ``LineStrips3D`` of the flown paths (static; with an eval folder).
-
-A default blueprint shows the 3D world beside the depth camera and the ESDF tensor.
-"""
+"""`mapkit export-rerun`: the same layers as the Foxglove export, as ``rerun-sdk`` archetypes in a Rerun
+recording (.rrd) on the timeline ``recording``, with a default blueprint; entities in docs/exchange.md."""
 
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,8 +13,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapkit.exchange._foxglove import (
-    _OUTCOME_COLOURS,
+    PLAN_CORRIDOR,
     ExchangeError,
+    ExportSummary,
     FoxgloveConfig,
     _height_colours,
     _plan_results,
@@ -44,20 +33,13 @@ TIMELINE = "recording"
 
 
 @dataclass
-class RerunSummary:
-    """What was written."""
+class RerunSummary(ExportSummary):
+    """What was written to the .rrd."""
 
-    path: Path
     frames: int = 0
     plans: int = 0
-    plans_skipped: dict[str, int] = field(default_factory=dict)
-    """With a model: why some of the ``plan_count`` frames got no plan (reason → frames)."""
     eval_paths: int = 0
     entities: list[str] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
-    """Layers left out, each with the command that makes them."""
-    bytes: int = 0
-    seconds: float = 0.0
 
 
 def _transform(T: NDArray[np.float64]) -> Any:
@@ -111,16 +93,16 @@ def _log_maps(rec: Any, workspace: Path, frames: Any) -> list[str]:
     return logged
 
 
-def _log_plans(rec: Any, frames: Any, config: RerunConfig, skipped: dict[str, int]) -> int:
+def _log_plans(rec: Any, frames: Any, config: RerunConfig, skipped: Counter[str]) -> int:
     import rerun as rr
 
     count = 0
-    for ns, T_wb, result, corridor in _plan_results(frames, config, skipped):
+    for ns, T_wb, result in _plan_results(frames, config, skipped):
         _at(rec, ns)
         R, p = T_wb[:3, :3], T_wb[:3, 3]
         ends = np.concatenate([np.zeros((1, 3)), result.keypoints])
-        lo = np.minimum(ends[:-1], ends[1:]) - corridor
-        hi = np.maximum(ends[:-1], ends[1:]) + corridor
+        lo = np.minimum(ends[:-1], ends[1:]) - PLAN_CORRIDOR
+        hi = np.maximum(ends[:-1], ends[1:]) + PLAN_CORRIDOR
         quaternion = rr.Quaternion(xyzw=quat_xyzw_from_matrix(R))
         rec.log("/world/plans/trajectory", rr.LineStrips3D([result.samples_body @ R.T + p],
                                                            colors=[(30, 200, 60)] if result.execute else [(230, 30, 30)]))
@@ -134,15 +116,13 @@ def _log_plans(rec: Any, frames: Any, config: RerunConfig, skipped: dict[str, in
 def _log_eval(rec: Any, eval_dir: Path) -> int:
     import rerun as rr
 
-    outcome, paths = read_eval_paths(eval_dir)
+    paths = read_eval_paths(eval_dir)
     groups: dict[tuple[str, str], list[tuple[NDArray[np.float64], tuple[int, ...]]]] = {}
-    for key in paths.files:
-        world, pair, method = key.split("/")
-        colour = _OUTCOME_COLOURS.get(outcome.get((world, int(pair), method), ""), (0.5, 0.5, 0.5))
-        groups.setdefault((world, method), []).append((paths[key][:, 1:4], tuple(int(255 * c) for c in colour)))
+    for world, method, points, colour in paths:
+        groups.setdefault((world, method), []).append((points, tuple(int(255 * c) for c in colour)))
     for (world, method), strips in sorted(groups.items()):
         rec.log(f"/eval/{world}/{method}", rr.LineStrips3D([s for s, _ in strips], colors=[c for _, c in strips]), static=True)
-    return len(paths.files)
+    return len(paths)
 
 
 def _blueprint() -> Any:

@@ -2,7 +2,6 @@
 
 from mapkit.export._tuples import (
     FUTURE,
-    GOAL_KIND_NAMES,
     HIDDEN,
     RANDOM,
     TUPLES,
@@ -17,7 +16,6 @@ from mapkit.export._tuples import (
 )
 
 __all__ = [
-    "GOAL_KIND_NAMES",
     "HIDDEN",
     "blocked_lines",
     "FUTURE",

@@ -183,14 +183,14 @@ def blocked_lines(start: NDArray[np.float64], goals: NDArray[np.float64], esdf: 
     return d.min(axis=1) < threshold
 
 
-def _goal_counts(config: ExportConfig) -> tuple[int, int, int]:
-    """(future, visible, hidden) goals per frame from the mix (rounded; visible takes the rest)."""
+def _goal_counts(config: ExportConfig) -> tuple[int, int]:
+    """(future, hidden) goals per frame from the mix, rounded (visible goals take the rest)."""
     mix = np.asarray(config.goal_mix, dtype=np.float64)
     mix = mix / mix.sum()
     want = config.goals_per_frame
     future = int(round(want * mix[0]))
     hidden = min(want - future, int(round(want * mix[2])))
-    return future, want - future - hidden, hidden
+    return future, hidden
 
 
 def _future_goals(i: int, count: int, *, frames_T_wb: NDArray[np.float64], stamps_s: NDArray[np.float64],
@@ -213,11 +213,8 @@ def _visible_goals(count: int, *, T_world_camera: NDArray[np.float64], depth: ND
     """Up to ``count`` goals in the camera's view, in front of the measured depth along their pixel's
     ray, in observed free space with clearance."""
     H, W = depth.shape
-    out: list[tuple[NDArray[np.float64], float]] = []
-    for _ in range(8):
-        need = count - len(out)
-        if need <= 0:
-            break
+
+    def draw(need: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         n = 16 * need
         u = rng.uniform(0, W - 1, n)
         v = rng.uniform(0, H - 1, n)
@@ -230,8 +227,9 @@ def _visible_goals(count: int, *, T_world_camera: NDArray[np.float64], depth: ND
         pts = (T_world_camera[:3, :3] @ (ray * r[:, None]).T).T + T_world_camera[:3, 3]
         d, _ = esdf.query(pts, outside="nan")
         ok = front & np.isfinite(d) & (d >= config.clearance) & esdf.observed_at(pts)
-        out.extend((p, float(di)) for p, di in zip(pts[ok][:need], d[ok][:need], strict=True))
-    return out
+        return pts[ok], d[ok]
+
+    return _draw_until(count, 8, draw)
 
 
 def _hidden_goals(count: int, *, T_world_body: NDArray[np.float64], esdf: _ObservedMap, config: ExportConfig,
@@ -241,11 +239,8 @@ def _hidden_goals(count: int, *, T_world_body: NDArray[np.float64], esdf: _Obser
     p0 = T_world_body[:3, 3]
     yaw = float(np.arctan2(T_world_body[1, 0], T_world_body[0, 0]))
     half = np.deg2rad(config.hidden_bearing_deg)
-    out: list[tuple[NDArray[np.float64], float]] = []
-    for _ in range(6):
-        need = count - len(out)
-        if need <= 0:
-            break
+
+    def draw(need: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         n = 24 * need
         bearing = yaw + rng.uniform(-half, half, n)
         r = rng.uniform(config.goal_range[0], config.goal_range[1], n)
@@ -255,7 +250,20 @@ def _hidden_goals(count: int, *, T_world_body: NDArray[np.float64], esdf: _Obser
         ok = np.isfinite(d) & (d >= config.clearance) & esdf.observed_at(pts)
         pts, d = pts[ok], d[ok]
         hit = blocked_lines(p0, pts, esdf, threshold=config.blocked_distance)
-        out.extend((p, float(di)) for p, di in zip(pts[hit][:need], d[hit][:need], strict=True))
+        return pts[hit], d[hit]
+
+    return _draw_until(count, 6, draw)
+
+
+def _draw_until(count: int, tries: int, draw: Any) -> list[tuple[NDArray[np.float64], float]]:
+    """Up to ``count`` (goal, clearance) pairs from at most ``tries`` calls of ``draw(still needed)``."""
+    out: list[tuple[NDArray[np.float64], float]] = []
+    for _ in range(tries):
+        need = count - len(out)
+        if need <= 0:
+            break
+        pts, d = draw(need)
+        out.extend((p, float(di)) for p, di in zip(pts[:need], d[:need], strict=True))
     return out
 
 
@@ -266,13 +274,11 @@ def _sample_goals(
 ) -> tuple[list[NDArray[np.float64]], list[int], list[float]]:
     """Up to goals_per_frame world-frame goals for frame i in the configured mix; kinds short of
     candidates are made up with visible free-space goals."""
-    n_future, n_visible, n_hidden = _goal_counts(config)
-    picked: list[tuple[int, list[tuple[NDArray[np.float64], float]]]] = []
+    n_future, n_hidden = _goal_counts(config)
     future = _future_goals(i, n_future, frames_T_wb=frames_T_wb, stamps_s=stamps_s, source_index=source_index,
                            esdf=esdf, config=config, rng=rng)
     hidden = _hidden_goals(n_hidden, T_world_body=frames_T_wb[i], esdf=esdf, config=config, rng=rng)
-    n_visible = config.goals_per_frame - len(future) - len(hidden)
-    visible = _visible_goals(n_visible, T_world_camera=T_world_camera, depth=depth, K=K, esdf=esdf, config=config,
+    visible = _visible_goals(config.goals_per_frame - len(future) - len(hidden), T_world_camera=T_world_camera, depth=depth, K=K, esdf=esdf, config=config,
                              rng=rng)
     picked = [(FUTURE, future), (RANDOM, visible), (HIDDEN, hidden)]
     goals = [p for _, items in picked for p, _ in items]

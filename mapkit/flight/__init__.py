@@ -7,21 +7,10 @@ own simulator or robot).
 ...                   depth, K=K, T_world_body=T_world_body)            # doctest: +SKIP
 >>> setpoint = step.reference.sample(t_now)   # position … snap, yaw, yaw rate for your controller  # doctest: +SKIP
 
-Per camera frame :meth:`Pilot.step` takes the depth image, its camera (K, and its pose for this frame:
-``T_world_camera``, or the body's pose and ``T_body_camera``, so a camera that tilts with the airframe
-works), the vehicle's state and the goal in the world frame, and returns a :class:`Reference` (world-frame
-piecewise polynomials, continuous with the last at the switch, within the speed and acceleration
-limits) with a status (:data:`Status`) and diagnostics. ``docs/flight.md`` says what to pass and what to
-do on each status.
-
-The flight stack is typed layers (:class:`Execution`): the depth memory (:class:`Memory`), the checked
-corridor (:class:`Corridor`), routing on the flight map (:class:`RouteConfig`), following the
-reference, keeping the chosen candidate, the speed profile and limits (:class:`SpeedProfile`);
-:class:`PilotConfig` holds the brake, the turn on a veto, the replan interval and the input checks.
-``Pilot.load(model, stack="none")`` flies the network alone (:func:`under_stack`).
-
-Single plans (:class:`Planner`, ``mapkit plan``, the viewer) are the pilot's single-shot use: one frame
-flown under the full stack, with widened candidates.
+Per camera frame :meth:`Pilot.step` returns a :class:`Reference` (world-frame piecewise polynomials,
+C³ with the last at the switch) with a status (:data:`Status`); ``docs/flight.md`` says what to pass
+and what to do on each status. The flight stack is typed layers (:class:`Execution`); single plans
+(:class:`Planner`, ``mapkit plan``, the viewer) are the pilot's single-shot use.
 """
 
 from mapkit.flight._camera import CENTRE_TOLERANCE, FOV_TOLERANCE, check_intrinsics, planning_frame

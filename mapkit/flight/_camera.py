@@ -1,13 +1,7 @@
 """The camera contract: which depth images a model can fly from, and the camera of each frame relative
-to the level frame the network plans in.
-
-A model records the camera it was trained with (:class:`~mapkit.flight.RunCamera`). The network
-resizes every image to its input size (area averaging), and its depth check reads intrinsics
-normalised by the image size, so any resolution works whose normalised intrinsics (fx / W, fy / H and
-the principal point) match the recorded ones: such images are resampled. An image whose field of
-view differs by more than :data:`FOV_TOLERANCE` (or whose principal point is off by more than
-:data:`CENTRE_TOLERANCE` of the image) shows the network a scene it never learned to read, and is
-refused with the fix (crop or resize to the recorded field of view, or fine-tune on that camera).
+to the level frame the network plans in. Any resolution works whose normalised intrinsics match the
+recorded camera's (:class:`~mapkit.flight.RunCamera`) within :data:`FOV_TOLERANCE` and
+:data:`CENTRE_TOLERANCE`; another field of view is refused with the fix.
 """
 
 from __future__ import annotations
@@ -17,6 +11,7 @@ import math
 import numpy as np
 
 from mapkit.flight._errors import FlightError
+from mapkit.flight._plan import level_pose
 from mapkit.flight._recorded import RunCamera
 from mapkit.planner import CameraInput
 
@@ -29,9 +24,7 @@ LEVEL_LIMIT_DEG = 80.0
 
 
 def check_intrinsics(K: np.ndarray, width: int, height: int, recorded: RunCamera | None) -> np.ndarray:
-    """``K`` (3, 3) as float64 after checking it against the recorded camera (any K without one);
-    :class:`FlightError` names a K that is not a pinhole matrix or whose field of view the model cannot
-    read."""
+    """``K`` (3, 3) as float64, checked against the recorded camera (any K without one)."""
     try:
         K = np.array(K, dtype=np.float64).reshape(3, 3)  # a copy: callers may pass read-only arrays
     except (TypeError, ValueError):
@@ -75,12 +68,7 @@ def planning_frame(position: np.ndarray, T_world_camera: np.ndarray, T_world_bod
         raise FlightError(f"the {what} points {math.degrees(math.atan2(axis[2], horizontal)):+.0f}° from level: "
                           f"the pilot plans along a heading within {LEVEL_LIMIT_DEG:.0f}° of level; check the pose's "
                           "frames (world ENU z up, body FLU, camera optical z forward)")
-    yaw = math.atan2(axis[1], axis[0])
-    c, s = math.cos(yaw), math.sin(yaw)
-    T = np.eye(4)
-    T[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
-    T[:3, 3] = position
-    return T
+    return level_pose(position, math.atan2(axis[1], axis[0]))
 
 
 def frame_camera(K: np.ndarray, width: int, height: int, T_world_plan: np.ndarray,

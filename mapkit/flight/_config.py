@@ -12,16 +12,13 @@ from mapkit.flight._errors import FlightError
 
 @dataclass(frozen=True)
 class PilotConfig:
-    """How the pilot turns frames into a reference: when it replans, what it does with a plan it does
-    not trust, how the vehicle should face, and what counts as a stale or inconsistent input."""
+    """How the pilot turns frames into a reference: replanning, braking, facing and the input checks."""
 
     replan_interval: float = 0.5
     """Seconds between plans: a frame sooner than this after the last plan only counts as a sign of
     life (the stack's layers were tuned replanning every 0.5 s)."""
     plan_latency: float = 0.02
-    """Seconds from a frame's stamp to the new plan taking over. The vehicle flies the previous
-    reference meanwhile, and the plan starts from that reference's position … jerk at the takeover, so
-    the reference stays C³ across every replan (planning takes about 10–20 ms on one core)."""
+    """Seconds from a frame's stamp to the new plan taking over (from the previous reference's state then)."""
     horizon: float = 6.0
     """Metres: the goal is clipped to this distance (a local goal along the way to the real goal; the
     network was trained on goals within the depth range) and plans pass it at cruise speed."""
@@ -39,8 +36,7 @@ class PilotConfig:
     """rad/s: the reference's yaw turns no faster than this."""
     max_yaw_accel: float = 12.0
     """rad/s²: nor speeds up or slows its turn faster than this (a quadrotor's yaw torque is small: a step
-    in yaw saturates its rotors). A 60° look turn takes about 0.5 s; a hovering vehicle turns again
-    only once it faces within ``LOOK_DONE_DEG`` of where the last turn aimed."""
+    in yaw saturates its rotors)."""
     frame_timeout: float = 0.5
     """Seconds without a depth frame after which the pilot brakes to rest and holds (status
     ``braking``, then ``blocked``) until frames come again."""

@@ -1,19 +1,8 @@
-"""The learned planner under the flight stack: the network's key-points and η, timed by the speed
-profile and the Time Allocation Net, executed as corridor-bounded minimum snap within the limits, with
-the stack's layers around it (:class:`~mapkit.flight.Execution`).
-
-The total time comes from the speed profile (:func:`mapkit.planner.total_time`), every segment at
-least ``min_segment_time`` and the Time Allocation Net's split of the rest; the plan starts from the
-reference's state at the takeover (to rest at the goal; through the local goal at cruise speed while
-the goal lies beyond the horizon). A plan with η ≥ 0.5 is flown anyway when the reference being flown
-has at least as many points near seen surfaces in the current depth image (the veto would keep the
-vehicle on a path the camera shows no safer). The depth images of the last seconds are remembered as
-world points: a plan that comes near one of them soon is replaced by the best-scored candidate that
-keeps clear, or by a plan toward the most open direction in view, or the vehicle brakes.
-
-``allocation`` picks other splits (Table III of the paper), ``spline=True`` flies iPlanner's cubic
-spline through the key-points instead (timed by arc length; the corridor's layers do not apply to a
-spline), ``keypoints="straight"`` replaces the network's key-points by the straight line (η = 0).
+"""The learned planner under the flight stack (:class:`~mapkit.flight.Execution`): the network's
+key-points and η, timed by the speed profile and the Time Allocation Net, executed as corridor-bounded
+minimum snap within the limits from the reference's state at the takeover, with the depth memory,
+the flight map and the other layers around it. ``allocation`` picks other splits (Table III of the
+paper), ``spline=True`` flies iPlanner's cubic spline, ``keypoints="straight"`` the straight line.
 """
 
 from __future__ import annotations
@@ -39,20 +28,16 @@ from mapkit.planner._model import PlannerNet, PlannerOutput
 from mapkit.trajopt import Trajectory, min_snap
 
 _FULL_STACK = Execution()
-"""The default flight stack (immutable, shared)."""
 KeypointSource = Literal["network", "straight"]
-"""Where a :class:`LearnedMethod`'s key-points come from."""
 ROBOT_RADIUS = 0.3
-"""Metres: the robot's radius (the evaluation's collision radius, :attr:`~mapkit.evaluation.LoopConfig.robot_radius`)."""
+"""Metres: the robot's radius (the evaluation's collision radius)."""
 ROBOT_CLEARANCE = 0.35
-"""Metres a plan's first ``Memory.blocked_within`` seconds must keep from every remembered surface
-(the robot's radius, 0.3 m, and a margin for tracking error; 0.32 and 0.40 m flew no better)."""
+"""Metres a plan's first ``Memory.blocked_within`` seconds must keep from every remembered surface."""
 
 
 @dataclass
 class _Search:
-    """Whether a flight searches for its way: it has stalled, or flown much farther than it has come
-    toward its goal. Once searching, it stays so for the rest of the flight."""
+    """Whether a flight searches for its way (stalled, or flown much farther than it came); it stays so."""
 
     searching: bool = False
     start_distance: float | None = None
@@ -84,13 +69,9 @@ def _tensors(wp: np.ndarray, start: np.ndarray, end_speed: float) -> tuple[torch
 
 def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, how: Execution,
              corridor: float | None) -> Trajectory:
-    """Minimum snap in ``corridor`` (None: through the key-points) whose speed and acceleration stay
-    within ``how``'s limits (norms, checked on a dense grid). A plan that breaks them is flown slower:
-    the same problem with its durations stretched by how far it is over (speed falls with the stretch,
-    acceleration with its square; the start state is fixed, so a few rounds), at most
-    :data:`MAX_STRETCH`, while that helps. Else the limits join the QP (:func:`_bounded`); else the
-    closest is returned, and the pilot flies its last reference instead. An infeasible corridor never
-    leaves the plan without a reference: the trajectory then passes the key-points."""
+    """Minimum snap in ``corridor`` (None, or infeasible: through the key-points) within ``how``'s limits
+    (norms, dense grid): else flown slower (durations stretched by the excess, a few rounds, at most
+    :data:`MAX_STRETCH`), else with the limits in the QP (:func:`_bounded`), else the closest."""
     with torch.no_grad():
         kw: dict[str, Any] = {} if corridor is None else {"corridor": corridor}
         traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", **kw)
@@ -115,8 +96,7 @@ def _limited(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
 
 
 def _slowed(end: torch.Tensor, stretch: float) -> torch.Tensor:
-    """End derivatives (B, 3) velocity or (B, D, 3) velocity, acceleration, … of the same path flown
-    ``stretch`` times slower: the k-th derivative divided by stretch^k."""
+    """End derivatives (B, 3) or (B, D, 3) of the same path flown ``stretch`` times slower."""
     if end.dim() == 2:
         return end / stretch
     powers = stretch ** torch.arange(1, end.shape[1] + 1, dtype=end.dtype)
@@ -124,21 +104,17 @@ def _slowed(end: torch.Tensor, stretch: float) -> torch.Tensor:
 
 
 MAX_STRETCH = 8.0
-"""The most a plan's durations are stretched to keep the limits: a slower flight of the same key-points
-(its start state is fixed: the reference's at the takeover)."""
+"""The most a plan's durations are stretched to keep the limits."""
 
 
 def _bounded(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, limits: SpeedProfile,
              corridors: list[dict[str, Any]], closest: Trajectory) -> Trajectory:
-    """The first QP with the limits as per-axis bounds that keeps them (norms): bounds of limit / √3
-    (which keep the norms) then of the limit itself (feasible from a start state beyond limit / √3 on
-    one axis), each in ``corridors`` in turn; else the closest of those and ``closest``."""
+    """The first QP with per-axis bounds limit / √3, then limit, in each of ``corridors``, that keeps the
+    limits (norms); else the closest of those and ``closest``."""
     out = [closest]
     for scale, kw in itertools.product((1.0 / math.sqrt(3.0), 1.0), corridors):
-        v_max = None if limits.v_max is None else limits.v_max * scale
-        a_max = None if limits.a_max is None else limits.a_max * scale
-        traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", limits_everywhere=True, v_max=v_max,
-                        a_max=a_max, **kw)
+        traj = min_snap(wp, T, start=start, end=end, on_infeasible="ignore", limits_everywhere=True,
+                        v_max=limits.v_max * scale, a_max=limits.a_max * scale, **kw)
         if not _solved(traj):
             continue
         if _within(traj, limits):
@@ -155,7 +131,7 @@ def _excess(traj: Trajectory, limits: SpeedProfile) -> float:
     """How much slower ``traj`` must fly to keep ``limits``: the largest of v / v_max and √(a / a_max)."""
     v = float(traj.max_velocity(samples_per_segment=256).max())
     a = float(traj.max_acceleration(samples_per_segment=256).max())
-    return max(1.0 if limits.v_max is None else v / limits.v_max, 1.0 if limits.a_max is None else (a / limits.a_max) ** 0.5)
+    return max(v / limits.v_max, (a / limits.a_max) ** 0.5)
 
 
 def _within(traj: Trajectory, limits: SpeedProfile) -> bool:
@@ -165,10 +141,8 @@ def _within(traj: Trajectory, limits: SpeedProfile) -> bool:
 
 def follow_reference(wp: torch.Tensor, durations: torch.Tensor, obs: Observation, fraction: float,
                      limit: float) -> torch.Tensor:
-    """Waypoints (1, K+1, 3) in the body frame of ``obs`` with every interior key-point moved
-    ``fraction`` of the way toward the reference being flown at the time the plan (segment
-    ``durations`` (1, K)) reaches it, by at most ``limit`` metres per axis. The start, the last
-    key-point and key-points reached after the reference ends stay where they are."""
+    """Waypoints (1, K+1, 3) (body frame of ``obs``) with every interior key-point reached before the
+    reference ends moved ``fraction`` of the way toward it, by at most ``limit`` metres per axis."""
     ref = obs.reference
     if ref is None or fraction <= 0:
         return wp
@@ -185,8 +159,7 @@ def follow_reference(wp: torch.Tensor, durations: torch.Tensor, obs: Observation
 
 
 def _samples(traj, count: int = 24, within: float | None = None) -> torch.Tensor:
-    """(1, B, count, 3) positions of each of the B trajectories, evenly spread in time over the
-    whole trajectory or its first ``within`` seconds (the start excluded)."""
+    """(1, B, count, 3) positions evenly spread over each trajectory or its first ``within`` seconds."""
     total = traj.durations.sum(-1).reshape(-1, 1)
     if within is not None:
         total = total.clamp(max=within)
@@ -195,9 +168,8 @@ def _samples(traj, count: int = 24, within: float | None = None) -> torch.Tensor
 
 
 class _Checker:
-    """Counts a trajectory's points that come closer to a seen surface than the robot's size: in the
-    depth image it was planned from, and with ``recall`` (the memory, the pose, seconds) among the
-    surfaces remembered, over the trajectory's first seconds."""
+    """Counts a trajectory's points closer to a seen surface than the robot's size: in its depth image,
+    and with ``recall`` (the memory, the pose, seconds) among the remembered surfaces."""
 
     def __init__(self, x: torch.Tensor, camera: CameraInput, max_depth: float, pyramid: torch.Tensor | None,
                  recall: tuple[_Memory, np.ndarray, float] | None = None) -> None:
@@ -216,20 +188,16 @@ class _Checker:
 
     def points(self, pts: torch.Tensor) -> int:
         """Conflicts of points (1, 1, P, 3) in the body frame of the depth image."""
-        return int(self.paths(pts)[0])
-
-    def paths(self, pts: torch.Tensor) -> torch.Tensor:
-        """(M,) conflicts of each of M paths of points (1, M, P, 3) in the body frame."""
         from mapkit.planner import seen_conflicts
 
-        return seen_conflicts(pts.to(self.x.dtype), self.x, self.camera, max_depth=self.max_depth,
-                              pyramid=self.pyramid)[0]
+        return int(seen_conflicts(pts.to(self.x.dtype), self.x, self.camera, max_depth=self.max_depth,
+                                  pyramid=self.pyramid)[0][0])
 
 
 def _execute(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, how: Execution,
              check: _Checker | None = None) -> Trajectory:
-    """The reference a plan flies: the widest corridor of ``how`` that ``check`` does not find
-    closer to what the camera sees than the trajectory through the key-points."""
+    """The reference a plan flies: the widest corridor that ``check`` finds no closer to what the camera
+    sees than the trajectory through the key-points."""
     width = how.corridor.widest(check is not None and how.corridor.check)
     if width is None or check is None or not how.corridor.check:
         return _limited(wp, T, start, end, how, width)
@@ -250,11 +218,9 @@ def _execute(wp: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.
 
 def open_direction(depth: np.ndarray, camera: CameraInput, goal_body: np.ndarray, max_depth: float,
                    min_free: float = 2.5) -> np.ndarray | None:
-    """A point (3,) in the body frame toward the image column with the most free depth in the
-    middle fifth of the rows (a doorway, the open end of a corridor), up to 5 m and 1 m short of what
-    is seen there; columns toward ``goal_body`` win ties (one metre of free depth per radian off the
-    goal's bearing). None when no column is free for ``min_free`` metres. Columns without a return
-    count as free to ``max_depth``."""
+    """A point (3,) in the body frame toward the image column with the most free depth in the middle
+    fifth of the rows (a doorway), up to 5 m and 1 m short of what is seen there, one metre of free
+    depth traded per radian off ``goal_body``'s bearing; None when no column is free for ``min_free`` m."""
     depth = np.asarray(depth, dtype=np.float64)
     H, W = depth.shape
     band = depth[int(0.4 * H):int(0.6 * H) + 1]
@@ -276,10 +242,8 @@ def _pick(timing: Timing, m: int) -> Timing:
 
 
 class _Memory:
-    """Surfaces the camera saw during the last ``seconds`` of one flight, in the world frame: a path
-    bending toward the goal leaves the image's field of view (a wall beside the vehicle) long before
-    it reaches what was seen there. One k-d tree per depth image (every second pixel), built once
-    when the image arrives: about a millisecond each, against tens for re-merging the frames."""
+    """Surfaces the camera saw during the last ``seconds`` of one flight, world frame: one k-d tree per
+    depth image (every second pixel), built once when the image arrives."""
 
     stride = 2
 
@@ -315,9 +279,7 @@ class _Memory:
 
     def clearest(self, T_world_body: np.ndarray, start: np.ndarray, deceleration: float = 3.0) -> np.ndarray | None:
         """Body-frame unit vector closest to the velocity (turned by up to 60°, level) along which a
-        brake to rest (v² / ``deceleration`` metres: the loop's default brake) keeps clear of
-        remembered surfaces; None when straight on is clear or no direction is. Braking straight on
-        took blocked office flights into the wall they had just seen."""
+        brake to rest keeps clear of remembered surfaces; None when straight on is clear or none is."""
         v = start[1]
         speed = float(np.linalg.norm(v[:2]))
         if speed < 0.3:
@@ -333,9 +295,8 @@ class _Memory:
         return None
 
     def open_side(self, T_world_body: np.ndarray, radius: float = 3.0) -> float | None:
-        """+1 when fewer remembered surface points lie to the left of the body (its +y half, within
-        ``radius`` metres and 0.5 m of its height, more than 0.3 m off its axis) than to the right, −1
-        when fewer lie to the right, None on a tie: the side a blocked vehicle turns toward."""
+        """+1 (left) or −1 (right): the side with fewer remembered surface points within ``radius``
+        metres near the body's height, which a blocked vehicle turns toward; None on a tie."""
         p, R = T_world_body[:3, 3], T_world_body[:3, :3]
         left = right = 0
         for _, tree in self.frames:
@@ -349,8 +310,7 @@ class _Memory:
         return None if left == right else (1.0 if left < right else -1.0)
 
     def _nearest(self, position: np.ndarray) -> float:
-        """Metres from ``position`` to the nearest remembered surface, up to :data:`ROBOT_CLEARANCE`
-        (inf beyond); kept for the position and frames of the last call (a plan asks several times)."""
+        """Metres to the nearest remembered surface up to :data:`ROBOT_CLEARANCE` (inf beyond), cached."""
         key = (position.tobytes(), len(self.frames), self.frames[-1][0] if self.frames else None)
         if self._nearest_cache is None or self._nearest_cache[0] != key:
             now = min((tree.query(position, distance_upper_bound=ROBOT_CLEARANCE)[0] for _, tree in self.frames),
@@ -359,15 +319,12 @@ class _Memory:
         return self._nearest_cache[1]
 
     def conflicts(self, paths_body: torch.Tensor, T_world_body: np.ndarray) -> np.ndarray:
-        """(M,) points of each path (M, P, 3) in the body frame of ``T_world_body`` closer than
-        :data:`ROBOT_CLEARANCE` to a remembered surface, or closer than the vehicle is now when it is
-        nearer than that already (after braking beside a wall every way out starts near it)."""
+        """(M,) points of each path (M, P, 3) (body frame) closer than :data:`ROBOT_CLEARANCE` to a
+        remembered surface, or than the vehicle is now when it is nearer already."""
         pts = paths_body.double().numpy() @ T_world_body[:3, :3].T + T_world_body[:3, 3]
         flat = pts.reshape(-1, 3)
         radius = min(ROBOT_CLEARANCE, max(self._nearest(T_world_body[:3, 3]) - 0.02, ROBOT_RADIUS))
-        # A plan's trajectory is asked about again once the new image is remembered: the frames
-        # already asked about answer from the last few queries' results (a k-d tree query per
-        # frame is most of the memory's time).
+        # frames already asked about this path answer from the last few queries' results
         key = (flat.tobytes(), radius)
         known = self._near_cache.get(key, {})
         per_frame = {}
@@ -386,8 +343,7 @@ class _Memory:
 
 
 def _reference_no_safer(obs: Observation, plan, check: _Checker) -> bool:
-    """True when the reference being flown, over as long as the new plan from the takeover, has at
-    least as many points closer to seen surfaces than the robot's size as the plan itself."""
+    """True when the reference being flown has at least as many conflicts as the plan, over as long."""
     assert obs.reference is not None  # the caller checks
     total = float(plan.durations.sum())
     t = obs.t + np.linspace(total / 24, total, 24)
@@ -415,12 +371,10 @@ class PlanInput:
 
 @dataclass(frozen=True)
 class JudgeInput:
-    """What the flown-path head read about every candidate of one plan, with where each candidate's
-    judged stretch lies (``mapkit tune-judge`` learns from these, labelled against the world)."""
+    """What the flown-path head read about every candidate of one plan (``mapkit tune-judge`` learns from these)."""
 
     features: np.ndarray
-    """(M, N, FLOWN_FEATURES) float32: what the head reads at N points along each candidate's first
-    ``flown_horizon`` metres as flown (:func:`mapkit.planner.flown_features`)."""
+    """(M, N, FLOWN_FEATURES) float32 (:func:`mapkit.planner.flown_features`)."""
     lengths: np.ndarray
     """(M,) float32 metres of each candidate's trajectory within ``flown_horizon``."""
     points_world: np.ndarray
@@ -428,10 +382,9 @@ class JudgeInput:
 
 
 LABEL_POINTS = 48
-"""Points along a candidate's judged stretch where its recorded label reads the world (3 cm apart at 1.5 m)."""
+"""Points along a candidate's judged stretch where its recorded label reads the world."""
 RECORD_SAMPLES = 16
-"""Points per candidate recorded for a model without a flown-path head (its ``flown_samples``
-otherwise)."""
+"""Points per candidate recorded for a model without a flown-path head."""
 
 
 @dataclass
@@ -468,12 +421,9 @@ class LearnedMethod:
         self.config = net.config
         self.execution = execution
         self._timing_config = _at_speed(net.config, execution.speed.cruise)
-        """The planner config whose cruise speed times the plans (:meth:`_speed_config`)."""
         self._search = _Search()
         self.plan_log: list[PlanInput] | None = None
-        """A list to append every timed plan's :class:`PlanInput` to (``mapkit eval --record-plans``), or None."""
         self.judge_log: list[JudgeInput] | None = None
-        """A list to append every plan's :class:`JudgeInput` to (``mapkit eval --record-judge``), or None."""
         self._subgoal: tuple[np.ndarray, float] | None = None  # (world point, until)
         self._flight: tuple[np.ndarray, float] | None = None  # (goal, time) of the last plan
         self._image: tuple[Observation, ImageFeatures] | None = None  # the last frame's encoding
@@ -484,13 +434,9 @@ class LearnedMethod:
         self._chosen: int | None = None  # the candidate the last plan of this flight flew
         self._recent: list[tuple[float, torch.Tensor]] = []  # (t, world points) of this flight's frames, for the head
         self.record_history: float | None = None
-        """Seconds of earlier frames the recorded judge features read (``mapkit eval --judge-history``);
-        None: the model's ``flown_history``."""
 
     def _keypoints(self, obs: Observation, start: np.ndarray, goal: np.ndarray, end_speed: float = 0.0):
-        """The network's pass toward ``goal`` (to arrive at ``end_speed``), judged by its flown-path
-        head when it has one; a second goal from the same frame (a way out) reuses the first pass's
-        encoding of the image."""
+        """The network's pass toward ``goal``; a second pass on the same frame reuses its image encoding."""
         if self.keypoint_source == "straight":
             return self._straight_keypoints(obs, goal)
         with torch.inference_mode():
@@ -509,8 +455,7 @@ class LearnedMethod:
 
     def _flown_judged(self, x: torch.Tensor, out: PlannerOutput, obs: Observation, start: np.ndarray,
                       end_speed: float) -> PlannerOutput:
-        """``out`` judged by the net's flown-path head (``PlannerConfig.flown_samples``), each candidate's
-        trajectory recorded for ``mapkit eval --record-judge``; ``out`` itself when neither is asked."""
+        """``out`` judged by the net's flown-path head and/or recorded for ``--record-judge``."""
         net = self.net
         head = net.flown_mlp is not None and self.execution.flown_judge
         # iPlanner-style flies a spline, not the corridor's trajectory: it keeps the judge's η
@@ -527,8 +472,7 @@ class LearnedMethod:
         return net.judge_flown(out, flown, x, self._cam, recent=self._recent_points(obs, history)) if head else out
 
     def _remember_frame(self, x: torch.Tensor, obs: Observation, seconds: float) -> None:
-        """Keep the frame ``x``'s points (world frame) among this flight's recent ones, and forget
-        frames more than ``seconds`` older (a second pass on the same frame adds nothing)."""
+        """Keep the frame's world points among this flight's recent ones for ``seconds``."""
         from mapkit.planner import input_points
 
         assert self._cam is not None  # checked by _flown_judged
@@ -541,8 +485,7 @@ class LearnedMethod:
         self._recent.append((obs.t, body @ T[:3, :3].T + T[:3, 3]))
 
     def _recent_points(self, obs: Observation, seconds: float) -> torch.Tensor | None:
-        """(1, P, 3) points of this flight's frames of the last ``seconds`` before ``obs`` in its body
-        frame, or None (none kept, or ``seconds`` 0)."""
+        """(1, P, 3) body-frame points of this flight's frames of the last ``seconds``, or None."""
         earlier = [p for t, p in self._recent if 0 < obs.t - t <= seconds + 1e-6]
         if not earlier:
             return None
@@ -550,9 +493,7 @@ class LearnedMethod:
         return ((torch.cat(earlier) - T[:3, 3]) @ T[:3, :3])[None]
 
     def _flown_trajectories(self, candidates: torch.Tensor, start: np.ndarray, end_speed: float) -> Trajectory:
-        """Every candidate (M, K, 3) as this flight would fly it: timed like a plan and in the corridor
-        an unchecked plan flies (each candidate whose corridor problem fails, through its key-points).
-        The speed limits, which rarely bind, are left out."""
+        """Every candidate (M, K, 3) timed like a plan in the unchecked corridor (no speed limits)."""
         M = candidates.shape[0]
         wp = torch.cat([torch.from_numpy(start[:1]).expand(M, 1, 3), candidates.double()], dim=1)
         st = torch.from_numpy(np.ascontiguousarray(start[1:])).expand(M, 3, 3)
@@ -563,8 +504,7 @@ class LearnedMethod:
 
     def _judge_input(self, flown: Trajectory, x: torch.Tensor, obs: Observation,
                      recent: torch.Tensor | None) -> JudgeInput:
-        """What the flown-path head reads about the candidates ``flown`` (with the ``recent`` points of
-        earlier frames), and their stretches in the world."""
+        """What the flown-path head reads about the candidates ``flown``, and their stretches in the world."""
         from mapkit.planner import arclength_points, flown_features
 
         c = self.config
@@ -577,8 +517,7 @@ class LearnedMethod:
                           points_world=(dense.numpy() @ R.T + p).astype(np.float32))
 
     def _kept(self, out: PlannerOutput) -> PlannerOutput:
-        """``out`` choosing the last plan's candidate when the judge accepts it and scores it within
-        :attr:`Execution.keep_choice` of the best; else ``out``."""
+        """``out`` choosing the last plan's candidate while accepted and within ``keep_choice`` of the best."""
         margin, prev = self.execution.keep_choice, self._chosen
         if (margin is None or prev is None or out.scores is None or out.candidates is None
                 or out.candidate_eta_logits is None or out.chosen is None or prev >= out.candidates.shape[1]):
@@ -592,8 +531,7 @@ class LearnedMethod:
                        chosen=torch.full_like(out.chosen, prev))
 
     def _straight_keypoints(self, obs: Observation, goal: np.ndarray) -> tuple[torch.Tensor, PlannerOutput]:
-        """The preprocessed depth and an output with one candidate: the network's K key-points' places
-        on the straight line to ``goal``, η = 0."""
+        """The preprocessed depth and one candidate on the straight line to ``goal``, η = 0."""
         with torch.inference_mode():
             x = self.net.preprocess(torch.from_numpy(np.asarray(obs.depth, dtype=np.float32)[None]))
             line = self.net.straight_line(torch.from_numpy(np.asarray(goal, dtype=np.float32)[None]))
@@ -602,9 +540,7 @@ class LearnedMethod:
                                 candidates=line[:, None], candidate_eta_logits=logit[:, None])
 
     def _timed(self, wp: torch.Tensor, start: torch.Tensor, end_speed: torch.Tensor) -> Timing:
-        """Segment times of plans (B, K+1, 3) at the flight's cruise speed, each slowed for its
-        sharpest turn (:attr:`SpeedProfile.turn_accel`), its speed at a passed goal too; plans to rest
-        slow down at :attr:`SpeedProfile.stop_decel` until the flight searches."""
+        """Segment times of plans (B, K+1, 3) under the speed profile (:class:`SpeedProfile`)."""
         config, how = self._timing_config, self.execution.speed
         cruise = decel = None
         if how.turn_accel is not None:
@@ -617,8 +553,7 @@ class LearnedMethod:
                            cruise_speed=cruise, decel=decel)
 
     def _attempt(self, obs: Observation, start: np.ndarray, goal: np.ndarray, end_speed: float) -> _Attempt:
-        """Key-points to ``goal`` (body frame), timed, moved toward the reference being flown
-        (:attr:`Execution.follow`) and executed."""
+        """Key-points to ``goal`` (body frame), timed, moved toward the reference and executed."""
         x, out = self._keypoints(obs, start, goal, end_speed)
         kp = out.keypoints[0].double().numpy()
         wp = np.concatenate([start[:1], kp])
@@ -648,9 +583,7 @@ class LearnedMethod:
         return attempt
 
     def _remembered(self, obs: Observation, start: np.ndarray, attempt: _Attempt) -> _Attempt:
-        """The plan checked against every surface seen in the last ``memory`` seconds: the network's
-        choice when its first ``blocked_within`` seconds keep clear of them, else the best-scored
-        candidate that does, else ``blocked``."""
+        """The plan if it keeps clear of the memory, else the best-scored clear candidate, else ``blocked``."""
         memory, how = self._memory, self.execution
         assert memory is not None and how.memory is not None  # called only with a memory
         within = how.memory.blocked_within
@@ -683,8 +616,7 @@ class LearnedMethod:
                         traj, attempt.check, False, out, attempt.end_speed)
 
     def _subgoal_in_force(self, obs: Observation) -> np.ndarray | None:
-        """The way-out point (world) still being flown to, if any; a new flight (a new goal, or time
-        starting over) first clears the memory and the subgoal of the last one."""
+        """The way-out point (world) still being flown to, if any; a new flight starts over first."""
         if self._flight is None or obs.t <= self._flight[1] or not np.array_equal(self._flight[0], obs.goal_world):
             self._subgoal = None
             self._chosen = None
@@ -703,8 +635,7 @@ class LearnedMethod:
         return None if self._subgoal is None else self._subgoal[0]
 
     def _aim(self, obs: Observation, points: np.ndarray | None, wanted: bool) -> np.ndarray | None:
-        """The flight map's aim point (world) when ``wanted`` and the flight has stalled; the map and
-        the flight's progress are kept up to date either way."""
+        """The flight map's aim point (world) when ``wanted`` and stalled; the map is updated either way."""
         if self._route is None or points is None:
             return None
         p = obs.T_world_body[:3, 3]
@@ -719,16 +650,12 @@ class LearnedMethod:
         return np.array([aim.xy[0], aim.xy[1], z])
 
     def _speed_config(self, obs: Observation) -> PlannerConfig:
-        """The planner config timed at the profile's cruise speed, or at the model's own once the flight
-        searches for its way."""
+        """The planner config at the profile's cruise speed, or the model's own once searching."""
         how = self.execution.speed
         p = obs.T_world_body[:3, 3]
         searching = self._search.update(p, float(np.linalg.norm(np.asarray(obs.goal_world) - p)),
                                         how.search_ratio, how.search_margin)
         return _at_speed(self.config, None if searching else how.cruise)
-
-    def _subgoal_speed(self) -> float:
-        return self._timing_config.cruise_speed
 
     def plan(self, obs: Observation) -> MethodPlan:
         t0 = time.perf_counter()
@@ -747,7 +674,7 @@ class LearnedMethod:
             attempt = self._attempt(obs, start, goal_body, end_speed)
         else:
             attempt = self._attempt(obs, start, obs.T_world_body[:3, :3].T @ (sub - obs.T_world_body[:3, 3]),
-                                    self._subgoal_speed())
+                                    self._timing_config.cruise_speed)
         if self._memory is not None and points is not None:  # the memory needs the camera
             self._memory.add_points(obs.t, points)
             attempt = self._remembered(obs, start, attempt)
@@ -757,7 +684,7 @@ class LearnedMethod:
                     point = obs.T_world_body[:3, :3] @ body + obs.T_world_body[:3, 3]
                     assert self.execution.memory is not None  # a memory found it blocked
                     self._subgoal = (point, obs.t + self.execution.memory.subgoal_time)
-                    attempt = self._remembered(obs, start, self._attempt(obs, start, body, self._subgoal_speed()))
+                    attempt = self._remembered(obs, start, self._attempt(obs, start, body, self._timing_config.cruise_speed))
         assert attempt.traj is not None  # every attempt is executed (a spline, or minimum snap)
         self._chosen = _candidate_index(attempt)
         # the trajectory's own durations: a spline's knots follow its chords, a plan slowed to keep the limits
@@ -770,8 +697,7 @@ class LearnedMethod:
         brake = side = None
         if attempt.blocked and self._memory is not None:
             brake = self._memory.clearest(obs.T_world_body, start)
-            toward_open = self.execution.memory is not None and self.execution.memory.turn_toward_open
-            side = self._memory.open_side(obs.T_world_body) if toward_open else None
+            side = self._memory.open_side(obs.T_world_body)
         latency = 1e3 * (time.perf_counter() - t0)
         pieces = pieces_from_body(coeffs, durations, obs.T_world_body, obs.t)
         kp_world = attempt.kp @ obs.T_world_body[:3, :3].T + obs.T_world_body[:3, 3]
@@ -793,16 +719,14 @@ def _candidate_index(attempt: _Attempt) -> int | None:
 
 
 def _spline_trajectory(wp: np.ndarray, start: np.ndarray, timing: Timing) -> Trajectory:
-    """iPlanner's reference: :func:`_clamped_spline` through the waypoints (K+1, 3) from the start
-    state (4, 3) over a (batch of one) timing's total time, as a batch-of-one cubic trajectory."""
+    """iPlanner's reference: :func:`_clamped_spline` through ``wp`` (K+1, 3) as a batch-of-one trajectory."""
     coeffs, durations = _clamped_spline(wp, start[1], timing.end[0, 0].numpy(), float(timing.total[0]))
     return Trajectory(torch.from_numpy(coeffs)[None], torch.from_numpy(durations)[None])
 
 
 def _clamped_spline(wp: np.ndarray, v0: np.ndarray, v1: np.ndarray, total: float) -> tuple[np.ndarray, np.ndarray]:
-    """Cubic spline through ``wp`` (N, 3), knots at constant speed along the chords over ``total``
-    seconds, velocity ``v0`` at the start and ``v1`` at the end → (M, 3, 4) normalised-time
-    coefficients and (M,) durations."""
+    """Cubic spline through ``wp`` (N, 3) at constant chord speed over ``total`` s, end velocities ``v0``,
+    ``v1`` → (M, 3, 4) normalised-time coefficients and (M,) durations."""
     chord = np.linalg.norm(np.diff(wp, axis=0), axis=1)
     keep = np.concatenate([[True], chord > 1e-6])
     wp, chord = wp[keep], np.linalg.norm(np.diff(wp[keep], axis=0), axis=1)

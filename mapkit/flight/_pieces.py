@@ -24,12 +24,8 @@ def _falling(k: np.ndarray, q: int) -> np.ndarray:
 
 @dataclass
 class Pieces:
-    """Segments ``p(t) = sum_k coeffs[i, :, k] * s**k``, ``s = (t - knots[i]) / durations[i]``,
-    in the world frame; ``t`` in seconds of episode time.
-
-    After the last knot the vehicle holds the end position (derivatives zero): a plan ends at rest,
-    and a plan that does not (a spline stopped short) hands the difference to the tracker as a jump.
-    """
+    """Segments ``p(t) = sum_k coeffs[i, :, k] * s**k``, ``s = (t - knots[i]) / durations[i]``, world
+    frame, ``t`` in seconds of episode time; after the last knot the end position is held at rest."""
 
     t0: float
     """Episode time of the start, seconds."""
@@ -95,9 +91,7 @@ class Pieces:
         return self.knots[1:], before, after
 
     def splice(self, other: Pieces, t_from: float) -> Pieces:
-        """This reference from ``t_from`` (cut inside its segment; the past dropped) until
-        ``other.t0``, then ``other``. A reference that has ended holds its end position until then.
-        ``other`` planned from this reference's state at its ``t0`` makes the result C³ there."""
+        """This reference from ``t_from`` until ``other.t0`` (holding its end if it ended), then ``other``."""
         t_switch = other.t0
         n = max(self.coeffs.shape[-1], other.coeffs.shape[-1])
 
@@ -140,8 +134,7 @@ class Pieces:
 
 
 def _reparametrise(coeffs: np.ndarray, s0: float, s1: float) -> np.ndarray:
-    """(3, n) coefficients of the same polynomial on s in [s0, s1], renormalised to u in [0, 1]
-    (s = s0 + (s1 − s0) u)."""
+    """(3, n) coefficients of the same polynomial on s in [s0, s1], renormalised to u in [0, 1]."""
     n = coeffs.shape[-1]
     h = s1 - s0
     out = np.zeros_like(coeffs)

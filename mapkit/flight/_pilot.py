@@ -1,6 +1,4 @@
-"""The pilot: a stateful receding-horizon planner for any vehicle loop. Per camera frame it takes the
-depth image, the camera, the vehicle's state and the goal, and returns the reference to fly (world-frame
-polynomials for position through snap, with yaw), a status and diagnostics."""
+"""The pilot: a stateful receding-horizon planner for any vehicle loop (docs/flight.md)."""
 
 from __future__ import annotations
 
@@ -31,8 +29,7 @@ inconsistent input). ``blocked``: at rest with no plan accepted, turning to look
 for frames). ``reached``: within ``goal_radius`` of the goal; the pilot no longer replans."""
 STATUSES: tuple[Status, ...] = ("cruising", "braking", "blocked", "reached")
 BRAKE_PEAK = 1.3
-"""A brake's acceleration peaks at no more than this times its ``brake_deceleration`` (3.9 m/s² for the
-default 3, within the flight stack's 4 m/s² limit)."""
+"""A brake's acceleration peaks at no more than this times its ``brake_deceleration``."""
 FACE_MIN_DISTANCE = 0.3
 """Metres: a vehicle at rest this close (horizontally) to what it would face keeps its heading (a goal
 at the vehicle, "stay here", has no direction)."""
@@ -45,11 +42,11 @@ class PilotStep:
     """The pilot's answer to one call."""
 
     reference: Reference
-    """The reference to fly from now on (the previous one until the new plan takes over)."""
+    """The reference to fly from now on."""
     status: Status
     """What the vehicle is doing (:data:`Status`)."""
     reason: str
-    """One line saying why, for logs and displays."""
+    """One line saying why."""
     replanned: bool = False
     """A plan was made in this call."""
     taken: bool = False
@@ -61,7 +58,7 @@ class PilotStep:
     latency_ms: float = 0.0
     """Wall-clock time of this call."""
     plan: MethodPlan | None = None
-    """The planner's whole answer when it planned (key-points, allocation latency, …)."""
+    """The planner's whole answer when it planned."""
 
 
 @dataclass
@@ -71,8 +68,7 @@ class _Frame:
     depth: np.ndarray
     T_world_plan: np.ndarray
     camera: CameraInput | None
-    offset: float
-    """Metres from the frame's position to the vehicle's state."""
+    offset: float  # metres from the frame's position to the vehicle's state
 
 
 class Pilot:
@@ -82,9 +78,8 @@ class Pilot:
     >>> step = pilot.step(t, state, goal_world, depth, K=K, T_world_camera=T)  # doctest: +SKIP
     >>> setpoint = step.reference.sample(t_now)                               # doctest: +SKIP
 
-    Plans start from the reference's own state at the takeover, never from the vehicle's (a reference
-    replanned from noisy states escalates), so every new reference is C³ with the last at the switch;
-    a vehicle pushed more than ``resync_distance`` from its reference gets a brake from its own state.
+    Plans start from the reference's own state at the takeover, so every new reference is C³ with the
+    last at the switch.
     """
 
     def __init__(self, planner: Method, *, camera: RunCamera | None = None, config: PilotConfig | None = None) -> None:
@@ -92,8 +87,7 @@ class Pilot:
         self.config.validate()
         self.planner = planner
         self.camera = camera
-        """The camera the model was trained with (the camera contract, :mod:`mapkit.flight._camera`); the
-        default K and T_body_camera of frames that give none."""
+        """The camera the model was trained with: the default K and T_body_camera of frames."""
         self.reset()
 
     @classmethod
@@ -101,8 +95,7 @@ class Pilot:
              config: PilotConfig | None = None) -> Pilot:
         """The pilot of a trained model (``"pretrained"``: the shipped one; or a run directory) under
         ``stack``: ``"full"`` (every layer), ``"none"`` (the network alone through a narrow corridor, the
-        paper's protocol) or an :class:`Execution` with layers of your own. It plans on the CPU (one
-        thread is enough: about 15 ms a plan), where the flight stack's trajectory optimisation runs."""
+        paper's protocol) or an :class:`Execution` with layers of your own. It plans on the CPU."""
         from mapkit.flight._learned import LearnedMethod
         from mapkit.flight._recorded import load_network
 
@@ -173,8 +166,7 @@ class Pilot:
     def _decide(self, stamp: float, state: VehicleState, goal: np.ndarray, depth: np.ndarray | None,
                 K: np.ndarray | None, T_world_camera: np.ndarray | None, T_world_body: np.ndarray | None,
                 T_body_camera: np.ndarray | None) -> PilotStep:
-        """What this call does: hold at the goal, brake for a stale or inconsistent input, keep the
-        reference until a plan is due, or plan."""
+        """Hold at the goal, brake for a stale or inconsistent input, keep the reference, or plan."""
         c = self.config
         if float(np.linalg.norm(goal - state.position)) <= c.goal_radius:
             return self._answer("reached", f"within {c.goal_radius} m of the goal")
@@ -208,16 +200,14 @@ class Pilot:
         return stamp
 
     def _new_flight(self, goal: np.ndarray) -> None:
-        """A new goal: the stack's memory and routing start over (the planner sees the new goal); the
-        reference being flown is kept, so the vehicle switches smoothly."""
+        """A new goal starts a new flight; the reference being flown is kept."""
         ref, stamp, seen = self._ref, self._stamp, self._seen_depth
         self.reset()
         self._ref, self._stamp, self._goal, self._seen_depth = ref, stamp, goal, seen
         self._started = 0.0 if stamp is None else stamp
 
     def _from_state(self, state: VehicleState, stamp: float) -> Pieces:
-        """A reference from the vehicle's position and velocity (its measured acceleration is too noisy
-        to start from): holding where it hovers, else braking to rest until the first plan takes over."""
+        """Hold where the vehicle hovers, else brake to rest from its position and velocity."""
         if float(np.linalg.norm(state.velocity)) < 0.05:
             return hold(state.position, stamp)
         return brake(state.derivatives() * [[1.0], [1.0], [0.0], [0.0]], stamp, self.config.brake_deceleration)
@@ -268,7 +258,7 @@ class Pilot:
                                       f"{self.config.frame_timeout} s): braking to rest and holding")
 
     def _brake_for(self, stamp: float, reason: str) -> PilotStep:
-        """Brake to rest from the reference's state (once), then hold: ``braking``, then ``blocked``."""
+        """Brake to rest from the reference's state (once), then hold."""
         assert self._ref is not None  # set by step
         if not self._braking:
             self._braking = True
@@ -328,8 +318,7 @@ class Pilot:
         return float(np.abs(self._ref.derivative(t, 1)).max()) < 1e-3
 
     def _faces_aim(self, stamp: float) -> bool:
-        """True when the hovering vehicle's reference faces within :data:`LOOK_DONE_DEG` of where its
-        last look turn aimed (its point of interest, or the goal, turned by the look so far)."""
+        """True when the hovering reference faces within :data:`LOOK_DONE_DEG` of its last look turn's aim."""
         assert self._ref is not None and self._goal is not None  # set by step
         facing = self._look_at if self._look_at is not None else self._goal
         to = facing - self._ref.derivative(stamp, 0)[0]
@@ -343,8 +332,8 @@ class Pilot:
         self._ref = self._with_yaw(spliced, stamp, float(self._ref.yaw(stamp)[0]), float(self._ref.yaw_rate(stamp)[0]))
 
     def _with_yaw(self, pieces: Pieces, stamp: float, yaw_now: float, rate_now: float) -> Reference:
-        """``pieces`` with the yaw profile from ``yaw_now`` turning at ``rate_now`` at ``stamp``: along the way ahead while moving,
-        toward the planner's point of interest (or the goal) and the look-around turn at rest."""
+        """``pieces`` with a yaw profile from ``yaw_now``, ``rate_now`` at ``stamp``: along the way ahead while
+        moving, else toward the point of interest (or the goal) plus the look-around turn."""
         c = self.config
         facing = self._look_at if self._look_at is not None else self._goal
         assert facing is not None  # the goal is set by step
@@ -373,9 +362,7 @@ class Pilot:
 
 
 def _depth(depth: np.ndarray, *, empty_ok: bool) -> np.ndarray | None:
-    """The depth image checked: 2-D, floating point metres, some valid pixel. An image without one is
-    refused on a flight's first frames (a broken camera pipeline) and is None (no frame) once depth has
-    been seen: a camera pitched toward open space sees nothing within range, which is no fault."""
+    """The depth image checked: 2-D float metres with a valid pixel; without one, None when ``empty_ok``."""
     image = np.asarray(depth)
     if image.ndim != 2 or min(image.shape) < 2:
         raise FlightError(f"depth must be one (H, W) image, got shape {image.shape}")
@@ -391,10 +378,9 @@ def _depth(depth: np.ndarray, *, empty_ok: bool) -> np.ndarray | None:
 
 
 def brake(state_world: np.ndarray, t0: float, deceleration: float, direction: np.ndarray | None = None) -> Pieces:
-    """One minimum-snap segment from ``state_world`` (4, 3: position … jerk) to rest along its velocity
-    (or ``direction``, a world unit vector): over T = max(0.5, 2 v / a) seconds to v T / 2 = v² / a metres
-    ahead (half of ``deceleration`` on average), longer when its acceleration would peak above
-    :data:`BRAKE_PEAK` × ``deceleration`` (a brake that starts while accelerating, or turns)."""
+    """One minimum-snap segment from ``state_world`` (4, 3: position … jerk) to rest v² / a metres along
+    its velocity (or ``direction``, a world unit vector) over max(0.5, 2 v / a) s, longer while its
+    acceleration would peak above :data:`BRAKE_PEAK` × ``deceleration``."""
     speed = float(np.linalg.norm(state_world[1]))
     way = state_world[1] if direction is None else speed * np.asarray(direction, dtype=np.float64)
     allowed = max(BRAKE_PEAK * deceleration, float(np.linalg.norm(state_world[2])))

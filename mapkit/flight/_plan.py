@@ -21,8 +21,7 @@ class Observation:
     t: float
     """Time the plan takes over (the depth frame is ``plan_latency`` older), seconds."""
     T_world_body: np.ndarray
-    """(4, 4) level pose at the depth frame (the vehicle's position and heading): the frame the network
-    plans in."""
+    """(4, 4) level pose at the depth frame: the frame the network plans in."""
     state_world: np.ndarray
     """(4, 3) position, velocity, acceleration, jerk the plan starts from at ``t`` (the reference's),
     world frame."""
@@ -33,17 +32,14 @@ class Observation:
     depth: np.ndarray | None
     """(H, W) metres, NaN invalid (None for methods without a camera)."""
     goal_clipped: bool = False
-    """True when the real goal lies beyond the horizon: the plan should not stop at the local goal
-    but pass it at cruise speed (a receding-horizon plan that ends at rest brakes every interval)."""
+    """True when the real goal lies beyond the horizon: the plan passes the local goal at cruise speed."""
     reference: Pieces | None = None
-    """The reference being flown (what a rejected plan leaves the vehicle on)."""
+    """The reference being flown."""
     camera: CameraInput | None = None
-    """The depth camera of this frame, its pose relative to ``T_world_body`` (a camera that tilts with
-    the airframe differs from frame to frame); None: the method's own fixed camera."""
+    """The depth camera of this frame relative to ``T_world_body``; None: the method's own fixed camera."""
 
     def start_body(self) -> np.ndarray:
-        """(4, 3) the start state in the body frame of the depth frame (position a few centimetres
-        ahead of the origin when the vehicle moves during the planning latency)."""
+        """(4, 3) the start state in the body frame of the depth frame."""
         R, p = self.T_world_body[:3, :3], self.T_world_body[:3, 3]
         out = self.state_world @ R
         out[0] = R.T @ (self.state_world[0] - p)
@@ -65,24 +61,20 @@ class MethodPlan:
     allocation_ms: float | None = None
     """Wall-clock time of the time allocation alone (TAN vs gradient descent)."""
     overrides_eta: bool = False
-    """The method asks to fly this plan although η >= 0.5: its own check found the reference being
-    flown no safer (a rejected plan leaves the vehicle on it)."""
+    """The method asks to fly this plan although η >= 0.5 (the reference being flown is no safer)."""
     brake_direction: np.ndarray | None = None
     """(3,) unit vector, body frame at the observation: where a blocked method brakes to (None: along
     the velocity)."""
     turn_side: float | None = None
-    """+1 (counter-clockwise) or −1: the way a blocked vehicle that hovers should turn to look
-    elsewhere, read when it starts turning (None: the way it turned last, at first counter-clockwise)."""
+    """+1 (counter-clockwise) or −1: the way a blocked hovering vehicle turns to look elsewhere (None: as last)."""
     look_at: np.ndarray | None = None
     """(3,) world point a hovering vehicle faces at the next observation (None: the goal)."""
     candidate: int | None = None
     """Which of the network's candidates the plan flies (None: none of them, or no network)."""
     within_limits: bool = True
-    """False when the plan breaks the speed profile's limits even flown slower: the pilot flies the last
-    reference instead (as after a veto), which keeps them."""
+    """False when the plan breaks the speed profile's limits even flown slower (the pilot keeps the last)."""
     blocked: bool = False
-    """The method found no way ahead it can fly (every path it could take runs into what the camera
-    sees): the loop brakes to rest and then turns to look elsewhere, whatever η says."""
+    """The method found no way ahead: the loop brakes to rest and turns to look elsewhere, whatever η says."""
 
 
 class Method(Protocol):
@@ -93,8 +85,6 @@ class Method(Protocol):
     replans: bool
 
     def plan(self, obs: Observation) -> MethodPlan: ...
-
-
 
 
 def level_pose(position: np.ndarray, yaw: float) -> np.ndarray:

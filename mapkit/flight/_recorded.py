@@ -1,7 +1,5 @@
-"""A trained model as a run records it: its network (model.pt: state dict + planner config) and the
-depth camera it was trained with (``camera`` in its config.json; `mapkit train` writes the first
-training workspace's; the shipped model's is in ``pretrained/config.json``). `mapkit eval` renders this
-camera, and the pilot uses it when a frame gives no calibration (the camera contract)."""
+"""A trained model as a run records it: its network (model.pt) and the depth camera it was trained with
+(``camera`` in its config.json), which `mapkit eval` renders and the pilot uses when a frame gives none."""
 
 from __future__ import annotations
 
@@ -36,9 +34,7 @@ class RunCamera:
 
 
 def recorded_camera(run_dir: str | Path) -> RunCamera | None:
-    """The camera recorded in ``run_dir/config.json`` (``camera``: width, height, K, T_body_camera, source);
-    None when the run has no config.json, it does not parse, or it records no usable camera (the reason
-    is logged at debug level)."""
+    """The camera recorded in ``run_dir/config.json``; None when there is no usable one (logged at debug)."""
     path = Path(run_dir) / RUN_CONFIG
     try:
         saved = json.loads(path.read_text()).get("camera") if path.is_file() else None
@@ -55,8 +51,7 @@ def recorded_camera(run_dir: str | Path) -> RunCamera | None:
 
 
 def _camera(saved: Any) -> RunCamera:
-    """A :class:`RunCamera` from config.json's ``camera``; raises TypeError / ValueError / KeyError for one
-    that is not a camera."""
+    """A :class:`RunCamera` from config.json's ``camera`` (TypeError / ValueError / KeyError otherwise)."""
     width, height = int(saved["width"]), int(saved["height"])
     K = np.asarray(saved["K"], dtype=np.float64)
     T = np.asarray(saved["T_body_camera"], dtype=np.float64)
@@ -68,9 +63,8 @@ def _camera(saved: Any) -> RunCamera:
 
 
 def load_network(model: str | Path) -> tuple[Any, RunCamera | None]:
-    """(the network in eval mode on the CPU, the camera its run recorded) of ``model``: a run directory,
-    or ``"pretrained"`` for the model shipped with mapkit. :class:`~mapkit.flight.FlightError` names a
-    missing or foreign model.pt and the fix."""
+    """(the network in eval mode on the CPU, its run's camera) of a run directory or ``"pretrained"``;
+    :class:`~mapkit.flight.FlightError` names a missing or foreign model.pt."""
     from mapkit._saved import load_saved
     from mapkit.flight._errors import FlightError
     from mapkit.flight._pretrained import PRETRAINED, resolve_model

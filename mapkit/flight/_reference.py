@@ -17,8 +17,7 @@ YAW_STEP = 0.02
 YAW_TAIL = 3.0
 """Seconds the yaw profile runs on past the position reference's end (a hovering vehicle turning)."""
 YAW_CHUNK = 1.0
-"""Seconds of yaw profile computed at a time, as far as it is sampled (a reference is usually replaced
-after 0.5 s: computing its whole profile at once was most of the pilot's own time)."""
+"""Seconds of yaw profile computed at a time, as far as it is sampled (references are soon replaced)."""
 
 
 @dataclass(frozen=True)
@@ -48,10 +47,7 @@ class YawFollower:
     """A yaw profile: a critically damped second-order follower of a wanted heading ``target(times)``
     (radians) whose rate stays within ``max_rate`` rad/s and acceleration within ``max_accel`` rad/s²,
     from ``yaw`` turning at ``rate`` at ``t0``, sampled every :data:`YAW_STEP` seconds until ``until``
-    and computed lazily as far as it is asked for. Written by hand: a step in the wanted heading (a
-    hovering vehicle turning to look elsewhere) must become a turn a quadrotor can follow (its yaw
-    torque is small), and a profile that starts where the last one was at the switch keeps yaw and yaw
-    rate continuous from plan to plan."""
+    and computed lazily as far as it is asked for."""
 
     def __init__(self, target: Callable[[np.ndarray], np.ndarray], t0: float, yaw: float, rate: float,
                  max_rate: float, max_accel: float, until: float) -> None:
@@ -86,10 +82,9 @@ class YawFollower:
 
 
 class Reference:
-    """World-frame piecewise polynomials for position (:class:`Pieces`, degree 7 for minimum-snap
-    plans) and a yaw profile limited in rate and acceleration (:class:`YawFollower`). Before its start it
-    holds the start; after its end it holds the end position at rest (the yaw profile runs
-    :data:`YAW_TAIL` seconds longer, then holds its heading)."""
+    """World-frame piecewise polynomials for position (:class:`Pieces`) and a yaw profile limited in rate
+    and acceleration (:class:`YawFollower`). After its end it holds the end position at rest (the yaw
+    profile runs :data:`YAW_TAIL` seconds longer, then holds its heading)."""
 
     def __init__(self, pieces: Pieces, yaw: YawFollower) -> None:
         self.pieces = pieces
@@ -100,11 +95,6 @@ class Reference:
         """At rest at ``position`` (3,) facing ``yaw`` from ``t0`` on: where a vehicle waits for a goal."""
         return cls(hold(np.asarray(position, dtype=np.float64), t0), YawFollower(
             lambda t: np.full(len(t), float(yaw)), t0, yaw, 0.0, 1.0, 1.0, t0 + YAW_TAIL))
-
-    @property
-    def t_start(self) -> float:
-        """Seconds: where the reference begins (the switch from the previous one)."""
-        return self.pieces.t0
 
     @property
     def t_end(self) -> float:
@@ -140,8 +130,8 @@ class Reference:
 
     def peaks(self, t_from: float | None = None, step: float = 0.01) -> tuple[float, float]:
         """(peak speed m/s, peak acceleration m/s², norms) from ``t_from`` (its start) to its end, sampled
-        every ``step`` seconds: what the speed profile's limits bound (:class:`~mapkit.flight.SpeedProfile`)."""
-        a = self.t_start if t_from is None else max(t_from, self.t_start)
+        every ``step`` seconds."""
+        a = self.pieces.t0 if t_from is None else max(t_from, self.pieces.t0)
         t = np.linspace(a, max(a, self.t_end), int(min(5000, (max(a, self.t_end) - a) / step)) + 2)
         return (float(np.linalg.norm(self.derivative(t, 1), axis=1).max()),
                 float(np.linalg.norm(self.derivative(t, 2), axis=1).max()))

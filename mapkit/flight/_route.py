@@ -1,15 +1,8 @@
 """The flight map: every surface the camera saw during one flight, on a 3-D grid, and the route to
-the goal around them, for a learned planner that has stopped getting closer to its goal.
-
-A planner that reads one depth image is drawn to the wall nearest a goal behind it (the office's
-long walls with doors): it flies there, finds no way on, leaves, and comes back. The map remembers
-the whole flight, and an optimistic route (unseen space counts as free) leads along the walls seen so
-far to the doorways that are left. The route runs across the grid, through every column that some
-height keeps clear (down to ``descend`` below the vehicle and the goal): a level map closed every
-doorway under its lintel for a vehicle flying above the lintel's foot, and those flights timed out
-most. Route search: scikit-image's MCP on a cost grid from SciPy's Euclidean distance transform; the
-grid itself, the point to aim at, its height and when to use them are written here, because no library
-keeps such a map for a flight.
+the goal around them (unseen space counts as free), for a learned planner that has stopped getting
+closer to its goal: one depth image draws it to the wall nearest a goal behind it. The route runs
+through every column that some height keeps clear (a doorway under a lintel). Route search:
+scikit-image's MCP on a cost grid from SciPy's Euclidean distance transform.
 """
 
 from __future__ import annotations
@@ -36,9 +29,7 @@ class RouteConfig:
     """Metres, the grid's height, centred on the height the flight starts at."""
     descend: float = 1.0
     """Metres the route may go below the lower of the vehicle's and the goal's heights (it never goes
-    above the higher: the space over a seen ceiling is unseen, and would count as free): a column is
-    passable when some height in that range keeps ``inflate`` from everything seen (a doorway under a
-    lintel, a gap under a beam)."""
+    above the higher): a column is passable when some height in that range keeps ``inflate`` clear."""
     inflate: float = 0.45
     """Metres: places nearer a seen surface than this are not passed (the robot radius and a margin)."""
     wary: float = 1.0
@@ -50,16 +41,14 @@ class RouteConfig:
     """Metres along the route within which the aim point is chosen."""
     sight: float = 0.3
     """Metres the straight line from the vehicle to the aim point must keep from seen surfaces."""
-    ground: float | None = 0.0
-    """World height of the ground (z up; the simulated worlds' floor is at 0), which counts as seen
-    everywhere: the foot of a wall seen from nearby is outside the camera's view, and the unseen space
-    below it would otherwise open a route under the wall. None: no ground."""
+    ground: float = 0.0
+    """World height of the ground (z up), which counts as seen everywhere (else a route opens under a
+    wall whose foot the camera missed)."""
 
 
 def depth_points(depth: np.ndarray, ray: tuple[float, float, float, float], T_world_camera: np.ndarray,
                  stride: int) -> np.ndarray:
-    """(N, 3) world points of every ``stride``-th valid pixel of a depth image (metres along the
-    optical axis; ``ray`` the normalised intrinsics fx, fy, cx, cy of the image)."""
+    """(N, 3) world points of every ``stride``-th valid pixel of a depth image (``ray``: normalised fx, fy, cx, cy)."""
     full = np.asarray(depth, dtype=np.float64)
     H, W = full.shape
     sub = full[::stride, ::stride]
@@ -78,13 +67,11 @@ class Aim:
     xy: np.ndarray
     """(2,) world point on the route, the farthest within the horizon in straight sight."""
     height: float | None
-    """World height to pass the route's first column that is closed at the vehicle's own height
-    within the horizon (a doorway under a lintel); None when the route is open at that height."""
+    """World height to pass the route's first column closed at the vehicle's height; None: open."""
 
 
 class FlightMap:
-    """Every surface the camera saw during one flight, on a 3-D grid (:meth:`forget` starts the next);
-    the route runs across it, through any column some height of which is clear."""
+    """Every surface the camera saw during one flight, on a 3-D grid (:meth:`forget` starts the next)."""
 
     def __init__(self, config: RouteConfig = RouteConfig()) -> None:
         self.config = config
@@ -117,10 +104,8 @@ class FlightMap:
         return int(np.clip(np.floor((z - self.origin[2]) / self.config.cell), 0, self.levels - 1))
 
     def aim(self, position: np.ndarray, goal: np.ndarray) -> Aim | None:
-        """Where to fly: the farthest point of the route to ``goal`` within
-        :attr:`RouteConfig.horizon` (and at least a metre away) in straight sight of ``position``, and the
-        height to pass the route at; None when nothing is mapped near the way, the route is no real
-        detour, or no route point is in sight."""
+        """The farthest route point toward ``goal`` within the horizon in straight sight of ``position``, and
+        the height to pass at; None when nothing is mapped near, the route is no detour, or none is in sight."""
         from skimage.graph import MCP_Geometric
 
         c = self.config
@@ -152,20 +137,18 @@ class FlightMap:
         return Aim(xy, self._height(clearance, column, cells[along <= c.horizon], position[2]))
 
     def _clearance(self, occupied: np.ndarray, z_vehicle: float, z_goal: float) -> tuple[np.ndarray, np.ndarray]:
-        """Metres from each cell of ``occupied`` to the nearest seen surface (unseen space is free), the
-        heights the route may not use set to 0; and each column's best clearance over the rest."""
+        """Metres from each cell to the nearest seen surface (0 at unusable heights), and each column's best."""
         from scipy.ndimage import distance_transform_edt
 
         c = self.config
         low = self._level(min(z_vehicle, z_goal) - c.descend)
         high = self._level(max(z_vehicle, z_goal))
-        # Surfaces farther above or below the usable heights than `wary` change no decision (every use
-        # saturates there), so the transform runs on that slab only: a third of the work in an office.
+        # surfaces farther than `wary` from the usable heights change nothing: transform that slab only
         reach = int(np.ceil(c.wary / c.cell)) + 1
         bottom, top = max(low - reach, 0), min(high + 1 + reach, self.levels)
         slab = occupied[:, :, bottom:top]
         assert self.origin is not None  # after add
-        if c.ground is not None and c.ground >= self.origin[2] and self._level(c.ground) >= bottom:
+        if c.ground >= self.origin[2] and self._level(c.ground) >= bottom:
             slab = slab.copy()  # the ground and below count as seen
             slab[:, :, :self._level(c.ground) - bottom + 1] = True
         clearance = np.zeros(occupied.shape)
@@ -173,9 +156,8 @@ class FlightMap:
         return clearance, clearance.max(axis=2)
 
     def _height(self, clearance: np.ndarray, column: np.ndarray, cells: np.ndarray, z: float) -> float | None:
-        """The height to pass the first of ``cells`` (route cells ahead) closed at height ``z`` though
-        open at another: the one nearest ``z`` that keeps :attr:`RouteConfig.wary` clear (or as much as
-        the column keeps anywhere)."""
+        """The height nearest ``z`` keeping ``wary`` clear (or the column's best) through the first of
+        ``cells`` closed at ``z`` though open at another; None when there is none."""
         c = self.config
         assert self.origin is not None  # after add
         k = self._level(z)
@@ -206,9 +188,7 @@ class FlightMap:
 
 @dataclass
 class Progress:
-    """How close a flight has come to its goal, and since when. A flight is stalled while it has not
-    come :attr:`RouteConfig.progress` closer than ever before for :attr:`RouteConfig.after` seconds,
-    and no longer once it does (as a Bug algorithm leaves a wall where it is closer than ever)."""
+    """How close a flight has come to its goal, and since when (stalled: no ``progress`` for ``after`` s)."""
 
     best: float = np.inf
     since: float = 0.0

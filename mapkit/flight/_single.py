@@ -45,11 +45,9 @@ class PlanResult:
     shifted: bool = False
     """True when the chosen candidate is a shifted one (:data:`SHIFT`)."""
     goal_clipped: bool = False
-    """True when the goal asked for lay beyond :data:`LOCAL_GOAL_RANGE` and the plan went to the point that
-    far along the way to it (the model never saw farther goals; a receding-horizon loop replans)."""
+    """True when the goal asked for lay beyond :data:`LOCAL_GOAL_RANGE` and the plan went that far toward it."""
     camera_from_run: bool = False
-    """True when the depth image was checked with the camera the run recorded (:attr:`Planner.camera`),
-    the plan having been given no ``K`` / ``T_body_camera``."""
+    """True when the depth image was checked with the camera the run recorded (no ``K`` / ``T_body_camera``)."""
 
     @property
     def execute(self) -> bool:
@@ -57,46 +55,36 @@ class PlanResult:
 
     @property
     def variant(self) -> str | None:
-        """``"widened"``, ``"shifted"`` or ``"widened and shifted"``: how the chosen candidate differs from
-        the trained one it came from (None: it is a trained one)."""
+        """``"widened"``, ``"shifted"``, ``"widened and shifted"`` or None (a trained candidate)."""
         names = [name for name, on in (("widened", self.widened), ("shifted", self.shifted)) if on]
         return " and ".join(names) or None
 
 
 LOCAL_GOAL_RANGE = 6.0
-"""Metres: the farthest goal a plan goes to directly (``mapkit eval``'s local-goal horizon; training
-goals lie within the depth range)."""
+"""Metres: the farthest goal a plan goes to directly (``mapkit eval``'s local-goal horizon)."""
 
 
 WIDEN = (1.5, 2.5)
 """Factors of the widened candidates a single plan adds (:meth:`PlannerNet.widened`): each trained
-candidate's detour from the straight line scaled by 1.5 and by 2.5, judged and chosen among like the
-trained ones. Training pulls all eight candidates toward the cheapest path, so they often span under
-a metre where a box beside the line needs two (chosen on the foreign-scene bench; docs/results.md).
-``mapkit eval``'s closed loop does not widen: there the vehicle hovers and looks around when every
-candidate is expected to collide."""
+candidate's detour from the straight line scaled, judged and chosen among like the trained ones
+(docs/results.md). ``mapkit eval``'s closed loop does not widen."""
 
 
 SHIFT = CANDIDATE_SHIFTS
 """Sideways shifts (metres at the middle of the path, left positive) of the shifted candidates a plan
 adds (:meth:`PlannerNet.shifted`): every candidate, trained or widened, also moved by each, judged and
-chosen among like the trained ones. The trained candidates stay near anchors 1.2 m apart; a doorway
-or a gap that needs a path a few decimetres beside the nearest one is otherwise missed (chosen on the
-foreign-scene bench; docs/results.md). ``mapkit eval`` shifts the candidates of the full flight stack
-(:attr:`~mapkit.flight.Execution.shift`)."""
+chosen among like the trained ones (docs/results.md)."""
 
 
 class Planner:
-    """A trained PlannerNet with its config, on a device, in inference mode. A process that plans
-    many frames on the CPU calls ``planner.net.prepare_inference()`` once (about a second): each plan
-    then runs a frozen encoder, about 2 ms faster (``mapkit eval`` does this in every worker)."""
+    """A trained PlannerNet with its config, on a device, in inference mode. A process that plans many
+    frames on the CPU calls ``planner.net.prepare_inference()`` once: a frozen encoder, ~2 ms faster."""
 
     def __init__(self, net: Any, device: torch.device, *, camera: RunCamera | None = None) -> None:
         self.net = net.eval().to(device)
         self.device = device
         self.camera = camera
-        """The depth camera the run recorded (:func:`~mapkit.flight.recorded_camera`; :meth:`load` reads
-        it): :meth:`plan` checks depth with it when it is given no calibration. None: none recorded."""
+        """The depth camera the run recorded, used when :meth:`plan` is given no calibration (None: none)."""
         self._said_camera = False
         self._cpu_net: Any = None  # the network the single-shot pilot flies (a CPU copy when on a GPU)
 
@@ -123,21 +111,14 @@ class Planner:
              rate_hz: float = 50.0, corridor: float | None = None, K: np.ndarray | None = None,
              T_body_camera: np.ndarray | None = None, widen: tuple[float, ...] = WIDEN,
              shift: tuple[float, ...] = SHIFT) -> PlanResult:
-        """Depth (H, W) metres (NaN invalid) + goal (3,) body frame [+ velocity (3,)] → PlanResult: the
-        pilot's single-shot use (:class:`mapkit.flight.Pilot`, a new flight of one frame under the full
-        flight stack), in the body frame of the frame.
+        """Depth (H, W) metres (NaN invalid) + goal (3,) body frame [+ velocity (3,)] → PlanResult, in the
+        body frame of the frame: the pilot's single-shot use (one frame under the full flight stack).
 
-        `corridor`: widest half-width (m) of the flight corridor around each key-point segment (the
-        stack's checked corridor; None: the stack's, :class:`mapkit.flight.Corridor`).
-
-        `K` (3, 3) and `T_body_camera` (4, 4) (optical camera → body): the depth camera's calibration.
-        Without them the camera the model's run recorded is used (:attr:`camera`, the one `mapkit eval`
-        renders), said once (a warning) and marked in the result (:attr:`PlanResult.camera_from_run`);
-        depth must then have that camera's size. An image whose field of view differs from the recorded
-        camera's is refused (the pilot's camera contract, docs/flight.md).
-
-        `widen`: factors of the widened candidates judged with the trained ones (:data:`WIDEN`; ()
-        none). `shift`: sideways shifts of every candidate judged likewise (:data:`SHIFT`; () none)."""
+        `corridor`: widest half-width (m) of the flight corridor (None: the stack's, :class:`Corridor`).
+        `K` (3, 3) and `T_body_camera` (4, 4) (optical camera → body): the depth camera's calibration;
+        without them the run's recorded camera is used (a warning, :attr:`PlanResult.camera_from_run`)
+        and depth must have its size. Another field of view is refused (docs/flight.md).
+        `widen`, `shift`: the widened and shifted candidates (:data:`WIDEN`, :data:`SHIFT`; () none)."""
         from mapkit.flight._config import VehicleState
 
         asked = np.asarray(goal_body, dtype=np.float64).reshape(3)
@@ -154,8 +135,7 @@ class Planner:
         return _result(step, asked, rate_hz, from_run, self.net.config.num_candidates, len(widen))
 
     def _single_shot(self, widen: tuple[float, ...], shift: tuple[float, ...], corridor: float | None) -> Pilot:
-        """A pilot of this network for one frame (the body frame of the frame is its world); on the CPU,
-        where the flight stack's trajectory optimisation runs."""
+        """A pilot of this network (on the CPU) for one frame, whose body frame is its world."""
         import copy
         from dataclasses import replace
 
@@ -177,9 +157,8 @@ class Planner:
 
     def _calibration(self, shape: tuple[int, ...], K: np.ndarray | None, T_body_camera: np.ndarray | None
                      ) -> tuple[np.ndarray | None, np.ndarray | None, bool]:
-        """(K, T_body_camera, taken from the run's recorded camera) for a depth image of `shape`: those
-        given, else, for a model that needs them, the run's; raises when the model needs them and there
-        are none (or the image is not the recorded camera's size)."""
+        """(K, T_body_camera, from the run's camera) for a depth image of `shape`: those given, else the
+        run's for a model that needs them; raises when there are none (or the size differs)."""
         if (K is not None and T_body_camera is not None) or not self.needs_camera:
             return K, T_body_camera, False
         fix = "pass the camera's K and T_body_camera"
@@ -202,9 +181,7 @@ class Planner:
 
 
 def _source_name(source: str) -> str:
-    """Where a run read its camera, as messages show it: the training workspace's folder and store
-    (``000-forest-s20000/frames.zarr``). The full path is the one on the machine that trained the run,
-    for the shipped model another machine's, which means nothing (and tells too much) here."""
+    """Where a run read its camera as messages show it: the last two parts (the training machine's path)."""
     parts = PurePath(source).parts[-2:]
     return "/".join(parts) if parts else f"the run's {RUN_CONFIG}"
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,8 +12,6 @@ from numpy.typing import NDArray
 
 from mapkit.fusion._tsdf import FusionError
 from mapkit.ingest import FramesStore
-
-log = logging.getLogger(__name__)
 
 _BLOCKS_PER_BATCH = 2048  # TSDF blocks read at a time: bounds memory on large maps
 _MIN_WEIGHT = 1.0  # integration weight a TSDF sample needs to count
@@ -81,13 +78,8 @@ def _tsdf_samples(vbg: Any, batch: int = _BLOCKS_PER_BATCH):
 def occupancy_from_tsdf(
     tsdf_path: Path, grid: Grid, *, tsdf_voxel: float, trunc_voxels: float
 ) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
-    """(occupied, tsdf) on `grid` from the TSDF sample nearest each voxel centre.
-
-    tsdf: signed distance in metres at the centre (Open3D stores it divided by the truncation
-    distance), NaN where no sample has weight >= 1; occupied: tsdf < 0. Sampling the centre
-    (not "any fine voxel in the cell") keeps obstacle boundaries unbiased; structures thinner than
-    about one ESDF voxel can fall between centres.
-    """
+    """(occupied, tsdf) on `grid` from the TSDF sample nearest each voxel centre: tsdf in metres, NaN
+    where no sample has weight >= 1; occupied = tsdf < 0 (centre sampling keeps boundaries unbiased)."""
     import open3d as o3d
 
     if not tsdf_path.exists():
@@ -102,11 +94,8 @@ def occupancy_from_tsdf(
 
 def sample_tsdf(vbg: Any, grid: Grid, *, tsdf_voxel: float, trunc_voxels: float,
                 window: Window | None = None) -> NDArray[np.float32]:
-    """The TSDF (metres, NaN = no sample) at the centres of `window`'s voxels of `grid` (default: all).
-
-    Sample positions are placed on the whole grid before the window is cut out, so a tile gets the
-    values the whole grid has there, bit for bit.
-    """
+    """The TSDF (metres, NaN = no sample) at the centres of `window`'s voxels of `grid` (default: all),
+    bit for bit the whole grid's values there."""
     window = window or Window.whole(grid)
     tsdf_m = np.full(window.shape, np.nan, dtype=np.float32)
     half = 0.5 * tsdf_voxel + 1e-6
@@ -133,14 +122,10 @@ def carve_free_space(
 ) -> int:
     """Mark voxels that depth rays passed through as observed (in place); returns the frames used.
 
-    Frames are subsampled to at most `max_frames` (neighbouring frames at 30 Hz see the same
-    space), rays so that neighbours are about one voxel apart at the far range, and each ray is
-    sampled every 0.8 voxel up to the measured surface. With `behind`, the
-    voxels up to `solid_depth` beyond each measured surface (along the ray) are marked there.
-
-    `observed` and `behind` cover `window` of `grid` (default: all of it); ray samples are placed on
-    the whole grid first, so a tile gets exactly the whole grid's marks there. `frames`: only these
-    of the subsampled frames (those that can reach the window); the others mark nothing in it.
+    At most `max_frames` frames, rays about one voxel apart at the far range, sampled every 0.8 voxel
+    up to the surface. With `behind`, voxels up to `solid_depth` beyond each surface are marked there.
+    `observed` and `behind` cover `window` of `grid` (default: all), with exactly the whole grid's
+    marks there; `frames`: only these of the subsampled frames.
     """
     from tqdm import tqdm
 
@@ -259,12 +244,8 @@ def _samples_in_box(base: NDArray[np.float32], dirs: NDArray[np.float32], z0: ND
 def fill_unknown(
     occupied: NDArray[np.bool_], observed: NDArray[np.bool_], policy: str, *, behind: NDArray[np.bool_] | None = None
 ) -> NDArray[np.bool_]:
-    """Apply the unknown-space policy; returns the final obstacle mask.
-
-    occupied: every unobserved voxel is an obstacle. free: unobserved voxels are free, except
-    (a) those just behind a measured surface along the sensor's rays (`behind`: the inside of a box
-    or a trunk, the ground under the floor) and (b) pockets that no observed free voxel reaches.
-    """
+    """The obstacle mask under the unknown-space policy: "occupied" makes every unobserved voxel an
+    obstacle; "free" frees them except `behind` ones and pockets no observed free voxel reaches."""
     if policy == "occupied":
         return occupied | ~observed
     if policy != "free":

@@ -117,17 +117,14 @@ def _device(name: str) -> Any:
 
 
 def _o3c_tensor(array: NDArray[Any], dtype: o3c.Dtype) -> o3c.Tensor:
-    """A copy of `array` as an Open3D tensor of `dtype` on the CPU: the constructor with its defaults
-    spelled out (its stubs list dtype and device as required)."""
+    """A copy of `array` as an Open3D tensor of `dtype` on the CPU."""
     import open3d.core as o3c
 
     return o3c.Tensor(array, dtype, o3c.Device("CPU:0"))
 
 
 def _tsdf_grid(voxel: float, *, block_count: int, device: o3c.Device) -> o3d.t.geometry.VoxelBlockGrid:
-    """An empty TSDF on `device`: Open3D's VoxelBlockGrid of `voxel`-metre voxels in blocks of
-    ``BLOCK_RESOLUTION``³, room for `block_count` blocks, and one float32 channel each of ``tsdf`` and
-    ``weight``."""
+    """An empty VoxelBlockGrid on `device` (float32 ``tsdf`` and ``weight``) with room for `block_count` blocks."""
     import open3d as o3d
     import open3d.core as o3c
 
@@ -137,30 +134,24 @@ def _tsdf_grid(voxel: float, *, block_count: int, device: o3c.Device) -> o3d.t.g
 
 
 def _o3d_ready(depth: NDArray[np.float32]) -> NDArray[np.float32]:
-    """Native-endian float32 (zarr hands out explicit '<f4', which Open3D's buffer protocol
-    rejects) with invalid pixels as 0 (Open3D's convention, not a measurement)."""
+    """Native-endian float32 (Open3D rejects zarr's explicit '<f4') with invalid pixels as 0."""
     native = np.empty(np.shape(depth), dtype=np.float32)
     np.copyto(native, depth)
     native[np.isnan(native)] = 0.0
     return native
 
 
-def _o3d_depth(depth: NDArray[np.float32], device: Any, *, ready: bool = False) -> Any:
-    """Open3D image of a depth frame (see `_o3d_ready`)."""
+def _o3d_depth(depth: NDArray[np.float32], device: Any) -> Any:
+    """Open3D image of a depth frame made ready by `_o3d_ready`."""
     import open3d as o3d
     import open3d.core as o3c
 
-    return o3d.t.geometry.Image(_o3c_tensor(depth if ready else _o3d_ready(depth), o3c.float32)).to(device)
+    return o3d.t.geometry.Image(_o3c_tensor(depth, o3c.float32)).to(device)
 
 
 def _o3d_intrinsics(K: NDArray[np.float64]) -> Any:
-    """K as Open3D's TSDF kernels need it.
-
-    Open3D finds a voxel's pixel by truncating its projection (floor), while mapkit's K puts
-    integer pixel coordinates at pixel centres (round). Shifting the principal point by half a
-    pixel makes floor behave as round; without it a grazing floor fuses 0.33 voxel low on average,
-    with it 0.02 voxel (tests/test_fusion.py measures this).
-    """
+    """K with the principal point shifted by half a pixel: Open3D floors a voxel's projection while
+    mapkit puts integer pixels at pixel centres (unshifted, a grazing floor fuses 0.33 voxel low)."""
     import open3d.core as o3c
 
     K = np.array(K, dtype=np.float64)
@@ -181,11 +172,8 @@ def _touched_blocks(vbg: Any, image: Any, K: Any, extrinsic: Any, config: FuseCo
 
 
 def estimate_blocks(store: FramesStore, config: FuseConfig, *, sample: int = 24) -> int:
-    """Blocks the map will need: the union of the blocks seen by `sample` evenly spaced frames,
-    scaled to the whole flight by the share of new blocks the later samples still add.
-
-    Sized from the data, not a constant; Open3D's hash map also grows if this falls short.
-    """
+    """Blocks the map will need: the union of the blocks `sample` evenly spaced frames touch, scaled
+    to the whole flight by the share of new blocks the later samples still add."""
     import open3d.core as o3c
 
     n = len(store)
@@ -198,7 +186,7 @@ def estimate_blocks(store: FramesStore, config: FuseConfig, *, sample: int = 24)
         depth = np.asarray(store.depth[int(i)])
         if not np.any(depth <= config.max_depth):
             continue
-        touched = _touched_blocks(probe, _o3d_depth(depth, o3c.Device("CPU:0")), K,
+        touched = _touched_blocks(probe, _o3d_depth(_o3d_ready(depth), o3c.Device("CPU:0")), K,
                                   _o3c_tensor(invert_transform(store.T_world_camera[int(i)]), o3c.float64), config)
         if touched is None:
             continue
@@ -243,9 +231,8 @@ def _written(path: Path, ok: bool, what: str, count: int, read: Any) -> None:
 
 
 def _write_outputs(workspace: Path, cloud: Any, vbg: Any, config: FuseConfig, meta: dict[str, Any]) -> None:
-    """cloud.ply, tsdf.npz (+ mesh.ply), then fuse.json, as one unit: every file is written and
-    checked beside its target first; fuse.json is removed before the first replacement and written
-    last with the outputs' sizes, so a kill in between leaves no manifest, and readers check it."""
+    """cloud.ply, tsdf.npz (+ mesh.ply), then fuse.json with their sizes, as one unit: each file is
+    staged and checked first, and fuse.json is removed before the first replacement."""
     import open3d as o3d
 
     workspace.mkdir(parents=True, exist_ok=True)
@@ -373,7 +360,7 @@ def _integrate(vbg: Any, store: FramesStore, indices: range, config: FuseConfig,
                 skipped += 1
                 continue
             t = time.perf_counter()
-            image = _o3d_depth(depth, device, ready=True)
+            image = _o3d_depth(depth, device)
             extrinsic = _o3c_tensor(invert_transform(store.T_world_camera[i]), o3c.float64)
             coords = _touched_blocks(vbg, image, K, extrinsic, config)
             if coords is None:

@@ -1,20 +1,9 @@
 """Many flights → one world map, tile by tile on Dask → world.zarr, the chunked occupancy the ESDF reads.
 
-The world grid (the ESDF's voxels) is cut into tiles of ``tile`` voxels per edge. One task per tile
-integrates, in flight and frame order, every frame that can reach the tile into a TSDF that holds
-only the tile's blocks (Open3D computes each voxel from its own position and the frames alone, so
-these are bit for bit the voxels of fusing everything at once), samples it at the tile's voxel
-centres and carves the tile's observed / behind-surface voxels from the same frames. Positions are
-placed on the whole grid before a tile is cut out, so a tile holds exactly what the single-process
-`mapkit fuse` + `mapkit esdf` compute there. Nothing world-sized is ever in one process.
-
-``world.zarr`` (zarr v3 group, chunks 64^3, dimension names x, y, z):
-
-- ``tsdf`` float32: TSDF at the voxel centre in metres, NaN where no sample has weight >= 1;
-- ``observed`` bool: a sample exists or a depth ray passed through the voxel;
-- ``behind`` bool: unobserved space up to ``solid_depth`` behind a measured surface;
-- attrs: ``kind`` = "mapkit.world", ``mapkit_version``, ``origin``, ``voxel_size``, ``shape``,
-  ``frame_id``, ``fuse`` (TSDF options), ``solid_depth``, ``tile``, ``sources`` (frames stores).
+One task per tile integrates, in flight and frame order, every frame that can reach the tile into a
+TSDF holding only the tile's blocks, samples it at the tile's voxel centres and carves its observed /
+behind-surface voxels: bit for bit what `mapkit fuse` + `mapkit esdf` compute there, with nothing
+world-sized in one process. Layout of ``world.zarr``: docs/data_contracts.md.
 """
 
 from __future__ import annotations
@@ -132,13 +121,9 @@ class _Tile:
 def fuse_world(workspaces: Sequence[str | Path], output: str | Path, config: WorldConfig | None = None, *,
                overwrite: bool = False, progress: bool = True, scheduler: str | None = None,
                workers: int | None = None) -> WorldSummary:
-    """Fuse the frames.zarr of every workspace (flights in one world frame) into ``output/world.zarr``.
-
-    Runs one Dask task per tile: in this process for ``workers`` None or 1 without `scheduler`, on a
-    local cluster of `workers` processes, or on the cluster at `scheduler` (then `output` and the
-    workspaces must be on storage the workers share). With a single workspace the arrays equal, bit
-    for bit, what ``mapkit fuse`` + ``mapkit esdf`` compute on the same grid.
-    """
+    """Fuse the frames.zarr of every workspace (flights in one world frame) into ``output/world.zarr``,
+    one Dask task per tile: in this process (`workers` None or 1), on a local cluster of `workers`
+    processes, or on the cluster at `scheduler` (on storage the workers share)."""
     from mapkit._dask import compute_tasks
 
     config = config or WorldConfig()
@@ -305,8 +290,8 @@ def _tile_tsdf(stores: list[FramesStore], grid: Grid, tile: _Tile, fc: FuseConfi
     b_lo = np.floor(box_lo / block).astype(np.int64) - 1
     b_hi = np.floor(box_hi / block).astype(np.int64) + 1
     capacity = int(min(np.prod(b_hi - b_lo + 1), _MAX_TILE_BLOCKS))
-    vbg = _tsdf_grid(fc.voxel, block_count=capacity, device=o3c.Device("CPU:0"))
     device = o3c.Device("CPU:0")
+    vbg = _tsdf_grid(fc.voxel, block_count=capacity, device=device)
     for store, frames in zip(stores, tile.frames, strict=True):
         K = _o3d_intrinsics(store.K)
         for i in frames:
@@ -315,7 +300,7 @@ def _tile_tsdf(stores: list[FramesStore], grid: Grid, tile: _Tile, fc: FuseConfi
             raw = np.asarray(store.depth[i])
             if not np.any(raw <= fc.max_depth):  # as mapkit fuse: Open3D aborts on a frame that touches no block
                 continue
-            image = _o3d_depth(_o3d_ready(raw), device, ready=True)
+            image = _o3d_depth(_o3d_ready(raw), device)
             extrinsic = _o3c_tensor(invert_transform(store.T_world_camera[i]), o3c.float64)
             touched = _touched_blocks(vbg, image, K, extrinsic, fc)
             if touched is None:

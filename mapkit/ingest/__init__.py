@@ -9,24 +9,10 @@ Typical use::
 """
 
 from mapkit.ingest._errors import IngestError
-from mapkit.ingest._info import RecordingInfo, inspect_recordings
-from mapkit.ingest._reader import Frame, FrameStream, IngestConfig, open_frames
+from mapkit.ingest._reader import Frame, FrameStream, IngestConfig, RecordingInfo, inspect_recordings, open_frames
 from mapkit.ingest._sources import BagSummary, Source, TopicSummary
 from mapkit.ingest._store import FramesStore, IngestSummary, ingest, open_frames_store
 
-__all__ = [
-    "BagSummary",
-    "Frame",
-    "FrameStream",
-    "FramesStore",
-    "IngestConfig",
-    "IngestError",
-    "IngestSummary",
-    "RecordingInfo",
-    "Source",
-    "TopicSummary",
-    "ingest",
-    "inspect_recordings",
-    "open_frames",
-    "open_frames_store",
-]
+__all__ = ["BagSummary", "Frame", "FrameStream", "FramesStore", "IngestConfig", "IngestError", "IngestSummary",
+           "RecordingInfo", "Source", "TopicSummary", "ingest", "inspect_recordings", "open_frames",
+           "open_frames_store"]

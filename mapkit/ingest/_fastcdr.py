@@ -1,9 +1,6 @@
-"""Direct reads of the two hot ROS2 message types (sensor_msgs/Image, nav_msgs/Odometry) from CDR.
-
-Why by hand: rosbags' generic deserialiser builds every nested message object (about 70 µs for an
-Odometry), and ingestion reads four or more pose messages per depth frame. Only the fields that
-ingestion uses are read, at their CDR offsets; anything unexpected (big-endian encapsulation, a
-truncated buffer) returns None and the caller falls back to rosbags, which also reports the error.
+"""Direct reads of the two hot ROS2 message types (sensor_msgs/Image, nav_msgs/Odometry) from CDR,
+faster than rosbags' generic deserialiser (about 70 µs per Odometry). Anything unexpected (big-endian
+encapsulation, a truncated buffer) returns None: the caller falls back to rosbags, which reports errors.
 """
 
 from __future__ import annotations

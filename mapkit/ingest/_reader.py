@@ -17,9 +17,9 @@ from mapkit.geometry import transform_from_pose
 from mapkit.ingest._decode import (
     ACCEPTED,
     CAMERA_INFO_TYPE,
-    DEPTH_ENCODINGS,
     IMAGE_TYPES,
     POSE_TYPES,
+    READABLE_ENCODINGS,
     TF_TYPE,
     camera_intrinsics,
     decode_depth,
@@ -78,10 +78,7 @@ class IngestConfig:
             raise IngestError(f"max_frames {self.max_frames} must be at least 1")
 
     def to_attrs(self) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for key, value in self.__dict__.items():
-            out[key] = value.tolist() if isinstance(value, np.ndarray) else value
-        return out
+        return {key: value.tolist() if isinstance(value, np.ndarray) else value for key, value in self.__dict__.items()}
 
 
 @dataclass(frozen=True)
@@ -155,10 +152,8 @@ def _find(summary: BagSummary, name: str, option: str) -> str:
     """The normalised topic ``name`` given by ``option``; raises when the recording lacks it."""
     topic = normalize_topic(name)
     if topic not in summary.topics:
-        raise IngestError(
-            f"{option} {name}: no such topic in {str(summary.path)!r}; it has "
-            + ", ".join(sorted(summary.topics))
-        )
+        raise IngestError(f"{option} {name}: no such topic in {str(summary.path)!r}; it has "
+                          + ", ".join(sorted(summary.topics)))
     return topic
 
 
@@ -201,13 +196,13 @@ def _choose_depth(source: Source, config: IngestConfig, by_type: dict[str, list[
         if msgtype not in IMAGE_TYPES:
             raise IngestError(f"--depth-topic {topic} carries {msgtype}; expected sensor_msgs/Image or CompressedImage")
         enc = image_encoding(_first_message(source, topic), msgtype)
-        if enc not in DEPTH_ENCODINGS + ("compressedDepth",):
+        if enc not in READABLE_ENCODINGS:
             raise IngestError(f"topic {topic} has encoding {enc}; expected {ACCEPTED}; pass --depth-topic")
         return DepthChoice(topic, msgtype, "given by --depth-topic")
     images = [t for mt in IMAGE_TYPES for t in by_type.get(mt, [])]
     seen: list[str] = []
     unreadable: list[str] = []
-    candidates: list[tuple[tuple[int, int], str, str, str]] = []
+    candidates: list[tuple[tuple[bool, bool, int], str, str, str]] = []
     for topic in images:
         msgtype = s.topics[topic].msgtype
         try:
@@ -218,19 +213,17 @@ def _choose_depth(source: Source, config: IngestConfig, by_type: dict[str, list[
             unreadable.append(str(exc))
             continue
         seen.append(f"{topic} ({enc})")
-        if enc in DEPTH_ENCODINGS + ("compressedDepth",):
+        if enc in READABLE_ENCODINGS:
             # Prefer names that say depth, raw over compressed, then the busiest topic.
-            rank = ("depth" in topic.lower(), msgtype.endswith("/Image"))
-            candidates.append(((int(rank[0]) * 2 + int(rank[1]), s.topics[topic].count), topic, msgtype, enc))
+            rank = ("depth" in topic.lower(), msgtype.endswith("/Image"), s.topics[topic].count)
+            candidates.append((rank, topic, msgtype, enc))
     if not candidates and unreadable:
         raise IngestError(f"{str(s.path)!r} lists image topics but cannot give their messages, so it is damaged "
                           f"({unreadable[0]})")
     if not candidates:
         listed = ", ".join(seen) if seen else "none"
-        raise IngestError(
-            f"no depth topic in {str(s.path)!r}: image topics seen: {listed}; expected encoding "
-            f"{ACCEPTED}; pass --depth-topic"
-        )
+        raise IngestError(f"no depth topic in {str(s.path)!r}: image topics seen: {listed}; expected encoding "
+                          f"{ACCEPTED}; pass --depth-topic")
     candidates.sort(reverse=True)
     _, topic, msgtype, enc = candidates[0]
     others = [c[1] for c in candidates[1:]]
@@ -253,10 +246,8 @@ def _choose_camera_info(s: BagSummary, config: IngestConfig, by_type: dict[str, 
         infos.sort(key=lambda t: (not t.startswith(base + "/"), "depth" not in t.lower(), t))
         why = "CameraInfo in the depth topic's namespace" if infos[0].startswith(base + "/") else "only CameraInfo topic" if len(infos) == 1 else "CameraInfo whose name says depth"
         return RoleChoice(infos[0], CAMERA_INFO_TYPE, why)
-    raise IngestError(
-        f"no camera info in {str(s.path)!r} (no sensor_msgs/CameraInfo topic); "
-        "pass --intrinsics fx,fy,cx,cy"
-    )
+    raise IngestError(f"no camera info in {str(s.path)!r} (no sensor_msgs/CameraInfo topic); "
+                      "pass --intrinsics fx,fy,cx,cy")
 
 
 def _choose_pose(s: BagSummary, config: IngestConfig, by_type: dict[str, list[str]], tf_topics: list[str]) -> RoleChoice:
@@ -265,10 +256,8 @@ def _choose_pose(s: BagSummary, config: IngestConfig, by_type: dict[str, list[st
         topic = _find(s, config.pose_topic, "--pose-topic")
         msgtype = s.topics[topic].msgtype
         if msgtype not in POSE_TYPES:
-            raise IngestError(
-                f"--pose-topic {topic} carries {msgtype}; expected nav_msgs/Odometry, "
-                "geometry_msgs/PoseStamped, PoseWithCovarianceStamped or TransformStamped (or 'tf')"
-            )
+            raise IngestError(f"--pose-topic {topic} carries {msgtype}; expected nav_msgs/Odometry, "
+                              "geometry_msgs/PoseStamped, PoseWithCovarianceStamped or TransformStamped (or 'tf')")
         return RoleChoice(topic, msgtype, "given by --pose-topic")
     poses = [(mt, t) for mt in POSE_TYPES for t in by_type.get(mt, [])]
     if poses and not config.pose_topic:
@@ -279,10 +268,8 @@ def _choose_pose(s: BagSummary, config: IngestConfig, by_type: dict[str, list[st
         return RoleChoice(topic, mt, f"{mt.split('/')[-1]} topic" + (f"; preferred over {len(poses) - 1} other pose topic(s)" if len(poses) > 1 else ""))
     if any(s.topics[t].count for t in tf_topics if "static" not in t):
         return RoleChoice(None, TF_TYPE, "no pose topic; world → camera from the tf tree")
-    raise IngestError(
-        f"no pose in {str(s.path)!r}: no Odometry/PoseStamped topic and no /tf; "
-        "record one or pass --pose-topic"
-    )
+    raise IngestError(f"no pose in {str(s.path)!r}: no Odometry/PoseStamped topic and no /tf; "
+                      "record one or pass --pose-topic")
 
 
 class _PoseFeed:
@@ -325,17 +312,14 @@ class _PoseFeed:
             else:
                 self.tree.add_dynamic(parent, child, stamp, t, q, f"topic {topic}")
 
-    def add_pose(
-        self, topic: str, stamp: int, parent: str, child: str | None, t: NDArray[np.float64], q: NDArray[np.float64]
-    ) -> None:
+    def add_pose(self, topic: str, stamp: int, parent: str, child: str | None, t: NDArray[np.float64],
+                 q: NDArray[np.float64]) -> None:
         """One sample of the pose topic (parent → child frame)."""
         last = self._last_pose_stamp
         if last is not None and stamp < last:
             if not self.config.drop_nonmonotonic:
-                raise IngestError(
-                    f"pose topic {topic}: stamp goes backwards ({stamp} ns after {last} ns); fix the "
-                    "recording's clock or pass --set ingest.drop_nonmonotonic=true to drop such messages"
-                )
+                raise IngestError(f"pose topic {topic}: stamp goes backwards ({stamp} ns after {last} ns); fix the "
+                                  "recording's clock or pass --set ingest.drop_nonmonotonic=true to drop such messages")
             self.dropped_poses += 1
             return
         self._last_pose_stamp = stamp
@@ -371,14 +355,14 @@ def _resolve(source: Source, roles: Roles, config: IngestConfig) -> SourcePlan:
     _attach_extrinsic(config, tree, body, camera)
     known = ", ".join(sorted(tree.frames)) or "none"
     for a, b, hint in ((world, body, "pass --set ingest.world_frame=NAME"), (body, camera, "pass --set ingest.extrinsic=x,y,z,qx,qy,qz,qw (T_body_camera)")):
-        if a != b and (a not in tree.frames or b not in tree.frames or not tree.connected(a, b)):
+        if a != b and (a not in tree.frames or b not in tree.frames or tree.root(a) != tree.root(b)):
             raise IngestError(f"no transform from frame {a!r} to frame {b!r} (tf frames: {known}); {hint}")
     # With a pose topic, /tf is only read again if a moving frame other than the body's lies on the
     # chain (e.g. a gimbal); skipping it halves the pose messages a bag like ours needs.
     moving = tree.dynamic_edges(world, camera)
     needs_dynamic_tf = pose_series is None or any(e is not pose_series for e in moving)
-    return SourcePlan(roles.summary, roles.depth, roles.depth_encoding, roles.camera_info, roles.pose, roles.tf_topics,
-                      K, width, height, world, body, camera, pose_parent, needs_dynamic_tf)
+    return SourcePlan(**vars(roles), K=K, width=width, height=height, world_frame=world, body_frame=body,
+                      camera_frame=camera, pose_parent=pose_parent, needs_dynamic_tf=needs_dynamic_tf)
 
 
 def _read_until_planned(source: Source, roles: Roles, config: IngestConfig, camera: str) -> tuple[_PoseFeed, Any]:
@@ -421,9 +405,7 @@ def _intrinsics(roles: Roles, config: IngestConfig, info_msg: Any) -> tuple[NDAr
     if config.intrinsics is not None:
         return np.asarray(config.intrinsics, dtype=np.float64), 0, 0
     if info_msg is None:
-        raise IngestError(
-            f"camera info topic {roles.camera_info.topic} has no messages; pass --intrinsics fx,fy,cx,cy"
-        )
+        raise IngestError(f"camera info topic {roles.camera_info.topic} has no messages; pass --intrinsics fx,fy,cx,cy")
     return camera_intrinsics(info_msg, topic=roles.camera_info.topic or "")
 
 
@@ -462,11 +444,8 @@ _MAX_PENDING = 256  # depth frames held while waiting for later poses (the poses
 @dataclass
 class FrameStream:
     """Iterates frames of several recordings; after iteration, `dropped` and `used` say what happened.
-
-    Each recording is read once, in log-time order: poses and tf feed a growing tf tree, and each
-    depth image waits (serialised) until the poses around its stamp have arrived. Only poses and a
-    short queue of images are held in memory.
-    """
+    Each recording is read once: poses feed a tf tree, and each depth image waits until the poses
+    around its stamp have arrived."""
 
     paths: list[Path]
     config: IngestConfig
@@ -551,9 +530,8 @@ class _SourceReader:
 
     def add_pose_message(self, source: Source, raw: Any, cdr: bool) -> None:
         """Feed one pose or tf message to the tf tree (Odometry in CDR parsed without deserialising)."""
-        fast = None
-        if cdr and raw.topic == self.plan.pose.topic and raw.msgtype == "nav_msgs/msg/Odometry":
-            fast = parse_odometry(raw.data)
+        odometry = cdr and raw.topic == self.plan.pose.topic and raw.msgtype == "nav_msgs/msg/Odometry"
+        fast = parse_odometry(raw.data) if odometry else None
         if fast is not None:
             stamp, parent, child, t, q = fast
             self.feed.add_pose(raw.topic, stamp, frame_name(parent), frame_name(child) or None, t, q)
@@ -621,10 +599,8 @@ class _SourceReader:
 
     def finish(self) -> None:
         """Count the dropped pose messages and keep the stamp spans for the no-frames message."""
-        dropped = self.stream.dropped
-        dropped["pose_message_non_monotonic"] += self.feed.dropped_poses
-        if not dropped["pose_message_non_monotonic"]:
-            del dropped["pose_message_non_monotonic"]
+        if self.feed.dropped_poses:
+            self.stream.dropped["pose_message_non_monotonic"] += self.feed.dropped_poses
         edges = self.tree.dynamic_edges(self.plan.world_frame, self.plan.camera_frame)
         self.stream._spans[self.index] = ((self.first_stamp or 0, self.last_stamp or 0), [e.span for e in edges if len(e)])
 
@@ -657,15 +633,9 @@ def _warn_overlap(stream: FrameStream, plan: SourcePlan) -> None:
 
 
 def open_frames(paths: Sequence[str | Path], config: IngestConfig | None = None) -> FrameStream:
-    """Plan the reading of one or more recordings; iterate the result for `Frame`s.
-
-    Checks every recording's topics, intrinsics and frames up front (reading only the small pose
-    and tf topics), so mistakes surface before any depth image is decoded.
-    """
-    config = config or IngestConfig()
-    config.validate()
-    if not paths:
-        raise IngestError("no input recordings given")
+    """Plan the reading of one or more recordings (topics, intrinsics and frames checked up front,
+    before any depth image is decoded); iterate the result for `Frame`s."""
+    config = _checked(paths, config)
     stream = FrameStream([Path(p) for p in paths], config)
     _refuse_duplicates(stream.paths)
     for path in stream.paths:
@@ -688,3 +658,35 @@ def open_frames(paths: Sequence[str | Path], config: IngestConfig | None = None)
                 f"{str(first.summary.path)!r} uses {first.world_frame!r}; pass --set ingest.world_frame=NAME"
             )
     return stream
+
+
+def _checked(paths: Sequence[str | Path], config: IngestConfig | None) -> IngestConfig:
+    """``config`` (default: the defaults) once it and the list of ``paths`` are valid."""
+    config = config or IngestConfig()
+    config.validate()
+    if not paths:
+        raise IngestError("no input recordings given")
+    return config
+
+
+@dataclass
+class RecordingInfo:
+    """`mapkit info`: the summary of one recording plus its reading plan, or the reason there is none."""
+
+    summary: BagSummary
+    plan: SourcePlan | None
+    problem: str | None
+
+
+def inspect_recordings(paths: Sequence[str | Path], config: IngestConfig | None = None) -> list[RecordingInfo]:
+    """Summaries and role choices for each recording. Unreadable inputs raise IngestError; a readable
+    recording with no usable depth / camera info / pose gets a `problem`, so every input is listed."""
+    config = _checked(paths, config)
+    out = []
+    for path in paths:
+        with Source(path) as source:
+            try:
+                out.append(RecordingInfo(source.summary, plan_source(source, config), None))
+            except IngestError as exc:
+                out.append(RecordingInfo(source.summary, None, str(exc)))
+    return out

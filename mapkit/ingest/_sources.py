@@ -1,10 +1,6 @@
-"""One reader interface over every recording format users bring.
-
-rosbags' AnyReader reads ROS1 bags, ROS2 bag directories and bare ``.mcap`` / ``.db3`` files. A
-truncated MCAP (a recorder killed mid-flight) has no footer and AnyReader refuses it, so those are
-re-read record by record with the ``mcap`` package's stream reader, keeping every complete message
-before the cut.
-"""
+"""One reader interface over every recording format: rosbags' AnyReader for ROS1 bags, ROS2 bag
+directories and ``.db3`` files; the ``mcap`` package for ``.mcap``, record by record when the file was cut
+off (no footer), keeping every complete message before the cut."""
 
 from __future__ import annotations
 
@@ -20,18 +16,9 @@ from mapkit.ingest._errors import IngestError
 
 log = logging.getLogger(__name__)
 
-_MAGIC = {
-    b"#ROSBAG V2.0": "ros1",
-    b"\x89MCAP0\r\n": "mcap",
-    b"SQLite format 3\x00": "db3",
-}
+_MAGIC = {b"#ROSBAG V2.0": "ros1", b"\x89MCAP0\r\n": "mcap", b"SQLite format 3\x00": "db3"}
 _SUFFIX_KIND = {".bag": "ros1", ".mcap": "mcap", ".db3": "db3"}
-FORMAT_NAMES = {
-    "ros1": "ROS1 bag",
-    "ros2": "ROS2 bag directory",
-    "mcap": "MCAP file",
-    "db3": "ROS2 sqlite3 file",
-}
+FORMAT_NAMES = {"ros1": "ROS1 bag", "ros2": "ROS2 bag directory", "mcap": "MCAP file", "db3": "ROS2 sqlite3 file"}
 
 
 @dataclass(frozen=True)
@@ -96,10 +83,8 @@ def detect_kind(path: Path) -> str:
     by_suffix = _SUFFIX_KIND.get(path.suffix.lower())
     if by_magic is None:
         expected = "a ROS1 .bag, a ROS2 bag directory, an .mcap or a .db3 file"
-        raise IngestError(
-            f"input {str(path)!r} is not a recording mapkit reads (starts with {head[:8]!r}); "
-            f"expected {expected}"
-        )
+        raise IngestError(f"input {str(path)!r} is not a recording mapkit reads (starts with {head[:8]!r}); "
+                          f"expected {expected}")
     if by_suffix != by_magic:
         raise IngestError(
             f"input {str(path)!r} holds a {FORMAT_NAMES[by_magic]} but is named {path.suffix or 'without suffix'}; "
@@ -161,10 +146,8 @@ class Source:
             except IngestError:
                 raise
             except Exception as exc:  # noqa: BLE001 - damaged chunk/record: name the file and where
-                raise IngestError(
-                    f"{str(self.path)!r} is damaged after message {count} ({type(exc).__name__}: {exc}); "
-                    "re-export the recording or repair it (for MCAP: `mcap recover`)"
-                ) from None
+                raise IngestError(f"{str(self.path)!r} is damaged after message {count} ({type(exc).__name__}: {exc}); "
+                                  "re-export the recording or repair it (for MCAP: `mcap recover`)") from None
             count += 1
             yield msg
 
@@ -172,10 +155,8 @@ class Source:
         try:
             return self._backend.deserialize(msg)
         except Exception as exc:  # noqa: BLE001 - a deserializer raises many kinds for a malformed message
-            raise IngestError(
-                f"{str(self.path)!r}: a {msg.msgtype} message on {msg.topic} at log time "
-                f"{msg.log_time_ns} ns does not deserialise ({exc}); the recording is damaged"
-            ) from None
+            raise IngestError(f"{str(self.path)!r}: a {msg.msgtype} message on {msg.topic} at log time "
+                              f"{msg.log_time_ns} ns does not deserialise ({exc}); the recording is damaged") from None
 
 
 class _Rosbags:
@@ -226,10 +207,8 @@ def _typestore_from_schemas(path: Path, schemas: Iterable[Any]) -> Any:
     types: dict[str, Any] = {}
     for schema in schemas:
         if schema.encoding != "ros2msg":
-            raise IngestError(
-                f"{str(path)!r}: schema {schema.name!r} is encoded as {schema.encoding!r}; "
-                "mapkit reads ROS2 CDR MCAP files (ros2msg schemas)"
-            )
+            raise IngestError(f"{str(path)!r}: schema {schema.name!r} is encoded as {schema.encoding!r}; "
+                              "mapkit reads ROS2 CDR MCAP files (ros2msg schemas)")
         types.update(get_types_from_msg(schema.data.decode(), _ros2_typename(schema.name)))
     store = get_typestore(Stores.EMPTY)
     store.register(types)
@@ -304,13 +283,12 @@ class _McapStream:
     def __init__(self, path: Path) -> None:
         self.path = path
         self._channels: dict[int, tuple[str, str]] = {}
+        self._cut: tuple[int, str] | None = None
+        """(byte offset, why) of the first incomplete record, once the records have been read."""
         counts: dict[str, list[Any]] = {}
-        start, end, n, cut = None, None, 0, None
+        start, end, n = None, None, 0
         schemas: list[Any] = []
         for record in self._records():
-            if isinstance(record, _cut_marker):
-                cut = record
-                break
             kind = type(record).__name__
             if kind == "Schema":
                 schemas.append(record)
@@ -324,16 +302,12 @@ class _McapStream:
                 counts.setdefault(topic, [record.channel_id, 0])[1] += 1
         self.typestore = _typestore_from_schemas(path, schemas)
         self._schema_names = {sch.id: _ros2_typename(sch.name) for sch in schemas}
-        topics = {
-            t: TopicSummary(t, self._schema_names[self._channels[cid][1]], c)
-            for t, (cid, c) in counts.items()
-        }
-        warnings = []
-        if cut is not None:
-            warnings.append(
-                f"{str(path)!r} is truncated or damaged: the record at byte {cut.offset} of "
-                f"{path.stat().st_size} is incomplete ({cut.reason}); recovered {n} complete messages before it"
-            )
+        topics = {t: TopicSummary(t, self._schema_names[self._channels[cid][1]], c) for t, (cid, c) in counts.items()}
+        warnings: list[str] = []
+        if self._cut is not None:
+            warnings.append(f"{str(path)!r} is truncated or damaged: the record at byte {self._cut[0]} of "
+                            f"{path.stat().st_size} is incomplete ({self._cut[1]}); recovered {n} complete messages "
+                            "before it")
             log.info(warnings[-1])
         if n == 0:
             raise IngestError(f"{str(path)!r} holds no readable messages (MCAP damaged or truncated before the first message)")
@@ -353,7 +327,7 @@ class _McapStream:
                     return
                 except Exception as exc:  # noqa: BLE001 - EndOfFile, bad CRC, bad opcode: the damaged tail
                     yield from _partial_chunk_records(self.path, record_start)
-                    yield _cut_marker(record_start, f"{type(exc).__name__}: {exc}".rstrip(": "))
+                    self._cut = (record_start, f"{type(exc).__name__}: {exc}".rstrip(": "))
                     return
                 yield record
                 record_start = f.tell()
@@ -373,12 +347,6 @@ class _McapStream:
                 yield RawMessage(topic, self._schema_names[schema_id], int(record.log_time), record.data)
 
 
-@dataclass
-class _cut_marker:
-    offset: int
-    reason: str
-
-
 def _ros2_typename(name: str) -> str:
     """MCAP schema names are 'pkg/msg/Type' (ROS2) or sometimes 'pkg/Type'."""
     parts = name.split("/")
@@ -386,12 +354,8 @@ def _ros2_typename(name: str) -> str:
 
 
 def _partial_chunk_records(path: Path, offset: int) -> Iterator[Any]:
-    """Complete records inside a chunk that the file cut off (the writer died mid-chunk).
-
-    The mcap package only parses whole chunks, so the chunk header is read here (MCAP spec:
-    opcode 0x06; start/end time, uncompressed size, CRC, compression, records length) and the
-    available compressed bytes are decompressed as a stream.
-    """
+    """Complete records inside a chunk that the file cut off (the writer died mid-chunk): the chunk header
+    (MCAP opcode 0x06) read here, the available compressed bytes decompressed as a stream."""
     import io
     import struct
 
@@ -432,12 +396,8 @@ def _partial_chunk_records(path: Path, offset: int) -> Iterator[Any]:
 
 
 def _decompressed_chunks(path: Path, chunks: list[Any]) -> Iterator[bytes]:
-    """The records section of each chunk, decompressed (runs in the prefetch thread).
-
-    Why not the mcap package's iterator: it parses every record in Python in the same thread
-    that decompresses, so a reader thread would hold the GIL most of the time. Here the thread
-    only reads and decompresses (both release the GIL) and the consumer parses.
-    """
+    """The records section of each chunk, decompressed in the prefetch thread (reading and decompressing
+    release the GIL; the mcap package's iterator would also parse there, holding it)."""
     import struct
 
     import lz4.frame

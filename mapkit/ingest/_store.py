@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import json
-import queue
-import threading
 import time
+from collections import deque
 from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -60,18 +60,6 @@ def _compressor() -> Any:
     return BloscCodec(cname="lz4", clevel=1, shuffle="bitshuffle")
 
 
-def _writer_thread(depth_array: Any, jobs: queue.Queue[tuple[int, NDArray[np.float32]] | None], errors: list[BaseException]) -> None:
-    """Write (start, block) jobs into ``depth_array`` until None; the first failure goes to ``errors``."""
-    while (job := jobs.get()) is not None:
-        if errors:
-            continue
-        start, block = job
-        try:
-            depth_array[start : start + len(block)] = block
-        except BaseException as exc:  # noqa: BLE001 - surfaced in the main thread
-            errors.append(exc)
-
-
 class _DepthWriter:
     """The ``depth`` array of a new frames.zarr, filled in batches of :data:`_BATCH` frames by a
     background thread; sized for ``capacity`` frames, made on the first frame, trimmed at the end."""
@@ -82,9 +70,8 @@ class _DepthWriter:
         self.height = self.width = 0
         self.count = 0  # frames added
         self.batch: list[NDArray[np.float32]] = []
-        self.jobs: queue.Queue = queue.Queue(maxsize=4)
-        self.errors: list[BaseException] = []
-        self.thread: threading.Thread | None = None
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapkit-ingest-writer")
+        self.writes: deque[Future[None]] = deque()
 
     def add(self, frame: Frame) -> None:
         """Queue one frame's depth; the first frame fixes the image size, a different size later raises."""
@@ -95,8 +82,6 @@ class _DepthWriter:
                 dtype="float32", compressors=[_compressor()], fill_value=float("nan"),
                 dimension_names=["frame", "v", "u"],
             )
-            self.thread = threading.Thread(target=_writer_thread, args=(self.array, self.jobs, self.errors), daemon=True)
-            self.thread.start()
         if frame.depth.shape != (self.height, self.width):
             raise IngestError(
                 f"input {frame.source_index} has {frame.depth.shape[1]}x{frame.depth.shape[0]} depth but earlier "
@@ -105,24 +90,25 @@ class _DepthWriter:
         self.batch.append(frame.depth)
         self.count += 1
 
+    def _write(self, start: int, block: NDArray[np.float32]) -> None:
+        self.array[start : start + len(block)] = block
+
     def flush(self) -> None:
-        """Hand the batch to the writer thread; raise what the thread failed with so far."""
+        """Hand the batch to the writer thread (at most 4 waiting); raise what the thread failed with so far."""
         if self.batch:
-            self.jobs.put((self.count - len(self.batch), np.stack(self.batch)))
+            self.writes.append(self.pool.submit(self._write, self.count - len(self.batch), np.stack(self.batch)))
             self.batch.clear()
-        if self.errors:
-            raise self.errors[0]
+        while self.writes and (len(self.writes) > 4 or self.writes[0].done()):
+            self.writes.popleft().result()
 
     def close(self) -> None:
-        """Stop the writer thread once it has written everything queued."""
-        self.jobs.put(None)
-        if self.thread is not None:
-            self.thread.join()
+        """Stop the writer thread: once it has written everything queued, or at once after a failure."""
+        self.pool.shutdown(wait=True, cancel_futures=any(w.done() and w.exception() for w in self.writes))
 
     def finish(self) -> None:
         """Raise the writer thread's failure, if any; trim the array to the frames written."""
-        if self.errors:
-            raise self.errors[0]
+        while self.writes:
+            self.writes.popleft().result()
         assert self.array is not None
         if self.count != self.capacity:
             self.array.resize((self.count, self.height, self.width))
@@ -173,10 +159,8 @@ def write_frames(stream: FrameStream, store_path: Path | Location, *, progress: 
     sources = _sources_attrs(stream)
     dropped = {k: int(v) for k, v in sorted(stream.dropped.items())}
     root.attrs.update(_frames_attrs(stream, depth.width, depth.height, sources, dropped))
-    return IngestSummary(
-        loc.local if loc.local is not None else loc.url, depth.count, stream.depth_messages, dropped, int(depth.width), int(depth.height),
-        time.perf_counter() - t0, sources, list(stream.warnings),
-    )
+    return IngestSummary(loc.local if loc.local is not None else loc.url, depth.count, stream.depth_messages, dropped,
+                         int(depth.width), int(depth.height), time.perf_counter() - t0, sources, list(stream.warnings))
 
 
 def _stream_frames(stream: FrameStream, depth: _DepthWriter, *, progress: bool) -> _FramePoses:
@@ -203,20 +187,10 @@ def _stream_frames(stream: FrameStream, depth: _DepthWriter, *, progress: bool) 
 
 def _sources_attrs(stream: FrameStream) -> list[dict[str, Any]]:
     """Per input recording: its fingerprint, format and the topics read (the ``sources`` attribute)."""
-    sources = []
-    for path, plan in zip(stream.paths, stream.plans, strict=True):
-        sources.append(
-            {
-                **source_fingerprint(path),
-                "format": plan.summary.format_name,
-                "depth_topic": plan.depth.topic,
-                "depth_encoding": plan.depth_encoding,
-                "camera_info_topic": plan.camera_info.topic,
-                "pose_topic": plan.pose.topic or "tf",
-                "tf_topics": plan.tf_topics,
-            }
-        )
-    return sources
+    return [{**source_fingerprint(path), "format": plan.summary.format_name, "depth_topic": plan.depth.topic,
+             "depth_encoding": plan.depth_encoding, "camera_info_topic": plan.camera_info.topic,
+             "pose_topic": plan.pose.topic or "tf", "tf_topics": plan.tf_topics}
+            for path, plan in zip(stream.paths, stream.plans, strict=True)]
 
 
 def _frames_attrs(stream: FrameStream, width: int, height: int, sources: list[dict[str, Any]],
@@ -240,14 +214,8 @@ def _frames_attrs(stream: FrameStream, width: int, height: int, sources: list[di
     }
 
 
-def ingest(
-    paths: Sequence[str | Path],
-    workspace: str | Path,
-    config: IngestConfig | None = None,
-    *,
-    overwrite: bool = False,
-    progress: bool = True,
-) -> IngestSummary:
+def ingest(paths: Sequence[str | Path], workspace: str | Path, config: IngestConfig | None = None, *,
+           overwrite: bool = False, progress: bool = True) -> IngestSummary:
     """Read recordings into ``workspace/frames.zarr`` (published atomically; `workspace` may be an
     fsspec URL, see docs/stores.md)."""
     config = config or IngestConfig()
@@ -315,14 +283,9 @@ def open_frames_store(workspace: str | Path | Location) -> FramesStore:
         attrs = dict(root.attrs)
         if attrs.get("kind") != "mapkit.frames":
             raise KeyError("kind")
-        return FramesStore(
-            path, root["depth"], read_whole(root, "stamp_ns"), read_whole(root, "T_world_camera"),
-            read_whole(root, "T_world_body"), read_whole(root, "source_index"), np.asarray(attrs["K"], dtype=np.float64),
-            attrs,
-        )
-    except IngestError:
-        raise
+        names = ("stamp_ns", "T_world_camera", "T_world_body", "source_index")
+        stamps, T_wc, T_wb, index = (read_whole(root, name) for name in names)
+        return FramesStore(path, root["depth"], stamps, T_wc, T_wb, index, np.asarray(attrs["K"], np.float64), attrs)
     except Exception as exc:  # noqa: BLE001 - zarr raises many kinds for a damaged or foreign store
-        raise IngestError(
-            f"{str(path)!r} is not a mapkit frames store ({type(exc).__name__}: {exc}); re-run `mapkit ingest --overwrite`"
-        ) from None
+        raise IngestError(f"{str(path)!r} is not a mapkit frames store ({type(exc).__name__}: {exc}); re-run "
+                          "`mapkit ingest --overwrite`") from None

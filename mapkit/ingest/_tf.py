@@ -15,8 +15,7 @@ POSE_GAP = "pose_gap"
 
 class NoPose(Exception):
     """A moving edge has no pose at the asked stamp; ``reason`` is NO_POSE (outside its samples) or
-    POSE_GAP (inside a gap longer than allowed). Not an error of the recording: the frame is dropped
-    and counted by reason."""
+    POSE_GAP (inside a gap longer than allowed). The frame is dropped and counted by reason."""
 
     def __init__(self, reason: str) -> None:
         super().__init__(reason)
@@ -24,11 +23,8 @@ class NoPose(Exception):
 
 
 class EdgeSeries:
-    """T_parent_child sampled over time; interpolated linearly (translation) and by slerp.
-
-    Samples arrive while a recording streams by: arrays grow by doubling, in-order appends are
-    O(1), and a late sample (tf publishers interleave) is inserted in place.
-    """
+    """T_parent_child sampled over time; interpolated linearly (translation) and by slerp. Arrays grow by
+    doubling; a late sample (tf publishers interleave) is inserted in place."""
 
     def __init__(self, parent: str, child: str, origin: str) -> None:
         self.parent, self.child, self.origin = parent, child, origin
@@ -43,10 +39,8 @@ class EdgeSeries:
     def add(self, stamp: int, translation: NDArray[np.float64], q_xyzw: NDArray[np.float64]) -> None:
         norm = float(np.linalg.norm(q_xyzw))
         if not np.isfinite(norm) or norm < 1e-6 or not np.all(np.isfinite(translation)):
-            raise IngestError(
-                f"{self.origin}: transform {self.parent} -> {self.child} at stamp {stamp} ns has "
-                f"translation {translation.tolist()} and quaternion {q_xyzw.tolist()}; not a valid pose"
-            )
+            raise IngestError(f"{self.origin}: transform {self.parent} -> {self.child} at stamp {stamp} ns has "
+                              f"translation {translation.tolist()} and quaternion {q_xyzw.tolist()}; not a valid pose")
         q = q_xyzw / norm
         n = self._n
         if n and stamp <= self._t[n - 1]:
@@ -112,10 +106,8 @@ class TfTree:
         self.static[child] = (parent, T_parent_child)
         self.version += 1
 
-    def add_dynamic(
-        self, parent: str, child: str, stamp: int, translation: NDArray[np.float64],
-        q_xyzw: NDArray[np.float64], origin: str,
-    ) -> None:
+    def add_dynamic(self, parent: str, child: str, stamp: int, translation: NDArray[np.float64],
+                    q_xyzw: NDArray[np.float64], origin: str) -> None:
         if child in self.pinned:
             return
         series = self.dynamic.get(child)
@@ -155,9 +147,6 @@ class TfTree:
 
     def root(self, frame: str) -> str:
         return self.ancestors(frame)[-1]
-
-    def connected(self, a: str, b: str) -> bool:
-        return self.root(a) == self.root(b)
 
     def static_top(self, frame: str) -> str:
         """Walk up from `frame` through static edges only; the frame where motion starts."""

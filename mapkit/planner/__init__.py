@@ -12,9 +12,9 @@ key-points (as offsets from the straight origin → goal line) and η; :meth:`Pl
 turns key-points into a :class:`mapkit.trajopt.Trajectory` through the net's TAN and
 :func:`mapkit.trajopt.min_snap`. Everything is in the body frame (FLU, robot at the origin).
 
-Loss: :func:`planner_loss` = γ1 U_O (:func:`obstacle_cost` on the ESDF) + γ2 U_G (:func:`goal_cost`) +
-γ3 U_S (:func:`smoothness_cost`) + γ4 U_E (:func:`escape_cost`) + γ5 U_T (:func:`time_cost` against
-:func:`time_targets`).
+Loss: :func:`candidate_loss`, winner-takes-all over the candidates of γ1 U_O (:func:`obstacle_cost` on
+the ESDF) + γ2 U_G (:func:`goal_cost`) + γ3 U_S (:func:`smoothness_cost`) + γ4 U_E (η's BCE against
+:func:`collision_labels`) + γ5 U_T (:func:`time_cost` against :func:`time_targets`).
 
 >>> import torch
 >>> from mapkit.planner import PlannerNet, planner_preset
@@ -46,7 +46,6 @@ from mapkit.planner._loss import (
     goal_cost,
     obstacle_cost,
     obstacle_penalty,
-    planner_loss,
     sample_trajectory,
     smoothness_cost,
     time_allocation_loss,
@@ -58,11 +57,9 @@ from mapkit.planner._model import (
     Plan,
     PlannerNet,
     PlannerOutput,
-    count_parameters,
-    plan,
     preprocess_depth,
 )
-from mapkit.planner._resnet import ResNet18, load_torchvision_state_dict, torchvision_resnet18_keys
+from mapkit.planner._resnet import ResNet18, load_torchvision_state_dict
 from mapkit.planner._timing import Allocation, Timing, plan_timing, total_time, turn_speed
 
 __all__ = [
@@ -89,15 +86,12 @@ __all__ = [
     "ResNet18",
     "body_to_world",
     "collision_labels",
-    "count_parameters",
     "escape_cost",
     "goal_cost",
     "load_torchvision_state_dict",
     "obstacle_cost",
     "obstacle_penalty",
-    "plan",
     "candidate_loss",
-    "planner_loss",
     "planner_preset",
     "preprocess_depth",
     "sample_trajectory",
@@ -105,7 +99,6 @@ __all__ = [
     "time_cost",
     "time_allocation_loss",
     "time_targets",
-    "torchvision_resnet18_keys",
     "total_time",
     "turn_speed",
     "plan_timing",

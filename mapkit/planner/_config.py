@@ -1,12 +1,11 @@
-"""The planner network's configuration (:class:`PlannerConfig`) and its named presets: what
-:class:`mapkit.planner.PlannerNet` is built from and what the timing of its plans
-(:mod:`mapkit.planner._timing`) reads."""
+"""The planner network's configuration (:class:`PlannerConfig`) and its named presets."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 from mapkit.planner._errors import PlannerError
@@ -15,10 +14,7 @@ from mapkit.trajopt import BoundaryScale
 
 @dataclass
 class PlannerConfig:
-    """Configuration of :class:`PlannerNet` (and of how its trajectory is built).
-
-    Named presets: :func:`planner_preset` ("paper", "cpu").
-    """
+    """Configuration of :class:`PlannerNet` and of how its trajectory is timed (presets: :func:`planner_preset`)."""
 
     input_size: tuple[int, int] = (96, 160)
     """(h, w) pixels the depth image is resized to before the encoder. Paper: (360, 640)."""
@@ -34,82 +30,53 @@ class PlannerConfig:
     conv_channels: tuple[int, int] = (64, 32)
     """Output channels of the head's two 3×3 conv layers (ReLU after each)."""
     pooled_size: tuple[int, int] = (3, 5)
-    """(h, w) the head's conv output is adaptively average-pooled to before flattening; keeps the
-    coarse spatial layout (left/right/up/down of obstacles) and makes the MLP input size independent
-    of ``input_size``."""
+    """(h, w) the head's conv output is average-pooled to before flattening (a coarse spatial layout)."""
     mlp_hidden: tuple[int, int] = (256, 128)
     """Hidden widths of the three-layer key-point MLP (flattened features → h1 → h2 → 3K)."""
     eta_hidden: tuple[int, int] = (64, 32)
     """Hidden widths of the parallel three-layer η MLP (flattened features → h1 → h2 → 1)."""
     num_candidates: int = 1
-    """M, candidate key-point paths predicted side by side, each starting from its own detour anchor
-    (``candidate_anchors``), with a learned score that picks one. 1 = a single regressed path (the
-    paper). With one path, an obstacle right on the straight line makes left and right detours
-    equally good and their average flies straight into it; M > 1 trained winner-takes-all keeps both."""
-    candidate_anchors: tuple[tuple[float, float], ...] = ()
-    """(lateral, vertical) peak offsets in metres of each candidate's anchor detour, at a 6 m goal
-    (scaled with the goal distance, zero at the start and at the goal); () = the default set for
-    ``num_candidates``."""
-    keypoint_init_scale: float = 0.01
-    """Scale applied to the default init of the key-point MLP's last layer (bias zero), so the
-    untrained net predicts offsets of millimetres-to-centimetres around the straight line."""
+    """M, candidate key-point paths, each from its own detour anchor (:meth:`anchors`), with a learned
+    score that picks one (trained winner-takes-all). 1 = a single regressed path (the paper)."""
     depth_check: bool = False
     """With several candidates: the judge also reads each candidate checked against the depth image
-    (:func:`mapkit.planner.depth_margins`: is each path point in view, and in front of or behind the
-    measured surface), which needs the camera's calibration at every call (``camera=``)."""
+    (:func:`mapkit.planner.depth_margins`); every call then needs the camera's calibration (``camera=``)."""
     flown_samples: int = 0
-    """N > 0: a second collision head (``flown_mlp``) judges each candidate by its trajectory as the
-    flight flies it: the clearance to the depth image's points of N points evenly spaced along its
-    first ``flown_horizon`` metres (:func:`mapkit.planner.flown_clearance`), and its η replaces the
-    judge's. The flight computes those trajectories (``PlannerNet.judge_flown``); ``mapkit lab tune-judge``
-    fits the head to flights recorded with ``EvalConfig.record_judge``. 0 = the judge's η (the paper)."""
+    """N > 0: a second collision head (``flown_mlp``) judges each candidate by N points along the first
+    ``flown_horizon`` metres of its trajectory as flown (:func:`mapkit.planner.flown_features`), and its
+    η replaces the judge's (``PlannerNet.judge_flown``; fitted by ``mapkit lab tune-judge``). 0: the judge's η."""
     flown_horizon: float = 1.5
     """Metres of each candidate's flown trajectory the flown-path head reads (``flown_samples``)."""
     flown_history: float = 0.0
     """Seconds of the flight's earlier depth frames whose points the flown-path head's clearance also
-    reads (``recent=`` of :func:`mapkit.planner.flown_clearance`, moved into the current body frame):
-    a pillar or a door jamb beside the vehicle has left the image by the time the path passes it.
-    0 = the current image only. The flight keeps the frames (``mapkit eval``); a single plan has none."""
+    reads (a pillar beside the vehicle has left the image by the time the path passes it); 0: the
+    current image only. A single plan has no earlier frames."""
     velocity_input: bool = False
-    """The key-point MLP and the judge also read the body's velocity (divided by ``cruise_speed``): a
-    path the vehicle is already flying at 2 m/s bends differently from one it starts at rest (the
-    trajectory starts from the current velocity). The paper's net does not; pass ``velocity=``."""
+    """The key-point MLP and the judge also read the body's velocity / ``cruise_speed`` (pass
+    ``velocity=``): the trajectory starts from it. The paper's net does not."""
     head_activation: Literal["relu", "leaky_relu"] = "relu"
-    """Activation between the layers of the key-point, η and score MLPs. "leaky_relu" (slope 0.1)
-    cannot die: with ReLU, training on 47 worlds left 5 % of the key-point MLP's units active after
-    one epoch and the paths stopped moving (the paper uses ReLU)."""
+    """Activation between the layers of the key-point, η and judge MLPs; "leaky_relu" (slope 0.1)
+    cannot die (with ReLU, the paper's, most key-point units died within an epoch on 47 worlds)."""
     tan_hidden: tuple[int, ...] = (64, 64)
     """Hidden widths of the Time Allocation Net MLP."""
     tan_boundary: bool = False
-    """The TAN also reads the start velocity and acceleration and the end speed (rest, or passing
-    the last key-point at cruise speed); its U_T target is computed under the same conditions.
-    Without them it learns one split for every plan from rest-to-rest targets (the paper's TAN).
-    Measured in closed loop (seed 11, 180 pairs) the boundary-aware TAN fits its targets 5× better
-    but flies with 4.5× the effort (4250 vs 948 m²/s⁷, median) and lower success (53.9 vs 55.0 %):
-    only a plan's first half second is flown, and the rest-to-rest split's long first segment keeps
-    that part gentle. Off in the presets."""
+    """The TAN also reads the start velocity and acceleration and the end speed, and its U_T target is
+    computed under the same conditions; without them it learns one split from rest-to-rest targets
+    (the paper's TAN). Off in the presets (trained jointly it flew with more effort)."""
     tan_boundary_scale: BoundaryScale = "limits"
     """With ``tan_boundary``: how the boundary inputs are made unitless (``limits``: by the cruise
-    speed and ``accel``; ``duration``: by each plan's total time and path length, the same split
-    at every pace; :attr:`mapkit.trajopt.TimeAllocationNetConfig.boundary_scale`)."""
+    speed and ``accel``; ``duration``: by each plan's total time and path length)."""
     cruise_speed: float = 2.0
-    """m/s. Total time: a speed profile over the key-point path (origin → k1 → ... → kK) that
-    changes speed at ``accel`` towards this speed (see :func:`mapkit.planner.total_time`)."""
+    """m/s the total time's speed profile over the key-point path tends to (:func:`mapkit.planner.total_time`)."""
     accel: float = 1.0
-    """m/s², the speed profile's rate of speeding up and slowing down. 0.6 was tried: a quarter less
-    median effort on seeds 7 and 13 but twice as much on seed 11, at equal success; kept 1.0 for
-    training. The shipped model flies with 1.5 (set in its stored config after training): on five
-    held-out seeds 89.3 % success on average against 87.7 % at 1.0 (fewer office timeouts), at about
-    1.4× the executed effort; 2.0 collided more (office, dev seeds 31 / 37)."""
+    """m/s², the speed profile's rate of speeding up and slowing down (trained at 1.0; the shipped
+    model flies with 1.5, set in its stored config after training)."""
     min_segment_time: float = 0.3
-    """Seconds every segment gets at least (the TAN splits the rest): snap grows like 1 / T⁷, and
-    key-points pinned a fraction of a second apart made most of a flight's effort."""
+    """Seconds every segment gets at least (the TAN splits the rest): snap grows like 1 / T⁷."""
     min_total_time: float = 1.0
     """Seconds, lower bound of the total time."""
     max_total_time: float = 15.0
     """Seconds, upper bound of the total time."""
-    extra: dict[str, Any] = field(default_factory=dict)
-    """Free-form notes stored with the config (ignored by the module)."""
 
     def __post_init__(self) -> None:
         h, w = (int(v) for v in self.input_size)
@@ -136,11 +103,6 @@ class PlannerConfig:
         if self.flown_samples < 0 or not self.flown_horizon > 0 or not self.flown_history >= 0:
             raise PlannerError(f"need flown_samples >= 0, flown_horizon > 0 metres and flown_history >= 0 seconds, got "
                                f"{self.flown_samples}, {self.flown_horizon} and {self.flown_history}")
-        self.candidate_anchors = tuple((float(a), float(b)) for a, b in self.candidate_anchors)
-        if self.candidate_anchors and len(self.candidate_anchors) != self.num_candidates:
-            raise PlannerError(
-                f"candidate_anchors has {len(self.candidate_anchors)} entries but num_candidates is {self.num_candidates}"
-            )
         if self.head_activation not in ("relu", "leaky_relu"):
             raise PlannerError(f"head_activation must be 'relu' or 'leaky_relu', got {self.head_activation!r}")
         if len(self.conv_channels) != 2 or len(self.mlp_hidden) != 2 or len(self.eta_hidden) != 2:
@@ -152,7 +114,9 @@ class PlannerConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> PlannerConfig:
-        """Build a config from :meth:`to_dict` output; unknown keys raise :class:`PlannerError`."""
+        """Build a config from :meth:`to_dict` output (a saved model's: removed fields load while they hold
+        what the net now always does); unknown keys raise :class:`PlannerError`."""
+        data = drop_removed_fields(data, PlannerError, REMOVED_FIELDS, "planner ")
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - names)
         if unknown:
@@ -161,24 +125,48 @@ class PlannerConfig:
         return cls(**kw)
 
     def anchors(self) -> tuple[tuple[float, float], ...]:
-        """The (lateral, vertical) anchor peaks in effect, one per candidate."""
-        if self.candidate_anchors:
-            return self.candidate_anchors
-        return default_anchors(self.num_candidates)
+        """One (lateral, vertical) peak offset in metres per candidate's anchor detour, at a 6 m goal (scaled
+        with the goal distance, zero at the start and at the goal): straight first, then left/right detours
+        of growing width, one climb for M >= 6."""
+        m = self.num_candidates
+        out: list[tuple[float, float]] = [(0.0, 0.0)]
+        if m >= 6:
+            out.append((0.0, 0.8))
+        width = 1.2
+        while len(out) < m:
+            out.append((width, 0.0))
+            if len(out) < m:
+                out.append((-width, 0.0))
+            width += 1.2
+        return tuple(out[:m])
 
 
-def default_anchors(m: int) -> tuple[tuple[float, float], ...]:
-    """M anchors: straight first, then left/right detours of growing width, one climb for M >= 6."""
-    out: list[tuple[float, float]] = [(0.0, 0.0)]
-    if m >= 6:
-        out.append((0.0, 0.8))
-    width = 1.2
-    while len(out) < m:
-        out.append((width, 0.0))
-        if len(out) < m:
-            out.append((-width, 0.0))
-        width += 1.2
-    return tuple(out[:m])
+REMOVED_FIELDS: dict[str, Any] = {"candidate_anchors": (), "keypoint_init_scale": 0.01, "extra": {}}
+"""Removed PlannerConfig fields a saved model may still name, with the value that builds the net as now."""
+
+
+def drop_removed_fields(values: dict[str, Any], error: type[Exception], removed: dict[str, Any],
+                        prefix: str) -> dict[str, Any]:
+    """Saved fields ``values`` less those in ``removed`` (:data:`REMOVED_FIELDS`, the LossConfig and
+    TrainConfig ones) that hold the value mapkit now always behaves as with; one that holds another
+    raises ``error`` naming it (``prefix``: its table, "loss ")."""
+    for name, value in values.items():
+        if name in removed and not _same_as_removed(name, value, values, removed[name]):
+            raise error(f"{prefix}{name}={json.dumps(value)}: the field was removed in mapkit 0.1.0 (issue 57), which "
+                        f"always behaves as with {name}={json.dumps(removed[name])}; train a new run without it, "
+                        "or use a mapkit checkout from before issue 57 for this one")
+    return {k: v for k, v in values.items() if k not in removed}
+
+
+def _same_as_removed(name: str, value: Any, values: dict[str, Any], now: Any) -> bool:
+    """Whether removed field ``name`` = ``value`` (among ``values``) behaves as mapkit's fixed ``now``."""
+    if name == "detour_cap":  # only counted with a detour weight
+        return bool(values.get("detour_weight", 0.0) == 0.0)
+    if name == "collision_distance" and value is not None:  # None meant the robot radius (default 0.3 m)
+        return bool(value == values.get("robot_radius", 0.3))
+    if name == "extra":  # free-form notes the net never read
+        return True
+    return bool(value == now or (isinstance(value, list) and tuple(value) == now))
 
 
 PLANNER_PRESETS: dict[str, dict[str, Any]] = {
@@ -190,14 +178,8 @@ PLANNER_PRESETS: dict[str, dict[str, Any]] = {
         input_size=(96, 160), encoder_width=0.25, goal_embed_dim=16, conv_channels=(64, 32),
         pooled_size=(3, 5), mlp_hidden=(256, 128), eta_hidden=(64, 32), tan_hidden=(64, 64),
     ),
-    "cpu-multi": dict(
-        input_size=(96, 160), encoder_width=0.25, goal_embed_dim=16, conv_channels=(64, 32),
-        pooled_size=(3, 5), mlp_hidden=(256, 128), eta_hidden=(64, 32), tan_hidden=(64, 64), num_candidates=6,
-    ),
 }
-"""Named presets: "paper" (ResNet-18 at full width on 360×640 depth, as in the paper), "cpu"
-(quarter-width encoder on 96×160 for training and tests on a laptop CPU) and "cpu-multi" (the same
-with six scored candidate paths)."""
+"""Named presets: "paper" (full-width ResNet-18 on 360×640 depth) and "cpu" (quarter width on 96×160)."""
 
 
 def planner_preset(name: str, **overrides: Any) -> PlannerConfig:

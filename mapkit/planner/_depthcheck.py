@@ -1,10 +1,6 @@
-"""Each candidate path checked against the depth image it was planned from.
-
-A path point in view is compared with the depth the camera measured around its pixel (the nearest
-depth within the image of the robot's disc there, so a point passing beside a surface closer than the
-robot's size still counts): a point in front of the measured surface lies in seen free space, one behind it is
-occluded (or inside the obstacle). These per-point margins are inputs of the candidate judge; they
-use only the network's own input and the camera's calibration, never the map.
+"""Each candidate path checked against the depth image it was planned from: a point in view is
+compared with the nearest depth measured within the image of the robot's disc around it (in front:
+seen free space; behind: occluded or inside). The judge reads these margins; never the map.
 """
 
 from __future__ import annotations
@@ -28,8 +24,7 @@ class CameraInput:
     """The calibration the planner needs to look its paths up in the depth image (batched)."""
 
     intrinsics: torch.Tensor
-    """(B, 4) fx / W, fy / H, (cx + 0.5) / W, (cy + 0.5) / H of the ORIGINAL image (W × H pixels, pixel
-    centres at integers): normalised so resizing the image changes nothing."""
+    """(B, 4) fx / W, fy / H, (cx + 0.5) / W, (cy + 0.5) / H of the original W × H image (invariant to resizing)."""
     T_camera_body: torch.Tensor
     """(B, 4, 4) body (FLU) → optical camera frame."""
 
@@ -73,8 +68,8 @@ to the image size of the robot's disc at its depth."""
 
 
 def _pyramid_schedule() -> list[tuple[bool, int]]:
-    """(halve first, odd step) per level of :data:`WINDOWS`: each level pools the previous one, so
-    windows add up (size + step − 1 = k); windows wider than 16 pixels run on a half-resolution grid."""
+    """(halve first, odd step) per level of :data:`WINDOWS`: each level pools the previous one (windows
+    add up); windows wider than 16 pixels run on a half-resolution grid."""
     schedule, size, scale = [], 1, 1
     for k in WINDOWS:
         halve = k > 16 and scale == 1
@@ -88,12 +83,8 @@ def _pyramid_schedule() -> list[tuple[bool, int]]:
 
 def nearest_depth_pyramid(x: torch.Tensor) -> torch.Tensor:
     """(B, len(WINDOWS), h, w): the nearest depth / max_depth within each window around every pixel
-    of the preprocessed depth ``x`` (B, 2, h, w); pixels without a return count as far. Min-pooling is
-    separable (rows, then columns), each level pools the previous one, and windows wider than 16
-    pixels run on a half-resolution grid (within a pixel of the exact window): a few milliseconds for
-    a 96 × 160 image on one core instead of the 5 × k² comparisons per pixel of plain windows. On the
-    CPU the same minima come from scipy (exactly equal): torch's pooling along image columns is
-    several times slower there, and this runs in every plan."""
+    of the preprocessed depth ``x`` (B, 2, h, w); pixels without a return count as far. Separable
+    min-pooling (:func:`_pyramid_schedule`); on the CPU in numpy (the same minima, several times faster)."""
     level = torch.where(x[:, 1:2] > 0.5, x[:, :1], torch.ones_like(x[:, :1]))
     if level.device.type == "cpu":
         return torch.from_numpy(_pyramid_numpy(level.detach().numpy()))
@@ -115,10 +106,8 @@ def _pyramid_torch(level: torch.Tensor) -> torch.Tensor:
 
 
 def _running_min(a: np.ndarray, size: int, axis: int) -> np.ndarray:
-    """Minimum over the centred window of odd ``size`` along ``axis``, edges repeated outward (a
-    repeated edge lies in its own window, so it is the same as ignoring the outside): minima of
-    doubling spans, then two overlapping spans per window, a few array passes for any size (scipy's
-    filter costs tens of microseconds per call on these small images)."""
+    """Minimum over the centred window of odd ``size`` along ``axis``, edges repeated outward: minima
+    of doubling spans, then two overlapping spans per window."""
     m = np.moveaxis(a, axis, 0)  # a view: slices along the first axis stay views
     n, half = m.shape[0], size // 2
     m = np.concatenate([np.repeat(m[:1], half, axis=0), m, np.repeat(m[-1:], half, axis=0)])
@@ -151,11 +140,8 @@ def _pyramid_numpy(level: np.ndarray) -> np.ndarray:
 
 def depth_margins(candidates: torch.Tensor, x: torch.Tensor, camera: CameraInput, *, max_depth: float,
                   robot_radius: float = 0.35, pyramid: torch.Tensor | None = None) -> torch.Tensor:
-    """(B, M, P · FEATURES_PER_POINT) features of every candidate (B, M, K, 3) body frame against the
-    preprocessed depth ``x`` (B, 2, h, w) (:func:`preprocess_depth`: depth / max_depth and the valid
-    mask). Each point reads the nearest measured depth within the image of a disc of ``robot_radius``
-    around it (from a pyramid of window sizes: at 1 m the disc spans tens of pixels, at 8 m a few).
-    Pixels without a return count as far (no surface seen there). ``pyramid``: the candidates' own
+    """(B, M, P · FEATURES_PER_POINT) :func:`point_margins` of the points along every candidate's
+    key-point path (B, M, K, 3), body frame. ``pyramid``: the candidates' own
     :func:`nearest_depth_pyramid` rows when already computed (several goals share an image)."""
     return point_margins(path_points(candidates), x, camera, max_depth=max_depth, robot_radius=robot_radius,
                          pyramid=pyramid)
@@ -166,7 +152,7 @@ def point_margins(pts: torch.Tensor, x: torch.Tensor, camera: CameraInput, *, ma
     """(B, M, P · FEATURES_PER_POINT) features of the points ``pts`` (B, M, P, 3), body frame, against
     the preprocessed depth ``x`` (B, 2, h, w): per point whether it is in view, and the nearest measured
     depth within the image of a disc of ``robot_radius`` around it minus its own depth (metres / 2,
-    clipped to ±1; 0 out of view). See :func:`depth_margins`."""
+    clipped to ±1; 0 out of view). Pixels without a return count as far."""
     B, M, _, _ = pts.shape
     _, w = x.shape[-2:]
     T = camera.T_camera_body.to(pts.dtype)
@@ -208,10 +194,8 @@ def image_points(depth: torch.Tensor, camera: CameraInput, *, max_depth: float, 
 
 def seen_conflicts(paths: torch.Tensor, x: torch.Tensor, camera: CameraInput, *, max_depth: float,
                    robot_radius: float = 0.35, pyramid: torch.Tensor | None = None) -> torch.Tensor:
-    """(B, M) how many points along each path (B, M, P, 3) body frame (points in order, the origin
-    first implied) lie in view with a measured surface nearer than themselves within the image of the
-    robot's disc: points that pass closer than the robot's size to something the camera sees, or
-    behind it (see :func:`depth_margins`)."""
+    """(B, M) how many points along each path (B, M, P, 3), body frame (the origin first implied), lie
+    in view behind or within the robot's size of a measured surface (:func:`depth_margins`)."""
     f = depth_margins(paths, x, camera, max_depth=max_depth, robot_radius=robot_radius, pyramid=pyramid)
     f = f.reshape(*f.shape[:2], -1, FEATURES_PER_POINT)
     return ((f[..., 0] > 0.5) & (f[..., 1] < 0)).sum(-1)

@@ -1,9 +1,6 @@
 """What the flown-path judge reads (``PlannerConfig.flown_samples``): points along the first metres of
-each candidate's trajectory as the vehicle would fly it, and how far each lies from the nearest point
-the depth image shows.
-
-Judging the key-points is not enough: the trajectory flown in a corridor cuts their corners and the
-one through them swings wide, so a clear polyline says little about the flown path (docs/planner.md).
+each candidate's trajectory as flown (which cuts the key-points' corners), and how far each lies from
+the nearest point the depth image shows.
 """
 
 from __future__ import annotations
@@ -16,18 +13,14 @@ from mapkit.trajopt import Trajectory
 FLOWN_FEATURES = 3
 """Features per point of the flown-path head (:func:`flown_features`)."""
 CLEARANCE_CAP = 3.0
-"""Metres: clearances are capped here; farther than this is as good as clear for a judge of the next
-metre or two."""
+"""Metres: clearances are capped here (as good as clear for a judge of the next metre or two)."""
 
 
 def arclength_points(trajectory: Trajectory, *, horizon: float, count: int, dense: int = 96
                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Points at the arc lengths ``horizon · i / count`` (i = 1..count) along each trajectory of the
-    batch from its start, and how long each is within ``horizon`` (B,), metres. A trajectory shorter
-    than ``horizon`` repeats its end. The arc length is measured on ``dense`` time samples.
-
-    Returns ((B, count, 3) points in the trajectory's frame, (B,) lengths).
-    """
+    """((B, count, 3) points at the arc lengths ``horizon · i / count``, i = 1..count, along each
+    trajectory (its end repeated past it), (B,) each one's length within ``horizon``), metres; arc
+    length measured on ``dense`` time samples."""
     total = trajectory.durations.sum(-1).reshape(-1, 1)
     t = total * torch.linspace(0.0, 1.0, dense + 1, dtype=total.dtype, device=total.device)
     pos = trajectory.position(t).reshape(total.shape[0], dense + 1, 3)
@@ -70,10 +63,8 @@ def flown_clearance(points: torch.Tensor, x: torch.Tensor, camera: CameraInput, 
 def flown_features(points: torch.Tensor, x: torch.Tensor, camera: CameraInput, *, max_depth: float,
                    pyramid: torch.Tensor | None = None, recent: torch.Tensor | None = None) -> torch.Tensor:
     """(B, M, N, FLOWN_FEATURES) what the flown-path head reads at each point (B, M, N, 3), body frame,
-    of the preprocessed depth ``x`` (B, 2, h, w): its clearance (:func:`flown_clearance`, to the image
-    and the ``recent`` points) over :data:`CLEARANCE_CAP`, whether it is in view, and how far in front
-    of (+) or behind (−) the measured surface it lies (:func:`mapkit.planner.depth_margins`' features
-    of a point)."""
+    of the preprocessed depth ``x`` (B, 2, h, w): its :func:`flown_clearance` / :data:`CLEARANCE_CAP`,
+    and :func:`point_margins` (in view; in front of (+) or behind (−) the measured surface)."""
     B, M, N, _ = points.shape
     near = flown_clearance(points, x, camera, max_depth=max_depth, recent=recent) / CLEARANCE_CAP
     seen = point_margins(points.to(x.dtype), x, camera.expand(B).to(x.device), max_depth=max_depth,

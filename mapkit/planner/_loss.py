@@ -1,15 +1,12 @@
 """The self-supervised upper-level loss U = γ1 U_O + γ2 U_G + γ3 U_S + γ4 U_E + γ5 U_T and its terms.
 
-Every term is a function of tensors with a batch axis B and returns (B,) per-element values;
-:func:`planner_loss` weights them, averages over the batch and returns the scalar to back-propagate.
-Trajectories are planned in the body frame (FLU, robot at the origin); points are moved to the world
-frame with ``T_world_body`` (B, 4, 4) before every ESDF lookup.
+Every term returns (B,) values; plans are in the body frame, moved to the world frame with
+``T_world_body`` (B, 4, 4) before every ESDF lookup.
 """
 
 from __future__ import annotations
 
 import functools
-import json
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -27,75 +24,41 @@ if TYPE_CHECKING:  # the ESDF stage is only needed at call time (duck-typed quer
 
 @dataclass
 class LossConfig:
-    """Weights and parameters of :func:`planner_loss`. The γ defaults are starting points that put the
-    terms on comparable scales for a fresh net, not tuned values."""
+    """Weights and parameters of :func:`candidate_loss`. Fixed: γ1 = 20, γ2 = 1, γ3 = 0.5, γ4 = 1, the
+    score's weight 1, 10 trajectory samples per second (at least 8), and collision labels from the map's
+    unsmoothed ``esdf_raw`` where it has one."""
 
-    gamma_obstacle: float = 20.0
-    """γ1, weight of the obstacle cost U_O (:func:`obstacle_cost`, a mean over the samples). 20, not
-    2: at 2 paths trained across a pillar stayed inside it; at 20 they cleared it and still reached
-    the goal."""
-    gamma_goal: float = 1.0
-    """γ2, weight of the goal cost U_G (:func:`goal_cost`, metres)."""
-    gamma_smooth: float = 0.5
-    """γ3, weight of the smoothness cost U_S (:func:`smoothness_cost`, metres)."""
-    gamma_escape: float = 1.0
-    """γ4, weight of the escape cost U_E (:func:`escape_cost`, BCE of η)."""
     gamma_time: float = 10.0
     """γ5, weight of the time cost U_T (:func:`time_cost`: MSE of shares, which are ~1/K, so the raw
     term is small)."""
-    gamma_score: float = 1.0
-    """Weight of the candidate score's cross-entropy against the candidate with the lowest path cost
-    (only with several candidates)."""
     score_temperature: float = 0.0
-    """Metres of path cost: the score learns the soft-min distribution softmax(−cost / T) over the
-    candidates instead of the single best (0: the best only). Two free detours that cost nearly the
-    same are then both right answers instead of a coin flip between targets."""
+    """Metres of path cost: the score learns softmax(−cost / T) over the candidates instead of the
+    single best (0), so two nearly equal detours are both right answers."""
     candidate_spread: float = 0.05
     """α: every candidate's path cost enters with weight α (the winner's with 1 + α), so candidates
-    that never win still move towards sensible paths instead of dying (only with several)."""
+    that never win still learn (several only)."""
     candidate_anchor_pull: float = 0.0
     """β, 1/m²: every candidate that does not win a sample adds β × the mean squared distance (m²) of
-    its key-points from its own anchor path's, divided among the M − 1 losers (only with several).
-    ``candidate_spread`` pulls the losers toward the cheapest path, and the shipped model's eight
-    candidates ended up within a metre of each other; this pull keeps them apart instead. Off by
-    default: on its own in a fine-tune (β 0.1, no spread term) it lost office flights (docs/results.md)."""
+    its key-points from its own anchor's, divided among the M − 1 losers (several only): keeps the
+    candidates apart where ``candidate_spread`` pulls them together."""
     winner_collision_penalty: float = 0.0
-    """κ, metres of path cost added to every candidate whose path collides (the η label) when choosing
-    the winner and the score's target only (no gradient): a candidate that keeps clear wins over one
-    that reaches the goal through a wall. 0: the cheapest path cost wins."""
+    """κ, metres of path cost added to every colliding candidate when choosing the winner and the
+    score's target only (no gradient). 0: the cheapest path cost wins."""
     robot_radius: float = 0.3
-    """Metres. The obstacle cost acts on the clearance d − robot_radius, and a trajectory that comes
-    nearer than this to a surface counts as colliding (η's label, the collision rates)."""
+    """Metres. The obstacle cost acts on the clearance d − robot_radius; a trajectory nearer than this
+    to a surface collides (η's label)."""
     obstacle_softness: float = 1.0
-    """ε, metres: width of the smooth hinge in :func:`obstacle_penalty`. Larger ε gives more gradient
-    far from obstacles (it decays like ε²/(4 u²) at clearance u)."""
-    samples_per_second: float = 10.0
-    """Trajectory samples per second of flight for U_O, U_S and the collision label (the longest
-    trajectory of the batch sets the count N; every element is sampled at N instants evenly spread
-    over its own duration)."""
-    min_samples: int = 8
-    """Lower bound on N, the samples per trajectory."""
-    label_from_raw: bool = True
-    """Use the map's unsmoothed ``esdf_raw`` (exact distances) for the collision label when the map
-    has it; the smoothed ``esdf`` otherwise. U_O always uses the smoothed field."""
+    """ε, metres: width of the smooth hinge in :func:`obstacle_penalty`."""
     time_target_iters: int = 10
-    """Iterations of the Mellinger & Kumar gradient allocation for the U_T target (10: ≈ 20 ms for a
-    batch of 16 on 2 CPU cores, MSE to the converged shares ≈ 4e-5 against ≈ 5e-3 for uniform
-    shares)."""
-    time_target_tol: float = 1e-3
-    """Relative cost decrease below which that allocation stops early."""
+    """Iterations of the Mellinger & Kumar gradient allocation for the U_T target."""
 
     def __post_init__(self) -> None:
         if not self.robot_radius >= 0:
             raise PlannerError(f"robot_radius must be >= 0 metres, got {self.robot_radius}")
         if not self.obstacle_softness > 0:
             raise PlannerError(f"obstacle_softness must be > 0 metres, got {self.obstacle_softness}")
-        if not self.samples_per_second > 0:
-            raise PlannerError(f"samples_per_second must be > 0, got {self.samples_per_second}")
         if not (math.isfinite(self.score_temperature) and self.score_temperature >= 0):
             raise PlannerError(f"score_temperature must be >= 0 metres, got {self.score_temperature}")
-        if self.min_samples < 2:
-            raise PlannerError(f"min_samples must be >= 2, got {self.min_samples}")
         for name in ("candidate_spread", "candidate_anchor_pull", "winner_collision_penalty"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise PlannerError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -103,30 +66,11 @@ class LossConfig:
 
 REMOVED_FIELDS: dict[str, Any] = {
     "detour_weight": 0.0, "detour_cap": 8.0, "eta_horizon": None, "eta_label": "map", "eta_positive_weight": 1.0,
-    "collision_distance": None, "obstacle_reduction": "mean", "smoothness_on": "keypoints",
+    "collision_distance": None, "obstacle_reduction": "mean", "smoothness_on": "keypoints", "gamma_obstacle": 20.0,
+    "gamma_goal": 1.0, "gamma_smooth": 0.5, "gamma_escape": 1.0, "gamma_score": 1.0, "samples_per_second": 10.0,
+    "min_samples": 8, "label_from_raw": True, "time_target_tol": 1e-3,
 }
-"""Fields LossConfig no longer has, each with the value that gives the behaviour the loss now always
-has: research options dropped in issue 57 that a saved run's config.json may still name."""
-
-
-def drop_removed_fields(values: dict[str, Any], error: type[Exception]) -> dict[str, Any]:
-    """A saved run's LossConfig fields ``values`` less those in :data:`REMOVED_FIELDS` that hold the
-    behaviour the loss now always has; one that holds another raises ``error`` naming it."""
-    for name, value in values.items():
-        if name in REMOVED_FIELDS and not _same_as_removed(name, value, values):
-            raise error(f"loss {name}={json.dumps(value)}: the field was removed in mapkit 0.1.0 (issue 57), whose "
-                        f"loss always trains as with {name}={json.dumps(REMOVED_FIELDS[name])}; train a new run "
-                        "without it, or use a mapkit checkout from before issue 57 for this one")
-    return {k: v for k, v in values.items() if k not in REMOVED_FIELDS}
-
-
-def _same_as_removed(name: str, value: Any, values: dict[str, Any]) -> bool:
-    """Whether removed field ``name`` = ``value`` (among ``values``) trains as the loss now does."""
-    if name == "detour_cap":  # only counted with a detour weight
-        return values.get("detour_weight", 0.0) == 0.0
-    if name == "collision_distance" and value is not None:  # None meant the robot radius
-        return bool(value == values.get("robot_radius", LossConfig.robot_radius))
-    return bool(value == REMOVED_FIELDS[name])
+"""Removed LossConfig fields a saved run's config.json may still name, with the value that trains as now."""
 
 
 # ------------------------------------------------------------------------------------ helpers
@@ -136,18 +80,14 @@ def _safe_norm(x: torch.Tensor) -> torch.Tensor:
 
 
 def sample_trajectory(trajectory: Trajectory, *, samples_per_second: float, min_samples: int = 2) -> torch.Tensor:
-    """Positions (B, N, 3) at N instants evenly spread over each element's own duration (first =
-    start, last = end). N = max(min_samples, ceil(longest total time × samples_per_second) + 1), so
-    every element has at least ``samples_per_second`` samples per second and no padding. Gradients
-    flow to the coefficients and the durations."""
+    """Positions (B, N, 3) at N instants evenly spread over each element's own duration, N =
+    max(min_samples, ceil(longest total time × samples_per_second) + 1). Differentiable."""
     if not trajectory.batched:
         raise PlannerError("sample_trajectory needs a batched trajectory (B elements)")
     total = trajectory.total_time  # (B,)
     N = max(int(min_samples), int(math.ceil(float(total.detach().max()) * samples_per_second)) + 1)
     frac = torch.linspace(0.0, 1.0, N, dtype=total.dtype, device=total.device)
-    t = total.unsqueeze(-1) * frac
-    # Keep the last instant inside the final segment (t == total exactly is clamped anyway).
-    return trajectory.position(t)
+    return trajectory.position(total.unsqueeze(-1) * frac)
 
 
 def body_to_world(points: torch.Tensor, T_world_body: torch.Tensor) -> torch.Tensor:
@@ -164,16 +104,10 @@ def body_to_world(points: torch.Tensor, T_world_body: torch.Tensor) -> torch.Ten
 
 # --------------------------------------------------------------------------------------- terms
 def obstacle_penalty(distance: torch.Tensor, *, robot_radius: float, softness: float) -> torch.Tensor:
-    """Elementwise obstacle cost of signed distances (metres): a hyperbolic smooth hinge of the
-    clearance ``u = distance − robot_radius``::
-
-        c(u) = (sqrt(u² + ε²) − u) / 2,      ε = softness
-
-    Strictly decreasing everywhere (dc/du = (u / sqrt(u² + ε²) − 1) / 2 ∈ (−1, 0)): inside an obstacle
-    or within the robot radius it grows linearly with the penetration (slope → 1 per metre), at the
-    radius it is ε/2, and in free space it decays only like ε² / (4u) with gradient ≈ −ε² / (4u²):
-    polynomial, not exponential, so it never plateaus in open space (the paper's reason for an ESDF
-    with distances everywhere). Cost is in metres."""
+    """Elementwise obstacle cost (metres) of signed distances: the smooth hinge
+    c(u) = (sqrt(u² + ε²) − u) / 2 of the clearance u = distance − robot_radius, ε = softness. Strictly
+    decreasing: linear inside obstacles, ε/2 at the radius, decaying like ε² / (4u) in free space (a
+    gradient everywhere)."""
     u = distance - robot_radius
     return 0.5 * (torch.sqrt(u * u + softness * softness) - u)
 
@@ -185,10 +119,8 @@ def obstacle_cost(
     robot_radius: float = 0.3,
     softness: float = 1.0,
 ) -> torch.Tensor:
-    """U_O: obstacle cost (B,) of world points (B, N, 3) — the mean over the N samples of
-    :func:`obstacle_penalty` of the smoothed ESDF distance there (the paper sums: a mean does not grow
-    with the trajectory's duration). Outside the map grid the distance is that of the nearest grid
-    point (``outside="clamp"``). Differentiable w.r.t. ``points``."""
+    """U_O (B,): the mean over world points (B, N, 3) of :func:`obstacle_penalty` of the smoothed ESDF
+    (the paper sums; a mean does not grow with the duration). Outside the grid: the nearest grid point."""
     if points.ndim != 3 or points.shape[-1] != 3:
         raise PlannerError(f"points must have shape (B, N, 3) in the world frame, got {tuple(points.shape)}")
     d = esdf_map.query_torch(points, outside="clamp")
@@ -203,11 +135,9 @@ def goal_cost(end: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
 
 
 def smoothness_cost(points: torch.Tensor, start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
-    """U_S (B,) metres: Σ_i | ‖p_{i+1} − p_i‖ − ‖p̂_{i+1} − p̂_i‖ | over the N trajectory samples
-    ``points`` (B, N, 3) against N equally spaced points p̂ on the straight ``start`` → ``goal`` line
-    (both (B, 3), same frame). Zero exactly when the samples advance in equal steps of the straight
-    line's step length (e.g. equally spaced points on that line); it penalises uneven speed and
-    detours. A sum, as in the paper (its scale hardly depends on N for a smooth curve)."""
+    """U_S (B,) metres: Σ_i | ‖p_{i+1} − p_i‖ − ‖p̂_{i+1} − p̂_i‖ | over the N points (B, N, 3) against
+    N equally spaced points p̂ on the straight ``start`` → ``goal`` line (both (B, 3)): penalises
+    uneven steps and detours."""
     if points.ndim != 3 or points.shape[-1] != 3 or points.shape[1] < 2:
         raise PlannerError(f"points must have shape (B, N>=2, 3), got {tuple(points.shape)}")
     B, N, _ = points.shape
@@ -230,13 +160,8 @@ def collision_labels(
 
 
 def escape_cost(eta: torch.Tensor, collided: torch.Tensor, *, logit: torch.Tensor | None = None) -> torch.Tensor:
-    """U_E (B,): BCE(η, 1) where the trajectory collided (``collided`` (B,) bool, e.g. from
-    :func:`collision_labels`), BCE(η, 0) otherwise. The label carries no gradient.
-
-    Pass ``logit`` (B,) (``PlannerOutput.eta_logit``, with η = sigmoid(logit)) whenever you have it:
-    the BCE is then computed from the logit, exact and with a gradient that never vanishes (a
-    saturated η = 1.0 in float32 still learns when its label flips to 0). From η alone, η is clamped
-    to [1e-7, 1 − 1e-7], which keeps the cost finite but gives no gradient once η saturates."""
+    """U_E (B,): BCE of η against ``collided`` (B,) bool (no gradient). Pass ``logit`` (B,) when you
+    have it: the BCE from the logit never stops learning; η alone is clamped to [1e-7, 1 − 1e-7]."""
     if eta.shape != collided.shape or eta.ndim != 1:
         raise PlannerError(f"eta and collided must both be (B,), got {tuple(eta.shape)} and {tuple(collided.shape)}")
     label = collided.detach().to(eta.dtype)
@@ -258,11 +183,9 @@ def time_targets(
     max_iters: int = 10,
     rel_tol: float = 1e-3,
 ) -> torch.Tensor:
-    """U_T target shares (B, M): the Mellinger & Kumar gradient-descent allocation
-    (``allocate_times(method="gradient")``, fixed total ``total_time`` (B,), start and end derivatives
-    ``start`` / ``end`` (B, 3, 3), every segment >= ``min_segment`` seconds) for the same waypoints
-    (B, M+1, 3), as the split of the time above the minima (what the TAN predicts, see
-    :func:`mapkit.planner.plan_timing`). Batched, float64 inside, no gradient."""
+    """U_T target shares (B, M): the gradient-descent allocation of ``total_time`` (B,) over the
+    waypoints (B, M+1, 3) from ``start`` to ``end`` (B, 3, 3), each segment >= ``min_segment`` s, as the
+    split of the time above the minima (what the TAN predicts). Float64 inside, no gradient."""
     from mapkit.planner._timing import shares_from_durations
 
     w = waypoints.detach().to(torch.float64)
@@ -283,76 +206,12 @@ def _plan_end(plan: Plan) -> torch.Tensor:
 
 
 def time_cost(shares: torch.Tensor, target_shares: torch.Tensor) -> torch.Tensor:
-    """U_T (B,): mean over the M segments of (shares − target)², both (B, M). The target carries no
-    gradient."""
+    """U_T (B,): mean over the M segments of (shares − target)², both (B, M); no gradient to the target."""
     if shares.shape != target_shares.shape or shares.ndim != 2:
         raise PlannerError(
             f"shares and target_shares must both be (B, M), got {tuple(shares.shape)} and {tuple(target_shares.shape)}"
         )
     return ((shares - target_shares.detach().to(shares.dtype)) ** 2).mean(-1)
-
-
-# -------------------------------------------------------------------------------------- total
-def planner_loss(
-    plan: Plan,
-    *,
-    goal: torch.Tensor,
-    T_world_body: torch.Tensor,
-    esdf_map: EsdfMap,
-    eta: torch.Tensor | None = None,
-    eta_logit: torch.Tensor | None = None,
-    target_shares: torch.Tensor | None = None,
-    config: LossConfig | None = None,
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """U = γ1 U_O + γ2 U_G + γ3 U_S + γ4 U_E + γ5 U_T averaged over the batch.
-
-    Args:
-        plan: from :meth:`PlannerNet.trajectory` / :meth:`PlannerNet.plan` (body frame).
-        goal: (B, 3) goal in the body frame, metres.
-        T_world_body: (B, 4, 4) pose of the body at planning time (float64 fine).
-        esdf_map: the world's :class:`mapkit.esdf.EsdfMap`.
-        eta: (B,) collision probability; default ``plan.eta``.
-        eta_logit: (B,) its logit (``PlannerOutput.eta_logit``); default ``plan.eta_logit``. Pass it:
-            U_E is then computed from the logit and never stops learning (see :func:`escape_cost`).
-        target_shares: (B, K) precomputed U_T target (e.g. from a worker thread); default computed
-            here with :func:`time_targets`.
-        config: :class:`LossConfig` (defaults if None).
-
-    Returns:
-        (total, terms): ``total`` a scalar tensor to back-propagate; ``terms`` detached batch means
-        of the unweighted terms "obstacle", "goal", "smoothness", "escape", "time", plus
-        "collision_rate" (fraction of labels 1) and "total".
-    """
-    cfg = config or LossConfig()
-    eta = plan.eta if eta is None else eta
-    eta_logit = plan.eta_logit if eta_logit is None else eta_logit
-    if eta is None and eta_logit is not None:
-        eta = torch.sigmoid(eta_logit)
-    if eta is None:
-        raise PlannerError("planner_loss needs eta (B,): pass eta_logit=net(x, goal).eta_logit or a plan from PlannerNet.plan")
-    traj = plan.trajectory
-    B = traj.batch_size
-    goal = torch.as_tensor(goal, dtype=plan.waypoints.dtype, device=plan.waypoints.device)
-    if goal.shape != (B, 3):
-        raise PlannerError(f"goal must have shape (B={B}, 3) in the body frame, got {tuple(goal.shape)}")
-    pts_body = sample_trajectory(traj, samples_per_second=cfg.samples_per_second, min_samples=cfg.min_samples)
-    pts_world = body_to_world(pts_body, T_world_body)
-    u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius, softness=cfg.obstacle_softness)
-    u_g = goal_cost(plan.waypoints[:, -1], goal)
-    u_s = smoothness_cost(plan.waypoints, torch.zeros_like(goal), goal)
-    collided = collision_labels(pts_world, esdf_map, threshold=cfg.robot_radius, raw=cfg.label_from_raw)
-    u_e = escape_cost(eta, collided, logit=eta_logit)
-    if target_shares is None:
-        target_shares = time_targets(plan.waypoints, total_time=plan.total_time, start=plan.start, end=_plan_end(plan),
-                                     min_segment=plan.min_segment, max_iters=cfg.time_target_iters,
-                                     rel_tol=cfg.time_target_tol)
-    u_t = time_cost(plan.shares, target_shares)
-    total = (cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s + cfg.gamma_escape * u_e
-             + cfg.gamma_time * u_t).mean()
-    f = functools.partial(_batch_mean, dtype=total.dtype)
-    terms = {"obstacle": f(u_o), "goal": f(u_g), "smoothness": f(u_s), "escape": f(u_e), "time": f(u_t),
-             "collision_rate": f(collided), "total": total.detach()}
-    return total, terms
 
 
 # ------------------------------------------------------------------------------ several candidates
@@ -382,14 +241,13 @@ def candidate_loss(
 
     Each candidate's path cost is γ1 U_O + γ2 U_G + γ3 U_S; a sample's loss is its best candidate's
     cost plus α × the mean over candidates (``candidate_spread``), γ4 × the mean escape BCE of every
-    candidate's η against its own collision label, γ_score × the cross-entropy of the scores against
-    the best candidate, and γ5 U_T of the best candidate's time split. With M = 1 this is exactly
-    :func:`planner_loss`. Scores and η carry no gradient into the paths.
+    candidate's η against its own collision label, the cross-entropy of the scores against
+    the best candidate, and γ5 U_T of the best candidate's time split. With M = 1 this is the paper's
+    loss U = γ1 U_O + γ2 U_G + γ3 U_S + γ4 U_E + γ5 U_T.
 
-    Returns (total, terms): batch means of the unweighted terms of the CHOSEN candidate (the one
-    deployed: "obstacle", "goal", "smoothness", "collision_rate"), plus "escape", "time", "score"
-    (cross-entropy), "winner_collision_rate" (the best candidate's), "score_accuracy" (chosen = best)
-    and "total"; "collided_chosen" (B,) bool per sample.
+    Returns (total, terms): batch means of the unweighted terms of the chosen candidate ("obstacle",
+    "goal", "smoothness", "collision_rate"), plus "escape", "time", "score", "winner_collision_rate",
+    "score_accuracy" (chosen = best) and "total"; per sample, "collided_chosen" and "goal_chosen" (B,).
     """
     cfg = config or LossConfig()
     cand = out.candidates if out.candidates is not None else out.keypoints[:, None]
@@ -399,7 +257,7 @@ def candidate_loss(
     plan, u_o, u_g, u_s, collided = _candidate_costs(net, cand, goal, T_world_body, esdf_map, cfg,
                                                      start_velocity=start_velocity, end_speed=end_speed,
                                                      corridor=corridor)
-    path = cfg.gamma_obstacle * u_o + cfg.gamma_goal * u_g + cfg.gamma_smooth * u_s
+    path = 20.0 * u_o + u_g + 0.5 * u_s  # γ1 U_O + γ2 U_G + γ3 U_S
     rows = torch.arange(B, device=cand.device)
     ranked = path.detach() + cfg.winner_collision_penalty * collided.to(path.dtype)
     winner = ranked.argmin(dim=1)
@@ -413,7 +271,7 @@ def candidate_loss(
     u_e = F.binary_cross_entropy_with_logits(logits, collided.to(logits.dtype), reduction="none").mean(dim=1)
     u_score = _score_loss(out.scores, ranked, winner, like=per, config=cfg)
     u_t = _winner_time_cost(plan, rows, winner, M=M, config=cfg)
-    per = per + cfg.gamma_escape * u_e + cfg.gamma_time * u_t + cfg.gamma_score * u_score
+    per = per + u_e + cfg.gamma_time * u_t + u_score  # γ4 = 1, the score's weight 1
     total = per.mean()
     chosen = out.chosen if out.chosen is not None else torch.zeros(B, dtype=torch.long, device=cand.device)
     coll_chosen = collided[rows, chosen]
@@ -432,28 +290,26 @@ def _candidate_costs(
     cfg: LossConfig, *, start_velocity: torch.Tensor | None, end_speed: torch.Tensor | None, corridor: float | None,
 ) -> tuple[Plan, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Every candidate's trajectory (a :class:`Plan` of B·M, sample-major) and its (B, M) obstacle, goal
-    and smoothness costs and collision labels (:func:`candidate_loss`)."""
+    and smoothness costs and collision labels."""
     B, M, K, _ = cand.shape
     plan = net.trajectory(cand.reshape(B * M, K, 3),
                           start_velocity=None if start_velocity is None else _per_candidate(start_velocity, M),
                           end_speed=None if end_speed is None else _per_candidate(end_speed, M), corridor=corridor)
-    pts_body = sample_trajectory(plan.trajectory, samples_per_second=cfg.samples_per_second, min_samples=cfg.min_samples)
+    pts_body = sample_trajectory(plan.trajectory, samples_per_second=10.0, min_samples=8)
     pts_world = body_to_world(pts_body, _per_candidate(T_world_body, M))
     goal_m = _per_candidate(goal, M)
     u_o = obstacle_cost(pts_world, esdf_map, robot_radius=cfg.robot_radius,
                         softness=cfg.obstacle_softness).reshape(B, M)
     u_g = goal_cost(plan.waypoints[:, -1], goal_m).reshape(B, M)
     u_s = smoothness_cost(plan.waypoints, torch.zeros_like(goal_m), goal_m).reshape(B, M)
-    collided = collision_labels(pts_world, esdf_map, threshold=cfg.robot_radius,
-                                raw=cfg.label_from_raw).reshape(B, M)
+    collided = collision_labels(pts_world, esdf_map, threshold=cfg.robot_radius, raw=True).reshape(B, M)
     return plan, u_o, u_g, u_s, collided
 
 
 def _score_loss(scores: torch.Tensor | None, ranked: torch.Tensor, winner: torch.Tensor, *, like: torch.Tensor,
                 config: LossConfig) -> torch.Tensor:
-    """(B,) cross-entropy of the candidates' scores against the best one (softened by
-    ``score_temperature`` over the (B, M) ranking costs `ranked`); zeros shaped `like` without scores or
-    with one candidate."""
+    """(B,) cross-entropy of the scores against the best candidate (softened by ``score_temperature``
+    over the ranking costs `ranked`); zeros shaped `like` without scores or with one candidate."""
     if scores is None or ranked.shape[1] == 1:
         return torch.zeros_like(like)
     if config.score_temperature > 0:
@@ -464,16 +320,14 @@ def _score_loss(scores: torch.Tensor | None, ranked: torch.Tensor, winner: torch
 
 def _winner_time_cost(plan: Plan, rows: torch.Tensor, winner: torch.Tensor, *, M: int,
                       config: LossConfig) -> torch.Tensor:
-    """(B,) U_T of each sample's `winner` candidate's time split in `plan` (B·M plans, sample-major;
-    `rows` = 0 … B−1)."""
+    """(B,) U_T of each sample's `winner` candidate's time split in `plan` (B·M plans, sample-major)."""
     B, K = len(rows), plan.shares.shape[-1]
     wp = plan.waypoints.reshape(B, M, K + 1, 3)[rows, winner]
     shares = plan.shares.reshape(B, M, K)[rows, winner]
     target = time_targets(wp, total_time=plan.total_time.reshape(B, M)[rows, winner],
                           start=plan.start.reshape(B, M, 3, 3)[rows, winner],
                           end=_plan_end(plan).reshape(B, M, 3, 3)[rows, winner],
-                          min_segment=plan.min_segment, max_iters=config.time_target_iters,
-                          rel_tol=config.time_target_tol)
+                          min_segment=plan.min_segment, max_iters=config.time_target_iters)
     return time_cost(shares, target)
 
 
@@ -485,10 +339,8 @@ def time_allocation_loss(
     end_speed: torch.Tensor | None = None,
     config: LossConfig | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """γ5 U_T alone for the deployed key-points (B, K, 3): what trains the TAN when nothing else
-    learns (``mapkit train --set only=tan``). The paths' costs are not computed (they do not depend on
-    the TAN), so a step costs a forward pass and the gradient-descent targets. Returns (total,
-    terms) with "time" and "total"."""
+    """γ5 U_T alone for the deployed key-points (B, K, 3) (``mapkit train --set only=tan``: the paths'
+    costs do not depend on the TAN). Returns (total, terms) with "time" and "total"."""
     from mapkit.planner._timing import plan_timing
 
     cfg = config or LossConfig()
@@ -502,8 +354,7 @@ def time_allocation_loss(
     wp = torch.cat([torch.zeros_like(kp[:, :1]), kp], dim=1)
     timing = plan_timing(wp, start, speed, net.config, tan=net.tan)
     target = time_targets(wp, total_time=timing.total, start=start, end=timing.end,
-                          min_segment=net.config.min_segment_time, max_iters=cfg.time_target_iters,
-                          rel_tol=cfg.time_target_tol)
+                          min_segment=net.config.min_segment_time, max_iters=cfg.time_target_iters)
     u_t = time_cost(timing.shares, target)
     total = cfg.gamma_time * u_t.mean()
     return total, {"time": u_t.detach().mean(), "total": total.detach()}

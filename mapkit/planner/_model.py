@@ -8,7 +8,7 @@ import logging
 import math
 import warnings
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -48,19 +48,13 @@ def preprocess_depth(depth: torch.Tensor, *, input_size: tuple[int, int], max_de
         depth: (B, H, W) or (H, W) float metres along the optical axis; NaN (and any non-finite or
             non-positive value) is invalid.
         input_size: (h, w) output pixels.
-        max_depth: metres; valid depth is clipped to [0, max_depth] (far returns saturate) before
-            resizing.
+        max_depth: metres; valid depth is clipped to [0, max_depth] before resizing.
 
     Returns:
-        (B, 2, h, w) float32. Channel 0: depth / max_depth in [0, 1], averaged over the VALID source
-        pixels only (the zero-filled depth and the valid mask are resized with the same weights and
-        divided), and exactly 0 where no valid pixel contributes. Channel 1: the valid mask, i.e.
-        the fraction of valid source pixels behind each output pixel (1 all valid, 0 none). Invalid
-        depth is thus never replaced by a plausible depth; the mask tells the network where channel 0
-        carries no measurement. Output contains no NaN.
-
-    Resizing: "area" (average over each output pixel's footprint) where the image shrinks along both
-    axes, bilinear (``align_corners=False``) otherwise; no-op when the size already matches.
+        (B, 2, h, w) float32, no NaN. Channel 0: depth / max_depth in [0, 1], averaged over the valid
+        source pixels only (0 where none contributes: invalid depth is never made up). Channel 1: the
+        fraction of valid source pixels behind each output pixel. Resized by "area" where the image
+        shrinks along both axes, else bilinear.
     """
     if not isinstance(depth, torch.Tensor):
         raise PlannerError(f"depth must be a torch.Tensor (B, H, W) in metres, got {type(depth).__name__}")
@@ -164,36 +158,16 @@ class Plan:
 # ----------------------------------------------------------------------------------- network
 @dataclass(frozen=True)
 class _FrozenEncoder:
-    """The encoder frozen for one input shape (a plain attribute, so it is neither a submodule nor
-    part of the state dict): ``module`` maps a (1, 2, h, w) tensor to its features and, where the
-    runtime computes it too, the nearest-depth pyramid (else None)."""
+    """The encoder frozen for one input shape (not a submodule, not in the state dict): ``module`` maps a
+    (1, 2, h, w) tensor to its features and the nearest-depth pyramid where the runtime computes it."""
 
     module: Any
     shape: tuple[int, ...]
     dtype: torch.dtype
-    runtime: Literal["onnxruntime", "torchscript"]
-
-
-class _TorchScriptEncoder:
-    """The encoder traced and frozen by TorchScript. TorchScript is deprecated in favour of
-    torch.compile, which needs a C++ toolchain and tens of seconds per process on a bare CPU machine;
-    this takes a second."""
-
-    def __init__(self, encoder: nn.Module, example: torch.Tensor) -> None:
-        with torch.no_grad(), warnings.catch_warnings():
-            warnings.simplefilter("ignore", DeprecationWarning)
-            warnings.simplefilter("ignore", torch.jit.TracerWarning)  # the input check is a constant here
-            self.module = torch.jit.optimize_for_inference(torch.jit.trace(encoder, example))
-            for _ in range(2):
-                self.module(example)
-
-    def __call__(self, x: torch.Tensor) -> tuple[torch.Tensor, None]:
-        return self.module(x), None
 
 
 class _EncoderGraph(nn.Module):
-    """What ONNX Runtime runs: the encoder and, for a model that checks its paths against the depth
-    image, the nearest-depth pyramid (exact min-pooling, one call instead of a numpy pass per plan)."""
+    """What ONNX Runtime runs: the encoder and, for a model with ``depth_check``, the nearest-depth pyramid."""
 
     def __init__(self, encoder: nn.Module, pyramid: bool) -> None:
         super().__init__()
@@ -244,25 +218,15 @@ class PlannerNet(nn.Module):
     """Depth image + goal → K key-points and a collision probability η (the paper's upper level),
     plus its Time Allocation Net.
 
-    Architecture (shapes for the cpu preset, 96×160 input, K=5):
-        - ``encoder``: :class:`ResNet18` on the (B, 2, h, w) preprocessed input → (B, C, h/32, w/32)
-          (C = 512 × width).
-        - ``goal_embed``: Linear(3 → E) of goal / max_depth, broadcast over the feature map and
-          concatenated → (B, C + E, h/32, w/32).
-        - ``head_conv``: two 3×3 conv layers (ReLU) → adaptive average pool to ``pooled_size`` →
-          flattened features F.
-        - ``keypoint_mlp``: three linear layers (ReLU between) F → 3K offsets (3KM with M candidates,
-          each judged by ``judge_mlp``: features + its key-points + goal → score, η); ``eta_mlp``: a parallel
-          three-layer MLP F → 1 logit, η = sigmoid(logit).
-        - ``tan``: :class:`mapkit.trajopt.TimeAllocationNet` over the waypoints.
+    Layers: ``encoder`` (:class:`ResNet18`, (B, 2, h, w) → (B, C, h/32, w/32)); ``goal_embed`` (Linear
+    3 → E of goal / max_depth, concatenated over the feature map); ``head_conv`` (two 3×3 convs, average
+    pooled to ``pooled_size``, flattened to F); ``keypoint_mlp`` (F → 3KM offsets); with one candidate
+    ``eta_mlp`` (F → η logit), with several ``judge_mlp`` (features + a candidate's key-points + goal →
+    its score and η logit); ``flown_mlp`` (``flown_samples``); ``tan`` (:class:`TimeAllocationNet`).
 
-    Key-points: ``k_i = (i / K) · goal + offset_i`` (i = 1..K, metres, body frame): the network
-    predicts offsets from equally spaced points on the straight origin → goal line. The key-point
-    MLP's last layer starts with zero bias and weights scaled by ``keypoint_init_scale``, so the
-    untrained net's key-points lie (within centimetres) on that line and the last one near the goal;
-    training moves them around obstacles. The goal itself is NOT forced to be the last waypoint: as in
-    the paper, the last key-point is the trajectory's end and the goal cost U_G pulls it to the goal
-    (so a goal inside an obstacle or behind a wall need not be reached).
+    Key-points are offsets (metres, body frame) from each candidate's anchor path (:meth:`anchor_paths`);
+    the last layer starts near zero, so the untrained net flies its anchors. The last key-point is the
+    trajectory's end; the goal cost pulls it to the goal, which need not be reached.
     """
 
     anchor_peaks: torch.Tensor
@@ -288,21 +252,16 @@ class PlannerNet(nn.Module):
         M = c.num_candidates
         act = c.head_activation
         self.keypoint_mlp = _mlp([flat, *c.mlp_hidden, 3 * K * M], act)
-        # One path: η from the features (the paper). Several: one judge shared by every candidate
-        # reads the features with that candidate's key-points and the goal and gives its score and
-        # η, so what it learns about one path's geometry serves all (a head with M outputs learned
-        # each slot on its own: after an epoch on 47 worlds its η was still at chance).
+        # One path: η from the features (the paper). Several: one judge shared by every candidate.
         self.eta_mlp = _mlp([flat, *c.eta_hidden, M], act) if M == 1 else None
         checks = K * POINTS_PER_SEGMENT * FEATURES_PER_POINT if c.depth_check else 0
         self.judge_mlp = _mlp([flat + 3 * K + 3 + checks, *c.eta_hidden, 2], act) if M > 1 else None
-        # the flown-path head reads what the image shows about each candidate's path as flown, which
-        # the judge above cannot tell from key-points (_flown.py); no image features
         self.flown_mlp = _mlp([FLOWN_FEATURES * c.flown_samples + 1, *c.eta_hidden, 1], act) if c.flown_samples else None
         self.register_buffer("anchor_peaks", torch.tensor(c.anchors(), dtype=torch.float32), persistent=False)
         with torch.no_grad():
             last = self.keypoint_mlp[-1]
             assert isinstance(last, nn.Linear)  # _mlp ends with a Linear layer
-            last.weight.mul_(c.keypoint_init_scale)
+            last.weight.mul_(0.01)  # the untrained net's paths lie within centimetres of their anchors
             last.bias.zero_()
         self.tan = TimeAllocationNet(TimeAllocationNetConfig(num_segments=K, hidden=tuple(c.tan_hidden),
                                                              v_max=c.cruise_speed, a_max=c.accel,
@@ -311,43 +270,31 @@ class PlannerNet(nn.Module):
 
     # ------------------------------------------------------------------ deployment
 
-    def prepare_inference(self, runtime: Literal["auto", "onnxruntime", "torchscript"] = "auto") -> PlannerNet:
-        """Put the net in ``eval()`` mode and keep a frozen copy of the encoder for plans of one image
-        on the CPU: exported to ONNX and run by ONNX Runtime (0.7 ms per image on one core, against
-        3.1 eager and 1.7 as a frozen TorchScript graph; a plan takes about 13), together with the
-        nearest-depth pyramid of a model that checks its paths against the depth image (exactly
-        :func:`nearest_depth_pyramid`'s minima, 0.5 ms less per plan), or, where ONNX Runtime is
-        missing or cannot run it (or ``runtime="torchscript"``), as a frozen TorchScript graph (batch
-        norm folded, oneDNN kernels). Its features differ from the eager encoder's by
-        float rounding (~1e-6). The eager encoder still serves batches, other devices, gradients and
-        training; ``train()`` or loading weights drops the copy. Where neither runtime can freeze
-        the encoder, the eager one stays in use (:attr:`frozen_runtime` None)."""
+    def prepare_inference(self) -> PlannerNet:
+        """Put the net in ``eval()`` mode and keep a frozen copy of the encoder for single-image plans on
+        the CPU, run by ONNX Runtime (with the nearest-depth pyramid of a ``depth_check`` model). Features
+        differ from the eager encoder's by float rounding (~1e-6). Batches, other devices, gradients and
+        training use the eager encoder; ``train()`` or loading weights drops the copy. Where ONNX Runtime
+        cannot run the graph the eager one stays in use (:attr:`frozen_runtime` None)."""
         self.eval()
         self._frozen_encoder = None
         h, w = self.config.input_size
         example = torch.zeros(1, 2, h, w, dtype=next(self.encoder.parameters()).dtype)
         if example.device.type != "cpu" or example.dtype != torch.float32:
             return self
-        tries: tuple[Literal["onnxruntime", "torchscript"], ...] = (
-            ("onnxruntime", "torchscript") if runtime == "auto" else (runtime,))
-        for name in tries:
-            try:
-                pyramid = self.config.depth_check and self.config.num_candidates > 1
-                module = (_OrtEncoder(self.encoder, example, pyramid) if name == "onnxruntime"
-                          else _TorchScriptEncoder(self.encoder, example))
-                module(example)  # TorchScript's profiling runs, ONNX Runtime's first allocation: here, not in a plan
-            except Exception as exc:  # noqa: BLE001 - a runtime that is not installed or cannot run the graph
-                log.info("%s cannot run the encoder (%s)", name, exc)
-                continue
-            self._frozen_encoder = _FrozenEncoder(module, tuple(example.shape), example.dtype, name)
+        try:
+            module = _OrtEncoder(self.encoder, example, self.config.depth_check and self.config.num_candidates > 1)
+            module(example)  # ONNX Runtime's first allocation: here, not in a plan
+        except Exception as exc:  # noqa: BLE001 - a graph the runtime cannot run
+            log.warning("the encoder could not be frozen for inference (%s); planning uses the eager encoder", exc)
             return self
-        log.warning("the encoder could not be frozen for inference; planning uses the eager encoder")
+        self._frozen_encoder = _FrozenEncoder(module, tuple(example.shape), example.dtype)
         return self
 
     @property
     def frozen_runtime(self) -> str | None:
         """What runs single-image encodings after :meth:`prepare_inference` (None: the eager encoder)."""
-        return None if self._frozen_encoder is None else self._frozen_encoder.runtime
+        return None if self._frozen_encoder is None else "onnxruntime"
 
     def train(self, mode: bool = True) -> PlannerNet:
         if mode:
@@ -378,11 +325,9 @@ class PlannerNet(nn.Module):
         return frac.reshape(1, K, 1) * goal.unsqueeze(1)
 
     def anchor_paths(self, goal: torch.Tensor, peaks: torch.Tensor | None = None) -> torch.Tensor:
-        """(B, M, K, 3): each candidate's anchor, the straight line bent by its detour (``peaks`` (M, 2):
-        other (lateral, vertical) peaks than the candidates' own).
-
-        The detour is peak × sin(π i / K) (zero at the goal) along the horizontal normal of the goal
-        direction (lateral, left positive) and up (vertical), scaled by |goal| / 6 m within [0.3, 1.5]."""
+        """(B, M, K, 3): each candidate's anchor: the straight line plus peak × sin(π i / K) along the
+        goal direction's horizontal normal (lateral, left positive) and up (vertical), scaled by
+        |goal| / 6 m within [0.3, 1.5]. ``peaks`` (M, 2): other (lateral, vertical) peaks than the config's."""
         K = self.config.num_keypoints
         line = self.straight_line(goal)  # (B, K, 3)
         frac = torch.arange(1, K + 1, dtype=goal.dtype, device=goal.device) / K
@@ -414,10 +359,7 @@ class PlannerNet(nn.Module):
     def shifted(self, candidates: torch.Tensor, goal: torch.Tensor, shifts: tuple[float, ...]) -> torch.Tensor:
         """(B, M (1 + S), K, 3): ``candidates`` (B, M, K, 3) followed by all of them moved sideways by
         each of the S ``shifts`` (metres, left positive) at the middle of the path, along the anchors'
-        bump (zero at the start and at the last key-point) and their scale with the goal's distance.
-
-        The trained candidates sit near anchors 1.2 m apart; a doorway or a gap between trunks that
-        needs a path 0.3–0.6 m beside the nearest one is missed without these."""
+        bump (zero at the start and at the last key-point) and their scale with the goal's distance."""
         if not all(math.isfinite(s) for s in shifts):
             raise PlannerError(f"candidate shifts must be finite metres, got {shifts}")
         unit = self._lateral_bump(goal)[:, None]  # (B, 1, K, 3)
@@ -461,34 +403,21 @@ class PlannerNet(nn.Module):
             encoded, made = self._encode(x)
         else:
             encoded = image.features
-        feat = encoded
-        if image_index is not None:
-            feat = feat[image_index]
-        B, _, fh, fw = feat.shape
-        g = self.goal_embed(goal / c.max_depth)
-        feat = torch.cat([feat, g.reshape(B, -1, 1, 1).expand(B, g.shape[1], fh, fw)], dim=1)
-        flat = self.head_conv(feat).flatten(1)
-        if c.velocity_input:
-            v = (torch.zeros_like(goal) if velocity is None
-                 else torch.as_tensor(velocity, dtype=goal.dtype, device=goal.device).reshape(-1, 3).expand(B, 3))
-            flat = torch.cat([flat, v / c.cruise_speed], dim=1)
-        M, K = c.num_candidates, c.num_keypoints
-        offsets = self.keypoint_mlp(flat).reshape(B, M, K, 3)
-        candidates = self.anchor_paths(goal) + offsets
+        flat = self._head(encoded if image_index is None else encoded[image_index], goal, velocity)
+        B, M = goal.shape[0], c.num_candidates
+        candidates = self.anchor_paths(goal) + self.keypoint_mlp(flat).reshape(B, M, c.num_keypoints, 3)
         if widen and M > 1:
             candidates = self.widened(candidates, goal, widen)
         if shift and M > 1:
             candidates = self.shifted(candidates, goal, shift)
-        M = candidates.shape[1]
         pyramid: torch.Tensor | None = None
         scores: torch.Tensor | None = None
         if self.judge_mlp is None:
             assert self.eta_mlp is not None  # one candidate: an η head instead of a judge (__init__)
-            logits = self.eta_mlp(flat).reshape(B, M)
+            logits = self.eta_mlp(flat).reshape(B, candidates.shape[1])
             chosen = torch.zeros(B, dtype=torch.long, device=x.device)
         else:
-            if c.depth_check:
-                # once per image, then shared by its goals
+            if c.depth_check:  # once per image, then shared by its goals
                 pyramid = image.pyramid if image is not None and image.pyramid is not None else made
                 if pyramid is None:
                     pyramid = nearest_depth_pyramid(x)
@@ -502,6 +431,20 @@ class PlannerNet(nn.Module):
         return PlannerOutput(keypoints=candidates[rows, chosen], eta=torch.sigmoid(logit), eta_logit=logit,
                              candidates=candidates, candidate_eta_logits=logits, scores=scores, chosen=chosen,
                              pyramid=pyramid, image=own)
+
+    def _head(self, feat: torch.Tensor, goal: torch.Tensor, velocity: torch.Tensor | None) -> torch.Tensor:
+        """(B, F) flattened head features of the encoder's (B, C, h', w') features with the goal embedded
+        (and the velocity appended with ``velocity_input``)."""
+        c = self.config
+        B, _, fh, fw = feat.shape
+        g = self.goal_embed(goal / c.max_depth)
+        feat = torch.cat([feat, g.reshape(B, -1, 1, 1).expand(B, g.shape[1], fh, fw)], dim=1)
+        flat = self.head_conv(feat).flatten(1)
+        if c.velocity_input:
+            v = (torch.zeros_like(goal) if velocity is None
+                 else torch.as_tensor(velocity, dtype=goal.dtype, device=goal.device).reshape(-1, 3).expand(B, 3))
+            flat = torch.cat([flat, v / c.cruise_speed], dim=1)
+        return flat
 
     def _check_inputs(self, x: torch.Tensor, goal: torch.Tensor, image_index: torch.Tensor | None,
                       camera: CameraInput | None) -> None:
@@ -581,20 +524,20 @@ class PlannerNet(nn.Module):
         end_speed: torch.Tensor | None = None,
         corridor: float | None = None,
     ) -> Plan:
-        """Key-points → minimum-snap trajectory (differentiable w.r.t. key-points and TAN weights).
+        """Key-points → minimum-snap trajectory (differentiable w.r.t. the key-points).
 
-        Waypoints are [origin, k1, ..., kK] (the robot sits at the body-frame origin). The total time
-        comes from :func:`mapkit.planner.total_time` (a speed profile from the start velocity; no
-        gradient), every segment gets ``min_segment_time`` and the TAN splits the rest, and
-        :func:`mapkit.trajopt.min_snap` (closed form, exact pass through every key-point) builds the
-        trajectory from the start velocity/acceleration given (zero jerk) to ``end_speed`` along the
-        last segment (zero acceleration and jerk) at the last key-point.
+        Waypoints are [origin, k1, ..., kK]. The total time is :func:`mapkit.planner.total_time` (no
+        gradient), every segment gets ``min_segment_time`` and the TAN splits the rest (its shares reach
+        the trajectory detached: the TAN learns from U_T alone, as in the paper), and
+        :func:`mapkit.trajopt.min_snap` joins the start state to ``end_speed`` along the last segment.
 
         Args:
             keypoints: (B, K, 3) metres, body frame.
             start_velocity: (B, 3) m/s in the body frame (default zero).
             start_acceleration: (B, 3) m/s² in the body frame (default zero).
             end_speed: (B,) m/s at the last key-point (default zero: rest).
+            corridor: the flight corridor's half-width (metres) around each key-point segment: the
+                interior key-points then bound the path instead of pinning it (None: through them).
 
         Returns:
             :class:`Plan` (``eta`` None).
@@ -618,12 +561,7 @@ class PlannerNet(nn.Module):
         if end_speed is not None:
             speed = torch.broadcast_to(torch.as_tensor(end_speed, dtype=keypoints.dtype, device=keypoints.device), (B,))
         waypoints = torch.cat([torch.zeros_like(keypoints[:, :1]), keypoints], dim=1)
-        # The TAN is supervised by U_T alone (as in the paper): the trajectory sees its shares without
-        # gradient. Letting U_O reach the TAN taught it to rush through segments (a mean over time
-        # samples is lowered by spending no time near obstacles), with ~0 s segments and absurd snap.
         timing = plan_timing(waypoints, start, speed, c, tan=self.tan)
-        # corridor: the paper's flight corridor (half-width, metres) around each key-point segment;
-        # the interior key-points then bound the path instead of pinning it (a QP, see min_snap).
         traj = min_snap(waypoints, timing.durations, start=start, end=timing.end, corridor=corridor)
         return Plan(
             trajectory=traj, waypoints=waypoints, shares=timing.shares, durations=timing.durations,
@@ -650,12 +588,9 @@ class PlannerNet(nn.Module):
             depth: (B, H, W) float metres, NaN invalid (any size; resized to ``input_size``).
             goal: (B, 3) body frame metres.
             start_velocity, start_acceleration: (B, 3) body frame, see :meth:`trajectory`.
-            end_speed: (B,) m/s at the last key-point (0: rest; a receding-horizon loop passes the local
-                goal at cruise speed while the real goal lies beyond it).
+            end_speed: (B,) m/s at the last key-point (0: rest).
+            corridor: see :meth:`trajectory`; camera: see :meth:`forward`.
             widen, shift: widened and shifted candidates, see :meth:`forward`.
-
-        Gradients flow as usual; wrap the call in ``torch.inference_mode()`` and put the net in
-        ``eval()`` mode for deployment.
         """
         x = self.preprocess(depth)
         goal = torch.as_tensor(goal, dtype=x.dtype, device=x.device)
@@ -670,24 +605,4 @@ class PlannerNet(nn.Module):
             p.widened = (out.chosen % unshifted) >= self.config.num_candidates
             p.shifted = out.chosen >= unshifted
         return p
-
-
-def plan(
-    net: PlannerNet,
-    depth: torch.Tensor,
-    goal: torch.Tensor,
-    *,
-    start_velocity: torch.Tensor | None = None,
-    start_acceleration: torch.Tensor | None = None,
-) -> Plan:
-    """Plan with ``net``: depth (B, H, W) metres (NaN invalid) + goal (B, 3) body frame →
-    :class:`Plan` whose trajectory is in the body frame. Same as :meth:`PlannerNet.plan`."""
-    if not isinstance(net, PlannerNet):
-        raise PlannerError(f"net must be a PlannerNet, got {type(net).__name__}")
-    return net.plan(depth, goal, start_velocity=start_velocity, start_acceleration=start_acceleration)
-
-
-def count_parameters(module: nn.Module) -> int:
-    """Number of trainable parameters of ``module``."""
-    return sum(p.numel() for p in module.parameters() if p.requires_grad)
 

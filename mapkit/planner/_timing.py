@@ -1,7 +1,5 @@
-"""How a plan is timed, the same in training and in flight (the TAN learns under the conditions it
-is used in): the total time from a speed profile over the key-point path, a minimum duration for
-every segment, the split of the rest, and the end condition (rest at the last key-point, or pass it
-at cruise speed while the real goal lies beyond the horizon)."""
+"""How a plan is timed, the same in training and in flight: the total time from a speed profile over
+the key-point path, a minimum duration per segment, the split of the rest, and the end condition."""
 
 from __future__ import annotations
 
@@ -54,11 +52,7 @@ def total_time(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.Te
     from the start speed along the first segment to ``cruise_speed`` at ``accel``, then to
     ``end_speed``), at least ``min_total_time`` and M × ``min_segment_time``, at most
     ``max_total_time``; ``cruise_speed`` (B,) replaces the config's per plan (see :func:`turn_speed`),
-    ``decel`` (B,) its ``accel`` for slowing down to the end speed.
-    No gradient: the time scale is a rule, the TAN learns the split.
-
-    A plan that ignored the current speed would ask a vehicle at rest for the cruise average (hard
-    start) and one at cruise speed to slow down and speed up again every replanning interval."""
+    ``decel`` (B,) its ``accel`` for slowing down to the end speed. No gradient (the TAN learns the split)."""
     seg = waypoints[:, 1:] - waypoints[:, :-1]
     length = seg.norm(dim=-1).sum(-1)
     first = seg[:, 0] / seg[:, 0].norm(dim=-1, keepdim=True).clamp_min(1e-9)
@@ -72,9 +66,7 @@ def total_time(waypoints: torch.Tensor, start: torch.Tensor, end_speed: torch.Te
 def turn_speed(waypoints: torch.Tensor, lateral_accel: float) -> torch.Tensor:
     """(B,) m/s at which the sharpest turn of each key-point path (B, M+1, 3) is flown at
     ``lateral_accel`` m/s²: √(a R) for the arc tangent to both segments of a turn at half the shorter
-    one's length from the corner (R = that length / tan(turn angle / 2)); inf for a straight path.
-    The corridor lets a trajectory round a corner more widely than this arc; the key-points are
-    what the plan is known to pass near, so this is the cautious radius."""
+    one's length from the corner (R = that length / tan(turn angle / 2)); inf for a straight path."""
     seg = waypoints[:, 1:] - waypoints[:, :-1]
     length = seg.norm(dim=-1)
     if seg.shape[1] < 2:

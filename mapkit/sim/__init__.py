@@ -1,36 +1,20 @@
 """Simulated UAV depth recordings with exact ground truth.
 
-Public API:
-
-- :func:`make_world`, :class:`World` (+ primitives :class:`Box`, :class:`Cylinder`,
-  :class:`Capsule`, :class:`HalfSpace`): procedural forest / office / garage worlds with an exact
-  signed distance and analytic ray casting (``_world.py`` holds the primitives and :class:`World`,
-  ``_procedural.py`` the seeded generators and their default sizes and densities).
+- :func:`make_world`, :class:`World` and its primitives: seeded forest / office / garage worlds with
+  an exact signed distance and analytic ray casting.
 - :class:`CameraModel`, :func:`render_depth`: a D435-like depth camera (pixel-centre convention).
-- :func:`plan_flight` → :class:`Flight`: a smooth, collision-checked flight through a world.
-- :class:`FreeSpaceGraph`: search-based paths through a world's exact free space (``mapkit eval``'s
-  start–goal pairs and its ``oracle`` planner).
-- :class:`SimConfig`, :func:`simulate`, :func:`render_flight`, :class:`SimResult`: the whole
-  recording (bag + ``.world.json`` / ``.world.ply`` / ``.flight.npz``).
-- :class:`BagRecorder`, :func:`output_path`: re-exported from :mod:`mapkit.bags`, which writes the
-  bags (the simulator is one of its users).
-- :class:`SimError`: every user-facing problem, in one line.
+- :func:`plan_flight` → :class:`Flight`; :class:`FreeSpaceGraph`: paths through exact free space.
+- :class:`SimConfig`, :func:`simulate`, :func:`render_flight`: the recording (bag + ``.world.json`` /
+  ``.world.ply`` / ``.flight.npz``); :class:`BagRecorder`, :func:`output_path` from :mod:`mapkit.bags`.
 """
 
 from mapkit.bags import BagRecorder, output_path
-from mapkit.sim._camera import CameraModel, apply_realsense_noise, camera_extrinsics, render_depth
+from mapkit.sim._camera import CameraModel, camera_extrinsics, render_depth
 from mapkit.sim._errors import SimError
 from mapkit.sim._flight import Flight, plan_flight
 from mapkit.sim._procedural import DEFAULT_DENSITIES, DEFAULT_SIZES, MIN_SIZES, WORLD_KINDS, make_world
 from mapkit.sim._search import FreeSpaceGraph
 from mapkit.sim._simulate import (
-    BODY_FRAME,
-    CAMERA_INFO_TOPIC,
-    CAMERA_LINK_FRAME,
-    DEPTH_TOPIC,
-    ODOM_TOPIC,
-    OPTICAL_FRAME,
-    WORLD_FRAME,
     RenderedFlight,
     SimConfig,
     SimResult,
@@ -44,10 +28,8 @@ __all__ = [
     "BagRecorder", "output_path",
     "Box", "Capsule", "Cylinder", "HalfSpace", "Primitive", "World",
     "WORLD_KINDS", "DEFAULT_SIZES", "DEFAULT_DENSITIES", "MIN_SIZES", "make_world",
-    "CameraModel", "render_depth", "apply_realsense_noise", "camera_extrinsics",
+    "CameraModel", "render_depth", "camera_extrinsics",
     "Flight", "plan_flight", "FreeSpaceGraph",
     "SimConfig", "SimResult", "RenderedFlight", "simulate", "render_flight", "ground_truth_paths",
-    "DEPTH_TOPIC", "CAMERA_INFO_TOPIC", "ODOM_TOPIC", "WORLD_FRAME", "BODY_FRAME", "CAMERA_LINK_FRAME",
-    "OPTICAL_FRAME",
     "SimError",
 ]

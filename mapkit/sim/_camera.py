@@ -1,9 +1,7 @@
 """A RealSense-D435-like depth camera: intrinsics, mounting, exact rendering and a noise model.
 
-Pixel convention: integer (u, v) is the CENTRE of a pixel; a point (x, y, z) in the optical frame
-projects to ``u = fx*x/z + cx``, ``v = fy*y/z + cy``. Rendered depth is the optical z of the first
-hit along the ray through the pixel centre (not the ray length); out of [min_range, max_range]
-→ NaN.
+Integer (u, v) is the centre of a pixel (``u = fx*x/z + cx``); rendered depth is the optical z of the
+first hit through the pixel centre, NaN outside [min_range, max_range].
 """
 
 from __future__ import annotations
@@ -91,12 +89,8 @@ def _aabb_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 def render_depth(world: World, T_world_camera: np.ndarray, camera: CameraModel, *,
                  rays: np.ndarray | None = None) -> np.ndarray:
-    """Exact depth image (H, W) float32: optical z of the first hit, NaN outside the range.
-
-    Rays are intersected analytically with each primitive in float64; a primitive is only
-    tested on the pixels its bounding box projects to (or all pixels when the box reaches
-    behind the camera), and skipped when it is farther than the farthest visible ray.
-    """
+    """Exact depth image (H, W) float32: optical z of the first hit, NaN outside the range. Each
+    primitive is cast (float64, analytic) only on the pixels its bounding box projects to."""
     T = np.asarray(T_world_camera, dtype=np.float64)
     R, o = T[:3, :3], T[:3, 3]
     d_cam = camera.rays() if rays is None else rays

@@ -1,20 +1,9 @@
 """Collision-free UAV flights through a :class:`~mapkit.sim.World`.
 
-How a flight is made:
-
-1. The world's signed distance is sampled on a grid over the flight volume; cells with at least
-   ``margin + extra`` clearance form a graph (a :class:`~mapkit.sim.FreeSpaceGraph`: 26-neighbours, edge cost grows near obstacles so
-   paths keep to the middle of corridors).
-2. Goals are drawn far from the goals already visited (coverage) and joined by shortest paths
-   (Dijkstra) until the path is long enough for the requested duration.
-3. The path is shortened by line-of-sight shortcuts, resampled, and smoothed with a clamped
-   cubic B-spline whose control points are the resampled path (C2, stays in the convex hull of
-   neighbouring path points). The exact signed distance is checked every few centimetres along
-   the curve; where the margin is violated the control points are densified and the check
-   repeated; if it still fails a :class:`SimError` says so.
-4. Time: a speed profile along the arc length (cruise speed, slower in tight turns, always within
-   1–3 m/s) gives position and velocity at any time. Yaw follows the horizontal velocity,
-   smoothed, with a gentle seeded look-around sway; roll and pitch stay zero.
+Coverage goals are joined by shortest legs through a :class:`~mapkit.sim.FreeSpaceGraph`, shortened by
+line of sight and smoothed by a clamped cubic B-spline, densified until the exact signed distance
+keeps the margin. A speed profile along the arc (slower in turns, 1–3 m/s) gives the timing; yaw
+follows the horizontal velocity with a seeded look-around sway; roll and pitch stay zero.
 """
 
 from __future__ import annotations
@@ -39,10 +28,7 @@ _LATERAL_ACCEL = 2.0  # m/s²; bounds speed in turns: v <= sqrt(a / curvature)
 
 @dataclass
 class Flight:
-    """A smooth flight: arc-length tables of a B-spline plus a time mapping and yaw table.
-
-    Use :meth:`sample` / :meth:`T_world_body` with times in seconds from the start.
-    """
+    """A smooth flight: B-spline arc-length, time and yaw tables; sample it with times in seconds."""
 
     spline: BSpline
     """Position curve p(u), u in [0, u_end]."""
@@ -129,13 +115,10 @@ def plan_flight(
     """Plan a smooth collision-free flight of at least ``duration`` seconds.
 
     Args:
-        world: the world to fly through.
-        duration: seconds of flight needed.
-        speed: cruise speed, m/s (1..3); turns are flown slower, never below 1 m/s.
+        speed: cruise speed, m/s (1..3); turns are flown slower.
         margin: smallest allowed signed distance of the body centre along the flight, metres.
         seed: random seed for goals and the yaw sway.
-        resolution: planning grid spacing (metres); default 0.25 indoors, up to 0.4 in large
-            worlds.
+        resolution: planning grid spacing (metres); default 0.25, up to 0.4 in large worlds.
     Raises:
         SimError: bad arguments, or no collision-free flight could be found.
     """

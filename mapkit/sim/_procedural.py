@@ -270,10 +270,10 @@ def make_world(
 
     Args:
         kind: ``forest``, ``office`` or ``garage``.
-        seed: random seed; the same (kind, seed, size, density) gives the same world.
-        size: (x, y, z) extent in metres; the world spans [0, x] x [0, y] x [0, z]. For indoor
-            worlds z is the ceiling height. Defaults per kind in ``DEFAULT_SIZES``.
-        density: world-specific obstacle density (module doc); defaults in ``DEFAULT_DENSITIES``.
+        seed: the same (kind, seed, size, density) gives the same world.
+        size: (x, y, z) extent in metres, the world spanning [0, x] x [0, y] x [0, z] (z: the ceiling
+            indoors); defaults in ``DEFAULT_SIZES``.
+        density: obstacle density (module doc); defaults in ``DEFAULT_DENSITIES``.
     """
     if kind not in _GENERATORS:
         raise SimError(f"unknown world {kind!r}; use one of {', '.join(WORLD_KINDS)}")

@@ -1,11 +1,6 @@
-"""Search-based paths through a :class:`~mapkit.sim.World`'s exact free space.
-
-The ground-truth counterpart of a learned planner: the world's signed distance is sampled on a grid
-over the flight volume, cells with enough clearance form a 26-neighbour graph (with a cost that keeps
-paths to the middle of corridors), and Dijkstra + line-of-sight shortcuts give a short polyline with a
-guaranteed clearance. Used by ``mapkit eval`` to sample start–goal pairs and as its ``oracle``
-planner, and by :func:`~mapkit.sim.plan_flight` for the legs of a simulated flight.
-"""
+"""Search-based paths through a world's exact free space: a 26-neighbour grid graph of the cells with
+enough clearance, Dijkstra and line-of-sight shortcuts (``mapkit eval``'s pairs and ``oracle`` planner,
+and the legs of :func:`~mapkit.sim.plan_flight`)."""
 
 from __future__ import annotations
 
@@ -39,9 +34,8 @@ class _Grid:
         self.shape = tuple(len(a) for a in self.axes)
         self.res = res
         self.origin = np.array([a[0] for a in self.axes])
-        mesh = np.stack(np.meshgrid(*self.axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        self.centres = mesh
-        self.sdf = world.signed_distance(mesh).reshape(self.shape)
+        self.centres = np.stack(np.meshgrid(*self.axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        self.sdf = world.signed_distance(self.centres).reshape(self.shape)
 
     def interp_sdf(self, pts: np.ndarray) -> np.ndarray:
         """Trilinear signed distance (N,) at points (N, 3) from the cell-centre samples."""
@@ -99,12 +93,10 @@ class FreeSpaceGraph:
     to every obstacle, as a grid graph.
 
     Args:
-        world: the world.
         clearance: metres every cell centre (and every shortcut) keeps from obstacles.
-        resolution: grid spacing, metres (default 0.25 indoors, up to 0.4 in large worlds).
+        resolution: grid spacing, metres (default 0.25, up to 0.4 in large worlds).
         cost_margin: signed distance (metres) below which an edge's cost stops growing (default
-            ``clearance``); :func:`~mapkit.sim.plan_flight` keeps its free cells a little farther out
-            than this.
+            ``clearance``).
 
     Raises:
         SimError: no free space with that clearance.
@@ -164,10 +156,8 @@ class FreeSpaceGraph:
         if cells is None:
             raise SimError(f"no path with {self.clearance} m clearance from {start.round(2).tolist()} to "
                            f"{goal.round(2).tolist()}")
-        pts = [start, *self.centres[cells], goal]
-        poly = np.array(pts)
         # Drop the snapped cell centres when the true end points see past them.
-        return _shortcut(poly, lambda p, q: self.segment_clear(p, q))
+        return _shortcut(np.array([start, *self.centres[cells], goal]), self.segment_clear)
 
     def cell_path(self, a: int, b: int) -> list[int] | None:
         """Cheapest sequence of flat cell indices from cell ``a`` to cell ``b`` (both included), or None

@@ -16,7 +16,7 @@ import numpy as np
 from mapkit.bags import FORMATS, BagRecorder, output_path
 from mapkit.sim._camera import NOISE_MODELS, CameraModel, apply_realsense_noise, camera_extrinsics, render_depth
 from mapkit.sim._errors import SimError
-from mapkit.sim._flight import Flight, plan_flight
+from mapkit.sim._flight import Flight, _poses, plan_flight
 from mapkit.sim._procedural import WORLD_KINDS, make_world
 from mapkit.sim._world import World
 
@@ -198,11 +198,8 @@ def _depth_frames(plan: _Plan, config: SimConfig, T_world_camera: np.ndarray) ->
 
 
 def render_flight(config: SimConfig) -> RenderedFlight:
-    """Plan the flight of ``config`` and return its ground truth with a lazy depth iterator.
-
-    The iterator yields the float32 (H, W) depth images :func:`simulate` writes (NaN invalid;
-    with noise if ``config.noise`` says so), one per stamp.
-    """
+    """Plan the flight of ``config``: its ground truth and a lazy iterator of the float32 (H, W) depth
+    images :func:`simulate` writes (NaN invalid), one per stamp."""
     plan = _plan(config)
     t = plan.t_odom[::ODOM_PER_FRAME]
     T_world_body = plan.trajectory.T_world_body(t)
@@ -215,13 +212,12 @@ def simulate(config: SimConfig, out: str | os.PathLike[str], *, progress: bool =
     """Simulate and write a recording plus ground truth beside it.
 
     Args:
-        config: what to simulate.
         out: output path, with or without suffix (see mapkit.bags.output_path).
         progress: show a tqdm bar over frames on stderr.
     Raises:
         SimError: bad config, existing output without ``overwrite``, or no feasible flight.
     """
-    config.validate()
+    config.validate()  # before looking at the outputs: a bad config is the first thing to fix
     bag = output_path(out, config.format)
     truth = ground_truth_paths(bag, config.format)
     for p in (bag, *truth):
@@ -235,7 +231,7 @@ def simulate(config: SimConfig, out: str | os.PathLike[str], *, progress: bool =
     T_world_camera = T_world_body @ plan.T_base_link @ plan.T_link_optical
     counts = _write_recording(bag, truth, plan, config, odom, T_world_body, T_world_camera, progress=progress)
     cam = plan.camera
-    positions = odom.positions[::ODOM_PER_FRAME]
+    positions = T_world_body[:, :3, 3]
     return SimResult(
         stamps_ns=plan.depth_stamps.copy(), T_world_body=T_world_body, T_world_camera=T_world_camera, K=cam.K,
         width=cam.width, height=cam.height, world=plan.world, bag_path=bag, world_json=truth[0],
@@ -248,8 +244,6 @@ def simulate(config: SimConfig, out: str | os.PathLike[str], *, progress: bool =
 class _Odometry(NamedTuple):
     """The flight at the odometry stamps."""
 
-    positions: np.ndarray
-    """(M, 3) metres, world frame."""
     T_world_body: np.ndarray
     """(M, 4, 4) body poses."""
     v_body: np.ndarray
@@ -259,13 +253,12 @@ class _Odometry(NamedTuple):
 
 
 def _odometry(plan: _Plan) -> _Odometry:
-    """Positions, poses, body-frame velocities and yaw rates of the planned flight at the odometry stamps."""
-    traj = plan.trajectory
-    p_odom, v_world, _, yaw_rate = traj.sample(plan.t_odom)
-    T_world_body_odom = traj.T_world_body(plan.t_odom)
+    """Poses, body-frame velocities and yaw rates of the planned flight at the odometry stamps."""
+    p_odom, v_world, yaw, yaw_rate = plan.trajectory.sample(plan.t_odom)
+    T_world_body_odom = _poses(p_odom, yaw)
     # Twist in the body frame (REP 105): v_body = R_world_body^T v_world; level flight → ω = (0,0,ψ').
     v_body = np.einsum("nji,nj->ni", T_world_body_odom[:, :3, :3], v_world)
-    return _Odometry(p_odom, T_world_body_odom, v_body, yaw_rate)
+    return _Odometry(T_world_body_odom, v_body, yaw_rate)
 
 
 def _write_recording(bag: Path, truth: tuple[Path, Path, Path], plan: _Plan, config: SimConfig, odom: _Odometry,

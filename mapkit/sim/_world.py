@@ -1,21 +1,10 @@
-"""Worlds made of analytic primitives with an exact signed distance and exact ray casting.
+"""Worlds made of analytic primitives (float64, metres, world frame ENU z-up) with an exact signed
+distance and analytic ray casting.
 
-Primitives (all float64, metres, world frame ENU z-up):
-
-- :class:`Box`: a box with centre, half extents and a yaw about +z.
-- :class:`Cylinder`: a solid finite cylinder between two axis end points (vertical trunks,
-  pillars, horizontal wheels/logs).
-- :class:`Capsule`: the set of points within ``radius`` of a segment (fallen logs).
-- :class:`HalfSpace`: ``{p : normal·p < offset}`` is solid (floor, ceiling).
-
-Each primitive's signed distance is exact (inside and outside). The world's signed distance is
-the minimum over primitives: this is the exact distance to the union everywhere in free space and
-on its surface. Inside obstacles the sign is right and ``|d|`` is a lower bound of the true depth
-(exact where the containing primitive's nearest surface point is not covered by another
-primitive; overlapping primitives, e.g. a trunk standing in the ground, make it conservative).
-
-Ray casting is analytic too (:meth:`World.raycast`), so rendered depth lands on the surface to
-float64 precision; :meth:`World.mesh` is a tessellated copy for display and for open3d.
+The world's signed distance is the minimum over primitives: exact in free space and on surfaces;
+inside obstacles the sign is right and ``|d|`` is a lower bound of the depth (overlapping primitives,
+e.g. a trunk standing in the ground, make it conservative). :meth:`World.mesh` is a tessellated copy
+for display.
 """
 
 from __future__ import annotations
@@ -24,7 +13,7 @@ import json
 import math
 import os
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -53,9 +42,6 @@ class Box:
         ext = np.array([c * hx + s * hy, s * hx + c * hy, hz])
         return np.stack([np.asarray(self.center) - ext, np.asarray(self.center) + ext])
 
-    def to_dict(self) -> dict[str, Any]:
-        return {"type": "box", "center": list(self.center), "half_extents": list(self.half_extents), "yaw": self.yaw}
-
 
 @dataclass(frozen=True)
 class Cylinder:
@@ -74,9 +60,6 @@ class Cylinder:
         ext = self.radius * np.sqrt(np.clip(1.0 - u * u, 0.0, 1.0))
         return np.stack([np.minimum(a, b) - ext, np.maximum(a, b) + ext])
 
-    def to_dict(self) -> dict[str, Any]:
-        return {"type": "cylinder", "a": list(self.a), "b": list(self.b), "radius": self.radius}
-
 
 @dataclass(frozen=True)
 class Capsule:
@@ -91,9 +74,6 @@ class Capsule:
     def aabb(self) -> np.ndarray:
         a, b = np.asarray(self.a), np.asarray(self.b)
         return np.stack([np.minimum(a, b) - self.radius, np.maximum(a, b) + self.radius])
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"type": "capsule", "a": list(self.a), "b": list(self.b), "radius": self.radius}
 
 
 @dataclass(frozen=True)
@@ -111,9 +91,6 @@ class HalfSpace:
     def aabb(self) -> None:
         return None
 
-    def to_dict(self) -> dict[str, Any]:
-        return {"type": "halfspace", "normal": list(self.normal), "offset": self.offset}
-
 
 Primitive = Box | Cylinder | Capsule | HalfSpace
 
@@ -125,17 +102,21 @@ def _t3(x: Iterable[float]) -> tuple[float, float, float]:
     return v
 
 
+def primitive_to_dict(prim: Primitive) -> dict[str, Any]:
+    """The primitive as JSON data: ``type`` then its fields in order (tuples as lists)."""
+    return {"type": prim.kind, **{f.name: list(v) if isinstance(v := getattr(prim, f.name), tuple) else v
+                                  for f in fields(prim)}}
+
+
 def primitive_from_dict(d: dict[str, Any]) -> Primitive:
-    """Inverse of ``to_dict``."""
+    """Inverse of :func:`primitive_to_dict`."""
     kind = d.get("type")
     if kind == "box":
         return Box(_t3(d["center"]), _t3(d["half_extents"]), float(d.get("yaw", 0.0)))
-    if kind == "cylinder":
-        return Cylinder(_t3(d["a"]), _t3(d["b"]), float(d["radius"]))
-    if kind == "capsule":
-        return Capsule(_t3(d["a"]), _t3(d["b"]), float(d["radius"]))
     if kind == "halfspace":
         return HalfSpace(_t3(d["normal"]), float(d["offset"]))
+    if kind in ("cylinder", "capsule"):
+        return (Cylinder if kind == "cylinder" else Capsule)(_t3(d["a"]), _t3(d["b"]), float(d["radius"]))
     raise SimError(f"unknown primitive type {kind!r} in world file; expected box, cylinder, capsule or halfspace")
 
 
@@ -181,6 +162,10 @@ def _sdf_capsules(p: np.ndarray, A: np.ndarray, B: np.ndarray, R: np.ndarray) ->
 
 def _sdf_halfspaces(p: np.ndarray, Nrm: np.ndarray, off: np.ndarray) -> np.ndarray:
     return p @ Nrm.T - off[None, :]
+
+
+_SDF: dict[str, Callable[..., np.ndarray]] = {"box": _sdf_boxes, "cylinder": _sdf_cylinders, "capsule": _sdf_capsules,
+                                             "halfspace": _sdf_halfspaces}
 
 
 # ------------------------------------------------------------------ ray entry (M rays, one primitive)
@@ -297,16 +282,9 @@ def ray_entry(o: np.ndarray, d: np.ndarray, prim: Primitive) -> np.ndarray:
 # ---------------------------------------------------------------------------------- world
 @dataclass
 class World:
-    """A static world: a union of primitives inside ``bounds``.
-
-    Attributes:
-        primitives: the solid parts; the world is their union.
-        bounds: (2, 3) float64, min and max corner of the region flights stay in (metres).
-        kind: generator name (``forest``, ``office``, ``garage``) or ``custom``.
-        seed: generator seed.
-        flight_z: (z_min, z_max) heights a flight may use.
-        params: generator parameters (size, density, ...), for the record.
-    """
+    """A static world: the union of ``primitives``; ``bounds`` (2, 3) is the min and max corner of the
+    region flights stay in, ``flight_z`` the heights they may use (metres); ``kind``, ``seed`` and
+    ``params`` record the generator (``custom`` when hand-made)."""
 
     primitives: list[Primitive]
     bounds: np.ndarray
@@ -321,26 +299,13 @@ class World:
 
     # -------------------------------------------------------------- distance
     def _pack(self) -> dict[str, tuple[np.ndarray, ...]]:
+        """Per primitive kind present, its fields stacked into arrays (the SDF functions' arguments)."""
         if self._packed is None:
-            boxes = [p for p in self.primitives if isinstance(p, Box)]
-            cyls = [p for p in self.primitives if isinstance(p, Cylinder)]
-            caps = [p for p in self.primitives if isinstance(p, Capsule)]
-            hs = [p for p in self.primitives if isinstance(p, HalfSpace)]
             packed: dict[str, tuple[np.ndarray, ...]] = {}
-            if boxes:
-                packed["box"] = (
-                    np.array([b.center for b in boxes]),
-                    np.array([b.half_extents for b in boxes]),
-                    np.array([b.yaw for b in boxes]),
-                )
-            if cyls:
-                packed["cylinder"] = (np.array([c.a for c in cyls]), np.array([c.b for c in cyls]),
-                                      np.array([c.radius for c in cyls]))
-            if caps:
-                packed["capsule"] = (np.array([c.a for c in caps]), np.array([c.b for c in caps]),
-                                     np.array([c.radius for c in caps]))
-            if hs:
-                packed["halfspace"] = (np.array([h.normal for h in hs]), np.array([h.offset for h in hs]))
+            for kind in _SDF:
+                prims = [p for p in self.primitives if p.kind == kind]
+                if prims:
+                    packed[kind] = tuple(np.array([getattr(p, f.name) for p in prims]) for f in fields(prims[0]))
             self._packed = packed
         return self._packed
 
@@ -354,23 +319,18 @@ class World:
             raise SimError(f"points must have shape (N, 3), got {p.shape}")
         out = np.full(len(p), np.inf)
         packed = self._pack()
-        funcs: dict[str, Callable[..., np.ndarray]] = {"box": _sdf_boxes, "cylinder": _sdf_cylinders, "capsule": _sdf_capsules,
-                 "halfspace": _sdf_halfspaces}
         for start in range(0, len(p), _CHUNK):
             blk = p[start:start + _CHUNK]
             best = out[start:start + _CHUNK]
             for kind, args in packed.items():
-                best = np.minimum(best, funcs[kind](blk, *args).min(axis=1))
+                best = np.minimum(best, _SDF[kind](blk, *args).min(axis=1))
             out[start:start + _CHUNK] = best
         return out
 
     # -------------------------------------------------------------- rays
     def raycast(self, origin: np.ndarray, directions: np.ndarray) -> np.ndarray:
-        """First-hit parameter t (M,) of rays ``origin + t * directions`` (inf: no hit).
-
-        ``directions`` (M, 3) need not be unit length; t is in units of them (the renderer
-        passes directions with optical z = 1, so t is the depth). Exact (float64, analytic).
-        """
+        """First-hit parameter t (M,) of rays ``origin + t * directions`` (inf: no hit), in units of the
+        ``directions`` (M, 3), which need not be unit length."""
         o = np.asarray(origin, dtype=np.float64).reshape(3)
         d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         t = np.full(len(d), np.inf)
@@ -387,7 +347,7 @@ class World:
             "bounds": self.bounds.tolist(),
             "flight_z": list(self.flight_z),
             "params": self.params,
-            "primitives": [p.to_dict() for p in self.primitives],
+            "primitives": [primitive_to_dict(p) for p in self.primitives],
         }
 
     @classmethod
@@ -418,11 +378,8 @@ class World:
 
     # -------------------------------------------------------------- mesh
     def mesh(self, *, resolution: int = 48, color: bool = True) -> Any:
-        """open3d legacy TriangleMesh of all primitives (half spaces as quads over the bounds).
-
-        Curved surfaces are tessellated (``resolution`` segments per circle): use it for display
-        and approximate casting; :meth:`raycast` / :meth:`signed_distance` are the exact answers.
-        """
+        """open3d legacy TriangleMesh of all primitives (half spaces as quads over the bounds; curved
+        surfaces with ``resolution`` segments per circle), for display."""
         import open3d as o3d
 
         mesh = o3d.geometry.TriangleMesh()

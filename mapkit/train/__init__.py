@@ -15,7 +15,6 @@ from mapkit.train._judge_tune import (
 )
 from mapkit.train._loop import TrainSummary, set_threads, train, validate
 from mapkit.train._provenance import simulated_worlds, workspace_camera
-from mapkit.train._timing_compare import CostRatios, TimingComparison, compare_timing
 from mapkit.train._timing_tune import (
     PlanInputs,
     TimingTuneConfig,
@@ -29,14 +28,12 @@ from mapkit.train._timing_tune import (
 
 __all__ = [
     "PRESETS",
-    "CostRatios",
     "JudgeRecords",
     "JudgeScore",
     "JudgeTuneConfig",
     "JudgeTuneError",
     "JudgeTuneSummary",
     "PlanInputs",
-    "TimingComparison",
     "TimingTuneConfig",
     "TimingTuneError",
     "TimingTuneSummary",
@@ -53,7 +50,6 @@ __all__ = [
     "train",
     "validate",
     "clearance_rule",
-    "compare_timing",
     "fit_flown_head",
     "load_judge_records",
     "tune_judge",

@@ -4,18 +4,23 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
 from mapkit._choices import TRAINED_WEIGHTS, PresetName, TrainedWeights
 from mapkit.errors import MapkitError
 from mapkit.planner import LossConfig, PlannerConfig
-from mapkit.planner._loss import drop_removed_fields
+from mapkit.planner._config import REMOVED_FIELDS as REMOVED_PLANNER_FIELDS
+from mapkit.planner._config import drop_removed_fields
+from mapkit.planner._loss import REMOVED_FIELDS as REMOVED_LOSS_FIELDS
 
 
 class TrainConfigError(MapkitError):
     """A training option or preset that cannot be used."""
+
+
+REMOVED_FIELDS: dict[str, Any] = {"weight_decay": 0.0, "grad_clip": 10.0}
+"""Removed TrainConfig options a saved run's config.json may still name, with the value that trains as now."""
 
 
 @dataclass
@@ -33,8 +38,6 @@ class TrainConfig:
     """Samples per optimiser step (per process under torchrun)."""
     lr: float = 1e-4
     """Adam learning rate."""
-    weight_decay: float = 0.0
-    """Adam weight decay."""
     seed: int = 0
     """Seeds weights, shuffling and sampling; CPU runs are reproducible."""
     device: str = "cpu"
@@ -44,31 +47,23 @@ class TrainConfig:
     val_batches: int | None = None
     """Limit validation to this many batches (None: all)."""
     goals_together: bool = False
-    """Batches hold whole tuples (every goal of a depth image): the encoder runs once per image,
-    several times fewer encoder passes per sample (measured ~2.5x samples/s on the cpu preset)."""
-    grad_clip: float | None = 10.0
-    """Clip the gradient's global norm to this before each step (None: off); a few colliding
-    samples give large obstacle gradients that otherwise kill ReLU units at higher learning rates."""
+    """Batches hold whole tuples (every goal of a depth image): the encoder runs once per image."""
     corridor: float | None = None
     """Flight-corridor half-width (m) for min_snap during training; None = through the key-points."""
     init: str | None = None
-    """Start from the weights of this model (a run directory, its model.pt, or "pretrained" for the
-    planner shipped with mapkit) instead of random ones: fine-tuning on one's own flights or with a
-    changed loss. Its planner configuration must equal this run's."""
+    """Start from the weights of this model (a run directory, its model.pt, or "pretrained") instead of
+    random ones (fine-tuning); its planner configuration must equal this run's."""
     only: TrainedWeights = "all"
     """Which weights train. "tan": only the Time Allocation Net, on the key-points of the frozen
-    ``init`` model (the TAN learns from U_T alone, so this is the joint training's TAN part without
-    changing the paths); its TAN options (``tan_boundary``, ``tan_hidden``, timing rule) may differ
-    from the init model's. The best epoch is then chosen by the held-out U_T. "judge": only the
-    candidates' judge (their scores and η; the η head of a one-path net), on the frozen key-points of
-    ``init``: a judge retrained on other frames compares flight for flight, the paths unmoved."""
+    ``init`` model (its TAN options may differ from the init model's; the best epoch is chosen by the
+    held-out U_T). "judge": only the candidates' judge (scores and η; a one-path net's η head)."""
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     """The planner network's configuration (mapkit.planner)."""
     loss: LossConfig = field(default_factory=LossConfig)
     """The training loss's weights and parameters (mapkit.planner)."""
     _planner_keys: tuple[str, ...] = field(default=(), repr=False, compare=False)
     """PlannerConfig fields given by name (preset, planner settings, config.json), in order: config.json
-    lists them even at their default value, as it did when ``planner`` was a dict of them."""
+    lists them even at their default value."""
     _loss_keys: tuple[str, ...] = field(default=(), repr=False, compare=False)
     """LossConfig fields given by name, likewise."""
 
@@ -96,12 +91,13 @@ class TrainConfig:
 
     @classmethod
     def from_saved(cls, data: dict[str, Any]) -> TrainConfig:
-        """The config of a run's config.json (whose other records, workspaces and camera, are skipped).
-        Loss fields since removed load while they hold the behaviour the loss now always has; the
-        CLI and recipes go through :meth:`from_dict`, which knows only today's fields."""
-        options = {k: v for k, v in data.items() if k in {f.name for f in _option_fields()}}
-        if isinstance(options.get("loss"), dict):
-            options["loss"] = drop_removed_fields(options["loss"], TrainConfigError)
+        """The config of a run's config.json (its other records skipped); removed fields load while they
+        hold the behaviour mapkit now always has (:meth:`from_dict` knows only today's fields)."""
+        known = {f.name for f in _option_fields()} | set(REMOVED_FIELDS)
+        options = drop_removed_fields({k: v for k, v in data.items() if k in known}, TrainConfigError, REMOVED_FIELDS, "")
+        for key, removed in (("planner", REMOVED_PLANNER_FIELDS), ("loss", REMOVED_LOSS_FIELDS)):
+            if isinstance(options.get(key), dict):
+                options[key] = drop_removed_fields(options[key], TrainConfigError, removed, f"{key} ")
         return cls.from_dict(options)
 
     def validate(self) -> None:
@@ -112,8 +108,6 @@ class TrainConfig:
             raise TrainConfigError(f"batch_size {self.batch_size} must be at least 1")
         if not self.lr > 0:
             raise TrainConfigError(f"lr {self.lr} must be positive")
-        if self.grad_clip is not None and not (math.isfinite(self.grad_clip) and self.grad_clip > 0):
-            raise TrainConfigError(f"grad_clip {self.grad_clip} must be a positive number")
         if self.corridor is not None and not self.corridor > 0:
             raise TrainConfigError(f"corridor {self.corridor} must be a positive half-width in metres")
         if self.only not in TRAINED_WEIGHTS:
@@ -156,9 +150,7 @@ PRESETS: dict[str, TrainConfig] = {
     "paper": TrainConfig.from_dict({"preset": "paper", "epochs": 50, "batch_size": 16, "lr": 1e-4,
                                     "planner": {"input_size": [360, 640], "encoder_width": 1.0}}),
     # A model on a 2-core CPU within the hour: small input, a quarter-width encoder, eight scored
-    # candidate paths checked against the depth image (winner-takes-all, soft-min score targets), a
-    # sharper obstacle hinge (ε 0.3 m: free space no longer swamps the collision signal), LeakyReLU
-    # heads and lr 5e-4 with gradient clipping (ReLU heads died on 47 worlds).
+    # candidate paths checked against the depth image, a sharper obstacle hinge, LeakyReLU heads.
     "cpu": TrainConfig.from_dict({"preset": "cpu", "epochs": 8, "batch_size": 16, "lr": 5e-4,
                                   "planner": {"input_size": [96, 160], "encoder_width": 0.25, "num_candidates": 8,
                                               "head_activation": "leaky_relu", "depth_check": True,

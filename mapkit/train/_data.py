@@ -109,10 +109,8 @@ class TupleSamples:
     def batches(self, batch_size: int, *, shuffle: bool, generator: np.random.Generator | None = None,
                 rank: int = 0, world_size: int = 1) -> Iterator[tuple[int, np.ndarray]]:
         """(store index, (b, 2) [tuple, goal]) batches; with world_size > 1 each rank takes every
-        world_size-th batch (same order on every rank, from the shared seed), and when the batches do not
-        share out evenly the list is completed with its first batches again (as torch's
-        DistributedSampler pads), so every rank takes the same number of steps: DDP's collectives stay
-        in step. One process (world_size 1) gets every batch once, as before."""
+        world_size-th batch (the same order on every rank), the list padded with its first batches so
+        every rank takes the same number of steps (as torch's DistributedSampler)."""
         batches: list[tuple[int, np.ndarray]] = []
         for k, idx in enumerate(self.index):
             if self.goals_together:

@@ -1,15 +1,8 @@
 """`mapkit lab tune-judge`: the flown-path head (``PlannerConfig.flown_samples``) fitted to flights.
 
-The network's judge reads each candidate's key-points, the image features and depth margins along
-the key-point polyline. The vehicle flies another path: the corridor's trajectory cuts the polyline's
-corners, and a judge perfect on the depth image over the first metres of the trajectory as flown
-flies more pairs without the flight stack than the network's judge. The flown-path head reads what such a judge reads, for every candidate: at N points
-along its first ``flown_horizon`` metres as flown, the clearance to the depth image's points (and to
-those of the flight's frames of the last ``flown_history`` seconds), whether the point is in view and
-how far in front of or behind the measured surface it lies, and how long the stretch is
-(:func:`mapkit.planner.flown_features`). It learns from flights recorded with
-``EvalConfig.record_judge`` whether that stretch comes within the robot's radius of the world: labels from the
-world, not the image, so it learns what the image hides (occluded and out-of-view space). Everything
+The head reads :func:`mapkit.planner.flown_features` along each candidate's trajectory as flown; it
+learns from flights recorded with ``EvalConfig.record_judge`` whether that stretch comes within the
+robot's radius of the world (labels from the world, so it learns what the image hides). Everything
 else keeps its weights.
 """
 
@@ -25,7 +18,7 @@ import numpy as np
 import torch
 
 from mapkit.errors import MapkitError
-from mapkit.train._timing_tune import _write_run
+from mapkit.train._timing_tune import _write_run, with_new_head
 
 if TYPE_CHECKING:
     from mapkit.planner import PlannerNet
@@ -164,7 +157,7 @@ def _rates(expects: torch.Tensor, collides: torch.Tensor, loss: float | None = N
 
 def clearance_rule(records: JudgeRecords) -> JudgeScore:
     """The depth image's own verdict: a candidate collides when one of its points comes within the
-    robot's radius of a point of the image (feature 0 is the clearance / :data:`CLEARANCE_CAP`)."""
+    robot's radius of a point of the image."""
     from mapkit.planner import CLEARANCE_CAP
 
     near = (records.features[..., 0] * CLEARANCE_CAP).amin(-1) < records.robot_radius
@@ -229,7 +222,8 @@ def tune_judge(model: str | Path, records: Sequence[Path], val: Sequence[Path], 
                              f"records {val_set.history:g} s: record both with the same judge_history")
     before = _score(net, val_set, config.positive_weight) if _fits(net, train_set) else None
     if before is None:
-        net = _with_new_head(net, train_set, config.seed)
+        shape = replace(net.config, flown_samples=int(train_set.features.shape[1]), flown_horizon=train_set.horizon)
+        net = with_new_head(net, shape, "flown_mlp.", config.seed)
     net.config = replace(net.config, flown_history=train_set.history)  # the head reads what its records read
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # a small head: one thread is as fast and leaves the other cores alone
@@ -261,13 +255,3 @@ def _fits(net: PlannerNet, records: JudgeRecords) -> bool:
             f"flown-path head reads {c.flown_samples} over {c.flown_horizon} m: record the flights with this model")
     return True
 
-
-def _with_new_head(net: PlannerNet, records: JudgeRecords, seed: int) -> PlannerNet:
-    """The same network with a new flown-path head reading the records' stretches."""
-    from mapkit.planner import PlannerNet
-
-    torch.manual_seed(seed)
-    out = PlannerNet(replace(net.config, flown_samples=int(records.features.shape[1]), flown_horizon=records.horizon))
-    missing, unexpected = out.load_state_dict(net.state_dict(), strict=False)
-    assert not unexpected and all(k.startswith("flown_mlp.") for k in missing)  # only the head is new
-    return out.eval()

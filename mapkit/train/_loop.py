@@ -68,8 +68,7 @@ class _Step(nn.Module):
 
 def set_threads(world_size: int = 1) -> int:
     """One torch thread per CPU core this process may use (its affinity), shared among the local
-    DDP processes. Without it torch may start more threads than cores on a shared machine, and a
-    batch took 10-20x longer there."""
+    DDP processes (torch's default may oversubscribe a shared machine)."""
     from mapkit.dataset import available_cpus
 
     n = max(1, available_cpus() // max(1, world_size))
@@ -129,11 +128,8 @@ def _active_fraction(net: PlannerNet) -> tuple[list[Any], dict[int, torch.Tensor
 
 
 def _end_speeds(planner: Any, count: int, rng: np.random.Generator | None, device: torch.device) -> torch.Tensor:
-    """(count,) end speeds of the training plans. In flight, plans end at rest (the goal is near) or
-    pass their end at cruise speed (it lies beyond the horizon): a TAN that reads the end condition
-    (``tan_boundary``) learns both, half each (random in training, alternating in validation). The
-    paper's TAN cannot tell them apart and keeps rest-to-rest targets: its split (long first and last
-    segments) flew with half the effort of one fitted to the boundary conditions (README)."""
+    """(count,) end speeds of the training plans: rest, or with ``tan_boundary`` half of them passing
+    their end at cruise speed as in flight (random in training, alternating in validation)."""
     if not planner.tan_boundary:
         return torch.zeros(count, dtype=torch.float64, device=device)
     cruise = (rng.random(count) < 0.5) if rng is not None else (np.arange(count) % 2 == 1)
@@ -160,10 +156,7 @@ def validate(net: PlannerNet, samples: TupleSamples, maps: list[Any], loss_confi
     (share of free plans rejected)."""
     from mapkit.planner import candidate_loss
 
-    totals = {k: 0.0 for k in METRIC_KEYS}
-    n = 0
-    blocked_n, blocked_coll, blocked_reach = 0, 0.0, 0.0
-    gate = {"collided": 0.0, "caught": 0.0, "free": 0.0, "false_reject": 0.0}  # η ≥ 0.5 vs the map's label
+    sums: dict[str, float] = {}
     net.eval()
     hooks, seen = _active_fraction(net)
     try:
@@ -176,39 +169,43 @@ def validate(net: PlannerNet, samples: TupleSamples, maps: list[Any], loss_confi
                           batch["velocity"])
                 if straight:
                     out = _straight_output(net, batch["goal"])
-                m = len(part)
-                end_speed = _end_speeds(net.config, m, None, device)
+                end_speed = _end_speeds(net.config, len(part), None, device)
                 _, terms = candidate_loss(net, out, goal=batch["goal"], T_world_body=batch["T_world_body"],
                                           esdf_map=maps[k], start_velocity=batch["velocity"], end_speed=end_speed,
                                           corridor=corridor, config=loss_config)
-                for key in METRIC_KEYS:
-                    totals[key] += float(terms[key]) * m
-                n += m
-                blk = batch["blocked"]
-                coll = terms["collided_chosen"]
-                reach = (~coll) & (terms["goal_chosen"] < REACH_DISTANCE)
-                blocked_n += int(blk.sum())
-                blocked_coll += float(coll[blk].sum())
-                blocked_reach += float(reach[blk].sum())
-                if not straight:
-                    rejected = out.eta >= 0.5
-                    gate["collided"] += float(coll.sum())
-                    gate["caught"] += float((rejected & coll).sum())
-                    gate["free"] += float((~coll).sum())
-                    gate["false_reject"] += float((rejected & ~coll).sum())
+                for key, value in _batch_sums(terms, batch["blocked"], None if straight else out.eta).items():
+                    sums[key] = sums.get(key, 0.0) + value
     finally:
         for h in hooks:
             h.remove()
     net.train()
-    result = {k: v / max(n, 1) for k, v in totals.items()}
-    result.update(blocked_count=float(blocked_n), blocked_collision=blocked_coll / max(blocked_n, 1),
-                  blocked_reach=blocked_reach / max(blocked_n, 1))
+    total = {key: sums.get(key, 0.0) for key in (*METRIC_KEYS, "n", "blocked", "blocked_collision",
+                                                  "blocked_reach", "collided", "caught", "free", "false_reject")}
+    result = {k: total[k] / max(total["n"], 1) for k in METRIC_KEYS}
+    blocked = max(total["blocked"], 1)
+    result.update(blocked_count=total["blocked"], blocked_collision=total["blocked_collision"] / blocked,
+                  blocked_reach=total["blocked_reach"] / blocked)
     if not straight:
-        result.update(eta_catches=gate["caught"] / max(gate["collided"], 1.0),
-                      eta_false_rejects=gate["false_reject"] / max(gate["free"], 1.0))
+        result.update(eta_catches=total["caught"] / max(total["collided"], 1.0),
+                      eta_false_rejects=total["false_reject"] / max(total["free"], 1.0))
     if not straight and seen:
         result["active_units"] = min(float(v.float().mean()) for v in seen.values())
     return result
+
+
+def _batch_sums(terms: dict[str, torch.Tensor], blocked: torch.Tensor, eta: torch.Tensor | None) -> dict[str, float]:
+    """One validation batch's contribution to :func:`validate`'s sums (the η gate's with ``eta``)."""
+    m = len(blocked)
+    coll = terms["collided_chosen"]
+    reach = (~coll) & (terms["goal_chosen"] < REACH_DISTANCE)
+    sums = {key: float(terms[key]) * m for key in METRIC_KEYS}
+    sums.update(n=m, blocked=int(blocked.sum()), blocked_collision=float(coll[blocked].sum()),
+                blocked_reach=float(reach[blocked].sum()))
+    if eta is not None:
+        rejected = eta >= 0.5
+        sums.update(collided=float(coll.sum()), caught=float((rejected & coll).sum()), free=float((~coll).sum()),
+                    false_reject=float((rejected & ~coll).sum()))
+    return sums
 
 
 def _curves(metrics: list[dict[str, Any]], path: Path) -> None:
@@ -484,8 +481,7 @@ def _build_model(run: _Session, state: dict[str, Any] | None) -> None:
         trained = ("tan.",) if config.only == "tan" else ("judge_mlp.", "eta_mlp.")
         for name, param in net.named_parameters():
             param.requires_grad_(name.startswith(trained))
-    run.optimizer = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=config.lr,
-                                     weight_decay=config.weight_decay)
+    run.optimizer = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=config.lr)
     if state is None and config.init:
         _load_init(net, config.init, tan_fresh=config.only == "tan")
     if state is not None:
@@ -521,11 +517,7 @@ def _start_run_dir(run: _Session, workspaces: Sequence[str | Path], val_workspac
 
 
 def _tensorboard(run_dir: Path) -> Any:
-    """A SummaryWriter into run_dir/tensorboard, or None.
-
-    TensorBoard is an optional extra and metrics.jsonl holds every number it would show, so a run
-    goes on without it: not installed is the usual case (an info line); installed but failing is
-    logged as a warning with the reason, since the user asked for it by installing it."""
+    """A SummaryWriter into run_dir/tensorboard, or None (an optional extra; metrics.jsonl has every number)."""
     try:
         from torch.utils.tensorboard import SummaryWriter  # optional extra
     except ImportError as exc:
@@ -567,8 +559,7 @@ def _train_step(run: _Session, data: _Splits, k: int, part: Any) -> dict[str, An
         raise TrainConfigError(f"loss became {float(loss)} at step {run.step}; lower the learning rate (now {config.lr}; mapkit train --set lr=...)")
     run.optimizer.zero_grad(set_to_none=True)
     loss.backward()
-    if config.grad_clip is not None:
-        nn.utils.clip_grad_norm_(net.parameters(), config.grad_clip)
+    nn.utils.clip_grad_norm_(net.parameters(), 10.0)
     run.optimizer.step()
     run.step += 1
     return terms

@@ -1,20 +1,7 @@
-"""`mapkit lab tune-timing`: the Time Allocation Net fine-tuned on the plans the planner makes in flight.
-
-Training fits the TAN to the gradient-descent split of the key-points the network makes on training
-tuples. In the closed loop the network sees other inputs (its own flights, mid-manoeuvre start
-states), and there a TAN trained on tuples splits the time at several times the snap of the
-gradient-descent split. Here the TAN alone learns from
-plans recorded in flight (``EvalConfig.record_plans``) by minimising the minimum-snap cost of the
-trajectory through the key-points under its own split: no labels, the same cost the gradient-descent
-allocation minimises, in the same conditions (start state, end speed, total-time rule, minimum
-segment time) the planner uses it in. Everything but the TAN keeps its weights.
-
-Two objectives (``TimingTuneConfig.objective``): ``snap`` minimises each plan's whole snap cost;
-``imitate`` fits each segment's duration to the gradient-descent split's (squared log ratio, the
-first segment weighted more). A replanning flight executes only the start of each plan, and a plan
-whose whole cost is low may still start with a short, costly first segment; the log weighs a 10 %
-error alike in a short segment and a long one, as the snap (∝ T⁻⁷) does. The shipped recipe
-imitates: ``snap`` lowers the executed effort but flew fewer office pairs.
+"""`mapkit lab tune-timing`: the Time Allocation Net fine-tuned on the plans the planner makes in flight
+(``EvalConfig.record_plans``), whose inputs differ from the training tuples', in the conditions the
+planner times them in, to imitate each segment's duration in the gradient-descent split. Everything but
+the TAN keeps its weights.
 """
 
 from __future__ import annotations
@@ -58,24 +45,20 @@ class TimingTuneConfig:
     """Seed of the batch order (and of a new TAN's initial weights)."""
     boundary_inputs: bool = False
     """Replace the TAN by a new one that also reads the start velocity and acceleration and the end
-    speed (``PlannerConfig.tan_boundary``), trained from scratch on the plans. A TAN without them
-    cannot tell a plan started at cruise speed from one started at rest."""
+    speed (``PlannerConfig.tan_boundary``), trained from scratch on the plans."""
     boundary_scale: BoundaryScale = "limits"
-    """With ``boundary_inputs``: how the new TAN makes them unitless (``PlannerConfig.tan_boundary_scale``;
-    ``duration`` gives the same split at every pace). A model whose TAN reads them on the other scale
-    gets a new TAN too."""
+    """With ``boundary_inputs``: how the new TAN makes them unitless (``PlannerConfig.tan_boundary_scale``)."""
     tan_hidden: tuple[int, ...] | None = None
     """Hidden widths of a new TAN trained from scratch on the plans (None: the model's TAN, or with
-    ``boundary_inputs`` a new one of its width). A wider TAN fits the gradient-descent split closer."""
+    ``boundary_inputs`` a new one of its width)."""
     lr_decay: bool = True
     """Cosine decay of the learning rate to 1 % of ``lr`` over ``steps`` (off: constant)."""
-    objective: TimingObjective = "snap"
-    """``snap``: the mean log ratio of each plan's snap cost to the gradient-descent split's.
-    ``imitate``: the weighted mean squared log ratio of each segment's duration to the gradient-descent
-    split's (``first_weight`` on the first segment, 1 on the others). The weights kept are those with
-    the lowest value of the same objective on the validation plans."""
+    objective: TimingObjective = "imitate"
+    """The only one left, ``imitate``: the weighted mean squared log ratio of each segment's duration to
+    the gradient-descent split's (``first_weight`` on the first segment, 1 on the others). Also what
+    chooses the weights kept."""
     first_weight: float = 4.0
-    """``imitate``: the weight of the first segment, the one a replanning flight executes."""
+    """The weight of the first segment, the one a replanning flight executes."""
 
     def validate(self) -> None:
         for name in ("steps", "batch_size", "check_every"):
@@ -130,8 +113,7 @@ class PlanInputs:
 
 @dataclass(frozen=True)
 class TimingTuneSummary:
-    """What `mapkit lab tune-timing` did. Costs are the snap of the trajectory through each plan's key-points,
-    as a ratio to the gradient-descent allocation's on the same plan."""
+    """What `mapkit lab tune-timing` did (snap costs as ratios to the gradient-descent split's)."""
 
     out_dir: Path
     train_plans: int
@@ -173,8 +155,7 @@ def load_plan_inputs(folders: Sequence[Path], *, num_segments: int) -> PlanInput
 
 def plan_costs(tan: TimeAllocationNet | None, config: PlannerConfig, plans: PlanInputs) -> torch.Tensor:
     """(P,) snap cost of each plan's minimum-snap trajectory through its key-points, timed by ``tan``
-    (None: the gradient-descent allocation, 30 iterations), as the planner times it in flight (each
-    plan at its recorded cruise speed and deceleration)."""
+    (None: gradient descent) as the planner times it in flight."""
     from mapkit.trajopt import min_snap
 
     durations, end = _timed(tan, config, plans)
@@ -222,9 +203,6 @@ class _Reference:
 def _objective(tan: TimeAllocationNet, config: PlannerConfig, plans: PlanInputs, reference: _Reference,
                tune: TimingTuneConfig) -> torch.Tensor:
     """(P,) the value of ``tune.objective`` for each plan (lower is better)."""
-    if tune.objective == "snap":
-        # the log weighs a cheap plan's waste like an expensive one's
-        return torch.log(plan_costs(tan, config, plans).clamp_min(1e-12) / reference.cost.clamp_min(1e-12))
     durations, _ = _timed(tan, config, plans)
     weights = torch.ones(durations.shape[1], dtype=durations.dtype)
     weights[0] = tune.first_weight
@@ -234,18 +212,13 @@ def _objective(tan: TimeAllocationNet, config: PlannerConfig, plans: PlanInputs,
 
 @dataclass(frozen=True)
 class TuneOutcome:
-    """What :func:`tune_tan` did, on the validation plans."""
+    """What :func:`tune_tan` did, on the validation plans (fields as :class:`TimingTuneSummary`'s;
+    ``objective``: the mean weighted squared log ratio)."""
 
     before: tuple[float, float]
-    """(median per-plan ratio, ratio of the summed costs) of the snap to the gradient-descent split's,
-    with the TAN as it was."""
     after: tuple[float, float]
-    """The same with the kept weights."""
     best_step: int
-    """The step whose weights were kept (0: none improved on the TAN as it was)."""
     objective: tuple[float, float]
-    """The validation score of the objective (``snap``: the summed-cost ratio; ``imitate``: the mean
-    weighted squared log duration ratio), before and with the kept weights."""
 
 
 def _snap_ratios(tan: TimeAllocationNet, config: PlannerConfig, plans: PlanInputs, reference: _Reference) -> tuple[float, float]:
@@ -258,8 +231,6 @@ def _snap_ratios(tan: TimeAllocationNet, config: PlannerConfig, plans: PlanInput
 def _score(tan: TimeAllocationNet, config: PlannerConfig, plans: PlanInputs, reference: _Reference,
            tune: TimingTuneConfig) -> float:
     """The validation score that chooses the weights kept (lower is better)."""
-    if tune.objective == "snap":
-        return _snap_ratios(tan, config, plans, reference)[1]
     with torch.no_grad():
         return float(_objective(tan, config, plans, reference, tune).mean())
 
@@ -354,16 +325,22 @@ def _with_new_tan(net: PlannerNet, tune: TimingTuneConfig) -> PlannerNet:
     scale) if asked or if the model's did, of the tuning's width if given."""
     from dataclasses import replace
 
-    from mapkit.planner import PlannerNet
-
-    torch.manual_seed(tune.seed)
     boundary = tune.boundary_inputs or net.config.tan_boundary
     scale = tune.boundary_scale if tune.boundary_inputs else net.config.tan_boundary_scale
     hidden = tuple(tune.tan_hidden) if tune.tan_hidden is not None else tuple(net.config.tan_hidden)
-    out = PlannerNet(replace(net.config, tan_boundary=boundary, tan_boundary_scale=scale, tan_hidden=hidden))
-    kept = {k: v for k, v in net.state_dict().items() if not k.startswith("tan.")}
+    config = replace(net.config, tan_boundary=boundary, tan_boundary_scale=scale, tan_hidden=hidden)
+    return with_new_head(net, config, "tan.", tune.seed)
+
+
+def with_new_head(net: PlannerNet, config: PlannerConfig, head: str, seed: int) -> PlannerNet:
+    """A net of ``config`` with ``net``'s weights but a new ``head`` (its state-dict prefix), seeded by ``seed``."""
+    from mapkit.planner import PlannerNet
+
+    torch.manual_seed(seed)
+    out = PlannerNet(config)
+    kept = {k: v for k, v in net.state_dict().items() if not k.startswith(head)}
     missing, unexpected = out.load_state_dict(kept, strict=False)
-    assert not unexpected and all(k.startswith("tan.") for k in missing)  # only the TAN is new
+    assert not unexpected and all(k.startswith(head) for k in missing)  # only the head is new
     return out.eval()
 
 
@@ -374,9 +351,8 @@ TAN_SHAPE = ("tan_boundary", "tan_boundary_scale", "tan_hidden")
 def _write_run(source: Path, net: PlannerNet, record: dict, out: Path, *, overwrite: bool,
                key: str = "timing_tune", shape: tuple[str, ...] = TAN_SHAPE,
                error: type[MapkitError] = TimingTuneError) -> None:
-    """``out``: the source's model.pt with the new weights (and planner config) and a ``key`` note
-    (``timing_tune``, ``judge_tune``), its config.json with the same note; any REPRODUCE.md is left out
-    (it describes the source). ``shape``: the planner fields the tuning may have changed."""
+    """``out``: the source's model.pt and config.json with the new weights and planner config and a
+    ``key`` note (``timing_tune``, ``judge_tune``). ``shape``: the planner fields the tuning may have changed."""
     from mapkit._saved import load_saved
 
     saved = load_saved(source / "model.pt", "mapkit planner", error, ("planner_config", "state_dict"))
@@ -392,9 +368,8 @@ def _write_run(source: Path, net: PlannerNet, record: dict, out: Path, *, overwr
 
 
 def _note_shape(run_config: dict, planner: PlannerConfig, fields: tuple[str, ...]) -> None:
-    """A new head may have another shape (a TAN's boundary inputs and width, a flown-path head):
-    config.json's training options (``planner``) and resolved config (``planner_resolved``) say so, so
-    the run's config builds a net its weights fit."""
+    """config.json's ``planner`` and ``planner_resolved`` with a new head's shape ``fields``, so the run's
+    config builds a net its weights fit."""
     shape = {k: list(v) if isinstance(v, tuple) else v for k, v in ((k, getattr(planner, k)) for k in fields)}
     resolved = run_config.get("planner_resolved")
     if isinstance(resolved, dict) and all(resolved.get(k) == v for k, v in shape.items()):

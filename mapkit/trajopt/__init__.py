@@ -1,18 +1,9 @@
 """Differentiable minimum-snap trajectory optimisation (MSTO), flight corridors and time allocation.
 
-The lower level of the planner: key-points and segment times in, a dynamically feasible trajectory
-out, with exact gradients back to both.
-
-- :func:`min_snap` — piecewise 7th-order polynomials per axis minimising the integral of squared
-  snap (plus an optional cubic minimum-yaw-acceleration spline). Without inequalities the optimum
-  is an exact dense solve over the free knot derivatives (float64 inside, unit-diagonal scaling);
-  with a flight ``corridor`` or ``v_max``/``a_max`` limits it is a QP solved exactly per element
-  (DAQP by default), then re-solved in torch from the KKT system of its active set, which gives the
-  implicit gradient (no unrolling). Infeasible elements are flagged in ``Trajectory.solved`` and
-  never crash the batch.
-- :class:`Trajectory` — evaluation, costs and limits.
-- :func:`allocate_times` — segment durations: ``uniform``, ``trapezoid``, ``poly5``, ``gradient``
-  (Mellinger & Kumar) or ``net`` (:class:`TimeAllocationNet`).
+Key-points and segment times in, a dynamically feasible trajectory out, with exact gradients back to
+both: :func:`min_snap` (a closed form, or with a ``corridor`` or limits a QP per element differentiated
+through its active set's KKT system), :class:`Trajectory` (evaluation, costs, limits) and
+:func:`allocate_times` (``uniform``, ``trapezoid``, ``poly5``, ``gradient`` or ``net``).
 
 >>> import torch
 >>> from mapkit.trajopt import min_snap, allocate_times
@@ -33,7 +24,6 @@ from mapkit.trajopt._timealloc import (
     TimeAllocationNetConfig,
     allocate_times,
     profile_time,
-    snap_cost_of_times,
 )
 from mapkit.trajopt._trajectory import Trajectory
 
@@ -50,5 +40,4 @@ __all__ = [
     "allocate_times",
     "min_snap",
     "profile_time",
-    "snap_cost_of_times",
 ]

@@ -40,44 +40,32 @@ def _invert(mat: list[list[Fraction]]) -> list[list[Fraction]]:
     return [row[n:] for row in aug]
 
 
+def _floats(mat: tuple[tuple[Fraction, ...], ...]) -> np.ndarray:
+    return np.array([[float(v) for v in row] for row in mat], dtype=np.float64)
+
+
 @cache
 def boundary_inverse(r: int) -> np.ndarray:
     """``Ainv`` (2r, 2r): coefficients = Ainv @ [s-derivatives 0..r-1 at s=0; at s=1].
 
     The s-derivative of order q equals ``T**q`` times the time derivative of order q.
     """
-    return np.array([[float(v) for v in row] for row in _exact_boundary_inverse(r)], dtype=np.float64)
+    return _floats(_exact_boundary_inverse(r))
 
 
 @cache
 def cost_matrix(r: int) -> np.ndarray:
     """``Qhat`` (2r, 2r): ``integral_0^1 (d^r p / ds^r)^2 ds = c^T Qhat c``."""
-    n = 2 * r
-    q = np.zeros((n, n), dtype=np.float64)
-    for j in range(r, n):
-        for k in range(r, n):
-            q[j, k] = float(Fraction(_falling(j, r) * _falling(k, r), j + k - 2 * r + 1))
-    return q
+    return _floats(_exact_cost(r))
 
 
 @cache
 def knot_cost_matrix(r: int) -> np.ndarray:
     """``R = Ainv^T Qhat Ainv`` (2r, 2r): the cost as a quadratic form in boundary s-derivatives."""
-    ainv = _exact_boundary_inverse(r)
-    qh = _exact_cost(r)
-    n = 2 * r
-    out = np.zeros((n, n), dtype=np.float64)
-    for i in range(n):
-        for j in range(n):
-            acc = Fraction(0)
-            for k in range(n):
-                if all(v == 0 for v in qh[k]):
-                    continue
-                for m in range(n):
-                    if qh[k][m] != 0:
-                        acc += ainv[k][i] * qh[k][m] * ainv[m][j]
-            out[i, j] = float(acc)
-    return out
+    a, q = _exact_boundary_inverse(r), _exact_cost(r)
+    n = range(2 * r)
+    return _floats(tuple(tuple(sum((a[k][i] * q[k][m] * a[m][j] for k in n for m in n), Fraction(0)) for j in n)
+                         for i in n))
 
 
 @cache
@@ -93,17 +81,9 @@ def _exact_boundary_inverse(r: int) -> tuple[tuple[Fraction, ...], ...]:
 
 @cache
 def _exact_cost(r: int) -> tuple[tuple[Fraction, ...], ...]:
-    n = 2 * r
-    rows = []
-    for j in range(n):
-        row = []
-        for k in range(n):
-            if j >= r and k >= r:
-                row.append(Fraction(_falling(j, r) * _falling(k, r), j + k - 2 * r + 1))
-            else:
-                row.append(Fraction(0))
-        rows.append(tuple(row))
-    return tuple(rows)
+    n = range(2 * r)
+    return tuple(tuple(Fraction(_falling(j, r) * _falling(k, r), j + k - 2 * r + 1) if j >= r and k >= r else Fraction(0)
+                       for k in n) for j in n)
 
 
 def basis_row(s: np.ndarray, n: int, q: int) -> np.ndarray:

@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike
 from mapkit.trajopt import _qp
 from mapkit.trajopt._errors import TrajoptError
 from mapkit.trajopt._system import (
+    batched_waypoints,
     coefficients,
     index_tensor,
     knot_values,
@@ -83,15 +84,10 @@ def _check_finite(t: torch.Tensor, name: str) -> None:
 
 # ------------------------------------------------------------------------------- constraints
 def _corridor_rows(w: torch.Tensor, T: torch.Tensor, half_width: torch.Tensor, n_samples: int) -> _Rows:
-    """Local rows (B, m, 3, 8), their segment (m,) and bounds lo/hi (B, m): the perpendicular
-    deviation of every sample from its segment's key-point line, per world axis, lies within
-    +-half_width (the corridor of Mellinger & Kumar 2011), and its position along the line lies
-    between the segment's ends extended by half_width (so the corridor is a bounded prism).
-
-    Samples: n_samples evenly spaced interior points of every segment plus both ends of every
-    segment except the trajectory's own start and end (so an interior knot lies in the corridors
-    of both of its segments).
-    """
+    """Local rows (B, m, 3, 8), their segment (m,) and bounds lo/hi (B, m): each sample's deviation across
+    its segment's key-point line within +-half_width per world axis, and its position along the line
+    within the segment's ends extended by half_width. Samples: n_samples interior points of every
+    segment plus both ends of every segment but the trajectory's own start and end."""
     B, M = T.shape
     s = np.concatenate([[0.0], np.arange(1, n_samples + 1) / (n_samples + 1), [1.0]])
     K = s.size
@@ -115,8 +111,7 @@ def _corridor_rows(w: torch.Tensor, T: torch.Tensor, half_width: torch.Tensor, n
     centre = centre.reshape(B, M * K, 3).index_select(1, keep_t).reshape(B, -1)
     hw = half_width.unsqueeze(-1).unsqueeze(-1).expand(B, M, K, 3).reshape(B, M * K, 3)
     hw = hw.index_select(1, keep_t).reshape(B, -1)
-    # Along the segment: u·p within [u·a − W, u·b + W]. Without it the free interior key-points may
-    # slide along their lines, and a sharp turn is overshot by metres.
+    # along the segment: u·p within [u·a − W, u·b + W] (else sharp turns are overshot by metres)
     along = u.unsqueeze(2).unsqueeze(-1) * L.unsqueeze(3)  # (B, M, K, 3b, 8)
     along = torch.where(degenerate.unsqueeze(-1), torch.zeros_like(along), along)
     along = along.reshape(B, M * K, 3, 8).index_select(1, keep_t)
@@ -172,36 +167,24 @@ class _PositionQp:
     minimise ½ zᵀPz + qᵀz subject to lo <= C z + c_fix <= hi (rows ``local`` of segments ``seg_np``)."""
 
     B: int
-    N: int
-    """Knot-vector length."""
-    nf: int
-    """Free knot values per axis."""
-    fi: torch.Tensor
-    """Indices of the free knot values."""
-    xi: torch.Tensor
-    """Indices of the fixed knot values."""
-    X0: torch.Tensor
-    """(B, N, 3) knot values, the free ones to be replaced."""
-    Xp: torch.Tensor
-    """(B, nfix, 3) fixed knot values."""
+    N: int  # knot-vector length
+    nf: int  # free knot values per axis
+    fi: torch.Tensor  # indices of the free knot values
+    xi: torch.Tensor  # indices of the fixed knot values
+    X0: torch.Tensor  # (B, N, 3) knot values, the free ones to be replaced
+    Xp: torch.Tensor  # (B, nfix, 3) fixed knot values
     P: torch.Tensor
     q: torch.Tensor
-    local: torch.Tensor
-    """(B, m, 3, 8) constraint rows on one segment's coefficients."""
-    seg_np: np.ndarray
-    """(m,) segment of each row."""
+    local: torch.Tensor  # (B, m, 3, 8) constraint rows on one segment's coefficients
+    seg_np: np.ndarray  # (m,) segment of each row
     lo: torch.Tensor
     hi: torch.Tensor
-    C: torch.Tensor
-    """(B, m, 3·nf) rows on the free values (no autograd)."""
-    c_fix: torch.Tensor
-    """(B, m) the fixed values' part of each row (no autograd)."""
-    limit_rows: tuple[int, int] = (0, 0)
-    """How many of the last rows are speed limits, then acceleration limits."""
+    C: torch.Tensor  # (B, m, 3·nf) rows on the free values (no autograd)
+    c_fix: torch.Tensor  # (B, m) the fixed values' part of each row (no autograd)
+    limit_rows: tuple[int, int] = (0, 0)  # how many of the last rows are speed, then acceleration limits
 
     def relimited(self, v_max: torch.Tensor | None, a_max: torch.Tensor | None) -> _PositionQp:
-        """The same problem with other speed / acceleration limits (the problem's own ones present):
-        only their bounds change, so the rows, objective and the rest are reused as they are."""
+        """The same problem with other speed / acceleration limits (only their bounds change)."""
         n_v, n_a = self.limit_rows
         keep = self.lo.shape[1] - n_v - n_a
         lo, hi = [self.lo[:, :keep]], [self.hi[:, :keep]]
@@ -214,8 +197,7 @@ class _PositionQp:
         return dataclasses.replace(self, lo=torch.cat(lo, dim=1), hi=torch.cat(hi, dim=1))
 
     def solve_active(self, active: list[np.ndarray], upper: list[np.ndarray]) -> torch.Tensor:
-        """Differentiable KKT solve holding each element's ``active`` rows at their bounds (``upper``:
-        the upper one); only the held rows are rebuilt with autograd."""
+        """Differentiable KKT solve holding each element's ``active`` rows at their bounds (``upper``: the upper)."""
         B, dev = self.B, self.P.device
         k = max([a.size for a in active] + [0])
         idx = np.zeros((B, k), dtype=np.int64)
@@ -236,8 +218,7 @@ class _PositionQp:
         return _qp.kkt_solve(self.P, self.q, Ca, bound, torch.as_tensor(msk, device=dev))
 
     def violated(self, z: torch.Tensor) -> torch.Tensor:
-        """(B,) elements whose rows are violated by more than ~1e-8 relative, in physical units (m,
-        m/s, m/s²), or whose solution is not finite."""
+        """(B,) elements whose rows are violated by more than ~1e-8 relative, or not finite."""
         lo, hi = self.lo.detach(), self.hi.detach()
         lo_p = (lo - self.c_fix)
         hi_p = (hi - self.c_fix)
@@ -312,16 +293,8 @@ def _scaled(qp: _PositionQp) -> tuple[np.ndarray, ...]:
             d.cpu().numpy())
 
 
-def _solve_position_qp(
-    w: torch.Tensor, T: torch.Tensor, start: torch.Tensor, end: torch.Tensor, *, corridor: torch.Tensor | None,
-    corridor_samples: int, v_max: torch.Tensor | None, a_max: torch.Tensor | None, solver: str,
-    qp: _PositionQp | None = None,
-) -> _Solved:
-    """Knot vectors (B, N, 3), ok mask (B,) numpy, statuses and info for the inequality path; ``qp``:
-    the problem when already set up (the others then only name it)."""
-    if qp is None:
-        qp = _position_qp(w, T, start, end, corridor=corridor, corridor_samples=corridor_samples, v_max=v_max,
-                          a_max=a_max)
+def _solve_position_qp(qp: _PositionQp, solver: str) -> _Solved:
+    """Knot vectors (B, N, 3), ok mask (B,) numpy, statuses and info of the set-up problem ``qp``."""
     Ps_np, qs_np, Cs_np, los_np, his_np, scale = _scaled(qp)
     res = _qp.solve_batch(Ps_np, qs_np, Cs_np, los_np, his_np, solver=solver)
     ok = res.ok.copy()
@@ -338,9 +311,7 @@ def _solve_position_qp(
     except RuntimeError:  # a singular KKT matrix somewhere in the batch
         bad = ok.copy()
     if bad.any():
-        # The solver's active set did not reproduce its solution (an interior-point backend's
-        # inexact multipliers, or a degenerate set): correct it with a few primal-dual active-set
-        # steps on the scaled problem, keeping a linearly independent set of rows.
+        # the active set did not reproduce the solution (inexact multipliers, or degenerate): repair it
         active, upper = list(active), list(upper)
         for b in np.nonzero(bad)[0]:
             active[b], upper[b] = _correct_active_set(
@@ -351,7 +322,7 @@ def _solve_position_qp(
         for b in np.nonzero(bad)[0]:
             ok[b] = False
             status[b] = "the active-set KKT solve did not reproduce a feasible solution"
-    z = torch.where(torch.as_tensor(ok, device=w.device).unsqueeze(-1), z, torch.zeros_like(z))
+    z = torch.where(torch.as_tensor(ok, device=z.device).unsqueeze(-1), z, torch.zeros_like(z))
     return _knots(qp, z), ok, status, _info(solver, res, active, qp)
 
 
@@ -367,8 +338,7 @@ def _info(solver: str, res: _qp.QPResult, active: list[np.ndarray], qp: _Positio
 
 def _correct_active_set(P: np.ndarray, q: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                         act: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Repair an inexact active set (numpy, scaled problem): re-solve with DAQP, an exact dual
-    active-set method, warm-started from the guess. Returns the guess unchanged if DAQP fails."""
+    """Repair an inexact active set (numpy, scaled problem) with DAQP warm-started from it (unchanged if it fails)."""
     act = np.asarray(act, dtype=np.int64)
     sense = np.zeros(C.shape[0], dtype=np.int32)
     sense[act] = np.where(np.asarray(up, dtype=bool), 1, 3)  # ACTIVE (| LOWER)
@@ -392,17 +362,14 @@ def _independent(C: np.ndarray, act: np.ndarray) -> np.ndarray:
     return np.sort(act[piv[:rank]])
 
 
-def _tighten_limits(X: torch.Tensor, ok: np.ndarray, status: list[str], info: dict[str, Any], w: torch.Tensor,
-                    T: torch.Tensor, start_t: torch.Tensor, end_t: torch.Tensor, corr: torch.Tensor | None,
-                    corridor_samples: int, vm: torch.Tensor | None, am: torch.Tensor | None, solver: str,
-                    qp: _PositionQp) -> _Solved:
-    """Re-solve ``qp`` (the problem solved with ``vm``/``am``) with limits scaled down by the excess
-    found on a dense grid, until the solution keeps ``vm``/``am`` between the QP's samples too (a few
-    rounds; the excess shrinks fast)."""
+def _tighten_limits(X: torch.Tensor, ok: np.ndarray, status: list[str], info: dict[str, Any], T: torch.Tensor,
+                    vm: torch.Tensor | None, am: torch.Tensor | None, solver: str, qp: _PositionQp) -> _Solved:
+    """Re-solve ``qp`` with ``vm``/``am`` scaled down by the excess found on a dense grid until the solution
+    keeps them between the QP's samples too (at most 4 rounds)."""
     vm0, am0 = vm, am
     for _ in range(4):
         traj = Trajectory(coefficients(X, T, 4), T)
-        scale = torch.ones(w.shape[0], dtype=_WORK, device=w.device)
+        scale = torch.ones(T.shape[0], dtype=_WORK, device=T.device)
         for limit, limit0, order in ((vm, vm0, 1), (am, am0, 2)):
             if limit is None or limit0 is None:  # both or neither
                 continue
@@ -413,8 +380,7 @@ def _tighten_limits(X: torch.Tensor, ok: np.ndarray, status: list[str], info: di
         vm = None if vm is None else vm * torch.where(scale < 1, 0.995 * scale, torch.ones_like(scale))
         am = None if am is None else am * torch.where(scale < 1, 0.995 * scale, torch.ones_like(scale))
         # only the limits' bounds change: the problem is not set up again (most of a solve's time)
-        X, ok, status, info = _solve_position_qp(w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples,
-                                                 v_max=vm, a_max=am, solver=solver, qp=qp.relimited(vm, am))
+        X, ok, status, info = _solve_position_qp(qp.relimited(vm, am), solver)
     return X, ok, status, info
 
 
@@ -446,14 +412,8 @@ def min_snap(
     on_infeasible: Literal["warn", "raise", "ignore"] = "warn",
     limits_everywhere: bool = False,
 ) -> Trajectory:
-    """Minimum-snap piecewise 7th-order polynomial trajectory through key-points, differentiable
-    with respect to the key-points, the segment durations and the boundary derivatives.
-
-    Minimises ``sum_axes integral (d^4 p/dt^4)^2 dt`` subject to the start/end position, velocity,
-    acceleration and jerk, continuity up to jerk at every knot, and either passing through every
-    interior key-point or (``corridor``) staying in the flight corridor around the key-point path.
-    Without inequalities a closed-form dense solve; with any (``corridor``, ``v_max``, ``a_max``) a
-    QP solved exactly per element, differentiated through the KKT conditions at its active set.
+    """Minimum-snap piecewise 7th-order polynomial trajectory through key-points (or within a corridor
+    around them), differentiable with respect to the key-points, durations and boundary derivatives.
 
     - ``waypoints`` (B, M+1, 3) or (M+1, 3) metres: start, M-1 interior key-points, end;
       ``durations`` (B, M) or (M,) seconds, all > 0.
@@ -494,8 +454,7 @@ def _conditions(
     corridor: float | torch.Tensor | None, v_max: float | torch.Tensor | None, a_max: float | torch.Tensor | None,
     *, corridor_samples: int, solver: str, on_infeasible: str,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
-    """:func:`min_snap`'s inputs checked, and its (B, 3, 3) start and end derivatives and its inequalities
-    (corridor, v_max, a_max; None where not asked) in the work precision."""
+    """:func:`min_snap`'s inputs checked: (B, 3, 3) start and end derivatives, corridor, v_max, a_max."""
     B, M = w.shape[0], w.shape[1] - 1
     _check_finite(w, "waypoints")
     _check_positive_durations(T)
@@ -510,8 +469,7 @@ def _solve_knots(
     corridor_samples: int, vm: torch.Tensor | None, am: torch.Tensor | None, solver: str, limits_everywhere: bool,
     on_infeasible: str,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[str, ...], dict[str, Any]]:
-    """(knot values, solved (B,), messages, info) of :func:`min_snap`: the closed form without inequalities,
-    else :func:`_solve_constrained`."""
+    """(knot values, solved (B,), messages, info) of :func:`min_snap`."""
     if corr is None and vm is None and am is None:
         B, M = w.shape[0], w.shape[1] - 1
         X = solve_knots(T, knot_values(w, start_t, end_t, 4), layout(M, 4, False))
@@ -524,14 +482,8 @@ def _work_waypoints(waypoints: torch.Tensor) -> tuple[torch.Tensor, bool]:
     """(B, M+1, 3) waypoints in the work precision and whether the input was batched; checks type and shape."""
     if not isinstance(waypoints, torch.Tensor):
         raise TrajoptError(f"waypoints must be a torch tensor, got {type(waypoints).__name__}")
-    if not waypoints.is_floating_point():
-        raise TrajoptError(f"waypoints must be float32 or float64, got {waypoints.dtype}")
-    batched = waypoints.ndim == 3
-    if waypoints.ndim not in (2, 3) or waypoints.shape[-1] != 3 or waypoints.shape[-2] < 2:
-        raise TrajoptError(
-            f"waypoints must have shape (B, M+1, 3) or (M+1, 3) with M >= 1, got {tuple(waypoints.shape)}"
-        )
-    return (waypoints if batched else waypoints.unsqueeze(0)).to(_WORK), batched
+    w, batched = batched_waypoints(waypoints)
+    return w.to(_WORK), batched
 
 
 def _durations(durations: torch.Tensor | ArrayLike, out_dtype: torch.dtype, w: torch.Tensor, M: int) -> torch.Tensor:
@@ -595,16 +547,11 @@ def _solve_constrained(
     corridor_samples: int, vm: torch.Tensor | None, am: torch.Tensor | None, solver: str, limits_everywhere: bool,
     on_infeasible: str,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[str, ...], dict[str, Any]]:
-    """The inequality path: (X, solved mask, messages, info); unsolved elements fall back to the
-    closed form with a warning or an error as ``on_infeasible`` says."""
+    """The inequality path: (X, solved mask, messages, info); unsolved elements fall back to the closed form."""
     qp = _position_qp(w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples, v_max=vm, a_max=am)
-    X, ok, status, info = _solve_position_qp(
-        w, T, start_t, end_t, corridor=corr, corridor_samples=corridor_samples,
-        v_max=vm, a_max=am, solver=solver, qp=qp,
-    )
+    X, ok, status, info = _solve_position_qp(qp, solver)
     if limits_everywhere and (vm is not None or am is not None):
-        X, ok, status, info = _tighten_limits(X, ok, status, info, w, T, start_t, end_t, corr, corridor_samples,
-                                              vm, am, solver, qp)
+        X, ok, status, info = _tighten_limits(X, ok, status, info, T, vm, am, solver, qp)
     solved = torch.ones(w.shape[0], dtype=torch.bool, device=w.device)
     messages: tuple[str, ...] = ()
     if not ok.all():
@@ -620,8 +567,7 @@ def _fall_back_where_unsolved(
     X: torch.Tensor, ok: np.ndarray, status: list[str], w: torch.Tensor, T: torch.Tensor, start_t: torch.Tensor,
     end_t: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[str, ...], str]:
-    """Unsolved elements take the closed-form solution through the key-points: (X, solved mask,
-    one message per failed element, the text to warn or raise with)."""
+    """Unsolved elements take the closed form: (X, solved mask, messages, the text to warn or raise with)."""
     B, M = T.shape
     failed = np.nonzero(~ok)[0]
     messages = tuple(f"batch element {int(b)}: {status[b]}" for b in failed)

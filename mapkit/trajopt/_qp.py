@@ -1,20 +1,12 @@
 """Batched inequality-constrained QPs: an exact solve per element, then a differentiable
 active-set KKT solve in torch.
 
-Problem per batch element (all float64)::
-
-    minimise   1/2 z^T P z + q^T z
-    subject to lo <= C z <= hi          (two-sided rows; lo may be -inf)
-
-The numerical solve runs on CPU with a qpsolvers backend (DAQP by default, called directly to avoid
-per-call conversion overhead). At its solution the constraints with positive multipliers are the
-active set; the solution is then recomputed in torch from the equality-constrained KKT system with
-those rows held at their bound. That system is exactly the optimality condition locally, so autograd
-through its linear solve gives the implicit-function-theorem gradient (no unrolling), and the
-recomputation also polishes the solver's answer to machine precision. Where the held rows do not
-reproduce a feasible point (inexact multipliers of an interior-point backend, or a degenerate set),
-``mapkit.trajopt._minsnap`` repairs the set with DAQP warm-started from it and keeps a linearly
-independent subset.
+Per element (float64): minimise ``1/2 z^T P z + q^T z`` subject to ``lo <= C z <= hi`` (lo may be
+-inf). A qpsolvers backend (DAQP by default, called directly) solves it on the CPU; the rows with
+positive multipliers are held at their bound and the solution recomputed in torch from that
+equality-constrained KKT system, whose autograd is the implicit-function gradient (no unrolling) and
+which polishes the answer to machine precision. ``mapkit.trajopt._minsnap`` repairs active sets that
+do not reproduce a feasible point.
 """
 
 from __future__ import annotations
@@ -80,13 +72,9 @@ def _solve_daqp(P: np.ndarray, q: np.ndarray, C: np.ndarray, lo: np.ndarray, hi:
     return np.asarray(z, dtype=np.float64), lam, "optimal"
 
 
-# Settings of the qpsolvers backends (the active-set KKT polish supplies the last digits, so
-# these only need to identify the active set reliably).
-_KW: dict[str, dict[str, Any]] = {  # keyword options of each backend's own solve
-    "proxqp": dict(eps_abs=1e-9, eps_rel=0.0),
-    "clarabel": dict(),
-    "piqp": dict(),
-}
+# ProxQP's tolerance (the others' defaults serve): the active-set KKT polish supplies the last digits,
+# so the backends only need to identify the active set reliably.
+_KW: dict[str, dict[str, Any]] = {"proxqp": dict(eps_abs=1e-9, eps_rel=0.0)}
 
 
 def _solve_qpsolvers(name: str, P: np.ndarray, q: np.ndarray, C: np.ndarray, lo: np.ndarray,

@@ -1,11 +1,9 @@
 """The smoothness cost as a quadratic form in the knot states, batched in torch.
 
-Knot ``k`` (0..M) carries the time derivatives of orders ``0..r-1`` of every axis. With the polynomial
-basis of :mod:`._basis`, segment ``i`` is fully determined by knots ``i`` and ``i+1`` (so continuity
-up to order ``r-1`` holds by construction) and its cost is
-``T_i^(1-2r) d^T S R S d`` with ``d`` the 2r knot entries and ``S = diag(T_i^q)``. Summing the
-segments gives ``J = sum_axes X^T H X`` with H (r(M+1), r(M+1)) block-tridiagonal. Knot entries are
-either fixed (boundary conditions, key-points) or free; the free ones are the decision variables.
+Knot ``k`` (0..M) carries the time derivatives of orders ``0..r-1`` of every axis; segment ``i`` is
+determined by knots ``i`` and ``i+1`` (continuity by construction) and costs
+``T_i^(1-2r) d^T S R S d`` (``d`` its 2r knot entries, ``S = diag(T_i^q)``), so ``J = sum_axes X^T H X``
+with H block-tridiagonal. Knot entries are fixed (boundary conditions, key-points) or free.
 """
 
 from __future__ import annotations
@@ -17,6 +15,17 @@ import numpy as np
 import torch
 
 from mapkit.trajopt._basis import basis_row, boundary_inverse, knot_cost_matrix
+from mapkit.trajopt._errors import TrajoptError
+
+
+def batched_waypoints(waypoints: torch.Tensor) -> tuple[torch.Tensor, bool]:
+    """(B, M+1, 3) key-points and whether the input was batched; :class:`TrajoptError` for a bad dtype or shape."""
+    if not waypoints.is_floating_point():
+        raise TrajoptError(f"waypoints must be float32 or float64, got {waypoints.dtype}")
+    if waypoints.ndim not in (2, 3) or waypoints.shape[-1] != 3 or waypoints.shape[-2] < 2:
+        raise TrajoptError(f"waypoints must have shape (B, M+1, 3) or (M+1, 3) with M >= 1, got {tuple(waypoints.shape)}")
+    batched = waypoints.ndim == 3
+    return (waypoints if batched else waypoints.unsqueeze(0)), batched
 
 
 @dataclass(frozen=True)
@@ -141,11 +150,8 @@ def _reduced_solve(Hff: torch.Tensor, Hfp: torch.Tensor, X: torch.Tensor, lay: L
 def knot_values(
     points: torch.Tensor, start: torch.Tensor, end: torch.Tensor, r: int
 ) -> torch.Tensor:
-    """Knot vector template (B, N, A): positions of all knots, start/end derivatives 1..r-1,
-    zero for the interior derivatives.
-
-    points: (B, M+1, A); start/end: (B, r-1, A) derivatives of orders 1..r-1.
-    """
+    """Knot vector template (B, N, A) from points (B, M+1, A) and start/end derivatives 1..r-1
+    (B, r-1, A); the interior derivatives zero."""
     B, M1, A = points.shape
     zeros = torch.zeros(B, M1 - 2, r - 1, A, dtype=points.dtype, device=points.device)
     der = torch.cat([start.unsqueeze(1), zeros, end.unsqueeze(1)], dim=1)  # (B, M+1, r-1, A)
@@ -166,10 +172,7 @@ def coefficients(X: torch.Tensor, T: torch.Tensor, r: int) -> torch.Tensor:
 
 
 def sample_rows(T: torch.Tensor, s: np.ndarray, q: int, r: int) -> torch.Tensor:
-    """Rows mapping a segment's 2r knot entries to the q-th time derivative at local times ``s``.
-
-    Returns (B, M, K, 2r).
-    """
+    """Rows (B, M, K, 2r) mapping a segment's 2r knot entries to the q-th time derivative at ``s`` (K,)."""
     phi = torch.as_tensor(basis_row(s, 2 * r, q), dtype=T.dtype, device=T.device)  # (K, 2r)
     Ainv = _const("Ainv", r, T.dtype, T.device)
     base = phi @ Ainv  # (K, 2r) acting on s-derivatives

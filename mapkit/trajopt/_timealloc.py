@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal, overload
+from typing import Literal
 
 import numpy as np
 import torch
@@ -15,7 +15,7 @@ from torch import nn
 from mapkit._choices import BOUNDARY_SCALES, BoundaryScale
 from mapkit.trajopt._basis import knot_cost_matrix
 from mapkit.trajopt._errors import TrajoptError
-from mapkit.trajopt._system import knot_values, layout, solve_knots, time_powers
+from mapkit.trajopt._system import batched_waypoints, knot_values, layout, solve_knots, time_powers
 
 ALLOCATION_METHODS = ("uniform", "trapezoid", "poly5", "gradient", "net")
 """Names accepted by ``allocate_times(method=...)``."""
@@ -31,14 +31,7 @@ def _prep(waypoints: torch.Tensor | ArrayLike) -> tuple[torch.Tensor, bool]:
     """(B, M+1, 3) key-points as a tensor and whether the input was batched; checks dtype and shape."""
     if not isinstance(waypoints, torch.Tensor):
         waypoints = torch.as_tensor(np.asarray(waypoints, dtype=np.float64))
-    if not waypoints.is_floating_point():
-        raise TrajoptError(f"waypoints must be float32 or float64, got {waypoints.dtype}")
-    if waypoints.ndim not in (2, 3) or waypoints.shape[-1] != 3 or waypoints.shape[-2] < 2:
-        raise TrajoptError(
-            f"waypoints must have shape (B, M+1, 3) or (M+1, 3) with M >= 1, got {tuple(waypoints.shape)}"
-        )
-    batched = waypoints.ndim == 3
-    return (waypoints if batched else waypoints.unsqueeze(0)), batched
+    return batched_waypoints(waypoints)
 
 
 def _lengths(w: torch.Tensor) -> torch.Tensor:
@@ -80,15 +73,9 @@ def _poly5_inverse(y: torch.Tensor) -> torch.Tensor:
 def profile_time(length: torch.Tensor, v_start: torch.Tensor, v_end: torch.Tensor, *,
                  cruise_speed: float | torch.Tensor, accel: float,
                  decel: float | torch.Tensor | None = None) -> torch.Tensor:
-    """Seconds (B,) to cover ``length`` (B,) metres of path starting at ``v_start`` (B,) m/s and
-    arriving at ``v_end`` (B,) m/s: change speed at ``accel`` m/s² towards ``cruise_speed`` (a scalar
-    or (B,)), cruise, then change to the end speed at ``decel`` (scalar or (B,); None: ``accel``) —
-    a trapezoid in speed; triangular when the path is too short to reach the cruise speed, constant
-    acceleration when it is too short even for that.
-
-    Start speeds above the cruise speed count as the cruise speed; end speeds are clipped to
-    [0, cruise_speed].
-    """
+    """Seconds (B,) to cover ``length`` (B,) metres from ``v_start`` (B,) m/s to ``v_end`` (B,) m/s (both
+    clipped to [0, cruise_speed]): a trapezoid in speed at ``accel`` m/s² up to ``cruise_speed`` (scalar
+    or (B,)) and ``decel`` (None: ``accel``) down; triangular or a ramp on shorter paths."""
     vc = torch.as_tensor(cruise_speed, dtype=_WORK)
     d = torch.as_tensor(accel if decel is None else decel, dtype=_WORK)
     if not (bool((vc > 0).all()) and bool(torch.isfinite(vc).all()) and accel > 0 and bool((d > 0).all())):
@@ -107,40 +94,15 @@ def profile_time(length: torch.Tensor, v_start: torch.Tensor, v_end: torch.Tenso
 
 
 def _min_duration(total: torch.Tensor, M: int) -> torch.Tensor:
-    # 2 % of the mean segment: shorter segments are never the optimum between separated key-points,
-    # and the cost's float64 evaluation loses its digits below ~1 % (it can even turn negative).
+    # 2 % of the mean segment: below ~1 % the cost's float64 evaluation loses its digits
     return 0.02 * total / M
 
 
-@overload
-def snap_cost_of_times(
-    waypoints: torch.Tensor, durations: torch.Tensor, *, start: torch.Tensor | None = ...,
-    end: torch.Tensor | None = ..., with_grad: Literal[False] = ...,
-) -> torch.Tensor: ...
-@overload
-def snap_cost_of_times(
-    waypoints: torch.Tensor, durations: torch.Tensor, *, start: torch.Tensor | None = ...,
-    end: torch.Tensor | None = ..., with_grad: Literal[True],
-) -> tuple[torch.Tensor, torch.Tensor]: ...
-@overload
-def snap_cost_of_times(
-    waypoints: torch.Tensor, durations: torch.Tensor, *, start: torch.Tensor | None = ...,
-    end: torch.Tensor | None = ..., with_grad: bool,
-) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]: ...
-def snap_cost_of_times(
-    waypoints: torch.Tensor,
-    durations: torch.Tensor,
-    *,
-    start: torch.Tensor | None = None,
-    end: torch.Tensor | None = None,
-    with_grad: bool = False,
-) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-    """Minimum snap cost J(T) (B,) through the key-points (no inequalities), m²/s⁷.
-
-    With ``with_grad`` also returns dJ/dT (B, M), computed analytically (envelope theorem: at the
-    optimum only the explicit dependence on T counts), without autograd. Inputs as in
-    :func:`mapkit.trajopt.min_snap`; float64 internally. Non-finite costs are returned as +inf.
-    """
+def _snap_cost(waypoints: torch.Tensor, durations: torch.Tensor, start: torch.Tensor | None,
+               end: torch.Tensor | None, with_grad: bool) -> tuple[torch.Tensor, torch.Tensor | None, bool]:
+    """Minimum snap cost J(T) (B,) through the key-points (no inequalities), m²/s⁷, with ``with_grad`` its
+    gradient dJ/dT (B, M) (analytic: the envelope theorem; else None), and whether the input was batched.
+    Inputs as in :func:`mapkit.trajopt.min_snap`; float64 inside; non-finite costs are +inf."""
     w, batched = _prep(waypoints)
     w = w.to(_WORK)
     B, M1, _ = w.shape
@@ -160,36 +122,32 @@ def snap_cost_of_times(
     J = (quad * T ** (-7)).sum(-1)
     J = torch.where(torch.isfinite(J), J, torch.full_like(J, math.inf))
     if not with_grad:
-        return J if batched else J[0]
+        return J, None, batched
     qv = torch.tensor([0, 1, 2, 3, 0, 1, 2, 3], dtype=_WORK, device=w.device)
     dds = ds * (qv.reshape(1, 1, 8, 1) / T.reshape(B, M, 1, 1))
     cross = (dds * Rds).sum(dim=(2, 3))
-    g = -7.0 * quad * T ** (-8) + 2.0 * cross * T ** (-7)
-    return (J, g) if batched else (J[0], g[0])
+    return J, -7.0 * quad * T ** (-8) + 2.0 * cross * T ** (-7), batched
 
 
 @dataclass
 class _SnapTimeProblem:
-    """Minimise J(T) over durations T ≥ t_min with ΣT = total, float64."""
+    """Minimise J(T) over durations T (B, M) ≥ t_min with ΣT = total (B,), float64."""
 
-    w: torch.Tensor
-    """(B, M+1, 3) key-points."""
+    w: torch.Tensor  # (B, M+1, 3) key-points
     start: torch.Tensor | None
     end: torch.Tensor | None
     total: torch.Tensor
-    """(B,) fixed total time."""
     t_min: torch.Tensor
-    """(B, M) smallest durations."""
 
-    @overload
-    def cost(self, Tc: torch.Tensor, need_grad: Literal[True]) -> tuple[torch.Tensor, torch.Tensor]: ...
-    @overload
-    def cost(self, Tc: torch.Tensor, need_grad: Literal[False]) -> tuple[torch.Tensor, None]: ...
-    def cost(self, Tc: torch.Tensor, need_grad: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(B,) objective and, with ``need_grad``, its gradient (B, M)."""
-        if need_grad:
-            return snap_cost_of_times(self.w, Tc, start=self.start, end=self.end, with_grad=True)
-        return snap_cost_of_times(self.w, Tc, start=self.start, end=self.end), None
+    def cost(self, Tc: torch.Tensor) -> torch.Tensor:
+        """(B,) objective."""
+        return _snap_cost(self.w, Tc, self.start, self.end, False)[0]
+
+    def cost_and_grad(self, Tc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B,) objective and its gradient (B, M)."""
+        J, g, _ = _snap_cost(self.w, Tc, self.start, self.end, True)
+        assert g is not None  # asked for
+        return J, g
 
     def project(self, Tc: torch.Tensor) -> torch.Tensor:
         """The nearest feasible durations: T ≥ t_min and ΣT = total (sort-based simplex projection)."""
@@ -208,8 +166,7 @@ class _SnapTimeProblem:
 
 def _line_search(problem: _SnapTimeProblem, T: torch.Tensor, f: torch.Tensor, g: torch.Tensor, step: torch.Tensor,
                  active: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Armijo backtracking along the projected gradient for the active elements: (accepted (B,),
-    new T, new cost, the last trial step)."""
+    """Armijo backtracking along the projected gradient: (accepted (B,), new T, new cost, last trial step)."""
     B = T.shape[0]
     accepted = torch.zeros(B, dtype=torch.bool, device=T.device)
     T_new = T.clone()
@@ -220,7 +177,7 @@ def _line_search(problem: _SnapTimeProblem, T: torch.Tensor, f: torch.Tensor, g:
         if not bool(todo.any()):
             break
         cand = problem.project(T - trial * g)
-        fc, _ = problem.cost(cand, False)
+        fc = problem.cost(cand)
         dec = ((cand - T) ** 2).sum(-1)
         # A snap cost is never negative: a negative value is lost precision, not a descent.
         ok = torch.isfinite(fc) & (fc >= 0) & (fc <= f - 1e-4 / trial.squeeze(-1) * dec)
@@ -255,7 +212,7 @@ def _gradient_allocation(
     with torch.no_grad():
         if min_duration is not None:
             T = problem.project(T)  # the start must respect the floor too
-        f, g = problem.cost(T, True)
+        f, g = problem.cost_and_grad(T)
         if not bool(torch.isfinite(f).all()):
             raise TrajoptError(
                 "gradient time allocation: the initial durations give no finite cost for some "
@@ -273,7 +230,7 @@ def _gradient_allocation(
             step = torch.where(accepted.unsqueeze(-1), 2.0 * trial, trial)
             T = torch.where(accepted.unsqueeze(-1), T_new, T)
             if bool(active.any()):
-                f, g = problem.cost(T, True)
+                f, g = problem.cost_and_grad(T)
     return T
 
 
@@ -369,8 +326,7 @@ def _rule_times(method: str, lengths: torch.Tensor, tot: torch.Tensor | None, v_
 def _gradient_times(w64: torch.Tensor, lengths: torch.Tensor, tot: torch.Tensor | None, *, v_max: float,
                     a_max: float, start: torch.Tensor | None, end: torch.Tensor | None, max_iters: int,
                     rel_tol: float, min_duration: float | torch.Tensor | None) -> torch.Tensor:
-    """(B, M) durations of the "gradient" method: checks its options, starts from the trapezoid
-    rule and runs :func:`_gradient_allocation`."""
+    """(B, M) durations of the "gradient" method, from the trapezoid rule."""
     B, M = lengths.shape
     T0 = _rule_times("trapezoid", lengths, None, v_max, a_max)
     floor = None
@@ -395,29 +351,21 @@ class TimeAllocationNetConfig:
     hidden: tuple[int, ...] = (128, 128)
     """Widths of the hidden layers of the MLP (ReLU between them)."""
     v_max: float = 2.0
-    """m/s; with ``a_max`` gives the default total time (poly5 rule) when none is passed."""
+    """m/s; with ``a_max`` (m/s²) gives the default total time (poly5 rule) when none is passed."""
     a_max: float = 2.0
-    """m/s², see ``v_max``."""
     boundary_inputs: bool = False
-    """The net also reads the boundary conditions: start velocity and acceleration, and the end speed
-    (0 = rest at the last key-point), made unitless by ``boundary_scale``. The best split of a plan
-    that starts at cruise speed and passes its end is not that of a rest-to-rest plan."""
+    """The net also reads the start velocity and acceleration and the end speed (0: rest), made unitless
+    by ``boundary_scale``."""
     boundary_scale: BoundaryScale = "limits"
     """``limits``: velocities ÷ ``v_max``, accelerations ÷ ``a_max``. ``duration``: velocities × T / L and
-    accelerations × T² / L, with T the plan's total time and L its path length. Flying a path k times
-    slower from a start k (k²) times slower has the same minimum-snap split, and those inputs do not
-    change with k, so one net serves every pace (``limits`` cannot tell a plan flown at 1.2 m/s from
-    the same plan at 2 m/s). Needs the total time (:meth:`TimeAllocationNet.shares`)."""
+    accelerations × T² / L (T the plan's total time, L its path length: the same at every pace); needs
+    the total time (:meth:`TimeAllocationNet.shares`)."""
 
 
 class TimeAllocationNet(nn.Module):
-    """Time Allocation Net (TAN): an MLP over the key-point geometry predicts each segment's share of
-    the total time (softmax), so durations are always positive and sum to the total.
-
-    Input features per element: the M segment vectors (metres) and their lengths, divided by the
-    path length (scale-free), plus the log of the path length; with ``boundary_inputs`` also the
-    start velocity and acceleration and the end speed (see the config).
-    """
+    """Time Allocation Net (TAN): an MLP over the key-point geometry (segment vectors and lengths over
+    the path length, its log; with ``boundary_inputs`` the boundary conditions) predicts each segment's
+    share of the total time (softmax): durations positive, summing to the total."""
 
     def __init__(self, config: TimeAllocationNetConfig | None = None) -> None:
         super().__init__()
@@ -437,10 +385,9 @@ class TimeAllocationNet(nn.Module):
 
     def shares(self, waypoints: torch.Tensor, *, start: torch.Tensor | None = None,
                end_speed: torch.Tensor | None = None, total_time: torch.Tensor | None = None) -> torch.Tensor:
-        """(B, M) softmax shares of the total time for waypoints (B, M+1, 3); a net with
-        ``boundary_inputs`` also takes ``start`` (B, 3, 3) velocity/acceleration/jerk rows (default
-        rest) and ``end_speed`` (B,) m/s (default 0, rest), and with ``boundary_scale="duration"``
-        ``total_time`` (B,) seconds."""
+        """(B, M) shares of the total time for waypoints (B, M+1, 3); with ``boundary_inputs`` also ``start``
+        (B, 3, 3) rows (default rest), ``end_speed`` (B,) m/s (default 0) and, for
+        ``boundary_scale="duration"``, ``total_time`` (B,) seconds."""
         M = self.config.num_segments
         if waypoints.ndim != 3 or waypoints.shape[1] != M + 1 or waypoints.shape[2] != 3:
             raise TrajoptError(

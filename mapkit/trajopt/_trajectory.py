@@ -31,13 +31,9 @@ def _poly_eval(coeffs: torch.Tensor, s: torch.Tensor, q: int) -> torch.Tensor:
 
 
 class Trajectory:
-    """A batch of piecewise-polynomial trajectories in a normalised-time basis.
-
-    Segment ``i`` of element ``b`` is, per axis ``a``,
-    ``p(t) = sum_k coeffs[b, i, a, k] * s**k`` with ``s = (t - t_i) / durations[b, i]`` in [0, 1]
-    and ``t_i`` the segment's start time. Position uses 8 coefficients (degree 7); the optional yaw
-    uses 4 (degree 3). All methods are differentiable with respect to ``coeffs`` and ``durations``
-    (and so, through :func:`min_snap`, to the key-points and times).
+    """A batch of piecewise-polynomial trajectories: segment ``i`` of element ``b`` is, per axis ``a``,
+    ``p(t) = sum_k coeffs[b, i, a, k] * s**k`` with ``s = (t - t_i) / durations[b, i]`` in [0, 1].
+    All methods are differentiable with respect to ``coeffs`` and ``durations``.
 
     Attributes:
         coeffs: (B, M, 3, 8) position coefficients, metres.
@@ -65,17 +61,11 @@ class Trajectory:
         if coeffs.ndim != 4 or coeffs.shape[2] != 3:
             raise TrajoptError(f"coeffs must have shape (B, M, 3, n), got {tuple(coeffs.shape)}")
         if durations.shape != coeffs.shape[:2]:
-            raise TrajoptError(
-                f"durations shape {tuple(durations.shape)} does not match coeffs {tuple(coeffs.shape)}"
-            )
+            raise TrajoptError(f"durations shape {tuple(durations.shape)} does not match coeffs {tuple(coeffs.shape)}")
         self._coeffs = coeffs
         self._durations = durations
         self._yaw_coeffs = yaw_coeffs
-        self._solved = (
-            solved
-            if solved is not None
-            else torch.ones(coeffs.shape[0], dtype=torch.bool, device=coeffs.device)
-        )
+        self._solved = torch.ones(coeffs.shape[0], dtype=torch.bool, device=coeffs.device) if solved is None else solved
         self.messages = tuple(messages)
         self.batched = batched
         self.info = dict(info or {})
@@ -119,10 +109,8 @@ class Trajectory:
         elif t.ndim == 1:
             t = t.unsqueeze(0).expand(self.batch_size, -1)
         elif t.ndim != 2 or t.shape[0] != self.batch_size:
-            raise TrajoptError(
-                f"t must be a scalar, (K,) or (B={self.batch_size}, K) tensor of seconds, "
-                f"got shape {tuple(t.shape)}"
-            )
+            raise TrajoptError(f"t must be a scalar, (K,) or (B={self.batch_size}, K) tensor of seconds, "
+                               f"got shape {tuple(t.shape)}")
         return t
 
     def _locate(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,17 +1,11 @@
 """Computations behind the viewers (``mapkit view``), usable by any front end: no viser, no click.
 
-- Slices: :class:`MapSlicer` serves :func:`mapkit.esdf.slice_plane` from an LRU cache of
-  chunk-aligned slabs; :func:`slice_texture` colours a slice (signed distance or the planner's
-  obstacle cost, unobserved voxels hatched) and gives the textured plane's world pose;
-  :func:`colorbar_image` draws its legend with units.
-- Point clouds: :func:`read_ply_points`, :func:`voxel_downsample`, :func:`downsample_to`,
-  :func:`cloud_view` (≤ max points, coloured by height or ESDF, positions relative to a local origin).
-- Geometry: :func:`frustum_segments` (camera frustums from K and T_world_camera),
-  :func:`polyline_segments`, :func:`speed_colors`, :func:`corridor_cross_section` and
-  :func:`corridor_prisms` (exactly the corridor :func:`mapkit.trajopt.min_snap` enforces),
-  :func:`pick_point` (a click ray → a goal).
-- Stores: :func:`open_workspace` (what exists, notes on what is missing), :func:`load_eval`
-  (``mapkit eval`` output), :func:`world_mesh_arrays`.
+- Slices: :class:`MapSlicer`, :func:`slice_texture`, :func:`colorbar_image`.
+- Point clouds: :func:`read_ply_points`, :func:`voxel_downsample`, :func:`downsample_to`, :func:`cloud_view`.
+- Geometry: :func:`frustum_segments`, :func:`polyline_segments`, :func:`speed_colors`,
+  :func:`corridor_cross_section` and :func:`corridor_prisms` (the corridor :func:`mapkit.trajopt.min_snap`
+  enforces), :func:`pick_point` (a click ray → a goal).
+- Stores: :func:`open_workspace`, :func:`load_eval` (``mapkit eval`` output), :func:`world_mesh_arrays`.
 
 >>> import numpy as np
 >>> from mapkit.viz import corridor_cross_section
@@ -22,12 +16,10 @@
 """
 
 from mapkit.viz._cloud import (
-    CLOUD_COLORINGS,
     CloudView,
     PlyPoints,
     cloud_view,
     downsample_to,
-    local_origin,
     read_ply_points,
     transfer_precision,
     voxel_downsample,
@@ -39,13 +31,12 @@ from mapkit.viz._color import (
     colormap,
     depth_image,
     hatch,
-    is_diverging,
     make_norm,
     method_colors,
     speed_colors,
 )
 from mapkit.viz._errors import VizError
-from mapkit.viz._eval import EVAL_FORMAT, EpisodeRecord, EvalResults, load_eval, world_mesh_arrays
+from mapkit.viz._eval import EvalResults, load_eval, world_mesh_arrays
 from mapkit.viz._geometry import (
     CorridorGeometry,
     corridor_cross_section,
@@ -53,17 +44,12 @@ from mapkit.viz._geometry import (
     frustum_segments,
     pick_point,
     polyline_segments,
-    ray_plane,
-    ray_surface,
     transform_points,
 )
 from mapkit.viz._slice import (
-    PLANE_AXES,
-    SLICE_MODES,
     MapSlicer,
     SlabCache,
     SliceTexture,
-    auto_range,
     obstacle_cost_of_distance,
     slice_texture,
     texture_scale,
@@ -71,14 +57,9 @@ from mapkit.viz._slice import (
 from mapkit.viz._workspace import WorkspaceContents, open_workspace
 
 __all__ = [
-    "CLOUD_COLORINGS",
-    "EVAL_FORMAT",
     "HATCH_RGB",
-    "PLANE_AXES",
-    "SLICE_MODES",
     "CloudView",
     "CorridorGeometry",
-    "EpisodeRecord",
     "EvalResults",
     "MapSlicer",
     "PlyPoints",
@@ -87,7 +68,6 @@ __all__ = [
     "VizError",
     "WorkspaceContents",
     "apply_colormap",
-    "auto_range",
     "cloud_view",
     "colorbar_image",
     "colormap",
@@ -97,17 +77,13 @@ __all__ = [
     "downsample_to",
     "frustum_segments",
     "hatch",
-    "is_diverging",
     "load_eval",
-    "local_origin",
     "make_norm",
     "method_colors",
     "obstacle_cost_of_distance",
     "open_workspace",
     "pick_point",
     "polyline_segments",
-    "ray_plane",
-    "ray_surface",
     "read_ply_points",
     "slice_texture",
     "speed_colors",

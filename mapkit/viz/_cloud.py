@@ -159,14 +159,8 @@ def voxel_downsample(points: np.ndarray, *, voxel_size: float) -> np.ndarray:
 
 def downsample_to(points: np.ndarray, max_points: int) -> tuple[np.ndarray, float]:
     """Voxel-grid downsample points (N, 3) to at most `max_points`; returns the points and the cell
-    size used (0.0 when N <= max_points and nothing was done).
-
-    The cell is searched by counting occupied cells only (one sort per try): it starts where a
-    surface spread over the bounding box's faces would fit and grows by the excess to the power
-    1/p, with p = 2 (surface-like clouds lose points with the square of the cell) until two tries
-    measure it, until the count fits; then bisects back towards the last cell that did not fit
-    until at least 90 % of the budget is used (or six more tries); then one centroid pass.
-    """
+    size used (0.0 when nothing was done). The cell grows until the occupied cells fit, then bisects
+    back until at least 90 % of the budget is used."""
     pts = np.asarray(points, dtype=np.float64)
     if isinstance(max_points, bool) or int(max_points) != max_points or max_points < 1:
         raise VizError(f"max_points={max_points!r} must be a positive integer")
@@ -258,15 +252,11 @@ def cloud_view(
     cmap: str | None = None,
     tolerance: float = 0.005,
 ) -> CloudView:
-    """Downsample, colour and re-centre a world point cloud (N, 3) for display.
+    """Downsample (to `max_points`), colour and re-centre a world point cloud (N, 3) for display.
 
-    Args:
-        max_points: at most this many points are shown (:func:`downsample_to`).
-        color_by: "height" (z through `cmap`, default viridis, 2nd..98th percentile) or "esdf" (the
-            map's smoothed signed distance at each point, `cmap` default RdBu centred on 0 over
-            ±2 voxels: a fused surface should sit on the zero level; points outside the map grey).
-        esdf_map: an :class:`mapkit.esdf.EsdfMap`, needed for "esdf".
-        tolerance: metres of float16 rounding accepted before float32 is chosen.
+    `color_by`: "height" (z, `cmap` default viridis over the 2nd..98th percentile) or "esdf" (the
+    `esdf_map`'s signed distance, default RdBu over ±2 voxels; points outside the map grey).
+    `tolerance`: metres of float16 rounding accepted before float32 is chosen.
     """
     pts, voxel = downsample_to(points, max_points)
     if color_by not in CLOUD_COLORINGS:

@@ -15,8 +15,6 @@ DIVERGING = frozenset({
 })
 #: The two greys of the diagonal hatch that marks unobserved (or unwritten) voxels.
 HATCH_RGB = (np.array([206, 206, 206], np.uint8), np.array([158, 158, 158], np.uint8))
-#: Background of the colour bar images (the viser panel is white).
-_WHITE = "white"
 
 
 def colormap(name: str) -> Any:
@@ -87,7 +85,7 @@ def colorbar_image(
     from matplotlib.patches import Patch
 
     dpi = 100
-    fig = Figure(figsize=(width_px / dpi, height_px / dpi), dpi=dpi, facecolor=_WHITE)
+    fig = Figure(figsize=(width_px / dpi, height_px / dpi), dpi=dpi, facecolor="white")  # the viser panel is white
     canvas = FigureCanvasAgg(fig)
     left = 0.05
     right = 0.72 if unobserved else 0.95
@@ -117,17 +115,11 @@ def method_colors(methods: Sequence[str]) -> dict[str, tuple[int, int, int]]:
 def speed_colors(
     t: np.ndarray, positions: np.ndarray, *, cmap: str = "turbo", vmax: float | None = None
 ) -> tuple[np.ndarray, np.ndarray, Any]:
-    """Speeds and colours along a sampled trajectory.
+    """Speeds and colours along a trajectory sampled at increasing times `t` (N,) s, `positions` (N, 3) m;
+    `vmax`: top of the colour scale in m/s (default: the largest speed).
 
-    Args:
-        t: float (N,) seconds, increasing.
-        positions: float (N, 3) metres (any frame).
-        cmap: colormap name.
-        vmax: top of the colour scale in m/s (default: the largest speed).
-
-    Returns:
-        speed float64 (N,) m/s (finite differences, second order inside), colours uint8 (N, 3), and
-        the matplotlib norm (for :func:`colorbar_image`).
+    Returns speed float64 (N,) m/s (finite differences), colours uint8 (N, 3) and the matplotlib norm
+    (for :func:`colorbar_image`).
     """
     t = np.asarray(t, dtype=np.float64).reshape(-1)
     p = np.asarray(positions, dtype=np.float64)

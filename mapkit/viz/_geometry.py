@@ -25,18 +25,10 @@ def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
 def frustum_segments(
     K: np.ndarray, width: int, height: int, T_world_camera: np.ndarray, *, depth: float = 0.5
 ) -> np.ndarray:
-    """Line segments of camera frustums, world frame.
-
-    Args:
-        K: (3, 3) intrinsics; pixel (u, v) integer = pixel centre, so the image spans
-            u ∈ [−½, width − ½], v ∈ [−½, height − ½].
-        width, height: image size in pixels.
-        T_world_camera: (4, 4) or (F, 4, 4) optical camera poses (z forward, x right, y down).
-        depth: distance (m, along the optical axis) of the drawn image rectangle.
-
-    Returns:
-        float64 (F·8, 2, 3): per camera, 4 segments from the optical centre to the image corners
-        at `depth` (top-left, top-right, bottom-right, bottom-left), then the 4 rectangle edges.
+    """Line segments of camera frustums, world frame: float64 (F·8, 2, 3), per camera 4 segments from the
+    optical centre to the image corners at `depth` metres along the optical axis, then the rectangle's
+    4 edges. `K` (3, 3) puts integer pixels at pixel centres; `T_world_camera` (4, 4) or (F, 4, 4)
+    are optical poses (z forward, x right, y down).
     """
     Km = np.asarray(K, dtype=np.float64)
     if Km.shape != (3, 3) or Km[0, 0] <= 0 or Km[1, 1] <= 0:
@@ -78,17 +70,11 @@ def polyline_segments(points: np.ndarray, colors: np.ndarray | None = None) -> t
 # ------------------------------------------------------------------------------------ corridor
 def corridor_cross_section(direction: np.ndarray, half_width: float) -> np.ndarray:
     """The exact cross-section of the flight corridor of :func:`mapkit.trajopt.min_snap` around a
-    segment with `direction` (3,) in the frame the trajectory is solved in.
+    segment with `direction` (3,): ``corridor=W`` bounds each axis component of the deviation from the
+    segment's line by ±W, so it is the plane ⊥ u cut by the cube [−W, W]³.
 
-    ``min_snap(..., corridor=W)`` bounds each axis component of the deviation (I − uuᵀ)(p − a) of a
-    sample p from the segment's line through a with unit direction u by ±W. The deviation lies in
-    the plane ⊥ u, so the feasible deviations are that plane intersected with the cube [−W, W]³: a
-    convex polygon (a square, rectangle or up to a hexagon).
-
-    Returns:
-        float64 (P, 3), P ∈ 4..6: the polygon's vertices (offsets from the line, ⊥ u),
-        counter-clockwise seen from the tip of u. A zero `direction` (a degenerate segment, where
-        min_snap bounds |p − a| per axis) raises; use the cube instead.
+    Returns float64 (P, 3), P ∈ 4..6: the polygon's vertices (offsets ⊥ u), counter-clockwise seen
+    from the tip of u. A zero `direction` raises (its corridor is the cube).
     """
     W = float(half_width)
     if not W > 0:
@@ -147,11 +133,8 @@ def corridor_prisms(
     """The corridor :func:`mapkit.trajopt.min_snap` enforces with ``corridor=half_width`` (W, metres,
     scalar or (M,)): around every segment a → b of `waypoints` (M+1, 3) (unit direction u), the prism
     a − W·u + t(b − a + 2W·u) + x, t ∈ [0, 1], x in :func:`corridor_cross_section`; a zero-length
-    segment gets the cube of side 2W around a (min_snap bounds |p − a| per axis by W).
-
-    `waypoints` are in the frame the trajectory is solved in (the planner's body frame at planning
-    time: start at the origin, then the key-points); `T_world_frame` (4, 4) maps it to the world
-    (identity if None), so the prisms follow the axes the solver bounded.
+    segment gets the cube of side 2W around a. `waypoints` are in the frame the trajectory is solved
+    in; `T_world_frame` (4, 4) maps it to the world (identity if None).
     """
     w = np.asarray(waypoints, dtype=np.float64)
     if w.ndim != 2 or w.shape[1] != 3 or len(w) < 2:
@@ -259,13 +242,9 @@ def pick_point(
     esdf_map: Any = None,
     standoff: float = 0.5,
 ) -> tuple[np.ndarray | None, str]:
-    """A 3-D point for a click ray, for setting a goal.
-
-    Tries, in order: the visible slice `plane` = (axis, position, corners_world (4, 3)) when the
-    ray hits it inside its corners ("slice"); the map surface (:func:`ray_surface`) pulled back
-    `standoff` metres towards the viewer ("surface"). Returns (point or None, which) with which in
-    "slice", "surface", "none".
-    """
+    """A 3-D goal for a click ray: (point or None, "slice" | "surface" | "none"). Tries the visible slice
+    `plane` = (axis, position, corners_world (4, 3)) within its corners, then the map surface
+    (:func:`ray_surface`) pulled back `standoff` metres towards the viewer."""
     d = np.asarray(direction, dtype=np.float64).reshape(3)
     d = d / max(float(np.linalg.norm(d)), 1e-12)
     if plane is not None:

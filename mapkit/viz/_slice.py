@@ -1,11 +1,6 @@
-"""ESDF slices for interactive viewing: chunk-aligned slab cache, colouring, and the plane's pose.
-
-:class:`MapSlicer` wraps an :class:`mapkit.esdf.EsdfMap` and answers
-:func:`mapkit.esdf.slice_plane` requests from an LRU cache of chunk-aligned slabs: a plane at
-index k along an axis lies in one slab of chunks (the chunks whose range along that axis holds k),
-so the first plane in a slab reads exactly the chunks the plane touches, and every other plane of
-that slab is a memory copy. :func:`slice_texture` colours a :class:`mapkit.esdf.Slice` into an RGB
-texture with unobserved voxels hatched, and says where the textured plane lies in the world.
+"""ESDF slices for interactive viewing: :class:`MapSlicer` serves planes from an LRU cache of
+chunk-aligned slabs (the first plane of a slab reads the chunks it touches, the others are memory
+copies); :func:`slice_texture` colours a slice, hatches unobserved voxels and places it in the world.
 """
 
 from __future__ import annotations
@@ -31,11 +26,8 @@ DEFAULT_CACHE_BYTES = 384 * 2**20
 
 
 class SlabCache:
-    """LRU cache of chunk-aligned slabs of 3-D arrays, bounded in bytes, thread-safe.
-
-    A slab along axis a with index s is ``array[..., s*c:(s+1)*c, ...]`` (c = the chunk length
-    along a): all the chunks whose range along a holds a given plane index.
-    """
+    """LRU cache of chunk-aligned slabs (``array[..., s*c:(s+1)*c, ...]``, c the chunk length along the
+    axis) of 3-D arrays, bounded in bytes, thread-safe."""
 
     def __init__(self, max_bytes: int = DEFAULT_CACHE_BYTES) -> None:
         if max_bytes <= 0:
@@ -51,11 +43,6 @@ class SlabCache:
     def nbytes(self) -> int:
         """Bytes held now."""
         return self._bytes
-
-    def clear(self) -> None:
-        with self._lock:
-            self._slabs.clear()
-            self._bytes = 0
 
     def slab(self, name: str, array: Any, axis: int, k: int) -> tuple[np.ndarray, int]:
         """The slab of `array` (3-D, zarr or numpy; cached under `name`) holding plane `k` along
@@ -117,14 +104,8 @@ class _SlabArray:
 
 
 class MapSlicer:
-    """Cached axis-aligned slices of a map: :meth:`slice` is :func:`mapkit.esdf.slice_plane` served
-    from a :class:`SlabCache` (reads only the zarr chunks the plane touches, once).
-
-    Args:
-        esdf_map: an opened (lazy) or in-memory map.
-        cache_bytes: LRU budget for cached slabs (default 384 MiB: a 256^3 float32 map has 16 MiB
-            slabs of 64^3 chunks).
-    """
+    """Cached axis-aligned slices of an opened or in-memory map: :meth:`slice` is
+    :func:`mapkit.esdf.slice_plane` served from a :class:`SlabCache` of `cache_bytes`."""
 
     def __init__(self, esdf_map: EsdfMap, *, cache_bytes: int = DEFAULT_CACHE_BYTES) -> None:
         self.map = esdf_map
@@ -142,10 +123,6 @@ class MapSlicer:
             voxel_size=esdf_map.voxel_size, origin=esdf_map.origin, frame_id=esdf_map.frame_id,
             sigma=esdf_map.sigma, unknown_policy=esdf_map.unknown_policy, attrs=esdf_map.attrs, path=esdf_map.path,
         )
-
-    @property
-    def voxel_size(self) -> float:
-        return self.map.voxel_size
 
     def positions(self, axis: str) -> tuple[float, float, float]:
         """(first, last, step): the voxel-centre coordinates (metres) a slice along `axis` can take."""
@@ -196,13 +173,9 @@ def auto_range(values: np.ndarray, mode: SliceMode, *, voxel_size: float) -> tup
 
 @dataclass(frozen=True)
 class SliceTexture:
-    """A coloured slice and where its textured plane lies (world frame of the map).
-
-    Texture layout: column c runs along the plane's first axis u (increasing), row r along its
-    second axis v (decreasing: row 0 is the top edge at v max), so seen from the positive side of
-    the slice axis with u to the right the texture reads like a map. Each voxel is a block of
-    ``pixels_per_voxel`` × ``pixels_per_voxel`` pixels.
-    """
+    """A coloured slice and where its textured plane lies (world frame of the map). Columns run along
+    the plane's first axis u, rows down its second axis v (row 0 at v max); each voxel is a block of
+    ``pixels_per_voxel``² pixels."""
 
     texture: np.ndarray
     """uint8 (nv·p, nu·p, 3) RGB; unobserved or unwritten voxels as a two-grey diagonal hatch."""
@@ -250,14 +223,12 @@ def slice_texture(
     robot_radius: float = 0.3,
     softness: float = 1.0,
 ) -> SliceTexture:
-    """Colour a slice (from :func:`mapkit.esdf.slice_plane` or :meth:`MapSlicer.slice` along `axis`,
-    "x", "y" or "z") and place it in the world.
+    """Colour a slice along `axis` ("x", "y" or "z") and place it in the world.
 
-    `mode`: "distance" (signed distance, m) or "cost" (the planner's obstacle cost of it, see
-    :func:`obstacle_cost_of_distance` with `robot_radius` and `softness` in m). `cmap`: a matplotlib
-    colormap; a diverging one is centred on 0 for signed distance. `vmin`, `vmax`: colour range
-    (default :func:`auto_range`). `pixels_per_voxel` (>= 1): so a linearly filtered texture keeps
-    crisp voxel edges.
+    `mode`: "distance" (signed distance, m) or "cost" (:func:`obstacle_cost_of_distance` with
+    `robot_radius` and `softness` in m). A diverging `cmap` is centred on 0 for signed distance.
+    `vmin`, `vmax`: colour range (default :func:`auto_range`). `pixels_per_voxel` (>= 1) keeps voxel
+    edges crisp under linear texture filtering.
     """
     _axis_index(axis)
     if mode not in SLICE_MODES:
@@ -317,10 +288,8 @@ def _plane_pose(sl: Slice, axis: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def texture_scale(shape_uv: tuple[int, int], *, target_px: int = 512, max_factor: int = 8) -> int:
-    """Pixels per voxel that bring the longer side of a (nu, nv) slice to about `target_px` pixels
-    (1 for large slices; at most `max_factor`): small maps stay crisp under the browser's linear
-    texture filter, large ones stay cheap to PNG-encode (the bulk of a slice update: ~15 ms per
-    quarter megapixel on one core)."""
+    """Pixels per voxel (1..`max_factor`) that bring the longer side of a (nu, nv) slice to about
+    `target_px` pixels: small maps stay crisp, large ones cheap to PNG-encode."""
     longest = max(1, max(shape_uv))
     return int(max(1, min(max_factor, math.floor(target_px / longest))))
 

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from mapkit.errors import MapkitError
+from mapkit.viz._cloud import _ply_header
 from mapkit.viz._errors import VizError
 
 FRAMES, CLOUD, MAP = "frames.zarr", "cloud.ply", "map.zarr"
@@ -85,14 +86,10 @@ def open_workspace(path: str | Path) -> WorkspaceContents:
 
 
 def _check_ply_header(path: Path) -> str | None:
-    """None if the file starts like a PLY with a complete header, else what is wrong."""
+    """None if the file has a readable PLY header, else what is wrong."""
     try:
         with open(path, "rb") as f:
-            head = f.read(4096)
-    except OSError as exc:
+            _ply_header(f, path)
+    except (OSError, ValueError, VizError) as exc:
         return str(exc)
-    if not head.startswith(b"ply"):
-        return f"{str(path)!r} is not a PLY file (no 'ply' magic); re-run `mapkit fuse --overwrite`"
-    if b"end_header" not in head:
-        return f"{str(path)!r} has no complete PLY header; re-run `mapkit fuse --overwrite`"
     return None
