@@ -19,6 +19,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from mapkit.evaluation._rotorpy import RATE_HZ
 from mapkit.flight import RunCamera, Setpoint
 from mapkit.fly._config import ODOMETRY_TYPES, FlyConfig
 from mapkit.fly._dds import Link
@@ -169,7 +170,7 @@ class SimulatedVehicle:
     def _run(self, t_end: float, judge: _Judge | None, flat: Any) -> tuple[Outcome, float]:
         """Fly `flat` until `t_end` (simulator seconds; no faster than real time), publishing /clock and the
         sensors at their rates, and `judge` the flight (None: not judged, the vehicle is being placed)."""
-        dt = 1.0 / self._vehicle.config.rate_hz
+        dt = 1.0 / RATE_HZ
         wall0, t0 = time.monotonic(), self._t
         while self._t < t_end - 1e-9:
             self._publish_clock()
