@@ -18,6 +18,8 @@ re-exports its public names from private ``_modules``:
   frame, for any vehicle loop) and its single-shot use, ``Planner.load("pretrained").plan(...)``.
 - ``mapkit.evaluation``: closed-loop flights of the pilot in unseen simulated worlds (linear tracker
   or rotorpy quadrotor) → results.json.
+- ``mapkit.fly``: the pilot on a live ROS 2 / PX4 graph over DDS without ROS (``mapkit fly``), a
+  simulated vehicle for software in the loop, recordings replayed as live topics.
 - ``mapkit.recipe``: a model made from nothing by a declared, resumable chain of steps (``mapkit train --recipe``).
 - ``mapkit.viz``: the computations behind the viewer (slices, colours, clouds, corridors); no viser.
 - ``mapkit.exchange``: exports for Foxglove (MCAP) and Rerun (.rrd).
