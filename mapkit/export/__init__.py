@@ -2,6 +2,7 @@
 
 from mapkit.export._tuples import (
     FUTURE,
+    GOAL_KIND_NAMES,
     HIDDEN,
     RANDOM,
     TUPLES,
@@ -19,6 +20,7 @@ __all__ = [
     "HIDDEN",
     "blocked_lines",
     "FUTURE",
+    "GOAL_KIND_NAMES",
     "RANDOM",
     "TUPLES",
     "ExportConfig",

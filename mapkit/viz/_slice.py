@@ -44,6 +44,12 @@ class SlabCache:
         """Bytes held now."""
         return self._bytes
 
+    def clear(self) -> None:
+        """Forget every slab (the next reads are cold)."""
+        with self._lock:
+            self._slabs.clear()
+            self._bytes = 0
+
     def slab(self, name: str, array: Any, axis: int, k: int) -> tuple[np.ndarray, int]:
         """The slab of `array` (3-D, zarr or numpy; cached under `name`) holding plane `k` along
         `axis`, and the index of the slab's first plane."""
