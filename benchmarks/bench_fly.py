@@ -31,13 +31,14 @@ DOMAIN = 201
 
 def harness(world_kind: str, pairs: int, seed: int) -> None:
     """The vehicle's process: fly the pairs and print one JSON line per flight."""
-    from mapkit.evaluation import sample_pairs
+    from mapkit.evaluation import LoopConfig, sample_pairs
     from mapkit.flight._recorded import load_network
     from mapkit.fly import DdsConfig, FlyConfig, Link, SimulatedVehicle
     from mapkit.sim import FreeSpaceGraph, make_world
 
     world = make_world(world_kind, seed=seed)
-    _, camera = load_network("pretrained")
+    net, camera = load_network("pretrained")
+    loop = LoopConfig()  # mapkit eval's judge: its goal and robot radii, its time limit at the model's pace
     vehicle = SimulatedVehicle(Link(DdsConfig(domain_id=DOMAIN)), world, camera, FlyConfig())
     if not vehicle.wait_for_node(60):
         raise SystemExit("no node on the loopback domain")
@@ -45,8 +46,9 @@ def harness(world_kind: str, pairs: int, seed: int) -> None:
     vehicle.hover(chosen[0].start, 3.0)  # the peer: the stream while no plan is made
     print(json.dumps({"idle_until": True}), flush=True)
     for pair in chosen:
-        limit = max(20.0, 4.0 * pair.distance / 2.0)  # mapkit eval's time limit at its 2 m/s cruise speed
-        flight = vehicle.fly(pair.start, pair.goal, time_limit=limit)
+        limit = max(loop.timeout_min, loop.timeout_factor * pair.distance / net.config.cruise_speed)
+        flight = vehicle.fly(pair.start, pair.goal, time_limit=limit, goal_radius=loop.goal_radius,
+                             robot_radius=loop.robot_radius)
         print(json.dumps({"pair": pair.index, "outcome": flight.outcome, "time_s": flight.time_s}), flush=True)
 
 
@@ -104,7 +106,7 @@ def timing(node: object) -> None:
               f"{np.median(plan):.1f} ms; ratio {np.median(lat) / np.median(plan):.2f}x)")
 
 
-def eval_peer(args: argparse.Namespace) -> float:
+def eval_peer(args: argparse.Namespace) -> dict[int, str]:
     """`mapkit eval --vehicle rotorpy --methods learned --stack full` on the same world, seed and pairs."""
     import tempfile
     from pathlib import Path
@@ -116,7 +118,7 @@ def eval_peer(args: argparse.Namespace) -> float:
     with tempfile.TemporaryDirectory() as tmp:
         evaluate("pretrained", Path(tmp) / "eval", config, progress=False)
         rows = json.loads((Path(tmp) / "eval" / "results.json").read_text())["episodes"]
-    return 100.0 * float(np.mean([r["outcome"] == "success" for r in rows]))
+    return {int(r["pair"]): r["outcome"] for r in rows}
 
 
 def main() -> None:
@@ -135,8 +137,11 @@ def main() -> None:
     timing(node)
     print(f"success over DDS: {success:.1f} % of {len(flights)}")
     if not args.no_eval:
-        peer = eval_peer(args)
-        print(f"mapkit eval --vehicle rotorpy, same pairs (peer): {peer:.1f} %; difference {success - peer:+.1f} points")
+        outcomes = eval_peer(args)
+        peer = 100.0 * float(np.mean([o == "success" for o in outcomes.values()]))
+        same = sum(outcomes.get(f["pair"]) == f["outcome"] for f in flights)
+        print(f"mapkit eval --vehicle rotorpy, same pairs (peer): {peer:.1f} %; difference {success - peer:+.1f} points; "
+              f"the same outcome on {same} of {len(flights)} pairs")
 
 
 if __name__ == "__main__":

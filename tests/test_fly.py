@@ -199,6 +199,9 @@ def test_bad_messages_are_logged_once_per_kind_and_never_stop_the_node(pilot, ca
     node = _node(pilot, domain)
     try:
         link = Link(DdsConfig(domain_id=domain))
+        setpoints: list = []
+        link.reader("/mapkit/setpoint", "trajectory_msgs/msg/MultiDOFJointTrajectory",
+                    lambda m, _: setpoints.append(m.points[0].transforms[0].translation), qos="reliable")
         odometry = link.writer("/odom", "nav_msgs/msg/Odometry", qos="sensor")
         depth = link.writer("/camera/depth/image_rect_raw", "sensor_msgs/msg/Image", qos="sensor")
         goal = link.writer("/goal_pose", "geometry_msgs/msg/PoseStamped")
@@ -221,8 +224,9 @@ def test_bad_messages_are_logged_once_per_kind_and_never_stop_the_node(pilot, ca
         logged = [r for r in caplog.records if "encoding rgb8" in r.getMessage() or "corrupted" in r.getMessage()]
         assert 1 <= len(logged) <= 2  # one line per kind per 5 s, not one per message
         assert node.status["goal"] == [5.0, 0.0, 1.0] and all(t.is_alive() for t in node._threads)
-        assert node.last_setpoint is not None  # it still streams (a hold: no frame has been flown)
-        np.testing.assert_allclose(node.last_setpoint.position, [0.0, 0.0, 1.0], atol=1e-9)
+        assert _wait(lambda: len(setpoints) > 5)  # it still streams: a hold, no frame has been flown
+        p = setpoints[-1]
+        np.testing.assert_allclose([p.x, p.y, p.z], [0.0, 0.0, 1.0], atol=1e-9)
     finally:
         node.close()
 

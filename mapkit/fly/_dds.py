@@ -161,6 +161,8 @@ class Link:
                 report(exc)
                 return
             for sample in samples:
+                if not hasattr(sample, "cdr"):  # an InvalidSample: a writer left (the instance's state changed)
+                    continue
                 received_ns = time.time_ns()
                 try:
                     raw = sample.serialize()

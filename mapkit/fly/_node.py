@@ -14,6 +14,7 @@ the reference, then holding. After a plan's end the reference holds its end at r
 from __future__ import annotations
 
 import logging
+import multiprocessing as mp
 import threading
 import time
 from collections import deque
@@ -28,6 +29,7 @@ from mapkit.fly import _inputs, _outputs
 from mapkit.fly._config import DEPTH_TYPES, ODOMETRY_TYPES, FlyConfig
 from mapkit.fly._dds import Link
 from mapkit.fly._inputs import DepthFrame, Odometry
+from mapkit.fly._stream import SetpointStream, StreamedReference
 from mapkit.geometry import interpolate_transform, matrix_from_quat_xyzw, quat_xyzw_from_matrix
 from mapkit.ingest._decode import tf_samples
 from mapkit.ingest._tf import NoPose, TfTree
@@ -90,14 +92,13 @@ class FlyNode:
         self._jump = False
         self._origin: np.ndarray | None = None  # the first odometry: the geofence's centre
         self._reference: Reference | None = None
-        self._sim_ns = 0
-        self._t0_ns: int | None = None  # the pilot's clock starts at the first time it is read
-        self.last_setpoint: Any = None
+        ctx = mp.get_context("spawn")
+        self._sim_ns = ctx.Value("q", 0, lock=False)  # shared with the stream process
+        self._t0_ns = ctx.Value("q", -1, lock=False)  # the pilot's clock starts at the first time it is read
+        self._stream: SetpointStream | None = None
         self._last_frame_ns: int | None = None
         self._state = {"state": "waiting", "reason": "no odometry yet"}
         self.frames_dropped = 0
-        self.setpoint_times: deque[float] = deque(maxlen=100_000)
-        """time.perf_counter() of each setpoint published (the stream's timing)."""
         self.steps: deque[tuple[float, float, PilotStep]] = deque(maxlen=1000)
         """(time.perf_counter() at the frame's arrival, and when its step returned; the step) per frame flown."""
 
@@ -118,25 +119,27 @@ class FlyNode:
             self.link.reader(t.clock, "rosgraph_msgs/msg/Clock", self._on_clock, qos="reliable", on_error=on_error)
         self._publish_path = self.link.writer(t.path, "nav_msgs/msg/Path")
         self._publish_status = self.link.writer(t.status, "std_msgs/msg/String")
-        self._publishers: list[Any] = []
         if not c.dry_run:
-            self._publish_setpoint = self.link.writer(t.setpoint, "trajectory_msgs/msg/MultiDOFJointTrajectory")
-            if c.px4:
-                self._publish_px4 = self.link.writer(t.px4_setpoint, "px4_msgs/msg/TrajectorySetpoint")
-                self._publish_offboard = self.link.writer(t.px4_offboard, "px4_msgs/msg/OffboardControlMode")
+            self._stream = SetpointStream(c, self._sim_ns, self._t0_ns)
         self._running = True
-        for target, name in ((self._plan_loop, "mapkit-fly-planner"), (self._stream_loop, "mapkit-fly-stream")):
-            thread = threading.Thread(target=target, name=name, daemon=True)
-            thread.start()
-            self._threads.append(thread)
+        thread = threading.Thread(target=self._plan_loop, name="mapkit-fly-planner", daemon=True)
+        thread.start()
+        self._threads.append(thread)
 
     def close(self) -> None:
-        """Stop the setpoint stream and the planner (PX4 leaves offboard on its own failsafe)."""
+        """Stop the planner and the setpoint stream (PX4 leaves offboard on its own failsafe)."""
         self._running = False
         self._wake.set()
         for thread in self._threads:
             thread.join(timeout=2.0)
         self._threads.clear()
+        if self._stream is not None:
+            self._stream.close()
+
+    @property
+    def setpoint_times(self) -> list[float]:
+        """time.perf_counter() of each setpoint the stream published (known once it is closed)."""
+        return [] if self._stream is None else self._stream.times
 
     @property
     def status(self) -> dict[str, Any]:
@@ -158,7 +161,7 @@ class FlyNode:
 
     def now_ns(self) -> int:
         """This node's clock: the machine's (ROS time), or the simulator's /clock with ``sim_time``."""
-        return self._sim_ns if self.config.sim_time else time.time_ns()
+        return int(self._sim_ns.value) if self.config.sim_time else time.time_ns()
 
     def set_goal(self, goal: np.ndarray) -> str:
         """Fly to `goal` (world frame) if it is inside the geofence; returns why not ('' when taken)."""
@@ -176,7 +179,7 @@ class FlyNode:
 
     # -- inputs (Cyclone's thread) -----------------------------------------------------------------------------
     def _on_clock(self, msg: Any, received_ns: int) -> None:
-        self._sim_ns = max(self._sim_ns, int(msg.clock.sec) * 1_000_000_000 + int(msg.clock.nanosec))
+        self._sim_ns.value = max(self._sim_ns.value, int(msg.clock.sec) * 1_000_000_000 + int(msg.clock.nanosec))
 
     def _on_error(self, topic: str, exc: Exception) -> None:
         self.log.warn(f"bad message on {topic}", f"{topic}: {exc}")
@@ -265,9 +268,9 @@ class FlyNode:
     # -- the planner ------------------------------------------------------------------------------------------
     def _seconds(self, stamp_ns: int) -> float:
         """The pilot's clock: seconds since the node was made (small numbers keep polynomial times exact)."""
-        if self._t0_ns is None:
-            self._t0_ns = stamp_ns
-        return (stamp_ns - self._t0_ns) * 1e-9
+        if self._t0_ns.value < 0:
+            self._t0_ns.value = stamp_ns
+        return (stamp_ns - self._t0_ns.value) * 1e-9
 
     def _plan_loop(self) -> None:
         last_status = 0.0
@@ -330,6 +333,13 @@ class FlyNode:
                 self.pilot.config.resync_distance
             if far:
                 self._reference = Reference.holding(odo.position, odo.yaw, now)
+        if far:
+            self._send(self._reference, now)
+
+    def _send(self, reference: Reference | None, now: float) -> None:
+        """Hand the stream process the reference to fly from now on."""
+        if self._stream is not None and reference is not None:
+            self._stream.send(StreamedReference.of(reference, now))
 
     def _adopt(self, step: PilotStep, now: float, frame: _Pending | None) -> None:
         with self._lock:
@@ -339,6 +349,7 @@ class FlyNode:
         if frame is not None:
             self.steps.append((frame.received_perf, time.perf_counter(), step))
         if changed:
+            self._send(step.reference, now)
             self._publish_path(_outputs.path(step.reference, now, self.now_ns(), self.config.frames.world))
 
     def _frame_inputs(self, pending: _Pending) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -390,35 +401,3 @@ class FlyNode:
             self.log.warn("tf", f"no transform from {body!r} to the depth frame {frame.frame_id!r} ({exc}); "
                           "publish the camera mount on /tf_static")
             return None
-
-    # -- the setpoint stream -------------------------------------------------------------------------------
-    def _stream_loop(self) -> None:
-        period = 1.0 / self.config.rate
-        deadline = time.perf_counter()
-        while self._running:
-            deadline += period
-            delay = deadline - time.perf_counter()
-            if delay > 0:
-                time.sleep(delay)
-            elif delay < -period:  # more than a period late (a suspended process): start the beat again
-                deadline = time.perf_counter()
-            try:
-                self._publish_tick()
-            except Exception:  # noqa: BLE001 - a failed publish must not end the stream
-                self.log.warn("publish", "a setpoint could not be published (see the DDS log)")
-
-    def _publish_tick(self) -> None:
-        with self._lock:
-            reference = self._reference
-        if reference is None or self.config.dry_run:
-            return
-        now_ns = self.now_ns()
-        sp = reference.sample(self._seconds(now_ns))
-        self.setpoint_times.append(time.perf_counter())
-        self._publish_setpoint(_outputs.multidof_setpoint(sp, now_ns, self.config.frames.world,
-                                                          self.config.frames.body))
-        if self.config.px4:
-            self._publish_offboard(_outputs.px4_offboard(now_ns))
-            self._publish_px4(_outputs.px4_setpoint(sp, now_ns))
-        with self._lock:
-            self.last_setpoint = sp

@@ -61,6 +61,8 @@ def fly(model: str | Path, config: FlyConfig, *, goal: np.ndarray | None = None,
     started = time.monotonic()
     try:
         node.start()
+        if recording is not None:  # the stream process publishes the setpoints: record them as they arrive
+            _listen_to_setpoints(link, config)
         log.info("flying %s on domain %d over %s%s", model, config.link.domain_id, config.link.interface,
                  " (dry run: no setpoints)" if config.dry_run else "")
         if goal is not None:
@@ -75,6 +77,16 @@ def fly(model: str | Path, config: FlyConfig, *, goal: np.ndarray | None = None,
     return FlySummary(time.monotonic() - started, len(node.setpoint_times), len(node.steps), node.frames_dropped,
                       st["state"], st["reason"], st["problems"], config.record,
                       0 if recording is None else recording.messages)
+
+
+def _listen_to_setpoints(link: Link, config: FlyConfig) -> None:
+    t = config.topics
+    topics = [(t.setpoint, "trajectory_msgs/msg/MultiDOFJointTrajectory")]
+    if config.px4:
+        topics += [(t.px4_setpoint, "px4_msgs/msg/TrajectorySetpoint"),
+                   (t.px4_offboard, "px4_msgs/msg/OffboardControlMode")]
+    for topic, msgtype in topics:
+        link.reader(topic, msgtype, lambda msg, received_ns: None, qos="reliable")
 
 
 def _goal_when_seen(node: FlyNode, goal: np.ndarray, duration: float | None) -> None:
