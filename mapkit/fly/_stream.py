@@ -9,7 +9,9 @@ newest one at the node's clock and publishes it.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
+import os
 import signal
 import time
 from dataclasses import dataclass
@@ -20,6 +22,8 @@ import numpy as np
 from mapkit.flight import Pieces, Reference, Setpoint
 from mapkit.fly._config import FlyConfig
 
+STREAM_NICE = -10
+"""Niceness the stream process asks for (refused without the privilege; it then runs at the default)."""
 YAW_AHEAD = 10.0
 """Seconds of the yaw profile sent with a reference beyond its end (then the heading holds)."""
 
@@ -74,12 +78,20 @@ class SetpointStream:
             self._process.terminate()
 
 
+def _raise_priority() -> None:
+    """Ahead of the planner and the sensors for the CPU, where the system allows it (root, or
+    CAP_SYS_NICE): a setpoint late by more than its 2 ms is worse than a plan late by as much."""
+    with contextlib.suppress(PermissionError):
+        os.nice(STREAM_NICE)
+
+
 def _run(conn: Any, config: FlyConfig, sim_ns: Any, t0_ns: Any) -> None:
     """The stream process: publish the newest reference at ``config.rate`` until told to stop."""
     from mapkit.fly import _outputs
     from mapkit.fly._dds import Link
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the node, which stops this process
+    _raise_priority()
     link = Link(config.link)
     t, frames = config.topics, config.frames
     multidof = link.writer(t.setpoint, "trajectory_msgs/msg/MultiDOFJointTrajectory")
