@@ -4,6 +4,7 @@ played back as live topics."""
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -73,10 +74,19 @@ def fly_cmd(model: str, goal: tuple[float, float, float] | None, odometry_type: 
     log_to_stderr()
     try:
         summary = fly(model, config, goal=None if goal is None else np.array(goal), duration=duration)
-    except KeyboardInterrupt:  # fly() has closed the stream and the recording on its way out
+    except KeyboardInterrupt:  # fly() has stopped the stream and closed the recording on its way out
         click.echo("interrupted: setpoint stream stopped", err=True)
-        raise SystemExit(130) from None
+        _exit(130)
     click.echo(summary.text())
+    _exit(0)
+
+
+def _exit(code: int) -> None:
+    """Leave without the interpreter's teardown: Cyclone's threads may still call into Python, and
+    tearing down under them can hang (everything the node owns is stopped and written by now)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 @main.command("replay")

@@ -41,7 +41,8 @@ def test_mapkit_help_lists_the_commands_in_pipeline_order():
     r = CliRunner().invoke(main, ["--help"], prog_name="mapkit")
     listed = [line.split()[0] for line in r.output.split("Commands:\n")[1].splitlines() if line.startswith("  ")]
     assert listed == ["info", "ingest", "fuse", "fuse-world", "esdf", "slice", "export", "batch", "simulate", "dataset",
-                      "train", "eval", "plan", "view", "export-foxglove", "export-rerun", "copy-store", "config", "lab"]
+                      "train", "eval", "plan", "fly", "replay", "view", "export-foxglove", "export-rerun", "copy-store",
+                      "config", "lab"]
     lab = CliRunner().invoke(main, ["lab", "--help"], prog_name="mapkit").output
     assert "the shipped recipe runs them for you" in lab and "mapkit train --recipe" in lab
     assert [line.split()[0] for line in lab.split("Commands:\n")[1].splitlines()] == ["tune-timing", "tune-judge"]

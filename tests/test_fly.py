@@ -292,6 +292,17 @@ def _start_node(domain: int, *extra: str) -> subprocess.Popen[str]:
     return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
+def _interrupt(node: subprocess.Popen[str]) -> str:
+    """Ctrl-C the node; its output. A node that does not stop within 60 s is killed, and that fails."""
+    node.send_signal(signal.SIGINT)
+    try:
+        return node.communicate(timeout=60)[0]
+    except subprocess.TimeoutExpired:
+        node.kill()
+        out = node.communicate()[0]
+        raise AssertionError(f"mapkit fly did not stop on Ctrl-C within 60 s:\n{out[-3000:]}") from None
+
+
 def _vehicle(domain: int, odometry: str = "nav_msgs"):
     from mapkit.flight._recorded import load_network
     from mapkit.fly import SimulatedVehicle, Topics
@@ -317,8 +328,7 @@ def test_the_node_flies_a_simulated_vehicle_around_a_pillar_and_records_it(tmp_p
         assert flight.min_distance > 0.3 and flight.setpoints > 100
         assert max(abs(flight.path[:, 3] - 1.5)) < 1.0 < max(abs(flight.path[:, 2]))  # around the pillar
     finally:
-        node.send_signal(signal.SIGINT)
-        out, _ = node.communicate(timeout=60)
+        out = _interrupt(node)
     assert node.returncode == 130, out
     from mapkit.ingest import inspect_recordings
 
@@ -338,8 +348,7 @@ def test_an_input_lost_mid_flight_brakes_to_rest_and_holds(lost: str) -> None:
         vehicle.fault, vehicle.fault_after = lost, 1.5
         flight = vehicle.fly(np.array([0.0, 0.0, 1.5]), np.array([8.0, 0.0, 1.5]), time_limit=6.0)
     finally:
-        node.send_signal(signal.SIGINT)
-        node.communicate(timeout=60)
+        _interrupt(node)
     assert flight.outcome == "timeout"  # it stopped short of the pillar and the goal
     t, x = flight.path[:, 0], flight.path[:, 1:]
     speed = np.linalg.norm(np.diff(x, axis=0), axis=1) / np.diff(t)

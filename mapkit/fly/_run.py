@@ -69,10 +69,11 @@ def fly(model: str | Path, config: FlyConfig, *, goal: np.ndarray | None = None,
             _goal_when_seen(node, goal, duration)
         _wait(node, started, duration, status_lines)
     finally:
-        node.close()
-        link.close()
+        node.close()  # the setpoint stream stops first
         if recording is not None:
             recording.close()
+        # The participant is left to the process's exit: deleting it while one of Cyclone's listener
+        # threads waits to call into Python can deadlock (the node is stopped; nothing more is sent).
     st = node.status
     return FlySummary(time.monotonic() - started, len(node.setpoint_times), len(node.steps), node.frames_dropped,
                       st["state"], st["reason"], st["problems"], config.record,
@@ -106,8 +107,8 @@ def _wait(node: FlyNode, started: float, duration: float | None, status_lines: b
         if status_lines and time.monotonic() - last >= STATUS_EVERY:
             last = time.monotonic()
             st = node.status
-            log.info("%s: %s (odometry age %s s, depth age %s s, %d setpoints)", st["state"], st["reason"],
-                     st["odometry_age"], st["depth_age"], len(node.setpoint_times))
+            log.info("%s: %s (odometry age %s s, depth age %s s)", st["state"], st["reason"], st["odometry_age"],
+                     st["depth_age"])
 
 
 def log_to_stderr(level: int = logging.INFO) -> None:
@@ -116,3 +117,4 @@ def log_to_stderr(level: int = logging.INFO) -> None:
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s", "%H:%M:%S"))
     log.addHandler(handler)
     log.setLevel(level)
+    log.propagate = False  # one line per record, whatever the root logger does
