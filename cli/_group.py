@@ -9,6 +9,7 @@ import errno
 import functools
 import logging
 import math
+import signal
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -198,6 +199,9 @@ class _Group(OrderedGroup):
 
     def main(self, *args: Any, **kwargs: Any) -> Any:
         kwargs["standalone_mode"] = False
+        # Ctrl-C stops every command, also when the parent started it with SIGINT ignored (a background
+        # job of a script, some test runners): Python keeps an inherited "ignore" otherwise.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         try:
             return super().main(*args, **kwargs)
         except click.UsageError as exc:

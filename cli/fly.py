@@ -4,6 +4,7 @@ played back as live topics."""
 from __future__ import annotations
 
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import Any
@@ -72,6 +73,7 @@ def fly_cmd(model: str, goal: tuple[float, float, float] | None, odometry_type: 
             "rate": rate, "dry_run": dry_run, "sim_time": sim_time, "record": record})
         config.validate()
     log_to_stderr()
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # launch files and systemd stop with SIGTERM
     try:
         summary = fly(model, config, goal=None if goal is None else np.array(goal), duration=duration)
     except KeyboardInterrupt:  # fly() has stopped the stream and closed the recording on its way out
