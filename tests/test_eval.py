@@ -15,7 +15,7 @@ import torch
 from click.testing import CliRunner
 
 from mapkit.cli.main import main
-from mapkit.evaluation import EvalConfig, LoopConfig, StraightMethod, evaluate, load_paths, run_episode
+from mapkit.evaluation import EvalConfig, LoopConfig, StraightMethod, evaluate, judging_loop, load_paths, run_episode
 from mapkit.flight import MethodPlan, Observation, Pieces, PilotConfig, hold, level_pose, pieces_from_body
 from mapkit.planner import PlannerConfig, PlannerNet, planner_preset
 from mapkit.sim import Box, World
@@ -973,6 +973,13 @@ def test_time_limit_follows_the_pace_the_flights_are_asked_for(tiny_run: Path, t
     assert docs["model"]["config"]["loop"]["cruise_speed"] == planner_preset("cpu").cruise_speed
     assert docs["slow"]["config"]["loop"]["cruise_speed"] == 0.8
     assert "4 × distance / 0.8 m/s" in (tmp_path / "slow" / "report.md").read_text()
+    # the same judge for flights made elsewhere (over DDS): the limit eval wrote, from the loop it returns
+    for name, speed in (("model", None), ("slow", 0.8)):
+        loop = judging_loop(tiny_run, EvalConfig(execution=_pace(cruise=speed), loop=LoopConfig(timeout_min=0.0)))
+        episode = docs[name]["episodes"][0]
+        assert loop.cruise_speed == docs[name]["config"]["loop"]["cruise_speed"]
+        assert loop.time_limit(episode["distance"]) == pytest.approx(4.0 * episode["distance"] / loop.cruise_speed)
+    assert LoopConfig().time_limit(1.0) == 20.0  # never under timeout_min
 
 
 # ------------------------------------------------------------------------------ keeping the last plan's candidate

@@ -124,6 +124,36 @@ def test_setpoint_through_px4_and_back() -> None:
     assert (back.yaw, back.yaw_rate) == pytest.approx((sp.yaw, sp.yaw_rate), abs=1e-6)
 
 
+def test_the_stream_flies_the_old_reference_until_the_new_one_starts() -> None:
+    """A plan made for a time ahead (``plan_lead``) and handed over early: before its start the stream
+    samples what it replaces, after it the new one, with no jump at the switch."""
+    from mapkit.flight import Reference
+    from mapkit.flight._pilot import brake
+    from mapkit.flight._reference import YawFollower
+    from mapkit.fly._stream import StreamedReference
+
+    moving = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])  # 1 m/s east
+    old = Reference(brake(moving, 0.0, 3.0), YawFollower(lambda t: np.full(len(t), 1.0), 0.0, 0.0, 0.0, 3.0, 12.0, 9.0))
+    start = 0.3
+    new = Reference(brake(old.state(start), start, 1.0),  # a gentler brake from where the old one is then
+                    YawFollower(lambda t: np.full(len(t), -1.0), start, float(old.yaw(start)[0]),
+                                float(old.yaw_rate(start)[0]), 3.0, 12.0, 9.0))
+    streamed = StreamedReference.of(new, start)
+    streamed.previous = StreamedReference.of(old, 0.0)
+    for t in (0.1, 0.25, 0.299):
+        before, want = streamed.sample(t), old.sample(t)
+        np.testing.assert_allclose(before.position, want.position, atol=1e-9)
+        assert before.yaw == pytest.approx(want.yaw, abs=1e-3)
+    a, b = streamed.sample(start - 1e-6), streamed.sample(start + 1e-6)
+    np.testing.assert_allclose(a.position, b.position, atol=1e-5)
+    np.testing.assert_allclose(a.velocity, b.velocity, atol=1e-4)
+    assert a.yaw == pytest.approx(b.yaw, abs=1e-3) and a.yaw_rate == pytest.approx(b.yaw_rate, abs=0.05)
+    np.testing.assert_allclose(streamed.sample(1.0).position, new.sample(1.0).position, atol=1e-9)
+    assert streamed.sample(1.0).yaw == pytest.approx(float(new.yaw(1.0)[0]), abs=1e-3)
+    with pytest.raises(FlyError, match=r"plan_lead 0\.5 s"):
+        FlyConfig(plan_lead=0.5).validate()
+
+
 def test_px4_odometry_to_enu() -> None:
     # 1 m north, 2 m east, 3 m up, nose east (NED yaw 90°), flying forward at 1 m/s in the body frame
     q = [math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]
@@ -164,6 +194,26 @@ def test_messages_cross_between_processes_on_loopback(tmp_path: Path) -> None:
             "time.sleep(0.5)\n")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
     assert got == ["hello 0", "hello 1", "hello 2"]
+
+
+def test_a_closed_link_leaves_its_peers_stops_its_callbacks_and_refuses_to_publish() -> None:
+    domain = _domain()
+    got: list[str] = []
+    sender, receiver = _kept(Link(DdsConfig(domain_id=domain))), Link(DdsConfig(domain_id=domain))
+    receiver.reader("/count", "std_msgs/msg/String", lambda m, _: got.append(m.data), qos="reliable")
+    send, send_back = sender.writer("/count", "std_msgs/msg/String"), receiver.writer("/back", "std_msgs/msg/String")
+    assert _wait(lambda: sender.matched("/count") == 1)
+    send(message("std_msgs/msg/String", data="before"))
+    assert _wait(lambda: got == ["before"], 5.0)
+    receiver.close()
+    assert _wait(lambda: sender.matched("/count") == 0, 5.0)  # the remote end saw it leave, without the GC
+    send(message("std_msgs/msg/String", data="after"))
+    time.sleep(0.3)
+    assert got == ["before"]
+    with pytest.raises(FlyError, match="link is closed; open a new Link to publish on /back"):
+        send_back(message("std_msgs/msg/String", data="x"))
+    with pytest.raises(FlyError, match="link is closed"):
+        receiver.writer("/other", "std_msgs/msg/String")
 
 
 # -- the node in this process, a publisher beside it -----------------------------------------------------------
@@ -296,12 +346,12 @@ sitl = pytest.mark.skipif(not os.environ.get(ISOLATED), reason="run by test_soft
 
 @pytest.mark.slow
 def test_software_in_the_loop_in_a_fresh_interpreter() -> None:
-    env = {**os.environ, ISOLATED: "1"}
+    env = {**os.environ, ISOLATED: "1", "PYTHONFAULTHANDLER": "1"}  # a crash prints where it happened
     env.pop("PYTEST_XDIST_WORKER", None)
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist",
                            str(Path(__file__)), "-k", "pillar or lost"], env=env, capture_output=True, text=True,
                           timeout=900)
-    assert proc.returncode == 0 and "3 passed" in proc.stdout, proc.stdout[-4000:]
+    assert proc.returncode == 0 and "3 passed" in proc.stdout, proc.stdout[-3000:] + proc.stderr[-3000:]
 
 
 def _pillar_world():

@@ -44,6 +44,7 @@ from mapkit.evaluation._run import (
     EvalConfig,
     EvalResult,
     evaluate,
+    judging_loop,
     summarise,
     untrained_copy,
 )
@@ -59,7 +60,7 @@ from mapkit.evaluation._stack import (
 __all__ = [
     "METHODS", "WORLD_ORDER", "EVAL_FORMAT", "OUTCOMES",
     "EpisodeRecord", "Outcome",
-    "CameraSpec", "EvalConfig", "EvalError", "EvalResult", "evaluate", "summarise",
+    "CameraSpec", "EvalConfig", "EvalError", "EvalResult", "evaluate", "judging_loop", "summarise",
     "Episode", "Faults", "LoopConfig", "run_episode",
     "OracleMethod", "StraightMethod", "make_methods", "PLANS_FILE",
     "Pair", "sample_pairs", "load_paths",

@@ -72,6 +72,10 @@ class LoopConfig:
     faults: Faults = field(default_factory=Faults)
     """Faults injected into the frames (none by default)."""
 
+    def time_limit(self, distance: float) -> float:
+        """Seconds a flight over a straight ``distance`` (metres) gets before it is a timeout."""
+        return max(self.timeout_min, self.timeout_factor * float(distance) / self.cruise_speed)
+
 
 @dataclass
 class Episode:
@@ -217,7 +221,7 @@ def run_episode(
     dt = 1.0 / config.control_rate
     steps = int(round(interval / dt))
     tracker = _Tracker(config.tracking_bandwidth, dt)
-    t_limit = max(config.timeout_min, config.timeout_factor * float(np.linalg.norm(goal - start)) / config.cruise_speed)
+    t_limit = config.time_limit(float(np.linalg.norm(goal - start)))
     f = _take_off(world, start, goal, config, vehicle)
     mount = camera or pilot.camera
     T_body_camera = None if mount is None else mount.T_body_camera

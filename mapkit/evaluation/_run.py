@@ -584,6 +584,13 @@ def _model_context(model: str | os.PathLike[str] | None, config: EvalConfig) -> 
     return context
 
 
+def judging_loop(model: str | os.PathLike[str], config: EvalConfig | None = None) -> LoopConfig:
+    """The loop settings `mapkit eval` judges ``model``'s flights by under ``config`` (default: the
+    command's defaults): the model's robot radius, and the time limit at the pace the flights are asked
+    for. For flights judged elsewhere (over DDS, on another simulator) to be compared with eval's."""
+    return _model_context(model, config or EvalConfig()).loop
+
+
 def _refuse_training_seed(config: EvalConfig, trained_worlds: set[tuple[str, int]]) -> None:
     """Raise :class:`EvalError` when ``config.seed`` makes a world the model trained on."""
     clash = [k for k in config.worlds if (k, config.seed) in trained_worlds]

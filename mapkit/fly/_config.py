@@ -84,6 +84,12 @@ class FlyConfig:
     link: DdsConfig = field(default_factory=DdsConfig)
     pilot: PilotConfig = field(default_factory=PilotConfig)
     """The pilot's options; its ``frame_timeout`` is how long depth may stop before it brakes."""
+    plan_lead: float = 0.1
+    """Seconds ahead of the node's clock that each plan is made for. Planning and handing the plan to the
+    setpoint stream take 30–110 ms on 2 cores; the stream flies the previous reference until then, so the
+    setpoints never jump (a jump in yaw makes a small quadrotor climb). Plans that arrive later are
+    counted in the status's ``late_plans``: raise it if they grow. (`mapkit eval` plans in simulated time
+    that stands still while it plans: it needs no lead.)"""
     rate: float = 50.0
     """Hz of the setpoint stream (PX4 needs at least 2 Hz before and during offboard)."""
     px4: bool = True
@@ -113,5 +119,8 @@ class FlyConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise FlyError(f"{name} must be a finite number > 0, got {value}")
+        if not 0.0 <= self.plan_lead < self.pilot.replan_interval:
+            raise FlyError(f"plan_lead {self.plan_lead} s must be in [0, the pilot's replan_interval "
+                           f"{self.pilot.replan_interval} s)")
         if self.rate < 2.0:
             raise FlyError(f"rate {self.rate} Hz is below the 2 Hz PX4 requires in offboard; use 20–100 Hz")

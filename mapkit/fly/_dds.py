@@ -8,8 +8,10 @@ nothing is sent to any other address. Another interface is used only when named.
 
 from __future__ import annotations
 
+import atexit
 import threading
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -79,6 +81,7 @@ def _qos(name: str) -> Any:
 
 _DOMAINS: dict[int, tuple[str, Any]] = {}
 _DOMAINS_LOCK = threading.Lock()
+_OPEN_LINKS: weakref.WeakSet[Link] = weakref.WeakSet()
 
 
 def _domain(config: DdsConfig) -> None:
@@ -112,11 +115,14 @@ class Link:
         self._participant: Any = DomainParticipant(self.config.domain_id)
         self._topics: dict[str, Any] = {}
         self._entities: list[Any] = []
+        _OPEN_LINKS.add(self)
 
     def _topic(self, name: str, msgtype: str) -> Any:
         from cyclonedds.topic import Topic
 
         key = dds_topic(name)
+        if self._participant is None:
+            raise FlyError(f"the link is closed; open a new Link to use {name}")
         if key not in self._topics:
             self._topics[key] = Topic(self._participant, key, dds_type(msgtype))
         return self._topics[key]
@@ -135,6 +141,8 @@ class Link:
         kind = dds_type(msgtype)
 
         def write(raw: bytes) -> None:
+            if self._participant is None:
+                raise FlyError(f"the link is closed; open a new Link to publish on {topic}")
             if self.tap is not None:
                 self.tap(topic, msgtype, raw, time.time_ns())
             w.write(kind.deserialize(raw))
@@ -186,7 +194,25 @@ class Link:
         )
 
     def close(self) -> None:
-        """Deletes the participant and everything it made (remote ends see them leave)."""
+        """Deletes the participant and everything it made (remote ends see them leave). Its readers'
+        callbacks are not called after this returns."""
+        participant, self._participant = self._participant, None
         self._entities.clear()
         self._topics.clear()
-        self._participant = None
+        if participant is not None:
+            # cyclonedds-python deletes entities only from __del__; called now, the C side (readers,
+            # writers, topics, their listener threads) is gone before this returns, not whenever the GC runs
+            participant.__del__()
+
+
+@atexit.register
+def _close_all() -> None:
+    """Deletes every open participant and domain before the interpreter finalizes: a listener thread
+    calling into a finalizing interpreter crashes the process at exit (seen as SIGSEGV)."""
+    for link in list(_OPEN_LINKS):
+        link.close()
+    with _DOMAINS_LOCK:
+        domains = [domain for _, domain in _DOMAINS.values()]
+        _DOMAINS.clear()
+    for domain in domains:
+        domain.__del__()

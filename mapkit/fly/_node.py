@@ -99,6 +99,9 @@ class FlyNode:
         self._last_frame_ns: int | None = None
         self._state = {"state": "waiting", "reason": "no odometry yet"}
         self.frames_dropped = 0
+        self.late_plans = 0
+        """References handed to the stream after the time they were made for (the setpoints jumped there):
+        raise ``plan_lead`` when this grows."""
         self.steps: deque[tuple[float, float, PilotStep]] = deque(maxlen=1000)
         """(time.perf_counter() at the frame's arrival, and when its step returned; the step) per frame flown."""
 
@@ -142,6 +145,11 @@ class FlyNode:
         return [] if self._stream is None else self._stream.times
 
     @property
+    def stream_priority(self) -> str:
+        """What the setpoint stream ran at: ``real time``, ``nice`` or ``default`` (known once it is closed)."""
+        return "" if self._stream is None else self._stream.priority
+
+    @property
     def status(self) -> dict[str, Any]:
         """What the node is doing, as published on the status topic."""
         with self._lock:
@@ -152,6 +160,7 @@ class FlyNode:
             out["depth_age"] = None if self._last_frame_ns is None else round((now - self._last_frame_ns) * 1e-9, 3)
         out["dry_run"] = self.config.dry_run
         out["frames_dropped"] = self.frames_dropped
+        out["late_plans"] = self.late_plans
         out["problems"] = dict(self.log.counts)
         return out
 
@@ -302,6 +311,7 @@ class FlyNode:
         if odo is None:
             return self._set_state("waiting", f"no odometry yet on {c.topics.odometry_topic}")
         now = self._seconds(now_ns)
+        plan_t = now + c.plan_lead  # the pilot's clock: the plan takes over once the stream has it
         if self._jump:
             self._jump = False
             self.pilot.reset()
@@ -314,15 +324,16 @@ class FlyNode:
         if age > c.odometry_timeout:
             if self.pilot.reference is None:
                 return self._set_state("waiting", f"no odometry for {age:.2f} s")
-            return self._adopt(self.pilot.stop(now, f"no odometry for {age:.2f} s (odometry_timeout "
-                                                    f"{c.odometry_timeout} s): braking, then holding"), now, None)
+            return self._adopt(self.pilot.stop(plan_t, f"no odometry for {age:.2f} s (odometry_timeout "
+                                                       f"{c.odometry_timeout} s): braking, then holding"), plan_t, None)
         state = VehicleState(position=odo.position, velocity=odo.velocity, yaw=odo.yaw)
         inputs = None if pending is None else self._frame_inputs(pending)
         if inputs is None:
-            return self._adopt(self.pilot.step(now, state, goal), now, None)
+            return self._adopt(self.pilot.step(plan_t, state, goal), plan_t, None)
         depth, T_world_body, T_body_camera = inputs
-        step = self.pilot.step(now, state, goal, depth, K=K, T_world_body=T_world_body, T_body_camera=T_body_camera)
-        self._adopt(step, now, pending)
+        step = self.pilot.step(plan_t, state, goal, depth, K=K, T_world_body=T_world_body,
+                               T_body_camera=T_body_camera)
+        self._adopt(step, plan_t, pending)
 
     def _hold_here(self, odo: Odometry, now: float) -> None:
         """Before a goal: hold where the vehicle is (again, when it is moved farther than the pilot's
@@ -336,12 +347,13 @@ class FlyNode:
         if far:
             self._send(self._reference, now)
 
-    def _send(self, reference: Reference | None, now: float) -> None:
-        """Hand the stream process the reference to fly from now on."""
+    def _send(self, reference: Reference | None, start: float) -> None:
+        """Hand the stream process the reference to fly from ``start`` on (the node's clock)."""
         if self._stream is not None and reference is not None:
-            self._stream.send(StreamedReference.of(reference, now))
+            self._stream.send(StreamedReference.of(reference, start))
 
-    def _adopt(self, step: PilotStep, now: float, frame: _Pending | None) -> None:
+    def _adopt(self, step: PilotStep, start: float, frame: _Pending | None) -> None:
+        """Fly the pilot's answer, made for ``start`` (the node's clock plus ``plan_lead``)."""
         with self._lock:
             changed = step.reference is not self._reference
             self._reference = step.reference
@@ -349,8 +361,10 @@ class FlyNode:
         if frame is not None:
             self.steps.append((frame.received_perf, time.perf_counter(), step))
         if changed:
-            self._send(step.reference, now)
-            self._publish_path(_outputs.path(step.reference, now, self.now_ns(), self.config.frames.world))
+            self._send(step.reference, start)
+            if self._seconds(self.now_ns()) > start:
+                self.late_plans += 1
+            self._publish_path(_outputs.path(step.reference, start, self.now_ns(), self.config.frames.world))
 
     def _frame_inputs(self, pending: _Pending) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(depth, T_world_body, T_body_camera) of a depth message; None (logged) when it cannot be flown."""

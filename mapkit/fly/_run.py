@@ -28,6 +28,8 @@ class FlySummary:
     setpoints: int
     plans: int
     frames_dropped: int
+    late_plans: int
+    """Plans that reached the setpoint stream after their takeover time (see FlyNode.late_plans)."""
     last_state: str
     last_reason: str
     problems: dict[str, int]
@@ -37,7 +39,8 @@ class FlySummary:
     def text(self) -> str:
         problems = ", ".join(f"{k}: {n}" for k, n in sorted(self.problems.items())) or "none"
         out = (f"flew {self.seconds:.0f} s: {self.setpoints} setpoints, {self.plans} frames planned from, "
-               f"{self.frames_dropped} frames skipped while planning; last state {self.last_state} "
+               f"{self.frames_dropped} frames skipped while planning, {self.late_plans} plans late for their "
+               f"takeover; last state {self.last_state} "
                f"({self.last_reason}); problems: {problems}")
         if self.recording is not None:
             out += f"\nwrote {self.recording} ({self.recorded_messages} messages)"
@@ -72,11 +75,11 @@ def fly(model: str | Path, config: FlyConfig, *, goal: np.ndarray | None = None,
         node.close()  # the setpoint stream stops first
         if recording is not None:
             recording.close()
-        # The participant is left to the process's exit: deleting it while one of Cyclone's listener
-        # threads waits to call into Python can deadlock (the node is stopped; nothing more is sent).
+        # The participant is left to the process's exit (the link's atexit hook deletes it): the
+        # caller may still be reading on it, and the node is stopped, so nothing more is sent.
     st = node.status
     return FlySummary(time.monotonic() - started, len(node.setpoint_times), len(node.steps), node.frames_dropped,
-                      st["state"], st["reason"], st["problems"], config.record,
+                      node.late_plans, st["state"], st["reason"], st["problems"], config.record,
                       0 if recording is None else recording.messages)
 
 
