@@ -1,6 +1,6 @@
 """`mapkit fly` over DDS on loopback: setpoint timing, latency, and software-in-the-loop success
 (goals: ≥ 99 % of setpoint periods within 2 ms of nominal while the planner runs; median latency from a
-depth message to the first setpoint of its plan ≤ 40 ms; success within 5 points of `mapkit eval
+depth message to the first setpoint flown from its plan ≤ 40 ms; success within 5 points of `mapkit eval
 --vehicle rotorpy` on the same pairs).
 
     .venv/bin/python benchmarks/bench_fly.py [--world office|garage|forest|all] [--pairs 3] [--seed 10012]
@@ -100,18 +100,18 @@ def timing(node: object) -> None:
               f"p99 {1e3 * np.quantile(err, 0.99):.2f} ms")
     times_sorted = np.sort(times)
     lat = []
-    for received, returned, step in node.steps:
+    for received, takeover, step in node.steps:
         if step.taken:
-            i = np.searchsorted(times_sorted, returned)
+            i = np.searchsorted(times_sorted, takeover)
             if i < len(times_sorted):
                 lat.append(1e3 * (times_sorted[i] - received))
     if lat:
         plan = [s.latency_ms for _, _, s in node.steps if s.taken]
-        print(f"depth message → first setpoint of its plan: median {np.median(lat):.1f} ms, p95 "
+        print(f"depth message → the first setpoint flown from its plan: median {np.median(lat):.1f} ms, p95 "
               f"{np.quantile(lat, 0.95):.1f} ms over {len(lat)} plans (the pilot's step inside: median "
-              f"{np.median(plan):.1f} ms; ratio {np.median(lat) / np.median(plan):.2f}x); each flown from "
-              f"{1e3 * node.config.plan_lead:.0f} ms after the time it was made at (plan_lead), {node.late_plans} "
-              "arrived later")
+              f"{np.median(plan):.1f} ms; ratio {np.median(lat) / np.median(plan):.2f}x); plans made for "
+              f"{1e3 * node.plan_lead:.0f} ms ahead at the end (plan_lead, measured), {node.late_plans} arrived "
+              "later than that")
 
 
 def eval_peer(args: argparse.Namespace, worlds: tuple[str, ...]) -> dict[tuple[str, int], str]:

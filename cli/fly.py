@@ -45,6 +45,8 @@ def _domain_id(value: int | None) -> int | None:
 @field_option("--interface", spec=FLY, key="link.interface", metavar="NAME",
               help="Network interface (lo: this machine only; e.g. eth0 to reach the vehicle's computer).")
 @click.option("--domain-id", type=click.IntRange(0, 232), default=None, help="ROS domain id (default: ROS_DOMAIN_ID, else 0).")
+@field_option("--enclave", spec=FLY, key="link.enclave", metavar="DIR",
+              help="ROS 2 security enclave (`ros2 security create_enclave`): DDS Security on (docs/fly.md).")
 @field_option("--rate", spec=FLY, key="rate", type=POSITIVE, metavar="HZ")
 @field_option("--dry-run", spec=FLY, key="dry_run", is_flag=True, default=None)
 @field_option("--sim-time", spec=FLY, key="sim_time", is_flag=True, default=None)
@@ -53,7 +55,7 @@ def _domain_id(value: int | None) -> int | None:
 @config_options(FLY)
 @library_call
 def fly_cmd(model: str, goal: tuple[float, float, float] | None, odometry_type: str | None, interface: str | None,
-            domain_id: int | None, rate: float | None, dry_run: bool | None, sim_time: bool | None,
+            domain_id: int | None, enclave: str | None, rate: float | None, dry_run: bool | None, sim_time: bool | None,
             record: Path | None, duration: float | None, settings: Settings) -> None:
     """Fly the planner on a robot's ROS 2 graph (PX4 over uXRCE-DDS, or any ROS 2 autopilot), no ROS needed.
 
@@ -70,7 +72,7 @@ def fly_cmd(model: str, goal: tuple[float, float, float] | None, odometry_type: 
     with option_values():
         config = settings.build(_defaults(), {
             "topics.odometry_type": odometry_type, "link.interface": interface, "link.domain_id": _domain_id(domain_id),
-            "rate": rate, "dry_run": dry_run, "sim_time": sim_time, "record": record})
+            "link.enclave": enclave, "rate": rate, "dry_run": dry_run, "sim_time": sim_time, "record": record})
         config.validate()
     log_to_stderr()
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # launch files and systemd stop with SIGTERM

@@ -45,7 +45,7 @@ SMOKE: dict[str, Smoke] = {
                                (r"workspace → foxglove\s+[\d.]+ s", r"workspace → rerun\s+[\d.]+ s",
                                 r"16³ VoxelGrid channel\s+[\d.]+ s"), slow=False),
     "bench_fly.py": Smoke(("--pairs", "1", "--world", "office"),
-                          (r"while planning\s+[\d.]+ %", r"depth message → first setpoint of its plan: median [\d.]+ ms",
+                          (r"while planning\s+[\d.]+ %", r"depth message → the first setpoint flown from its plan: median [\d.]+ ms",
                            r"difference [+-][\d.]+ points")),
     # The other engineer's benchmarks, run with their own options.
     "bench_foreign_flight.py": Smoke(("--seeds", "0", "--pairs", "1", "--stacks", "full"),

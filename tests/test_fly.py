@@ -154,6 +154,42 @@ def test_the_stream_flies_the_old_reference_until_the_new_one_starts() -> None:
         FlyConfig(plan_lead=0.5).validate()
 
 
+def test_the_stream_takes_references_as_they_arrive_and_stops_when_told() -> None:
+    """References sent while the stream waits for its next setpoint are taken then (the newest flown,
+    what it replaces kept until its start); None stops the stream."""
+    import multiprocessing as mp
+    import threading
+    from types import SimpleNamespace
+
+    from mapkit.fly._stream import _receive_until
+
+    stream_end, node_end = mp.Pipe()
+    first, second = SimpleNamespace(name="first", previous=None), SimpleNamespace(name="second", previous=None)
+    sender = threading.Timer(0.05, lambda: (node_end.send(first), node_end.send(second)))
+    sender.start()
+    reference, stop = _receive_until(stream_end, time.perf_counter() + 0.5, None)
+    sender.join()
+    assert not stop and reference.name == "second" and reference.previous.name == "first"
+    node_end.send(None)
+    assert _receive_until(stream_end, time.perf_counter() + 30.0, reference) == (reference, True)
+
+
+def test_plans_lead_the_clock_by_their_measured_hand_over(pilot) -> None:
+    """The configured lead until a few plans were handed over, then the 90th percentile of the last
+    twenty hand-over times plus 5 ms, at most half the pilot's replan interval."""
+    from mapkit.fly import FlyNode
+
+    cfg = FlyConfig(link=DdsConfig(domain_id=_domain()), plan_lead=0.08)
+    node = FlyNode(pilot, cfg, _kept(Link(cfg.link)))
+    node._handovers.extend([0.03] * 4)
+    assert node.plan_lead == 0.08
+    measured = [0.03] * 17 + [0.04, 0.05, 0.2]
+    node._handovers.extend(measured)
+    assert node.plan_lead == pytest.approx(np.quantile(measured, 0.9) + 0.005)
+    node._handovers.extend([0.4] * 20)
+    assert node.plan_lead == pytest.approx(0.5 * pilot.config.replan_interval)
+
+
 def test_px4_odometry_to_enu() -> None:
     # 1 m north, 2 m east, 3 m up, nose east (NED yaw 90°), flying forward at 1 m/s in the body frame
     q = [math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]
@@ -181,6 +217,33 @@ def test_loopback_config_and_bad_values() -> None:
 
 
 # -- the link ------------------------------------------------------------------------------------------------
+def test_a_security_enclave_becomes_cyclones_security_section(tmp_path: Path) -> None:
+    """An enclave as ``ros2 security create_enclave`` makes it: its six files in Cyclone's Security
+    section; a missing one named; a Cyclone without security plugins refused in one line that says how
+    to get one (the PyPI wheel has none)."""
+    import xml.etree.ElementTree as ET
+
+    from mapkit.fly._dds import ENCLAVE_FILES, has_security
+
+    with pytest.raises(FlyError, match="is not a directory"):
+        DdsConfig(enclave=str(tmp_path / "none"))
+    for _, _, name in ENCLAVE_FILES[:-1]:
+        (tmp_path / name).write_text("not a certificate")
+    with pytest.raises(FlyError, match=r"has no permissions\.p7s; make it with `ros2 security create_enclave"):
+        DdsConfig(enclave=str(tmp_path))
+    (tmp_path / "permissions.p7s").write_text("not signed")
+    config = DdsConfig(domain_id=_domain() - 60, enclave=str(tmp_path))  # a domain no other test opens
+    ns = {"c": "https://cdds.io/config"}
+    security = ET.fromstring(config.xml()).find("c:Domain/c:Security", ns)
+    assert security is not None
+    for section, element, name in ENCLAVE_FILES:
+        assert security.find(f"c:{section}/c:{element}", ns).text == f"file:{tmp_path.resolve() / name}"
+    assert ET.fromstring(DdsConfig().xml()).find("c:Domain/c:Security", ns) is None
+    why = "ENABLE_SECURITY=ON" if not has_security() else "DDS Security refused enclave"
+    with pytest.raises(FlyError, match=why):
+        Link(config)
+
+
 def test_messages_cross_between_processes_on_loopback(tmp_path: Path) -> None:
     domain = _domain()
     got: list[str] = []

@@ -9,13 +9,15 @@ nothing is sent to any other address. Another interface is used only when named.
 from __future__ import annotations
 
 import atexit
+import ctypes.util
 import threading
 import time
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal
-from xml.sax.saxutils import quoteattr
+from xml.sax.saxutils import escape, quoteattr
 
 from mapkit.fly._errors import FlyError
 from mapkit.fly._msgs import dds_type, decode, encode
@@ -24,6 +26,17 @@ Tap = Callable[[str, str, bytes, int], None]
 QosName = Literal["sensor", "reliable", "latched"]
 QOS_NAMES: tuple[str, ...] = ("sensor", "reliable", "latched")
 LOOPBACK = "lo"
+ENCLAVE_FILES = (("Authentication", "IdentityCertificate", "cert.pem"),
+                 ("Authentication", "IdentityCA", "identity_ca.cert.pem"),
+                 ("Authentication", "PrivateKey", "key.pem"),
+                 ("AccessControl", "PermissionsCA", "permissions_ca.cert.pem"),
+                 ("AccessControl", "Governance", "governance.p7s"),
+                 ("AccessControl", "Permissions", "permissions.p7s"))
+"""(section, Cyclone's element, the file of a ROS 2 security enclave) for each DDS Security file, as
+ROS 2's middleware reads an enclave made by ``ros2 security create_enclave``."""
+SECURITY_BUILD = ("DDS Security needs a Cyclone DDS built with it, and this one has none (the PyPI wheel is built "
+                  "without): build Cyclone DDS with -DENABLE_SECURITY=ON and install its Python binding against it "
+                  "(CYCLONEDDS_HOME=<its install> pip install --no-binary cyclonedds cyclonedds)")
 
 
 @dataclass(frozen=True)
@@ -37,12 +50,24 @@ class DdsConfig:
     ``wlan0``) joins that network with ROS 2's usual multicast discovery."""
     peers: tuple[str, ...] = ()
     """Extra unicast discovery peers (addresses), for networks without multicast."""
+    enclave: str = ""
+    """A ROS 2 security enclave: the directory ``ros2 security create_enclave KEYSTORE NAME`` makes (its
+    certificate and key, the two CAs, the signed governance and permissions). The participant then
+    authenticates, encrypts and keeps to its permissions with DDS Security, as a ROS 2 node run with that
+    enclave and ROS_SECURITY_ENABLE=true. Empty: no security. Needs a Cyclone DDS built with security."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.domain_id <= 232:
             raise FlyError(f"domain id {self.domain_id} is outside ROS 2's 0–232; pass --domain-id in that range")
         if not self.interface or any(c in self.interface for c in "<>&\"'"):
             raise FlyError(f"interface {self.interface!r} is not an interface name; pass e.g. --interface eth0")
+        if self.enclave and not Path(self.enclave).is_dir():
+            raise FlyError(f"enclave {self.enclave} is not a directory; make one with `ros2 security create_enclave "
+                           "KEYSTORE /mapkit` and pass KEYSTORE/enclaves/mapkit")
+        missing = [name for _, _, name in ENCLAVE_FILES if self.enclave and not (Path(self.enclave) / name).is_file()]
+        if missing:
+            raise FlyError(f"enclave {self.enclave} has no {', '.join(missing)}; make it with `ros2 security "
+                           "create_enclave KEYSTORE /mapkit` and pass KEYSTORE/enclaves/mapkit")
 
     def xml(self) -> str:
         """The Cyclone DDS configuration of this participant."""
@@ -54,8 +79,39 @@ class DdsConfig:
             f"<Interfaces><NetworkInterface name={quoteattr(self.interface)}/></Interfaces>"
             f"<AllowMulticast>{'false' if loopback else 'default'}</AllowMulticast></General>"
             "<Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>60</MaxAutoParticipantIndex>"
-            f"{'<Peers>' + peer_xml + '</Peers>' if peer_xml else ''}</Discovery></Domain></CycloneDDS>"
+            f"{'<Peers>' + peer_xml + '</Peers>' if peer_xml else ''}</Discovery>{self._security_xml()}"
+            "</Domain></CycloneDDS>"
         )
+
+    def _security_xml(self) -> str:
+        """Cyclone's Security section for :attr:`enclave` ('' without one)."""
+        if not self.enclave:
+            return ""
+        root = Path(self.enclave).resolve()
+        sections: dict[str, str] = {}
+        for section, element, name in ENCLAVE_FILES:
+            sections[section] = sections.get(section, "") + f"<{element}>{escape('file:' + str(root / name))}</{element}>"
+        return "<Security>" + "".join(f"<{k}>{v}</{k}>" for k, v in sections.items()) + "</Security>"
+
+
+def has_security() -> bool:
+    """True when Cyclone DDS's security plugins are here (a build with ENABLE_SECURITY installs them
+    beside its library; the PyPI wheel has none)."""
+    from cyclonedds.__library__ import library_path
+
+    beside = any(Path(library_path).parent.glob("*dds_security_auth*"))
+    return beside or ctypes.util.find_library("dds_security_auth") is not None
+
+
+def _refused(config: DdsConfig, exc: Exception) -> FlyError:
+    """Why Cyclone refused to start the participant, and the fix, as one line."""
+    if config.enclave and not has_security():
+        return FlyError(f"enclave {config.enclave}: {SECURITY_BUILD}")
+    if config.enclave:
+        return FlyError(f"DDS Security refused enclave {config.enclave} ({exc}): check that its certificate is "
+                        f"signed by its identity CA and that its permissions allow domain {config.domain_id}")
+    return FlyError(f"DDS cannot start on interface {config.interface!r} (domain {config.domain_id}): {exc}; "
+                    "check the interface name (`ip link`)")
 
 
 def dds_topic(name: str) -> str:
@@ -98,8 +154,7 @@ def _domain(config: DdsConfig) -> None:
         try:
             _DOMAINS[config.domain_id] = (xml, Domain(config.domain_id, xml))
         except Exception as exc:  # Cyclone raises DDSException with a generic text for a bad config
-            raise FlyError(f"DDS cannot start on interface {config.interface!r} (domain {config.domain_id}): {exc}; "
-                           "check the interface name (`ip link`)") from exc
+            raise _refused(config, exc) from exc
 
 
 class Link:
@@ -112,7 +167,10 @@ class Link:
         self.tap = tap
         """Called with (topic, msgtype, CDR bytes, time ns) for every message read or written."""
         _domain(self.config)
-        self._participant: Any = DomainParticipant(self.config.domain_id)
+        try:
+            self._participant: Any = DomainParticipant(self.config.domain_id)
+        except Exception as exc:  # security plugins check the enclave when a participant starts
+            raise _refused(self.config, exc) from exc
         self._topics: dict[str, Any] = {}
         self._entities: list[Any] = []
         _OPEN_LINKS.add(self)

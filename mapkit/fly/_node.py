@@ -43,6 +43,12 @@ JUMP_SPEED = 10.0
 """m/s: odometry that moves faster than this between two messages has jumped (see FlyNode._jumped)."""
 ODOMETRY_HISTORY = 2.0
 """Seconds of odometry kept to find the body's pose at a frame's stamp."""
+LEAD_QUANTILE, LEAD_MARGIN = 0.9, 0.005
+"""A plan leads the node's clock by this quantile of the last plans' hand-over times plus this many
+seconds: one in ten or fewer arrives late, by a few ms, too little for its setpoints to jump visibly
+(position is continuous to jerk at a takeover, yaw to its rate)."""
+LEAD_HISTORY, LEAD_MIN_PLANS = 20, 5
+"""Hand-over times kept, and how many before they replace ``FlyConfig.plan_lead``."""
 
 
 class RateLimitedLog:
@@ -100,10 +106,13 @@ class FlyNode:
         self._state = {"state": "waiting", "reason": "no odometry yet"}
         self.frames_dropped = 0
         self.late_plans = 0
-        """References handed to the stream after the time they were made for (the setpoints jumped there):
-        raise ``plan_lead`` when this grows."""
+        """References handed to the stream after the time they were made for (the setpoints moved on to
+        them there)."""
+        self._handovers: deque[float] = deque(maxlen=LEAD_HISTORY)
+        self._last_t = -np.inf  # the last time a step was made for (the pilot's stamps never go back)
         self.steps: deque[tuple[float, float, PilotStep]] = deque(maxlen=1000)
-        """(time.perf_counter() at the frame's arrival, and when its step returned; the step) per frame flown."""
+        """Per frame flown: time.perf_counter() at the frame's arrival, and at the takeover of its answer
+        (the later of the time it was made for and its hand-over to the stream); the step."""
 
     # -- wiring ---------------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -163,6 +172,16 @@ class FlyNode:
         out["late_plans"] = self.late_plans
         out["problems"] = dict(self.log.counts)
         return out
+
+    @property
+    def plan_lead(self) -> float:
+        """Seconds ahead of the node's clock the next plan is made for: ``FlyConfig.plan_lead`` at first,
+        then :data:`LEAD_QUANTILE` of the last plans' hand-over times (the pilot's step and the send to the
+        stream) plus :data:`LEAD_MARGIN`, at most half the pilot's replan interval."""
+        if len(self._handovers) < LEAD_MIN_PLANS:
+            return self.config.plan_lead
+        lead = float(np.quantile(np.asarray(self._handovers), LEAD_QUANTILE)) + LEAD_MARGIN
+        return min(lead, 0.5 * self.pilot.config.replan_interval)
 
     def _set_state(self, state: str, reason: str, **extra: Any) -> None:
         with self._lock:
@@ -311,7 +330,8 @@ class FlyNode:
         if odo is None:
             return self._set_state("waiting", f"no odometry yet on {c.topics.odometry_topic}")
         now = self._seconds(now_ns)
-        plan_t = now + c.plan_lead  # the pilot's clock: the plan takes over once the stream has it
+        plan_t = self._last_t = max(now + self.plan_lead, self._last_t)  # taken over once the stream has it
+        call = (time.perf_counter(), plan_t - now)
         if self._jump:
             self._jump = False
             self.pilot.reset()
@@ -325,15 +345,16 @@ class FlyNode:
             if self.pilot.reference is None:
                 return self._set_state("waiting", f"no odometry for {age:.2f} s")
             return self._adopt(self.pilot.stop(plan_t, f"no odometry for {age:.2f} s (odometry_timeout "
-                                                       f"{c.odometry_timeout} s): braking, then holding"), plan_t, None)
+                                                       f"{c.odometry_timeout} s): braking, then holding"), plan_t, None,
+                               call)
         state = VehicleState(position=odo.position, velocity=odo.velocity, yaw=odo.yaw)
         inputs = None if pending is None else self._frame_inputs(pending)
         if inputs is None:
-            return self._adopt(self.pilot.step(plan_t, state, goal), plan_t, None)
+            return self._adopt(self.pilot.step(plan_t, state, goal), plan_t, None, call)
         depth, T_world_body, T_body_camera = inputs
         step = self.pilot.step(plan_t, state, goal, depth, K=K, T_world_body=T_world_body,
                                T_body_camera=T_body_camera)
-        self._adopt(step, plan_t, pending)
+        self._adopt(step, plan_t, pending, call)
 
     def _hold_here(self, odo: Odometry, now: float) -> None:
         """Before a goal: hold where the vehicle is (again, when it is moved farther than the pilot's
@@ -352,18 +373,23 @@ class FlyNode:
         if self._stream is not None and reference is not None:
             self._stream.send(StreamedReference.of(reference, start))
 
-    def _adopt(self, step: PilotStep, start: float, frame: _Pending | None) -> None:
-        """Fly the pilot's answer, made for ``start`` (the node's clock plus ``plan_lead``)."""
+    def _adopt(self, step: PilotStep, start: float, frame: _Pending | None, call: tuple[float, float]) -> None:
+        """Fly the pilot's answer, made for ``start`` (the node's clock plus :attr:`plan_lead`); ``call`` is
+        time.perf_counter() when the pilot was called, and how far ahead of the clock ``start`` was."""
         with self._lock:
             changed = step.reference is not self._reference
             self._reference = step.reference
             self._state = {"state": step.status, "reason": step.reason}
-        if frame is not None:
-            self.steps.append((frame.received_perf, time.perf_counter(), step))
         if changed:
             self._send(step.reference, start)
             if self._seconds(self.now_ns()) > start:
                 self.late_plans += 1
+        handed = time.perf_counter()
+        if step.replanned:
+            self._handovers.append(handed - call[0])
+        if frame is not None:
+            self.steps.append((frame.received_perf, max(handed, call[0] + call[1]), step))
+        if changed:
             self._publish_path(_outputs.path(step.reference, start, self.now_ns(), self.config.frames.world))
 
     def _frame_inputs(self, pending: _Pending) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

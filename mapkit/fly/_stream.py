@@ -3,8 +3,8 @@
 Why a process: in the node's process the stream thread waits for Python's interpreter lock behind the
 planner and the message callbacks (a few hundred a second); measured there, one period in ten missed
 its 2 ms window. Alone, the same loop keeps every period within 0.5 ms. The node sends each new
-reference (its polynomials and its yaw profile, sampled ahead) through a pipe; the stream samples the
-newest one at the node's clock and publishes it.
+reference (its polynomials and its yaw profile, sampled ahead) through a pipe; the stream takes it as it
+arrives, samples the newest one at the node's clock and publishes it.
 """
 
 from __future__ import annotations
@@ -26,6 +26,9 @@ STREAM_PRIORITY = 10
 keeps 5 % of each second for other work even so)."""
 STREAM_NICE = -10
 """Niceness the stream process asks for where real time is refused."""
+POLL_SLACK = 0.002
+"""Seconds before a setpoint's time that waiting for references stops and a precise sleep takes over
+(the pipe's wait rounds up to whole milliseconds)."""
 YAW_AHEAD = 10.0
 """Seconds of the yaw profile sent with a reference beyond its end (then the heading holds)."""
 
@@ -106,6 +109,21 @@ def _raise_priority() -> str:
         return "default"
 
 
+def _receive_until(conn: Any, deadline: float, reference: StreamedReference | None
+                   ) -> tuple[StreamedReference | None, bool]:
+    """Take the references the node sends until ``deadline`` (time.perf_counter()), as they arrive, so a
+    plan is flown from the next setpoint on; (the newest reference, whether the node said stop)."""
+    while conn.poll(max(deadline - time.perf_counter() - POLL_SLACK, 0.0)):
+        newest = conn.recv()
+        if newest is None:
+            return reference, True
+        newest.previous, reference = reference, newest
+    delay = deadline - time.perf_counter()
+    if delay > 0:
+        time.sleep(delay)
+    return reference, False
+
+
 def _run(conn: Any, config: FlyConfig, sim_ns: Any, t0_ns: Any) -> None:
     """The stream process: publish the newest reference at ``config.rate`` until told to stop."""
     from mapkit.fly import _outputs
@@ -122,17 +140,12 @@ def _run(conn: Any, config: FlyConfig, sim_ns: Any, t0_ns: Any) -> None:
     times: list[float] = []
     period, deadline = 1.0 / config.rate, time.perf_counter()
     while True:
-        while conn.poll():
-            newest = conn.recv()
-            if newest is None:
-                conn.send((times, priority))
-                return
-            newest.previous, reference = reference, newest
         deadline += period
-        delay = deadline - time.perf_counter()
-        if delay > 0:
-            time.sleep(delay)
-        elif delay < -period:  # more than a period late (a suspended process): start the beat again
+        reference, stop = _receive_until(conn, deadline, reference)
+        if stop:
+            conn.send((times, priority))
+            return
+        if deadline - time.perf_counter() < -period:  # a period late (a suspended process): start the beat again
             deadline = time.perf_counter()
         if reference is None:
             continue
