@@ -99,19 +99,25 @@ def timing(node: object) -> None:
         print(f"  {name:15s} {100 * np.mean(err <= 0.002):6.2f} % of {len(err)}, worst {1e3 * err.max():.1f} ms, "
               f"p99 {1e3 * np.quantile(err, 0.99):.2f} ms")
     times_sorted = np.sort(times)
-    lat = []
-    for received, takeover, step in node.steps:
-        if step.taken:
-            i = np.searchsorted(times_sorted, takeover)
-            if i < len(times_sorted):
-                lat.append(1e3 * (times_sorted[i] - received))
-    if lat:
-        plan = [s.latency_ms for _, _, s in node.steps if s.taken]
-        print(f"depth message → the first setpoint flown from its plan: median {np.median(lat):.1f} ms, p95 "
-              f"{np.quantile(lat, 0.95):.1f} ms over {len(lat)} plans (the pilot's step inside: median "
-              f"{np.median(plan):.1f} ms; ratio {np.median(lat) / np.median(plan):.2f}x); plans made for "
-              f"{1e3 * node.plan_lead:.0f} ms ahead at the end (plan_lead, measured), {node.late_plans} arrived "
-              "later than that")
+    taken = [t for t in node.steps if t.step.taken and np.searchsorted(times_sorted, t.takeover) < len(times_sorted)]
+    if not taken:
+        return
+    first = np.array([times_sorted[np.searchsorted(times_sorted, t.takeover)] for t in taken])
+    stages = {"waiting for the planner": [t.called - t.received for t in taken],
+              "the pilot's step and the hand-over": [t.handed - t.called for t in taken],
+              "until the time it was made for": [t.takeover - t.handed for t in taken],
+              "until the next setpoint": first - [t.takeover for t in taken]}
+    lat = 1e3 * (first - [t.received for t in taken])
+    print(f"depth message → the first setpoint flown from its plan: median {np.median(lat):.1f} ms, p95 "
+          f"{np.quantile(lat, 0.95):.1f} ms over {len(lat)} plans; medians: " +
+          ", ".join(f"{name} {1e3 * np.median(v):.1f} ms" for name, v in stages.items()))
+    print(f"  plans made for {1e3 * node.plan_lead:.0f} ms ahead at the end (plan_lead, measured); {node.late_plans} "
+          f"arrived after their time, by {_spread(node.late_by)}")
+
+
+def _spread(seconds: object) -> str:
+    values = 1e3 * np.asarray(list(seconds), dtype=float)
+    return f"median {np.median(values):.1f} ms, max {values.max():.1f} ms" if len(values) else "nothing"
 
 
 def eval_peer(args: argparse.Namespace, worlds: tuple[str, ...]) -> dict[tuple[str, int], str]:

@@ -20,7 +20,7 @@ from mapkit.fly._frames import (
     yaw_ned_to_enu,
 )
 from mapkit.fly._msgs import dds_type, dds_typename, decode, encode, message, typestore
-from mapkit.fly._node import FlyNode
+from mapkit.fly._node import FlyNode, TimedStep
 from mapkit.fly._record import Recording
 from mapkit.fly._run import FlySummary, fly
 from mapkit.fly._sitl import SimulatedVehicle, SitlFlight, setpoint_from_px4
@@ -28,7 +28,7 @@ from mapkit.fly._sitl import SimulatedVehicle, SitlFlight, setpoint_from_px4
 __all__ = [
     "DEPTH_TYPES", "LOOPBACK", "ODOMETRY_TYPES",
     "DdsConfig", "FlyConfig", "FlyError", "FlyNode", "FlySummary", "Frames", "Link", "Recording", "SimulatedVehicle",
-    "SitlFlight", "Topics",
+    "SitlFlight", "TimedStep", "Topics",
     "R_world_body_from_px4", "dds_topic", "dds_type", "dds_typename", "decode", "encode", "enu_to_ned", "fly",
     "message", "ned_to_enu", "px4_quaternion", "setpoint_from_px4", "typestore", "yaw_enu_to_ned", "yaw_ned_to_enu",
 ]

@@ -87,7 +87,7 @@ class FlyConfig:
     plan_lead: float = 0.1
     """Seconds ahead of the node's clock that the first plans are made for. Later plans lead by what
     planning and handing a plan to the setpoint stream took, measured (:attr:`FlyNode.plan_lead`: the
-    90th percentile of the last 20 plans, plus 5 ms). The stream flies the previous reference until the
+    median of the last 20 plans, plus 3 ms). The stream flies the previous reference until the
     new one's time, so the setpoints never jump (a jump in yaw makes a small quadrotor climb), and the
     plan takes over as soon as it can. A plan that arrives later than its time is counted in the status's ``late_plans``.
     (`mapkit eval` plans in simulated time that stands still while it plans: it needs no lead.)"""

@@ -43,10 +43,12 @@ JUMP_SPEED = 10.0
 """m/s: odometry that moves faster than this between two messages has jumped (see FlyNode._jumped)."""
 ODOMETRY_HISTORY = 2.0
 """Seconds of odometry kept to find the body's pose at a frame's stamp."""
-LEAD_QUANTILE, LEAD_MARGIN = 0.9, 0.005
+LEAD_QUANTILE, LEAD_MARGIN = 0.5, 0.003
 """A plan leads the node's clock by this quantile of the last plans' hand-over times plus this many
-seconds: one in ten or fewer arrives late, by a few ms, too little for its setpoints to jump visibly
-(position is continuous to jerk at a takeover, yaw to its rate)."""
+seconds: about half take over at their time, the others as they arrive, later by the spread of the
+hand-over (10–20 ms on 2 cores). That is too little for the setpoints to move visibly: at a takeover
+position is continuous to jerk and yaw to its rate, so 15 ms late moves the acceleration by ~0.01 m/s²
+and the yaw rate by ≤ 0.2 rad/s. A later quantile would delay every plan to spare a few of them that."""
 LEAD_HISTORY, LEAD_MIN_PLANS = 20, 5
 """Hand-over times kept, and how many before they replace ``FlyConfig.plan_lead``."""
 
@@ -68,6 +70,21 @@ class RateLimitedLog:
         held = self._held.pop(kind, 0)
         self._last[kind] = now
         log.warning("%s%s", text, f" ({held} more like it since the last line)" if held else "")
+
+
+@dataclass(frozen=True)
+class TimedStep:
+    """One frame flown, with when (time.perf_counter()) each stage of it happened."""
+
+    received: float
+    """The depth message arrived."""
+    called: float
+    """The pilot was called with it."""
+    handed: float
+    """The pilot's answer was handed to the setpoint stream."""
+    takeover: float
+    """The answer takes over: the later of the time it was made for and ``handed``."""
+    step: PilotStep
 
 
 @dataclass
@@ -108,11 +125,12 @@ class FlyNode:
         self.late_plans = 0
         """References handed to the stream after the time they were made for (the setpoints moved on to
         them there)."""
+        self.late_by: deque[float] = deque(maxlen=1000)
+        """Seconds each late reference arrived after its time."""
         self._handovers: deque[float] = deque(maxlen=LEAD_HISTORY)
         self._last_t = -np.inf  # the last time a step was made for (the pilot's stamps never go back)
-        self.steps: deque[tuple[float, float, PilotStep]] = deque(maxlen=1000)
-        """Per frame flown: time.perf_counter() at the frame's arrival, and at the takeover of its answer
-        (the later of the time it was made for and its hand-over to the stream); the step."""
+        self.steps: deque[TimedStep] = deque(maxlen=1000)
+        """The last frames flown, each with its timing."""
 
     # -- wiring ---------------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -176,7 +194,7 @@ class FlyNode:
     @property
     def plan_lead(self) -> float:
         """Seconds ahead of the node's clock the next plan is made for: ``FlyConfig.plan_lead`` at first,
-        then :data:`LEAD_QUANTILE` of the last plans' hand-over times (the pilot's step and the send to the
+        then the median (:data:`LEAD_QUANTILE`) of the last plans' hand-over times (the pilot's step and the send to the
         stream) plus :data:`LEAD_MARGIN`, at most half the pilot's replan interval."""
         if len(self._handovers) < LEAD_MIN_PLANS:
             return self.config.plan_lead
@@ -382,13 +400,15 @@ class FlyNode:
             self._state = {"state": step.status, "reason": step.reason}
         if changed:
             self._send(step.reference, start)
-            if self._seconds(self.now_ns()) > start:
+            late = self._seconds(self.now_ns()) - start
+            if late > 0:
                 self.late_plans += 1
+                self.late_by.append(late)
         handed = time.perf_counter()
         if step.replanned:
             self._handovers.append(handed - call[0])
         if frame is not None:
-            self.steps.append((frame.received_perf, max(handed, call[0] + call[1]), step))
+            self.steps.append(TimedStep(frame.received_perf, call[0], handed, max(handed, call[0] + call[1]), step))
         if changed:
             self._publish_path(_outputs.path(step.reference, start, self.now_ns(), self.config.frames.world))
 
