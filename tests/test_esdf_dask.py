@@ -146,6 +146,7 @@ def test_build_esdf_on_dask_equals_the_in_core_path(box_ws: Path, unknown: str, 
 @pytest.mark.slow
 def test_cli_esdf_workers_and_an_unreachable_scheduler(box_ws: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("DASK_SCHEDULER_ADDRESS", raising=False)
+    monkeypatch.setattr("mapkit._dask.CONNECT_TIMEOUT_S", 1.0)  # refused either way; not 10 s of retries
     runner = CliRunner()
     result = runner.invoke(main, ["esdf", "-w", str(box_ws), "--workers", "1", "--set", "max_dist=0.8", "--overwrite"])
     assert result.exit_code == 0, result.output

@@ -80,7 +80,9 @@ def test_cli_scheduler_local_starts_a_cluster_and_writes_the_same_results(tiny_r
     assert (tmp_path / "here" / "results.json").read_bytes() == (tmp_path / "dask" / "results.json").read_bytes()
 
 
-def test_cli_unreachable_scheduler_is_one_line(tiny_run: Path, tmp_path: Path) -> None:  # noqa: F811 - fixture
+def test_cli_unreachable_scheduler_is_one_line(tiny_run: Path, tmp_path: Path,  # noqa: F811 - fixture
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr("mapkit._dask.CONNECT_TIMEOUT_S", 1.0)  # refused either way; not 10 s of retries
     r = CliRunner().invoke(main, ["eval", "--model", str(tiny_run), "--world", "office", "--pairs", "1",
                                   "--scheduler", "tcp://127.0.0.1:9", "-o", str(tmp_path / "ev")])
     assert r.exit_code == 1, r.output
