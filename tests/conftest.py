@@ -27,6 +27,11 @@ SLOW_FIRST = (
     "test_benchmarks.py::test_benchmark_runs_at_tiny_sizes[bench_train.py]",
     "test_benchmarks.py::test_benchmark_runs_at_tiny_sizes[bench_pilot.py]",
     "test_eval_dask.py::test_cli_scheduler_local_starts_a_cluster_and_writes_the_same_results",
+    "test_planner.py::test_winner_takes_all_keeps_the_detour_that_wins",
+    "test_judge_tune.py::test_fitting_the_head_learns_what_the_image_shows_on_unseen_candidates",
+    "test_timing_tune.py::test_imitation_fits_the_gradient_descent_split_on_unseen_plans",
+    "test_train.py::test_held_out_worlds_validate_and_select_the_model",
+    "test_eval.py::test_same_seed_gives_identical_results_json",
 )
 
 
