@@ -49,3 +49,19 @@ def pytest_configure(config: pytest.Config) -> None:
     # while the other worker runs dry. Two at a time keeps the slow ones first and the workers even.
     if getattr(config.option, "numprocesses", None) and getattr(config.option, "maxschedchunk", 0) is None:
         config.option.maxschedchunk = 2
+
+
+@pytest.fixture(autouse=True)
+def _dask_scheduler_restored():
+    """Each test starts with the process's Dask scheduler setting as it was: a distributed Client that a
+    test leaves as the default (killed workers, a cluster torn down mid-test) would otherwise send a
+    later test's plain `.compute()` to a client that no longer exists."""
+    import dask
+
+    before = dask.config.get("scheduler", None)
+    yield
+    if dask.config.get("scheduler", None) != before:
+        if before is None:
+            dask.config.config.pop("scheduler", None)
+        else:
+            dask.config.set(scheduler=before)
